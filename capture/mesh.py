@@ -1,0 +1,133 @@
+"""Triangle meshes with albedo, as the renderer and the simulator consume them.
+
+A :class:`SceneMesh` holds vertices in millimetres in its own (object) frame, faces,
+and its surface colour (albedo in [0, 1]) either per vertex or as a procedural
+*albedo field* evaluated at any 3-D point of the object frame (exact at every pixel,
+the way camouflage paint patterns are defined by the built-in targets).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.checks import check_array
+from prism3d.errors import InputError
+
+__all__ = ["AlbedoField", "SceneMesh", "UniformAlbedo"]
+
+
+class AlbedoField(Protocol):
+    """Anything mapping object-frame points ``(N, 3)`` mm to albedo ``(N, 3)`` in [0, 1]."""
+
+    def __call__(self, points_obj: NDArray[np.float64]) -> NDArray[np.float64]: ...
+
+
+@dataclass(frozen=True)
+class UniformAlbedo:
+    """One colour everywhere."""
+
+    rgb: tuple[float, float, float] = (0.7, 0.7, 0.7)
+
+    def __call__(self, points_obj: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.broadcast_to(np.asarray(self.rgb, dtype=np.float64), (len(points_obj), 3)).copy()
+
+
+@dataclass(frozen=True, eq=False)
+class SceneMesh:
+    """A triangle mesh in millimetres with albedo.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float64
+        Vertex positions in the object frame, millimetres.
+    faces : (M, 3) int64
+        Vertex indices of each triangle, counter-clockwise seen from outside.
+    vertex_albedo : (N, 3) float64, optional
+        Per-vertex albedo in [0, 1] (interpolated barycentrically).
+    albedo_field : AlbedoField, optional
+        Procedural albedo evaluated at surface points (takes precedence over
+        ``vertex_albedo``). Default: uniform 0.7 grey when neither is given.
+    name : str
+        For messages and reports.
+    """
+
+    vertices: NDArray[np.float64]
+    faces: NDArray[np.int64]
+    vertex_albedo: NDArray[np.float64] | None = None
+    albedo_field: AlbedoField | Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None
+    name: str = "mesh"
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        v = check_array(self.vertices, f"{self.name}.vertices", shape=(None, 3), dtype_kind="fiu")
+        f = check_array(self.faces, f"{self.name}.faces", shape=(None, 3), dtype_kind="iu")
+        if len(v) == 0 or len(f) == 0:
+            raise InputError(f"{self.name}: empty mesh (no vertices or no faces)")
+        if not np.all(np.isfinite(v)):
+            raise InputError(f"{self.name}: vertices contain NaN or inf")
+        if f.min() < 0 or f.max() >= len(v):
+            raise InputError(f"{self.name}: face indices out of range [0, {len(v)})")
+        object.__setattr__(self, "vertices", np.ascontiguousarray(v, dtype=np.float64))
+        object.__setattr__(self, "faces", np.ascontiguousarray(f, dtype=np.int64))
+        if self.vertex_albedo is not None:
+            a = check_array(self.vertex_albedo, f"{self.name}.vertex_albedo", shape=(len(v), 3))
+            a = a.astype(np.float64)
+            if a.max(initial=0) > 1.0 + 1e-9 or a.min(initial=0) < 0:
+                raise InputError(f"{self.name}: vertex_albedo must lie in [0, 1]")
+            object.__setattr__(self, "vertex_albedo", np.ascontiguousarray(a))
+
+    @property
+    def bounds(self) -> NDArray[np.float64]:
+        """``(2, 3)`` min and max corner, mm."""
+        return np.stack([self.vertices.min(0), self.vertices.max(0)])
+
+    @property
+    def extent_mm(self) -> NDArray[np.float64]:
+        """Axis-aligned size ``(3,)`` mm."""
+        b = self.bounds
+        return b[1] - b[0]
+
+    def albedo_at(
+        self, points_obj: NDArray[np.float64], face_ids: NDArray[np.int64], bary_uv: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """Albedo ``(N, 3)`` at surface points given their faces and barycentric (u, v).
+
+        ``bary_uv`` follows Open3D's convention: point = (1-u-v) a + u b + v c.
+        """
+        if self.albedo_field is not None:
+            out = np.asarray(self.albedo_field(points_obj), dtype=np.float64)
+            return np.clip(out, 0.0, 1.0)
+        if self.vertex_albedo is not None:
+            tri = self.faces[face_ids]
+            u = bary_uv[:, 0:1]
+            w = bary_uv[:, 1:2]
+            a = self.vertex_albedo
+            return (1 - u - w) * a[tri[:, 0]] + u * a[tri[:, 1]] + w * a[tri[:, 2]]
+        return np.full((len(points_obj), 3), 0.7)
+
+    def transformed(self, T_new_obj: NDArray[np.float64], name: str | None = None) -> SceneMesh:
+        """The mesh with vertices mapped by a 4x4 transform (albedo field follows it)."""
+        T = check_array(T_new_obj, "T_new_obj", shape=(4, 4)).astype(np.float64)
+        v = self.vertices @ T[:3, :3].T + T[:3, 3]
+        fieldf = self.albedo_field
+        if fieldf is not None:
+            T_obj_new = np.linalg.inv(T)
+
+            def moved(points: NDArray[np.float64], _f=fieldf, _T=T_obj_new) -> NDArray[np.float64]:
+                return _f(points @ _T[:3, :3].T + _T[:3, 3])
+
+            fieldf = moved
+        return SceneMesh(v, self.faces, self.vertex_albedo, fieldf, name or self.name, dict(self.metadata))
+
+    def vertex_colors(self) -> NDArray[np.float64]:
+        """Albedo at every vertex ``(N, 3)`` (for viewers, PLY export, pyrender)."""
+        if self.albedo_field is not None:
+            return np.clip(np.asarray(self.albedo_field(self.vertices), dtype=np.float64), 0, 1)
+        if self.vertex_albedo is not None:
+            return self.vertex_albedo.copy()
+        return np.full((len(self.vertices), 3), 0.7)

@@ -1,0 +1,1 @@
+"""prism3d.datasets: built-in targets, the target database and its jobs."""

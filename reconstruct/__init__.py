@@ -1,0 +1,2 @@
+"""prism3d.reconstruct: calibration, rectification, stereo matching, triangulation,
+meshing, ICP stitching and the accuracy test."""
