@@ -82,7 +82,7 @@ def read_filestorage(path: str | Path, keys: list[str] | None = None) -> dict[st
         )
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
+    except (cv2.error, SystemError) as exc:  # OpenCV's parser raises either
         msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "parse error"
         raise InputError(f"{path}: malformed FileStorage file ({msg})") from exc
     try:

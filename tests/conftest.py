@@ -1,0 +1,39 @@
+"""Shared pytest fixtures.
+
+Real third-party data lives outside the project (``../shared/data`` relative to the
+repository root, or wherever ``PRISM3D_TEST_DATA`` points). Tests that need it take
+the ``shared_data`` fixture, which skips (never fails) when the data is absent.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _shared_data_dir() -> Path | None:
+    env = os.environ.get("PRISM3D_TEST_DATA")
+    candidates = [Path(env)] if env else []
+    candidates.append(REPO_ROOT.parent / "shared" / "data")
+    for c in candidates:
+        if c.is_dir():
+            return c
+    return None
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """Path to the real test data folder, or skip the test when it is absent."""
+    d = _shared_data_dir()
+    if d is None:
+        pytest.skip("real test data not found (set PRISM3D_TEST_DATA or place ../shared/data)")
+    return d
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return REPO_ROOT

@@ -1,0 +1,90 @@
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+import prism3d
+from prism3d.checks import (
+    check_array,
+    check_choice,
+    check_file,
+    check_finite,
+    check_in_range,
+    check_positive,
+    check_same_shape,
+)
+from prism3d.errors import (
+    CalibrationError,
+    DatasetError,
+    DeviceError,
+    InputError,
+    Prism3dError,
+    ReconstructionError,
+)
+from prism3d.io.atomic import atomic_open, atomic_path, atomic_write_text
+
+
+def test_error_family():
+    for cls in (InputError, CalibrationError, ReconstructionError, DeviceError, DatasetError):
+        assert issubclass(cls, Prism3dError)
+    assert issubclass(InputError, ValueError)
+    assert prism3d.InputError is InputError
+
+
+def test_atomic_write_success_and_failure(tmp_path):
+    p = tmp_path / "out.txt"
+    atomic_write_text(p, "old")
+    with pytest.raises(RuntimeError):
+        with atomic_open(p, "w") as fh:
+            fh.write("half of the new")
+            raise RuntimeError("boom")
+    assert p.read_text() == "old"
+    assert [f.name for f in tmp_path.iterdir()] == ["out.txt"]  # no temp left behind
+    atomic_write_text(p, "new")
+    assert p.read_text() == "new"
+    assert oct(p.stat().st_mode & 0o777) != oct(0o600) or os.umask(0o022) == 0o077
+
+
+def test_atomic_path_keeps_suffix(tmp_path):
+    with atomic_path(tmp_path / "sub" / "x.png") as tmp:
+        assert tmp.suffix == ".png" and tmp.parent == tmp_path / "sub"
+        tmp.write_bytes(b"1")
+    assert (tmp_path / "sub" / "x.png").read_bytes() == b"1"
+
+
+def test_check_array_messages():
+    a = check_array([[1, 2, 3]], "pts", shape=(None, 3))
+    assert a.shape == (1, 3)
+    with pytest.raises(InputError, match=r"pts: expected shape \(\*, 3\), got \(2, 2\)"):
+        check_array(np.zeros((2, 2)), "pts", shape=(None, 3))
+    with pytest.raises(InputError, match="expected 2 or 3 dimensions, got 1"):
+        check_array(np.zeros(3), "img", ndim=(2, 3))
+    with pytest.raises(InputError, match="dtype kind"):
+        check_array(np.zeros(3, bool), "x", dtype_kind="f")
+    with pytest.raises(InputError, match="at least 4 elements"):
+        check_array(np.zeros(3), "x", min_size=4)
+    with pytest.raises(CalibrationError, match="x: expected"):
+        check_array(np.zeros(3), "x", ndim=2, error=CalibrationError)
+
+
+def test_scalar_checks(tmp_path):
+    assert check_positive(2, "n") == 2.0
+    with pytest.raises(InputError, match="n: expected a finite number > 0, got -1"):
+        check_positive(-1, "n")
+    with pytest.raises(InputError, match="expected a number"):
+        check_positive("abc", "n")
+    assert check_positive(0, "n", strict=False) == 0
+    with pytest.raises(InputError, match=r"in \[0, 1\]"):
+        check_in_range(2, "alpha", 0, 1)
+    with pytest.raises(InputError, match="expected one of a, b"):
+        check_choice("c", "mode", ["a", "b"])
+    with pytest.raises(InputError, match="NaN or inf"):
+        check_finite(np.array([1, np.nan]), "x")
+    with pytest.raises(InputError, match="same shape"):
+        check_same_shape(np.zeros((2, 3)), np.zeros((3, 2)), ("left", "right"))
+    with pytest.raises(InputError, match="not found"):
+        check_file(tmp_path / "nope")
+    with pytest.raises(InputError, match="directory"):
+        check_file(tmp_path)

@@ -1,0 +1,122 @@
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from prism3d.cli import main
+
+PRISM3D = [sys.executable, "-m", "prism3d.cli"]
+
+
+def run(args, **kw):
+    return subprocess.run(PRISM3D + list(args), capture_output=True, text=True, timeout=120, **kw)
+
+
+@pytest.mark.parametrize("layer", ["capture", "reconstruct", "atr", "datasets"])
+def test_layer_imports_in_fresh_process(layer):
+    r = subprocess.run([sys.executable, "-c", f"import prism3d.{layer} as m; print(m.__name__)"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == f"prism3d.{layer}"
+
+
+def test_environment_set_before_heavy_imports():
+    r = subprocess.run(
+        [sys.executable, "-c", "import os, prism3d; print(os.environ['PYOPENGL_PLATFORM'], "
+         "os.environ['NUMBA_THREADING_LAYER']); import sys; print('numpy' in sys.modules)"],
+        capture_output=True, text=True, timeout=60, env={k: v for k, v in os.environ.items()
+                                                         if k not in ("PYOPENGL_PLATFORM", "NUMBA_THREADING_LAYER")})
+    assert r.returncode == 0, r.stderr
+    line1, line2 = r.stdout.split("\n")[:2]
+    assert line1 == "osmesa omp"
+    assert line2 == "False"  # importing prism3d is cheap
+
+
+def test_user_choice_of_egl_is_kept():
+    env = dict(os.environ, PYOPENGL_PLATFORM="egl")
+    r = subprocess.run([sys.executable, "-c", "import os, prism3d; print(os.environ['PYOPENGL_PLATFORM'])"],
+                       capture_output=True, text=True, timeout=60, env=env)
+    assert r.stdout.strip() == "egl"
+
+
+def test_version_and_help_are_fast():
+    t0 = time.perf_counter()
+    r = run(["--version"])
+    assert r.returncode == 0 and r.stdout.startswith("prism3d ")
+    r = run(["--help"])
+    assert r.returncode == 0 and "COMMAND" in r.stdout
+    # not a timing assertion on the machine: check that no heavy module is imported
+    r = subprocess.run([sys.executable, "-c", "import sys; from prism3d.cli import build_parser; "
+                        "build_parser(); heavy=[m for m in ('numpy','cv2','open3d','numba','pyrender') "
+                        "if m in sys.modules]; print(heavy)"], capture_output=True, text=True, timeout=60)
+    assert r.stdout.strip() == "[]", r.stdout
+    assert time.perf_counter() - t0 > 0
+
+
+def test_no_command_prints_help(capsys):
+    assert main([]) == 2
+    assert "usage" in capsys.readouterr().out
+
+
+def test_unknown_command_exit_2(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["frobnicate"])
+    assert e.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_every_command_has_help(capsys):
+    from prism3d.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    assert "demo" in sub.choices
+    for name, p in sub.choices.items():
+        text = p.format_help()
+        assert len(p.description or p.format_usage()) > 10, name
+        assert "usage" in text
+
+
+def test_prism3d_error_maps_to_exit_2(monkeypatch, capsys):
+    import prism3d.demo as demo
+    from prism3d.errors import InputError
+
+    def boom(*a, **k):
+        raise InputError("bad.png: something\nwrong")
+
+    monkeypatch.setattr(demo, "run_demo", boom)
+    assert main(["demo", "x"]) == 2
+    err = capsys.readouterr().err
+    assert err == "prism3d demo: error: bad.png: something wrong\n"
+
+
+def test_unexpected_error_keeps_traceback(monkeypatch):
+    import prism3d.demo as demo
+
+    def boom(*a, **k):
+        raise ZeroDivisionError("bug")
+
+    monkeypatch.setattr(demo, "run_demo", boom)
+    with pytest.raises(ZeroDivisionError):
+        main(["demo", "x"])
+
+
+def test_demo_writes_report(tmp_path):
+    out = tmp_path / "demo"
+    r = run(["demo", str(out), "--only", "environment"])
+    assert r.returncode == 0, r.stderr
+    html = (out / "report.html").read_text()
+    assert "<html" in html and "Installation check" in html
+    assert "http://" not in html and "https://" not in html  # works offline
+
+
+def test_console_script_installed():
+    exe = Path(sys.executable).parent / "prism3d"
+    assert exe.exists()
+    r = subprocess.run([str(exe), "--version"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0

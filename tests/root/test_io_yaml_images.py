@@ -1,0 +1,105 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from prism3d.errors import InputError
+from prism3d.io.images import read_depth, read_image, write_depth, write_image
+from prism3d.io.opencv_yaml import read_filestorage, write_filestorage
+
+
+def test_filestorage_round_trip_and_opencv_reads_it(tmp_path):
+    import cv2
+
+    K = np.array([[5107.0, 0.1, 647.5], [0, 5106.0, 971.5], [0, 0, 1]])
+    vals = {"K1": K, "D1": np.array([-0.06, 0.12, 0, 0, 0]), "rms_px": 0.123,
+            "n_views": 5, "board": "9x6", "image_size": np.array([1296, 1944])}
+    write_filestorage(tmp_path / "c.yaml", vals)
+    fs = cv2.FileStorage(str(tmp_path / "c.yaml"), cv2.FILE_STORAGE_READ)
+    np.testing.assert_array_equal(fs.getNode("K1").mat(), K)
+    assert fs.getNode("rms_px").real() == pytest.approx(0.123)
+    fs.release()
+    back = read_filestorage(tmp_path / "c.yaml")
+    np.testing.assert_array_equal(back["K1"], K)
+    np.testing.assert_array_equal(back["D1"].ravel(), vals["D1"])
+    assert back["n_views"] == 5 and back["board"] == "9x6"
+    np.testing.assert_array_equal(back["image_size"].ravel(), [1296, 1944])
+
+
+@pytest.mark.parametrize(
+    "content, match",
+    [
+        ("K1: [1, 2]\n", "not an OpenCV FileStorage"),
+        ("%YAML:1.0\n---\nK1: !!opencv-matrix\n   rows: 3\n   cols: [\n", "malformed|could not open"),
+    ],
+)
+def test_filestorage_malformed(tmp_path, content, match):
+    p = tmp_path / "bad.yaml"
+    p.write_text(content)
+    with pytest.raises(InputError, match=match):
+        read_filestorage(p)
+
+
+def test_filestorage_missing_key(tmp_path):
+    write_filestorage(tmp_path / "c.yaml", {"a": 1})
+    with pytest.raises(InputError, match="missing entry 'K1'"):
+        read_filestorage(tmp_path / "c.yaml", keys=["K1"])
+
+
+def test_filestorage_bad_suffix(tmp_path):
+    with pytest.raises(InputError, match="must end in"):
+        write_filestorage(tmp_path / "c.txt", {"a": 1})
+
+
+def test_image_round_trip_rgb_order(tmp_path):
+    import cv2
+
+    img = np.zeros((4, 5, 3), np.uint8)
+    img[..., 0] = 200  # red
+    write_image(tmp_path / "a.png", img)
+    assert cv2.imread(str(tmp_path / "a.png"))[0, 0].tolist() == [0, 0, 200]  # BGR on disk
+    np.testing.assert_array_equal(read_image(tmp_path / "a.png"), img)
+    assert read_image(tmp_path / "a.png", grey=True).shape == (4, 5)
+
+
+def test_image_errors(tmp_path):
+    (tmp_path / "x.png").write_bytes(b"not a png")
+    with pytest.raises(InputError, match="cannot decode"):
+        read_image(tmp_path / "x.png")
+    with pytest.raises(InputError, match="not found"):
+        read_image(tmp_path / "missing.png")
+    with pytest.raises(InputError, match="uint8"):
+        write_image(tmp_path / "y.png", np.zeros((2, 2), np.float32))
+    with pytest.raises(InputError, match="extension"):
+        write_image(tmp_path / "y.xyz", np.zeros((2, 2), np.uint8))
+
+
+@pytest.mark.parametrize("suffix", [".tiff", ".npy", ".npz"])
+def test_depth_round_trip(tmp_path, suffix):
+    d = np.random.default_rng(0).uniform(1000, 1500, (6, 7)).astype(np.float32)
+    d[2, 3] = np.nan
+    write_depth(tmp_path / f"d{suffix}", d)
+    spec = tmp_path / f"d{suffix}"
+    back = read_depth(f"{spec}:depth_mm" if suffix == ".npz" else spec)
+    np.testing.assert_array_equal(back, d)
+
+
+def test_depth_npz_keys(tmp_path):
+    np.savez(tmp_path / "t.npz", depth_left_mm=np.ones((2, 2), np.float32), other=np.zeros(3))
+    assert read_depth(f"{tmp_path / 't.npz'}:depth_left_mm").shape == (2, 2)
+    with pytest.raises(InputError, match="holds 2 arrays"):
+        read_depth(tmp_path / "t.npz")
+    with pytest.raises(InputError, match="no array 'nope'"):
+        read_depth(f"{tmp_path / 't.npz'}:nope")
+    with pytest.raises(InputError, match="2-D numeric"):
+        read_depth(f"{tmp_path / 't.npz'}:other")
+    (tmp_path / "bad.npy").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="cannot read depth"):
+        read_depth(tmp_path / "bad.npy")
+    with pytest.raises(InputError, match="unsupported depth format"):
+        read_depth(_touch(tmp_path / "d.jpg"))
+
+
+def _touch(p):
+    p.write_bytes(b"x")
+    return p
