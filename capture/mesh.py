@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array
 from prism3d.errors import InputError
 
-__all__ = ["AlbedoField", "SceneMesh", "UniformAlbedo"]
+__all__ = ["AlbedoField", "MovedAlbedo", "SceneMesh", "UniformAlbedo"]
 
 
 class AlbedoField(Protocol):
@@ -35,6 +35,21 @@ class UniformAlbedo:
 
     def __call__(self, points_obj: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.broadcast_to(np.asarray(self.rgb, dtype=np.float64), (len(points_obj), 3)).copy()
+
+
+@dataclass(frozen=True, eq=False)
+class MovedAlbedo:
+    """An albedo field carried along by a rigid motion (picklable, unlike a closure).
+
+    ``T_obj_new`` maps points of the moved mesh's frame back to the field's frame.
+    """
+
+    field: AlbedoField
+    T_obj_new: NDArray[np.float64]
+
+    def __call__(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        T = self.T_obj_new
+        return self.field(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,12 +131,7 @@ class SceneMesh:
         v = self.vertices @ T[:3, :3].T + T[:3, 3]
         fieldf = self.albedo_field
         if fieldf is not None:
-            T_obj_new = np.linalg.inv(T)
-
-            def moved(points: NDArray[np.float64], _f=fieldf, _T=T_obj_new) -> NDArray[np.float64]:
-                return _f(points @ _T[:3, :3].T + _T[:3, 3])
-
-            fieldf = moved
+            fieldf = MovedAlbedo(fieldf, np.linalg.inv(T))
         return SceneMesh(v, self.faces, self.vertex_albedo, fieldf, name or self.name, dict(self.metadata))
 
     def vertex_colors(self) -> NDArray[np.float64]:
