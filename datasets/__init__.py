@@ -1,6 +1,6 @@
 """prism3d.datasets: built-in targets, the target database and its jobs."""
 
-from prism3d.datasets.camouflage import CamouflageField, camouflage_field, plain_paint
+from prism3d.capture.camouflage import CamouflageField, camouflage_field, plain_paint
 from prism3d.datasets.targets import (
     builtin_classes,
     builtin_target,

@@ -48,7 +48,7 @@ from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh
 from prism3d.checks import check_positive
-from prism3d.datasets.camouflage import CLASS_PALETTES, camouflage_field, plain_paint
+from prism3d.capture.camouflage import CLASS_PALETTES, camouflage_field, plain_paint
 from prism3d.errors import InputError
 from prism3d.io.ply import write_ply
 
@@ -605,13 +605,13 @@ def builtin_target(
         model is 150-280 mm long); ``"full"``: real size; a number: ratio to full
         size (``1.0`` = full size, ``1/35`` = a 1:35 model).
     camouflage : bool
-        Disruptive camouflage paint (:class:`~prism3d.datasets.camouflage.CamouflageField`)
+        Disruptive camouflage paint (:class:`~prism3d.capture.camouflage.CamouflageField`)
         when True, the plain base coat (uniform) when False.
     seed : int
         Camouflage pattern seed (>= 0). The geometry does not depend on it.
     palette : str, optional
         Override the class's default palette (see
-        :data:`~prism3d.datasets.camouflage.PALETTES`).
+        :data:`~prism3d.capture.camouflage.PALETTES`).
 
     Returns
     -------

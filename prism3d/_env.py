@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 
 #: OpenGL platform for headless pyrender: ``osmesa`` (default, software) or ``egl``.
 OPENGL_PLATFORMS = ("osmesa", "egl")
@@ -17,6 +18,11 @@ def configure_environment() -> None:
     """Set ``PYOPENGL_PLATFORM`` and ``NUMBA_THREADING_LAYER`` unless already set."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
     os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
+    # numba reads the variable once, when it is first imported; if something (a test
+    # runner, a notebook) imported it before us, set its config directly.
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        numba.config.THREADING_LAYER = os.environ["NUMBA_THREADING_LAYER"]
     # numba's on-disk cache lives beside the package unless the user chose a place;
     # an installed (read-only) package falls back to numba's own user cache.
 

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+import prism3d  # noqa: F401  (sets the process environment before numba/OpenGL load)
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 

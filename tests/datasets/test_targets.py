@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
-from prism3d.datasets.camouflage import CLASS_PALETTES, PALETTES, CamouflageField
+from prism3d.capture.camouflage import CLASS_PALETTES, PALETTES, CamouflageField
 from prism3d.datasets.targets import builtin_classes, builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 

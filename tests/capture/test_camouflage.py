@@ -1,4 +1,4 @@
-"""Known-answer tests for the procedural camouflage paint (prism3d.datasets.camouflage)."""
+"""Known-answer tests for the procedural camouflage paint (prism3d.capture.camouflage)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from prism3d.capture.mesh import UniformAlbedo
-from prism3d.datasets.camouflage import (
+from prism3d.capture.camouflage import (
     CLASS_PALETTES,
     PALETTES,
     CamouflageField,

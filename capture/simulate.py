@@ -1,0 +1,663 @@
+"""The scene simulator: one flash shot through the virtual prism rig, with ground truth.
+
+Image model (per view pixel, linear, values in [0, 1])::
+
+    illumination = ambient + flash * max(0, n . l) * visible * pattern_rgb / falloff
+    image        = clip(albedo * illumination, 0, 1)   -> blur -> noise -> uint8
+
+* ``n`` is the unit surface normal, ``l`` the unit direction from the surface point to
+  the projector centre; ``visible`` is 1 when the segment to the projector is free
+  (cast shadows, tested by ray casting), ``pattern_rgb`` the projector colour that
+  lands on the point (bilinear in the pattern image, 0 outside the projector's
+  frustum; 1 everywhere inside it for a white flash), and
+  ``falloff = (distance / Projector.ref_distance_mm) ** 2`` (inverse-square law,
+  1 at the reference distance). ``ambient`` is a uniform, shadowless light.
+* The truth ``shading_<view>`` is the same illumination with the pattern taken as
+  white (a scalar per pixel), ``illumination_<view>`` the RGB one. With a white
+  flash, supersample 1 and no noise, ``image / 255 == albedo * shading`` up to
+  quantisation.
+* Each view is rendered through its virtual camera (lens distortion exact) with
+  ``supersample x supersample`` rays per pixel box-averaged (colour only); the
+  truth maps come from one ray through each exact output pixel centre (depth is
+  never averaged across edges). The two views are then put on the sensor with
+  :meth:`PrismSplit.join` (mirror flips applied), and sensor noise is added.
+
+Contract of :func:`simulate_to_folder` (``prism3d simulate plate|calib|scene OUT``):
+see its docstring.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.capture.mesh import SceneMesh
+from prism3d.capture.pattern import stripe_pattern
+from prism3d.capture.render import (
+    RaycastRenderer,
+    RenderResult,
+    SensorNoise,
+    box_downsample,
+    gaussian_blur,
+    quantize,
+)
+from prism3d.capture.camouflage import CamouflageField
+from prism3d.capture.rig import CameraModel, Rectification, StereoRig, compute_rectification, paper_rig
+from prism3d.capture.scenes import (
+    TextureAlbedo,
+    calibration_board_poses,
+    chessboard,
+    chessboard_corners,
+    flat_plate,
+    translation,
+    turntable_poses,
+)
+from prism3d.checks import check_array, check_choice, check_in_range, check_positive
+from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_path, atomic_write_text
+
+__all__ = [
+    "Projector",
+    "Shot",
+    "simulate_shot",
+    "simulate_to_folder",
+    "write_ply",
+    "working_distance_mm",
+    "TRUTH_SCHEMA_VERSION",
+]
+
+#: Version of the truth ``.npz`` / ``poses.json`` layout.
+TRUTH_SCHEMA_VERSION = 1
+
+ProgressFn = Callable[[int, int, str], None]
+
+
+# -- projector -------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Projector:
+    """A pinhole flash projector.
+
+    Parameters
+    ----------
+    K : (3, 3) float64
+        Projector intrinsics (OpenCV pixel-centre convention) for the pattern image.
+    size : (int, int)
+        Pattern ``(width, height)`` in projector pixels.
+    pattern : (H, W, 3) uint8, optional
+        RGB image the projector casts; ``None`` = a uniform white flash.
+    T_rig_proj : (4, 4) float64
+        Projector pose in the rig frame (OpenCV frame). Default identity: the rig
+        origin (midway between the two views), looking along rig z.
+    ref_distance_mm : float
+        Distance at which the inverse-square falloff factor is 1.
+    """
+
+    K: NDArray[np.float64]
+    size: tuple[int, int]
+    pattern: NDArray[np.uint8] | None = None
+    T_rig_proj: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
+    ref_distance_mm: float = 1250.0
+
+    def __post_init__(self) -> None:
+        cam = CameraModel(self.K, np.zeros(5), self.size)  # validates K and size
+        object.__setattr__(self, "K", cam.K)
+        object.__setattr__(self, "size", cam.size)
+        if self.pattern is not None:
+            p = check_array(self.pattern, "pattern", ndim=3, dtype_kind="u")
+            w, h = cam.size
+            if p.shape != (h, w, 3) or p.dtype != np.uint8:
+                raise InputError(
+                    f"pattern: expected ({h}, {w}, 3) uint8 for a {w}x{h} projector, "
+                    f"got {p.shape} {p.dtype}"
+                )
+            object.__setattr__(self, "pattern", np.ascontiguousarray(p))
+        T = check_array(self.T_rig_proj, "T_rig_proj", shape=(4, 4)).astype(np.float64)
+        if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6):
+            raise InputError("T_rig_proj: rotation part is not a rotation")
+        object.__setattr__(self, "T_rig_proj", T)
+        check_positive(self.ref_distance_mm, "ref_distance_mm")
+
+    @classmethod
+    def for_rig(
+        cls,
+        rig: StereoRig,
+        *,
+        pattern: bool | NDArray[np.uint8] = True,
+        size: tuple[int, int] = (1024, 1280),
+        field_width_mm: float | None = None,
+        period_px: int = 8,
+        seed: int | None = None,
+    ) -> Projector:
+        """A projector at the rig origin whose field covers the views at the working
+        distance with margin (default width: 1.4x a view's field width).
+
+        ``pattern``: True = De Bruijn colour stripes (:func:`stripe_pattern`),
+        False = white flash, or an explicit ``(H, W, 3) uint8`` image.
+        """
+        wd = working_distance_mm(rig)
+        if field_width_mm is None:
+            field_width_mm = 1.4 * rig.left.width / rig.left.fx * wd
+        fw = check_positive(field_width_mm, "field_width_mm")
+        if isinstance(pattern, np.ndarray):
+            pat: NDArray[np.uint8] | None = pattern
+            h, w = pattern.shape[:2]
+        else:
+            w, h = int(size[0]), int(size[1])
+            pat = stripe_pattern(w, h, period_px=period_px, seed=seed) if pattern else None
+        f = w * wd / fw
+        K = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+        return cls(K, (w, h), pat, np.eye(4), wd)
+
+    @property
+    def position_rig(self) -> NDArray[np.float64]:
+        """Projector centre ``(3,)`` in the rig frame, mm."""
+        return self.T_rig_proj[:3, 3].copy()
+
+    def light_at(self, points_rig: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(rgb (N, 3), white (N,))`` the projector casts on rig-frame points.
+
+        ``white`` is 1 inside the frustum and 0 outside; ``rgb`` is the bilinearly
+        sampled pattern (``white`` repeated for a white flash).
+        """
+        T_proj_rig = np.linalg.inv(self.T_rig_proj)
+        pc = points_rig @ T_proj_rig[:3, :3].T + T_proj_rig[:3, 3]
+        z = pc[:, 2]
+        w, h = self.size
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = self.K[0, 0] * pc[:, 0] / z + self.K[0, 1] * pc[:, 1] / z + self.K[0, 2]
+            v = self.K[1, 1] * pc[:, 1] / z + self.K[1, 2]
+        inside = (z > 0) & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+        white = inside.astype(np.float64)
+        if self.pattern is None:
+            return np.repeat(white[:, None], 3, axis=1), white
+        rgb = np.zeros((len(pc), 3))
+        idx = np.nonzero(inside)[0]
+        if len(idx):
+            uu = np.clip(u[idx], 0.0, w - 1.0)
+            vv = np.clip(v[idx], 0.0, h - 1.0)
+            u0 = np.minimum(np.floor(uu).astype(np.int64), w - 2) if w > 1 else np.zeros(len(idx), np.int64)
+            v0 = np.minimum(np.floor(vv).astype(np.int64), h - 2) if h > 1 else np.zeros(len(idx), np.int64)
+            fu = (uu - u0)[:, None]
+            fv = (vv - v0)[:, None]
+            P = self.pattern.astype(np.float64) / 255.0
+            u1 = np.minimum(u0 + 1, w - 1)
+            v1 = np.minimum(v0 + 1, h - 1)
+            rgb[idx] = (
+                (1 - fu) * (1 - fv) * P[v0, u0]
+                + fu * (1 - fv) * P[v0, u1]
+                + (1 - fu) * fv * P[v1, u0]
+                + fu * fv * P[v1, u1]
+            )
+        return rgb, white
+
+
+def working_distance_mm(rig: StereoRig, default: float = 1250.0) -> float:
+    """Depth (rig z) where the left optical axis crosses the rig's y-z plane
+    (the convergence distance of a symmetric rig); ``default`` for parallel views."""
+    c = rig.T_rig_left[:3, 3]
+    z_axis = rig.T_rig_left[:3, 2]
+    if abs(z_axis[0]) < 1e-9:
+        return float(default)
+    s = -c[0] / z_axis[0]
+    p = c + s * z_axis
+    return float(p[2]) if s > 0 and p[2] > 0 else float(default)
+
+
+# -- one shot --------------------------------------------------------------------------
+@dataclass(eq=False)
+class Shot:
+    """A simulated flash shot.
+
+    Attributes
+    ----------
+    sensor_image : (H_s, W_s, 3) uint8
+        RGB side-by-side image as the camera records it (views joined by the prism
+        split, mirror flips applied).
+    truth : dict[str, ndarray]
+        Ground truth (see :func:`simulate_shot`).
+    rectification : Rectification
+        The rectification ``disparity_rect`` refers to.
+    """
+
+    sensor_image: NDArray[np.uint8]
+    truth: dict[str, NDArray]
+    rectification: Rectification
+
+
+def _illumination(
+    renderer: RaycastRenderer,
+    res: RenderResult,
+    R_world_cam: NDArray[np.float64],
+    projector: Projector,
+    ambient: float,
+    flash: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(illumination (N, 3), shading (N,))`` at the hit pixels of ``res`` (rig frame = world)."""
+    m = res.mask.reshape(-1)
+    idx = np.nonzero(m)[0]
+    P = res.points_world.reshape(-1, 3)[idx]
+    n_world = res.normals_cam.reshape(-1, 3)[idx].astype(np.float64) @ R_world_cam.T
+    src = projector.position_rig
+    lvec = src - P
+    dist = np.linalg.norm(lvec, axis=1)
+    ndotl = np.maximum(0.0, np.einsum("ij,ij->i", n_world, lvec) / dist)
+    rgb, white = projector.light_at(P)
+    lit = (ndotl > 0) & (white > 0)
+    vis = np.zeros(len(P))
+    li = np.nonzero(lit)[0]
+    if len(li):
+        vis[li] = renderer.visible_from(P[li], src).astype(np.float64)
+    k = flash * ndotl * vis * (projector.ref_distance_mm / dist) ** 2
+    illum = ambient + k[:, None] * rgb
+    shading = ambient + k * white
+    return illum, shading
+
+
+def _render_view(
+    renderer: RaycastRenderer,
+    cam: CameraModel,
+    T_rig_cam: NDArray,
+    projector: Projector,
+    ambient: float,
+    flash: float,
+    background: float,
+    supersample: int,
+) -> tuple[NDArray[np.float64], dict[str, NDArray]]:
+    """Clean colour image ``(H, W, 3)`` in [0, 1] and the truth maps of one view."""
+    w, h = cam.size
+    # truth: one exact ray per output pixel centre
+    R = T_rig_cam[:3, :3]
+    res1 = renderer.render(cam, T_rig_cam)
+    illum1, shade1 = _illumination(renderer, res1, R, projector, ambient, flash)
+    m1 = res1.mask.reshape(-1)
+    shading = np.full(h * w, np.nan, dtype=np.float32)
+    shading[m1] = shade1
+    illum = np.full((h * w, 3), np.nan, dtype=np.float32)
+    illum[m1] = illum1
+    truth = {
+        "depth_mm": res1.depth_mm,
+        "mask": res1.mask,
+        "albedo": res1.albedo,
+        "shading": shading.reshape(h, w),
+        "illumination": illum.reshape(h, w, 3),
+        "normals": res1.normals_cam,
+        "object_id": res1.object_id,
+    }
+
+    def colour(res: RenderResult, il: NDArray[np.float64]) -> NDArray[np.float64]:
+        hh, ww = res.mask.shape
+        img = np.full((hh * ww, 3), float(background))
+        mm = res.mask.reshape(-1)
+        img[mm] = np.clip(res.albedo.reshape(-1, 3)[mm].astype(np.float64) * il, 0.0, 1.0)
+        return img.reshape(hh, ww, 3)
+
+    if supersample == 1:
+        img = colour(res1, illum1)
+    else:
+        res_s = renderer.render(cam.scaled(supersample), T_rig_cam)
+        illum_s, _ = _illumination(renderer, res_s, R, projector, ambient, flash)
+        img = box_downsample(colour(res_s, illum_s), supersample)
+    return img, truth
+
+
+def simulate_shot(
+    rig: StereoRig,
+    objects: Sequence[tuple[SceneMesh, NDArray]],
+    *,
+    projector: Projector | None = None,
+    ambient: float = 0.25,
+    flash: float = 0.75,
+    supersample: int = 2,
+    noise: bool | SensorNoise = True,
+    blur_sigma: float = 0.0,
+    seed: int = 0,
+    rectification: Rectification | None = None,
+    background: float = 0.0,
+    renderer: RaycastRenderer | None = None,
+) -> Shot:
+    """Simulate one flash photograph through the prism rig, with exact ground truth.
+
+    Parameters
+    ----------
+    rig : StereoRig
+        The virtual rig (e.g. :func:`~prism3d.capture.rig.paper_rig`).
+    objects : sequence of (SceneMesh, (4, 4) float64)
+        Meshes and their poses ``T_rig_obj`` in the rig frame.
+    projector : Projector, optional
+        The flash. Default: a white flash at the rig origin
+        (``Projector.for_rig(rig, pattern=False)``).
+    ambient, flash : float
+        Ambient light level and flash strength (see the module docstring).
+    supersample : int
+        Rays per pixel along each axis for the colour image (box-averaged).
+    noise : bool or SensorNoise
+        Sensor noise (True = ``SensorNoise()``), seeded by ``seed``.
+    blur_sigma : float
+        Gaussian blur of each view (pixels), applied before noise.
+    seed : int
+        Seed of the noise generator; same seed, same image.
+    rectification : Rectification, optional
+        Grid of ``disparity_rect``; default ``compute_rectification(rig)``.
+    background : float
+        Image value where no surface is hit (0 = black).
+    renderer : RaycastRenderer, optional
+        A renderer already built for ``objects`` (in the rig frame), to reuse.
+
+    Returns
+    -------
+    Shot
+        ``truth`` holds, for ``<v>`` in ``left``/``right`` (view pixels after split
+        and un-flip): ``depth_<v>_mm`` (H, W) float32 NaN = no surface, ``mask_<v>``
+        bool, ``albedo_<v>`` (H, W, 3) float32, ``shading_<v>`` (H, W) float32,
+        ``illumination_<v>`` (H, W, 3) float32, ``normals_<v>`` (H, W, 3) float32
+        (camera frame, facing the camera), ``object_id_<v>`` int32; plus
+        ``disparity_rect`` (rectified-left grid, float32, NaN = no surface),
+        ``depth_rect_mm``, ``R1 R2 P1 P2 Q``, ``T_rig_left``, ``T_right_left``,
+        ``projector_T_rig_proj``.
+    """
+    if not isinstance(rig, StereoRig):
+        raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
+    a = check_in_range(ambient, "ambient", 0.0, 10.0)
+    fl = check_in_range(flash, "flash", 0.0, 10.0)
+    bg = check_in_range(background, "background", 0.0, 1.0)
+    ss = int(supersample)
+    if ss != supersample or ss < 1 or ss > 8:
+        raise InputError(f"supersample: expected an integer in [1, 8], got {supersample!r}")
+    blur = check_positive(blur_sigma, "blur_sigma", strict=False)
+    if projector is None:
+        projector = Projector.for_rig(rig, pattern=False)
+    elif not isinstance(projector, Projector):
+        raise InputError(f"projector: expected a Projector or None, got {type(projector).__name__}")
+    if noise is True:
+        noise_model: SensorNoise | None = SensorNoise()
+    elif noise is False or noise is None:
+        noise_model = None
+    elif isinstance(noise, SensorNoise):
+        noise_model = noise
+    else:
+        raise InputError(f"noise: expected a bool or SensorNoise, got {type(noise).__name__}")
+    if renderer is None:
+        renderer = RaycastRenderer(objects)
+    rect = rectification if rectification is not None else compute_rectification(rig)
+
+    truth: dict[str, NDArray] = {}
+    views = []
+    for name, cam, T in (("left", rig.left, rig.T_rig_left), ("right", rig.right, rig.T_rig_right)):
+        img, t = _render_view(renderer, cam, T, projector, a, fl, bg, ss)
+        if blur > 0:
+            img = gaussian_blur(img, blur)
+        views.append(img)
+        truth[f"depth_{name}_mm"] = t["depth_mm"]
+        for key in ("mask", "albedo", "shading", "illumination", "normals", "object_id"):
+            truth[f"{key}_{name}"] = t[key]
+
+    # true disparity on the rectified-left grid
+    R1_4 = np.eye(4)
+    R1_4[:3, :3] = rect.R1
+    T_rig_rect = rig.T_rig_left @ np.linalg.inv(R1_4)
+    rres = renderer.render(rect.camera, T_rig_rect, with_albedo=False)
+    z = rres.depth_mm.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disp = rect.focal_px * rect.baseline_mm / z
+    truth["disparity_rect"] = disp.astype(np.float32)
+    truth["depth_rect_mm"] = rres.depth_mm
+    for k in ("R1", "R2", "P1", "P2", "Q"):
+        truth[k] = np.asarray(getattr(rect, k), dtype=np.float64)
+    truth["T_rig_left"] = rig.T_rig_left.copy()
+    truth["T_right_left"] = rig.T_right_left.copy()
+    truth["projector_T_rig_proj"] = projector.T_rig_proj.copy()
+
+    sensor = rig.split.join(views[0], views[1], fill=0.0)
+    if noise_model is not None:
+        rng = np.random.default_rng(seed)
+        sensor_u8 = quantize(noise_model.apply(sensor, rng))
+    else:
+        sensor_u8 = quantize(sensor * 255.0)
+    return Shot(sensor_u8, truth, rect)
+
+
+# -- files -----------------------------------------------------------------------------
+def _write_png(path: Path, rgb: NDArray[np.uint8]) -> None:
+    import cv2
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[:, :, ::-1])):
+            raise InputError(f"{path}: could not write the PNG")
+
+
+def _write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            (np.savez_compressed if compress else np.savez)(fh, **arrays)
+
+
+def write_ply(path: str | Path, mesh: SceneMesh) -> None:
+    """Write a mesh as binary little-endian PLY (double xyz mm, uchar RGB), atomically."""
+    V = mesh.vertices
+    F = mesh.faces
+    C = np.clip(np.rint(mesh.vertex_colors() * 255.0), 0, 255).astype(np.uint8)
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"comment prism3d true target mesh, millimetres ({mesh.name})\n"
+        f"element vertex {len(V)}\nproperty double x\nproperty double y\nproperty double z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    vdt = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    va = np.empty(len(V), dtype=vdt)
+    va["x"], va["y"], va["z"] = V[:, 0], V[:, 1], V[:, 2]
+    va["r"], va["g"], va["b"] = C[:, 0], C[:, 1], C[:, 2]
+    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+    fa = np.empty(len(F), dtype=fdt)
+    fa["n"] = 3
+    fa["i"] = F.astype(np.int32)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(header.encode("ascii"))
+            fh.write(va.tobytes())
+            fh.write(fa.tobytes())
+
+
+def _has_own_albedo(mesh: SceneMesh) -> bool:
+    return mesh.albedo_field is not None or mesh.vertex_albedo is not None
+
+
+def simulate_to_folder(
+    kind: str,
+    out_dir: str | Path,
+    *,
+    rig: StereoRig | None = None,
+    target: SceneMesh | None = None,
+    pattern: bool | None = None,
+    camouflage: bool = True,
+    views: int | None = None,
+    seed: int = 0,
+    noise: bool = True,
+    supersample: int = 2,
+    progress: ProgressFn | None = None,
+    compress: bool = False,
+) -> dict[str, Any]:
+    """Simulate shots and write them with their ground truth (``prism3d simulate``).
+
+    Parameters
+    ----------
+    kind : {"plate", "calib", "scene"}
+        ``plate``: the paper's accuracy test, a flat 300 x 300 mm plate facing the
+        rig (perpendicular to rig z) at the working distance (1250 mm for the paper
+        rig); writes ``shot.png`` + ``truth.npz`` (``shot_00.png``... when
+        ``views`` > 1: the same plate, a fresh noise seed per shot).
+        ``calib``: a 9 x 6 inner-corner chessboard, 25 mm squares, in ``views``
+        (default 5) varied poses (tilts 20-40 deg, 1100-1400 mm, seeded, whole board
+        in both views); writes ``calib_00.png``... + ``truth_00.npz``... with
+        ``corners_left``/``corners_right`` ((54, 2) float64 true distorted pixels,
+        NaN outside the view) and ``T_left_board``, ``T_rig_board``.
+        ``scene``: ``target`` on a turntable, ``views`` (default 8) views at
+        ``360 / views`` degree steps (45 deg for 8); writes ``shot_00.png``... +
+        ``truth_00.npz``..., ``target.ply`` (the true mesh, mm, world = turntable
+        frame, z up) and ``poses.json`` (per view ``T_world_cam`` of the left
+        virtual camera and ``T_world_rig``, 4x4 lists).
+        Every kind writes ``rig.yaml`` (:meth:`StereoRig.save`).
+    out_dir : path
+        Output folder (created).
+    rig : StereoRig, optional
+        Default :func:`paper_rig`.
+    target : SceneMesh, optional
+        The object of ``scene`` (required there), world frame = turntable frame.
+    pattern : bool, optional
+        Project the colour grating. Default: on for plate and scene, off (white
+        flash) for calib -- stripes over a chessboard defeat corner detection.
+    camouflage : bool
+        Plate: woodland camouflage albedo (else a mild grey speckle texture). Scene:
+        paint a camouflage albedo on a target that has no albedo of its own.
+    views : int, optional
+        Number of shots (see ``kind``).
+    seed : int
+        Seeds poses, textures, the pattern order and the noise: same seed, same files.
+    noise : bool
+        Sensor noise on/off.
+    supersample : int
+        Colour supersampling factor.
+    progress : callable(done, total, label), optional
+        Called after each shot.
+    compress : bool
+        Write compressed ``.npz`` (smaller, slower).
+
+    Returns
+    -------
+    dict
+        ``kind``, ``out_dir``, ``files`` (names written), ``n_shots``, ``seconds``.
+    """
+    check_choice(kind, "kind", ("plate", "calib", "scene"))
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    if rig is None:
+        rig = paper_rig()
+    if not isinstance(rig, StereoRig):
+        raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
+    if views is not None and (int(views) != views or int(views) < 1):
+        raise InputError(f"views: expected a positive integer, got {views!r}")
+    if kind == "scene":
+        if target is None:
+            raise InputError("simulate scene: a target mesh is required (target=SceneMesh)")
+        if not isinstance(target, SceneMesh):
+            raise InputError(f"target: expected a SceneMesh, got {type(target).__name__}")
+    use_pattern = (kind != "calib") if pattern is None else bool(pattern)
+    wd = working_distance_mm(rig)
+    projector = Projector.for_rig(rig, pattern=use_pattern, seed=seed if seed else None)
+    rect = compute_rectification(rig)
+    files: list[str] = []
+    common = dict(
+        projector=projector, supersample=supersample, noise=noise, rectification=rect
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    shots: list[tuple[str, str, list[tuple[SceneMesh, NDArray]], dict[str, NDArray]]] = []
+
+    if kind == "plate":
+        albedo = (
+            CamouflageField.from_palette("woodland", patch_size_mm=60.0, seed=seed)
+            if camouflage
+            else TextureAlbedo(seed=seed)
+        )
+        plate = flat_plate(300.0, 300.0, albedo=albedo)
+        objs = [(plate, translation(0.0, 0.0, wd))]
+        n = 1 if views is None else int(views)
+        for k in range(n):
+            stem = ("shot", "truth") if n == 1 else (f"shot_{k:02d}", f"truth_{k:02d}")
+            extra = {"T_rig_plate": objs[0][1]}
+            shots.append((stem[0] + ".png", stem[1] + ".npz", objs, extra))
+    elif kind == "calib":
+        board = chessboard(9, 6, 25.0)
+        corners = chessboard_corners(9, 6, 25.0)
+        n = 5 if views is None else int(views)
+        poses = calibration_board_poses(rig, n, seed=seed)
+        for k, T_rig_board in enumerate(poses):
+            extra: dict[str, NDArray] = {"T_rig_board": T_rig_board}
+            for name, cam, T_rig_cam in (
+                ("left", rig.left, rig.T_rig_left),
+                ("right", rig.right, rig.T_rig_right),
+            ):
+                T_cam_board = np.linalg.inv(T_rig_cam) @ T_rig_board
+                pc = corners @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+                uv = cam.project(pc)
+                w, h = cam.size
+                outside = ~(
+                    (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5)
+                )
+                uv[outside] = np.nan
+                extra[f"corners_{name}"] = uv
+                extra[f"T_{name}_board"] = T_cam_board
+            extra["board_corners_mm"] = corners
+            extra["board_inner_corners"] = np.array([9, 6], dtype=np.int32)
+            extra["board_square_mm"] = np.array(25.0)
+            shots.append((f"calib_{k:02d}.png", f"truth_{k:02d}.npz", [(board, T_rig_board)], extra))
+    else:
+        tgt: SceneMesh = target  # type: ignore[assignment]  # validated above
+        if camouflage and not _has_own_albedo(tgt):
+            camo = CamouflageField.from_palette("woodland", patch_size_mm=max(10.0, float(tgt.extent_mm.max()) / 6), seed=seed)
+            tgt = SceneMesh(tgt.vertices, tgt.faces, None, camo, tgt.name, dict(tgt.metadata))
+        n = 8 if views is None else int(views)
+        poses = turntable_poses(n, 360.0 / n, distance_mm=wd)
+        view_records = []
+        for k, T_world_rig in enumerate(poses):
+            T_rig_world = np.linalg.inv(T_world_rig)
+            T_world_cam = T_world_rig @ rig.T_rig_left
+            extra = {"T_world_rig": T_world_rig, "T_world_cam": T_world_cam}
+            shots.append((f"shot_{k:02d}.png", f"truth_{k:02d}.npz", [(tgt, T_rig_world)], extra))
+            view_records.append(
+                {
+                    "index": k,
+                    "image": f"shot_{k:02d}.png",
+                    "truth": f"truth_{k:02d}.npz",
+                    "T_world_cam": T_world_cam.tolist(),
+                    "T_world_rig": T_world_rig.tolist(),
+                }
+            )
+        write_ply(out / "target.ply", tgt)
+        files.append("target.ply")
+        doc = {
+            "schema_version": TRUTH_SCHEMA_VERSION,
+            "units": "mm",
+            "world_frame": "turntable: origin on the axis, z up",
+            "camera": "left virtual camera, OpenCV frame (x right, y down, z forward)",
+            "T_rig_left": rig.T_rig_left.tolist(),
+            "T_world_rig": [v["T_world_rig"] for v in view_records],
+            "views": view_records,
+        }
+        atomic_write_text(out / "poses.json", json.dumps(doc, indent=1))
+        files.append("poses.json")
+
+    rig.save(out / "rig.yaml", extra={"simulated": 1})
+    files.append("rig.yaml")
+    total = len(shots)
+    cached: dict[int, RaycastRenderer] = {}
+    for k, (png, npz, objs, extra) in enumerate(shots):
+        key = id(objs)
+        if key not in cached:
+            cached.clear()
+            cached[key] = RaycastRenderer(objs)
+        shot = simulate_shot(rig, objs, seed=seed * 1000 + k, renderer=cached[key], **common)  # type: ignore[arg-type]
+        truth = dict(shot.truth)
+        truth.update({k2: np.asarray(v) for k2, v in extra.items()})
+        truth["schema_version"] = np.array(TRUTH_SCHEMA_VERSION)
+        _write_png(out / png, shot.sensor_image)
+        _write_npz(out / npz, truth, compress=compress)
+        files += [png, npz]
+        if progress is not None:
+            progress(k + 1, total, png)
+    return {
+        "kind": kind,
+        "out_dir": str(out),
+        "files": sorted(files),
+        "n_shots": total,
+        "pattern": use_pattern,
+        "seconds": time.perf_counter() - t0,
+    }
