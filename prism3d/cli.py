@@ -66,9 +66,142 @@ def _add_demo(sub: Any) -> None:
     p.set_defaults(func=_cmd_demo)
 
 
+# --- trigger / capture --------------------------------------------------------------------
+def _cmd_trigger(args: argparse.Namespace) -> int:
+    if args.action == "simulate":
+        from prism3d.capture.trigger_sim import simulate_main
+
+        return simulate_main(args.fault, link=args.link)
+    from prism3d.capture import trigger
+
+    if args.port is None:
+        raise InputError(f"trigger {args.action}: give the controller's PORT (a device path or pyserial URL)")
+    if args.action == "ping":
+        result = trigger.trigger_ping(args.port, timeout=args.timeout)
+    elif args.action == "status":
+        result = trigger.trigger_status(args.port, timeout=args.timeout)
+    else:
+        result = trigger.trigger_fire(args.port, pattern_id=args.pattern, flash_delay_us=args.flash_delay_us,
+                                      flash_us=args.flash_us, shutter_us=args.shutter_us, timeout=args.timeout)
+    _print_json(result)
+    return 0
+
+
+def _add_trigger(sub: Any) -> None:
+    p = sub.add_parser("trigger", help="flash+shutter controller over a serial line (simulate|ping|status|fire)",
+                       description="Talk to the flash/shutter trigger controller (protocol: "
+                       "docs/trigger-protocol.md). 'simulate' serves a simulated controller on a "
+                       "pseudo-terminal and prints its path first.")
+    p.add_argument("action", choices=["simulate", "ping", "status", "fire"])
+    p.add_argument("port", nargs="?", metavar="PORT", help="device path or pyserial URL (not for simulate)")
+    p.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for each reply (default 1)")
+    p.add_argument("--fault", choices=["silence", "garbage", "drop", "disconnect", "slow"],
+                   help="simulate: inject this fault")
+    p.add_argument("--link", type=Path, help="simulate: keep this symlink pointing at the pty")
+    p.add_argument("--pattern", type=int, default=1, help="fire: grating pattern id (0 = plain flash)")
+    p.add_argument("--flash-delay-us", type=int, default=500)
+    p.add_argument("--flash-us", type=int, default=2000)
+    p.add_argument("--shutter-us", type=int, default=8000)
+    p.set_defaults(func=_cmd_trigger)
+
+
+def _virtual_resolver(name: str) -> Any:
+    from prism3d.datasets.virtual_camera import resolve_virtual_target
+
+    return resolve_virtual_target(name)
+
+
+# --- simulate ------------------------------------------------------------------------------
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from prism3d.capture.simulate import simulate_to_folder
+
+    rig = None
+    if args.rig is not None:
+        from prism3d.capture.rig import StereoRig
+
+        rig = StereoRig.load(args.rig)
+    target = None
+    if args.kind == "scene":
+        from prism3d.datasets.targets import builtin_target
+
+        target = builtin_target(args.target, camouflage=args.camouflage, seed=args.seed)
+    summary = simulate_to_folder(args.kind, args.out_dir, rig=rig, target=target, pattern=args.pattern,
+                                 camouflage=args.camouflage, views=args.views, seed=args.seed,
+                                 noise=args.noise, supersample=args.supersample,
+                                 progress=_progress(args, f"simulate {args.kind}"), compress=args.compress)
+    _say(args, f"wrote {summary['n_shots']} shot(s) and ground truth to {args.out_dir} "
+               f"in {summary['seconds']:.1f} s")
+    return 0
+
+
+def _add_simulate(sub: Any) -> None:
+    p = sub.add_parser("simulate", help="virtual rig shots with exact ground truth (plate|calib|scene)",
+                       description="Render side-by-side prism shots through the virtual rig and write "
+                       "them with ground truth: shot PNG(s), rig.yaml (OpenCV FileStorage) and "
+                       "truth.npz (depth_left_mm, depth_right_mm, mask, albedo, shading, true "
+                       "rectified disparity...). plate: the paper's 30x30 cm plate at 1250 mm; calib: "
+                       "5 chessboard shots (9x6 inner corners, 25 mm); scene: a built-in target on a "
+                       "turntable, 8 views at 45 deg (also target.ply and poses.json).")
+    p.add_argument("kind", choices=["plate", "calib", "scene"])
+    p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    p.add_argument("--target", default="tank_t1", help="scene: built-in target name (default tank_t1)")
+    p.add_argument("--pattern", dest="pattern", action="store_true", default=None,
+                   help="project the colour grating (default: on for plate/scene, off for calib)")
+    p.add_argument("--no-pattern", dest="pattern", action="store_false", help="white flash only")
+    p.add_argument("--camouflage", dest="camouflage", action="store_true", default=True,
+                   help="camouflage paint on the target/plate (default)")
+    p.add_argument("--no-camouflage", dest="camouflage", action="store_false")
+    p.add_argument("--views", type=int, help="number of shots (default: 1 plate, 5 calib, 8 scene)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise", dest="noise", action="store_true", default=True, help="sensor noise (default)")
+    p.add_argument("--no-noise", dest="noise", action="store_false")
+    p.add_argument("--supersample", type=int, default=2, help="anti-aliasing factor (default 2)")
+    p.add_argument("--rig", type=Path, help="rig/calibration YAML to simulate (default: the paper's rig)")
+    p.add_argument("--compress", action="store_true", help="compress truth .npz files (smaller, slower)")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_capture(args: argparse.Namespace) -> int:
+    from prism3d.capture.acquire import capture_shots
+
+    expected = None
+    if args.calib is not None:
+        from prism3d.capture.rig import StereoRig
+
+        expected = StereoRig.load(args.calib).split.sensor_size
+    paths = capture_shots(args.trigger, args.camera, args.output, count=args.count, interval_s=args.interval,
+                          pattern_id=args.pattern, flash=not args.no_flash, expected_size=expected,
+                          progress=_progress(args, "capture"), trigger_timeout=args.timeout,
+                          grab_timeout=args.grab_timeout, resolver=_virtual_resolver)
+    for p in paths:
+        _say(args, str(p))
+    return 0
+
+
+def _add_capture(sub: Any) -> None:
+    p = sub.add_parser("capture", help="one-shot (or sequence) capture: arm, fire, grab, check, save",
+                       description="Arm the trigger controller, fire the flash and shutter, grab the frame "
+                       "from the camera source, check it and save shot_NNN.png + shot_NNN.json atomically.")
+    p.add_argument("--trigger", required=True, metavar="PORT", help="trigger controller port or pyserial URL")
+    p.add_argument("--camera", required=True, metavar="SOURCE",
+                   help="folder:PATH | opencv:INDEX_OR_URL | virtual[:TARGET]")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR")
+    p.add_argument("--count", type=int, default=1, help="number of shots (default 1)")
+    p.add_argument("--interval", type=float, default=0.0, metavar="S", help="seconds between shots")
+    p.add_argument("--pattern", type=int, default=1, help="grating pattern id (0 = plain flash)")
+    p.add_argument("--no-flash", action="store_true", help="do not fire the flash projector")
+    p.add_argument("--calib", type=Path, help="calibration YAML: check the frame size against it")
+    p.add_argument("--timeout", type=float, default=1.0, help="trigger reply timeout, seconds")
+    p.add_argument("--grab-timeout", type=float, default=5.0, help="camera frame timeout, seconds")
+    p.set_defaults(func=_cmd_capture)
+
+
 # --- registry ---------------------------------------------------------------------------
 _COMMANDS: list[Callable[[Any], None]] = [
     _add_demo,
+    _add_simulate,
+    _add_trigger,
+    _add_capture,
 ]
 
 
@@ -107,6 +240,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"prism3d {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into e.g. `head`: not an error
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     return int(rc or 0)
 
 
