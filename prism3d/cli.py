@@ -196,10 +196,63 @@ def _add_capture(sub: Any) -> None:
     p.set_defaults(func=_cmd_capture)
 
 
+# --- calibrate / rectify -------------------------------------------------------------------
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from prism3d.reconstruct.calibrate import calibrate_to_file
+
+    cal = calibrate_to_file(args.images, args.output, board=args.board, square_mm=args.square,
+                            pairs=args.pairs, skew=args.skew, tangential=not args.no_tangential,
+                            progress=_progress(args, "calibrate"))
+    _say(args, cal.summary())
+    _say(args, f"wrote {args.output}")
+    return 0
+
+
+def _add_calibrate(sub: Any) -> None:
+    p = sub.add_parser("calibrate", help="chessboard calibration of the prism rig (bundle adjustment)",
+                       description="Detect chessboard corners in each view of side-by-side prism shots "
+                       "(or in separate left/right images with --pairs), estimate both cameras "
+                       "(K, k1 k2 [p1 p2]), the rig's R T and every board pose by bundle adjustment, "
+                       "and write an OpenCV FileStorage YAML with the quality figures.")
+    p.add_argument("images", nargs="+", type=Path, metavar="IMAGES",
+                   help="prism shots; with --pairs: left1 right1 left2 right2 ...")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="CALIB_YAML")
+    p.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
+    p.add_argument("--square", type=float, default=25.0, metavar="MM", help="square size, mm (default 25)")
+    p.add_argument("--pairs", action="store_true", help="IMAGES alternate left, right (ordinary stereo rig)")
+    p.add_argument("--skew", action="store_true", help="estimate the skew (off by default, as Bouguet advises)")
+    p.add_argument("--no-tangential", action="store_true", help="radial k1 k2 only (the paper's model)")
+    p.set_defaults(func=_cmd_calibrate)
+
+
+def _cmd_rectify(args: argparse.Namespace) -> int:
+    from prism3d.reconstruct.rectify import rectify_to_folder
+
+    files = rectify_to_folder(args.shot, args.calib, args.output, alpha=args.alpha)
+    for f in files.values():
+        _say(args, f"wrote {f}")
+    return 0
+
+
+def _add_rectify(sub: Any) -> None:
+    p = sub.add_parser("rectify", help="split a prism shot and rectify the two views",
+                       description="Split a side-by-side shot into its two views, undistort and rectify "
+                       "them (equal principal points: disparity = f*B/z), write left.png, right.png "
+                       "and rectification.yaml (R1 R2 P1 P2 Q).")
+    p.add_argument("shot", type=Path, metavar="SHOT")
+    p.add_argument("--calib", required=True, type=Path, metavar="CALIB_YAML")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT_DIR")
+    p.add_argument("--alpha", type=float, default=1.0,
+                   help="0 = crop to valid pixels, 1 = keep every source pixel (default)")
+    p.set_defaults(func=_cmd_rectify)
+
+
 # --- registry ---------------------------------------------------------------------------
 _COMMANDS: list[Callable[[Any], None]] = [
     _add_demo,
     _add_simulate,
+    _add_calibrate,
+    _add_rectify,
     _add_trigger,
     _add_capture,
 ]

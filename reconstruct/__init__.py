@@ -1,2 +1,31 @@
 """prism3d.reconstruct: calibration, rectification, stereo matching, triangulation,
-meshing, ICP stitching and the accuracy test."""
+meshing, ICP stitching and the accuracy test.
+
+Submodules are imported lazily (``prism3d.reconstruct.calibrate`` ...) so that
+``import prism3d.reconstruct`` stays cheap; the names below load on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_LAZY = {
+    "Calibration": "calibrate",
+    "calibrate_stereo": "calibrate",
+    "calibrate_camera": "calibrate",
+    "rectify_pair": "rectify",
+    "rectify_shot": "rectify",
+    "rectify_maps": "rectify",
+    "match_stereo": "match",
+    "match_stereo_full": "match",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'prism3d.reconstruct' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"prism3d.reconstruct.{mod}"), name)

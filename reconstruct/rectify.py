@@ -1,0 +1,304 @@
+"""Undistort + rectify the two views of a calibrated (prism) stereo rig.
+
+The rectifying rotations and projections come from
+:func:`prism3d.capture.rig.compute_rectification` (zero-disparity rectification:
+equal principal points, ``d = x_left - x_right = f B / z``). This module turns them
+into remap tables and applies them to a pair or to a whole side-by-side shot.
+
+References
+----------
+.. [1] A. Fusiello, E. Trucco, A. Verri, "A compact algorithm for rectification of
+   stereo pairs", Machine Vision and Applications 12 (2000).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from prism3d.capture.rig import CameraModel, Rectification, StereoRig, compute_rectification
+
+from prism3d.checks import check_array
+from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_path
+
+__all__ = [
+    "RectifyMaps",
+    "rectify_maps",
+    "rectify_pair",
+    "rectify_shot",
+    "rectify_to_folder",
+    "save_rectification",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class RectifyMaps:
+    """Remap tables of both views (``cv2.remap`` inputs).
+
+    Attributes
+    ----------
+    rect : Rectification
+        The rectification the maps implement.
+    left_x, left_y, right_x, right_y : (H, W) float32
+        For each rectified pixel, the source pixel (x, y) in the original view;
+        ``(H, W)`` is ``rect.size`` reversed. With ``fixed_point`` the x arrays hold
+        OpenCV's ``CV_16SC2`` map ``(H, W, 2) int16`` and the y arrays the
+        ``CV_16UC1`` interpolation table ``(H, W) uint16``.
+    fixed_point : bool
+        Whether the maps are OpenCV fixed-point (faster remap, 1/32 px).
+    """
+
+    rect: Rectification
+    left_x: NDArray
+    left_y: NDArray
+    right_x: NDArray
+    right_y: NDArray
+    fixed_point: bool = False
+
+    def remap(
+        self, left: NDArray, right: NDArray, *, interpolation: int | None = None
+    ) -> tuple[NDArray, NDArray]:
+        """Rectify a pair of view images ``(h, w[, C])`` into ``rect.size`` images.
+
+        Pixels that no source pixel maps to are 0.
+        """
+        import cv2
+
+        interp = cv2.INTER_LINEAR if interpolation is None else int(interpolation)
+        out = []
+        for name, img, mx, my in (
+            ("left", left, self.left_x, self.left_y),
+            ("right", right, self.right_x, self.right_y),
+        ):
+            a = check_array(img, name, ndim=(2, 3))
+            if a.dtype == np.float64:
+                a = a.astype(np.float32)
+            out.append(
+                cv2.remap(
+                    np.ascontiguousarray(a),
+                    mx,
+                    my,
+                    interp,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=0,
+                )
+            )
+        return out[0], out[1]
+
+
+def _map_for(
+    cam: CameraModel, R: NDArray, P: NDArray, size: tuple[int, int]
+) -> tuple[NDArray, NDArray]:
+    """Float32 map of one view. OpenCV's initUndistortRectifyMap ignores skew, so a
+    camera with skew is mapped with our own exact projection."""
+    import cv2
+
+    w, h = size
+    if cam.skew == 0.0:
+        mx, my = cv2.initUndistortRectifyMap(
+            cam.K, cam.dist, np.asarray(R), np.asarray(P)[:, :3], (w, h), cv2.CV_32FC1
+        )
+        return mx, my
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    Pi = np.linalg.inv(np.asarray(P)[:, :3])
+    rays = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1) @ Pi.T
+    pts = rays @ np.asarray(R)  # rectified frame -> camera frame (R^T applied row-wise)
+    uv = cam.project(pts)
+    uv[~np.isfinite(uv)] = -1e6
+    return (uv[:, 0].reshape(h, w).astype(np.float32), uv[:, 1].reshape(h, w).astype(np.float32))
+
+
+def rectify_maps(rig: StereoRig, rect: Rectification, *, fixed_point: bool = False) -> RectifyMaps:
+    """Remap tables taking each original view to its rectified image.
+
+    Parameters
+    ----------
+    rig : StereoRig
+        The calibrated rig (intrinsics and distortion of both views).
+    rect : Rectification
+        From :func:`~prism3d.capture.rig.compute_rectification` on ``rig``.
+    fixed_point : bool
+        Return OpenCV fixed-point maps (``cv2.convertMaps`` to ``CV_16SC2``).
+
+    Returns
+    -------
+    RectifyMaps
+    """
+    import cv2
+
+    if not isinstance(rig, StereoRig):
+        raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
+    if not isinstance(rect, Rectification):
+        raise InputError(f"rect: expected a Rectification, got {type(rect).__name__}")
+    lx, ly = _map_for(rig.left, rect.R1, rect.P1, rect.size)
+    rx, ry = _map_for(rig.right, rect.R2, rect.P2, rect.size)
+    if fixed_point:
+        lx, ly = cv2.convertMaps(lx, ly, cv2.CV_16SC2)
+        rx, ry = cv2.convertMaps(rx, ry, cv2.CV_16SC2)
+    return RectifyMaps(rect, lx, ly, rx, ry, bool(fixed_point))
+
+
+def rectify_pair(
+    left: NDArray,
+    right: NDArray,
+    rig: StereoRig,
+    *,
+    alpha: float = 1.0,
+    size: tuple[int, int] | None = None,
+) -> tuple[NDArray, NDArray, Rectification]:
+    """Undistort and rectify two view images.
+
+    Parameters
+    ----------
+    left, right : (h, w[, C]) uint8 or float32
+        The un-flipped views (``rig.split.split`` output), each ``rig.left.size``.
+    rig : StereoRig
+        Calibrated rig.
+    alpha, size
+        See :func:`~prism3d.capture.rig.compute_rectification`.
+
+    Returns
+    -------
+    left_rect, right_rect : (H, W[, C]) same dtype as the input
+        Rectified images; corresponding points share a row and
+        ``d = x_left - x_right = f B / z``.
+    rect : Rectification
+    """
+    la = check_array(left, "left", ndim=(2, 3))
+    ra = check_array(right, "right", ndim=(2, 3))
+    for name, a, cam in (("left", la, rig.left), ("right", ra, rig.right)):
+        if (a.shape[1], a.shape[0]) != cam.size:
+            raise InputError(
+                f"{name}: expected a {cam.size[0]}x{cam.size[1]} view for this rig, got {a.shape[1]}x{a.shape[0]}"
+            )
+    rect = compute_rectification(rig, alpha=alpha, size=size)
+    maps = rectify_maps(rig, rect)
+    lr, rr = maps.remap(la, ra)
+    return lr, rr, rect
+
+
+def rectify_shot(
+    shot_image: NDArray, rig: StereoRig, *, alpha: float = 1.0, size: tuple[int, int] | None = None
+) -> tuple[NDArray, NDArray, Rectification]:
+    """Split a side-by-side sensor image with ``rig.split`` and rectify both views.
+
+    Parameters
+    ----------
+    shot_image : (H, W[, C]) uint8 or float32
+        The full sensor image (``rig.split.sensor_size``).
+
+    Returns
+    -------
+    left_rect, right_rect, rect
+        As :func:`rectify_pair`.
+    """
+    left, right = rig.split.split(shot_image)
+    return rectify_pair(left, right, rig, alpha=alpha, size=size)
+
+
+def save_rectification(path: str | Path, rect: Rectification, rig: StereoRig | None = None) -> None:
+    """Write ``R1 R2 P1 P2 Q`` and the rectified ``image_size`` as FileStorage YAML (atomic).
+
+    With ``rig`` the calibration (``K1 D1 K2 D2 R T``) is stored alongside, like
+    OpenCV's ``extrinsics.yml``.
+    """
+    from prism3d.io.opencv_yaml import write_filestorage
+
+    values: dict = {
+        "schema_version": 1,
+        "R1": rect.R1,
+        "R2": rect.R2,
+        "P1": rect.P1,
+        "P2": rect.P2,
+        "Q": rect.Q,
+        "rectified_size": np.array(rect.size, dtype=np.int32),
+        "focal_px": rect.focal_px,
+        "baseline_mm": rect.baseline_mm,
+    }
+    if rig is not None:
+        values.update(
+            {
+                "K1": rig.left.K,
+                "D1": rig.left.dist,
+                "K2": rig.right.K,
+                "D2": rig.right.dist,
+                "R": rig.R,
+                "T": rig.T,
+                "image_size": np.array(rig.left.size, dtype=np.int32),
+            }
+        )
+    write_filestorage(path, values)
+
+
+def _write_png(path: Path, image: NDArray) -> None:
+    import cv2
+
+    img = image
+    if img.dtype.kind == "f":
+        img = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), img):
+            raise InputError(f"{path}: could not write the PNG (check the folder is writable)")
+
+
+def rectify_to_folder(
+    shot_path: str | Path,
+    calib_path: str | Path,
+    out_dir: str | Path,
+    *,
+    alpha: float = 1.0,
+) -> dict[str, Path]:
+    """Rectify one shot with a calibration file: what ``prism3d rectify SHOT --calib
+    calib.yaml -o OUT_DIR`` calls.
+
+    Writes ``left.png``, ``right.png`` (RGB, rectified) and ``rectification.yaml``
+    (``R1 R2 P1 P2 Q rectified_size`` plus the calibration) into ``out_dir``, each
+    atomically, only after everything has been computed.
+
+    Parameters
+    ----------
+    shot_path : path
+        Side-by-side sensor image (``rig.split.sensor_size``).
+    calib_path : path
+        Calibration or rig YAML (:meth:`Calibration.save` / ``prism3d simulate``'s rig.yaml).
+    out_dir : path
+        Output folder (created).
+    alpha : float in [0, 1]
+        See :func:`~prism3d.capture.rig.compute_rectification`.
+
+    Returns
+    -------
+    dict
+        ``{"left": path, "right": path, "rectification": path}``.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable files, a shot whose size does not match the calibration.
+    """
+    from prism3d.reconstruct.corners import load_image
+
+    rig = StereoRig.load(calib_path)
+    shot = load_image(shot_path)
+    try:
+        left, right, rect = rectify_shot(shot, rig, alpha=alpha)
+    except InputError as exc:
+        raise InputError(f"{shot_path}: {exc} (calibration {calib_path})") from exc
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: output folder exists and is not a folder")
+    paths = {
+        "left": out / "left.png",
+        "right": out / "right.png",
+        "rectification": out / "rectification.yaml",
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    _write_png(paths["left"], left)
+    _write_png(paths["right"], right)
+    save_rectification(paths["rectification"], rect, rig)
+    return paths

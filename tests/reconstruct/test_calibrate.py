@@ -1,0 +1,360 @@
+"""Calibration: known-answer tests on the virtual paper rig (synthetic corners), on
+rendered chessboard images, on Zhang's and OpenCV's real data, file round trips and
+error branches."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from prism3d.capture.rig import StereoRig, paper_rig, rotation_angle_deg
+from prism3d.reconstruct._bundle import rodrigues
+from prism3d.reconstruct.calibrate import (
+    Calibration,
+    calibrate_camera,
+    calibrate_stereo,
+    calibrate_stereo_points,
+    calibrate_to_file,
+    parse_board,
+    rectification_residual,
+)
+from prism3d.reconstruct.corners import board_object_points, detect_square_grid, load_image
+
+from prism3d.errors import CalibrationError, InputError
+
+from .test_corners import board_pose, render_board, small_camera
+
+# (tilt x, tilt y, in-plane, offset x, offset y) in the rig frame, board centre 1250 mm away
+PAPER_POSES = [
+    (0, 0, 0, 0, 0),
+    (35, 20, 10, -15, -140),
+    (-35, 20, -10, 15, -140),
+    (20, -35, 80, -15, 140),
+    (-20, -35, -80, 15, 140),
+]
+
+
+def paper_corners(rig: StereoRig, noise: float, seed: int = 0):
+    obj = board_object_points((9, 6), 25.0)
+    rng = np.random.default_rng(seed)
+    L, R, Lt, Rt = [], [], [], []
+    for ax, ay, az, ox, oy in PAPER_POSES:
+        T = np.eye(4)
+        T[:3, :3] = (
+            rodrigues(np.radians([ax, ay, 0.0]))[0] @ rodrigues(np.radians([0.0, 0.0, az]))[0]
+        )
+        T[:3, 3] = np.array([ox, oy, 1250.0]) - T[:3, :3] @ np.array([100.0, 62.5, 0.0])
+        for cam, Tc, noisy, true in (
+            (rig.left, np.linalg.inv(rig.T_rig_left) @ T, L, Lt),
+            (rig.right, np.linalg.inv(rig.T_rig_right) @ T, R, Rt),
+        ):
+            uv = cam.project(obj @ Tc[:3, :3].T + Tc[:3, 3])
+            true.append(uv)
+            noisy.append(uv + rng.normal(0.0, noise, uv.shape))
+    return L, R, Lt, Rt
+
+
+def test_paper_rig_exact_recovery_without_noise() -> None:
+    rig = paper_rig()
+    L, R, _, _ = paper_corners(rig, 0.0)
+    cal = calibrate_stereo_points(L, R, rig.left.size)
+    for est, ref in ((cal.rig.left, rig.left), (cal.rig.right, rig.right)):
+        np.testing.assert_allclose(est.K, ref.K, rtol=1e-7, atol=1e-4)
+        np.testing.assert_allclose(est.dist, ref.dist, atol=1e-6)
+    np.testing.assert_allclose(cal.rig.T, rig.T, atol=1e-5)
+    assert rotation_angle_deg(cal.rig.R @ rig.R.T) < 1e-6
+    assert cal.rms_px < 1e-6 and cal.rectification_rms_px < 1e-6
+    # the recovered rig frame matches the paper rig's (midway, z to convergence)
+    np.testing.assert_allclose(cal.rig.T_rig_left, rig.T_rig_left, atol=1e-5)
+
+
+def test_paper_rig_with_noise_k1k2_model() -> None:
+    """The paper's model (k1 k2, no tangential): 5 poses, 0.1 px corner noise."""
+    rig = paper_rig()
+    L, R, Lt, Rt = paper_corners(rig, 0.1)
+    cal = calibrate_stereo_points(L, R, rig.left.size, tangential=False)
+    for est in (cal.rig.left, cal.rig.right):
+        assert abs(est.fx / 5107.0 - 1) < 1e-3 and abs(est.fy / 5107.0 - 1) < 1e-3
+        assert abs(est.cx - rig.left.cx) < 2.0 and abs(est.cy - rig.left.cy) < 2.0
+        # k1 is weakly observable with a 200 mm board at f = 5107 px (std ~0.005)
+        assert abs(est.dist[0] + 0.06) < 0.015
+        assert est.dist[2] == 0.0 and est.dist[3] == 0.0
+    assert abs(cal.rig.baseline_mm / rig.baseline_mm - 1) < 1e-3
+    assert rotation_angle_deg(cal.rig.R @ rig.R.T) < 0.02
+    # residual of detected (noisy) corners is at the noise floor (sqrt(2) * 0.1)
+    assert 0.1 < cal.rectification_rms_px < 0.17
+    # the calibration itself rectifies the true corners to within 0.05 px
+    assert rectification_residual(cal.rig, Lt, Rt) < 0.05
+    assert 0.1 < cal.rms_px < 0.16 and cal.n_views == 5 and cal.outlier_views == ()
+    # standard deviations are meaningful: the errors are within ~3 sigma
+    assert 0 < cal.std["fx_left"] < 10
+    assert abs(cal.rig.left.fx - 5107.0) < 4 * cal.std["fx_left"] + 1e-9
+    assert abs(cal.rig.baseline_mm - 197.9) < 4 * np.linalg.norm([cal.std["tx"], cal.std["tz"]])
+
+
+def test_paper_rig_default_model_and_outlier_flag() -> None:
+    rig = paper_rig()
+    L, R, _, _ = paper_corners(rig, 0.1, seed=3)
+    R[2] = R[2] + np.random.default_rng(5).normal(0, 1.5, R[2].shape)  # a bad view
+    cal = calibrate_stereo_points(L, R, rig.left.size)
+    assert cal.flags == {"skew": False, "tangential": True, "k3": False}
+    assert cal.outlier_views == (2,)
+    assert cal.per_view_rms_px.shape == (5, 2) and cal.per_view_rms_px[2, 1] > 1.0
+    assert abs(cal.rig.baseline_mm / rig.baseline_mm - 1) < 5e-3
+    assert "outlier" in cal.summary()
+
+
+def test_inconsistent_corner_order_is_corrected() -> None:
+    rig = paper_rig()
+    L, R, _, _ = paper_corners(rig, 0.05)
+    R_bad = list(R)
+    R_bad[1] = R[1][::-1]  # board reported upside down in one view only
+    R_bad[3] = R[3].reshape(6, 9, 2)[::-1].reshape(-1, 2)  # rows reversed (seen from behind)
+    ref = calibrate_stereo_points(L, R, rig.left.size)
+    cal = calibrate_stereo_points(L, R_bad, rig.left.size)
+    assert cal.n_views == 5
+    assert abs(cal.rms_px - ref.rms_px) < 1e-6
+    np.testing.assert_allclose(cal.rig.T, ref.rig.T, atol=1e-6)
+
+
+def test_single_camera_skew_recovery() -> None:
+    cam0 = small_camera(dist=(-0.2, 0.1, 0.001, -0.0005, 0.0))
+    K = cam0.K.copy()
+    K[0, 1] = 0.8
+    from prism3d.capture.rig import CameraModel
+
+    cam = CameraModel(K, cam0.dist, cam0.size)
+    obj = board_object_points((9, 6), 25.0)
+    poses = [
+        board_pose(a, 450.0, s)
+        for a, s in (
+            ((0, 0, 0), (0, 0)),
+            ((30, 0, 5), (40, 20)),
+            ((-25, 20, -5), (-40, -20)),
+            ((10, -30, 90), (30, -30)),
+        )
+    ]
+    img = [cam.project(obj @ T[:3, :3].T + T[:3, 3]) for T in poses]
+    res = calibrate_camera([obj] * 4, img, cam.size, skew=True)
+    np.testing.assert_allclose(res.camera.K, K, atol=1e-5)
+    np.testing.assert_allclose(res.camera.dist, cam.dist, atol=1e-8)
+    assert res.rms_px < 1e-6 and res.per_view_rms_px.shape == (4,)
+    np.testing.assert_allclose(res.T_cam_board, np.stack(poses), atol=1e-5)
+    res0 = calibrate_camera([obj] * 4, img, cam.size)  # skew off: K[0, 1] stays 0
+    assert res0.camera.skew == 0.0 and res0.std["skew"] == 0.0 and res0.rms_px > 1e-3
+
+
+def test_calibrate_stereo_from_rendered_images(tmp_path: Path) -> None:
+    """End to end on rendered pairs (pairs mode, files), then save/load."""
+    import cv2
+
+    cam = small_camera(480, 360, 520.0)
+    T_rl = np.eye(4)
+    T_rl[:3, :3] = rodrigues(np.radians([0.0, -4.0, 0.5]))[0]
+    T_rl[:3, 3] = [-60.0, 0.5, 2.0]
+    images = []
+    poses = [
+        ((0, 0, 0), (20, 0)),
+        ((30, 10, 5), (30, 15)),
+        ((-30, 15, -5), (20, -15)),
+        ((10, -30, 90), (30, 0)),
+    ]
+    for i, (a, s) in enumerate(poses):
+        T = board_pose(a, 420.0, s)
+        for side, Tc in (("left", T), ("right", T_rl @ T)):
+            img, _ = render_board(cam, Tc, ss=2, seed=i)
+            p = tmp_path / f"{side}{i}.png"
+            cv2.imwrite(str(p), img)
+            images.append(p)
+    calls = []
+    cal = calibrate_stereo(images, pairs=True, progress=lambda d, n: calls.append((d, n)))
+    assert calls[-1] == (4, 4)
+    assert cal.rms_px < 0.25 and cal.rectification_rms_px < 0.25
+    np.testing.assert_allclose(cal.rig.T, T_rl[:3, 3], atol=1.5)
+    assert abs(cal.rig.baseline_mm - np.linalg.norm(T_rl[:3, 3])) < 0.5
+    # 4 small rendered views (ss=2 box-filter renders: ~0.1-0.25 px corner bias): loose
+    assert rotation_angle_deg(cal.rig.R @ T_rl[:3, :3].T) < 0.6
+    assert abs(cal.rig.left.fx / 520.0 - 1) < 0.01
+    assert len(cal.detections) == 8 and all(d.found for d in cal.detections)
+
+    out = tmp_path / "calib.yaml"
+    cal.save(out)
+    fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    np.testing.assert_allclose(fs.getNode("K1").mat(), cal.rig.left.K)
+    assert fs.getNode("rms_px").real() == pytest.approx(cal.rms_px)
+    assert fs.getNode("std_K1").mat().shape == (5, 1)
+    fs.release()
+    back = Calibration.load(out)
+    assert back.rig == cal.rig
+    assert back.rms_px == pytest.approx(cal.rms_px)
+    assert back.std["fx_left"] == pytest.approx(cal.std["fx_left"])
+    assert back.flags == cal.flags and back.board == (9, 6) and back.n_views == 4
+    np.testing.assert_allclose(back.per_view_rms_px, cal.per_view_rms_px)
+    assert "RMS reprojection error" in back.summary()
+
+
+def test_load_plain_rig_yaml(tmp_path: Path) -> None:
+    rig = paper_rig()
+    p = tmp_path / "rig.yaml"
+    rig.save(p)
+    cal = Calibration.load(p)
+    assert cal.rig == rig and np.isnan(cal.rms_px) and cal.std == {} and cal.n_views == 0
+    # and a calibration file is a valid rig file
+    q = tmp_path / "calib.yaml"
+    Calibration(rig=rig, rms_px=0.1, n_views=3, board=(9, 6), square_mm=25.0).save(q)
+    assert StereoRig.load(q) == rig
+
+
+@pytest.mark.realdata
+def test_zhang_corner_data(shared_data: Path) -> None:
+    d = shared_data / "calibration" / "zhang_5views"
+    m = np.loadtxt(d / "Model.txt").reshape(-1, 2)
+    obj = np.c_[m, np.zeros(len(m))]
+    img = [np.loadtxt(d / f"data{i}.txt").reshape(-1, 2) for i in range(1, 6)]
+    res = calibrate_camera([obj] * 5, img, (640, 480), skew=True, tangential=False)
+    K = res.camera.K
+    # Zhang's published values: alpha 832.5, gamma 0.2045, beta 832.53, u0 303.959, v0 206.585
+    assert abs(K[0, 0] / 832.5 - 1) < 1e-4 and abs(K[1, 1] / 832.53 - 1) < 1e-4
+    assert abs(K[0, 1] - 0.2045) < 0.01
+    assert abs(K[0, 2] - 303.959) < 0.05 and abs(K[1, 2] - 206.585) < 0.05
+    assert abs(res.camera.dist[0] + 0.228601) < 1e-3 and abs(res.camera.dist[1] - 0.190353) < 2e-3
+    assert res.rms_px == pytest.approx(0.336, abs=0.005)
+
+
+@pytest.mark.realdata
+def test_zhang_images_square_detector(shared_data: Path) -> None:
+    d = shared_data / "calibration" / "zhang_5views"
+    m = np.loadtxt(d / "Model.txt").reshape(-1, 2)
+    obj = np.c_[m, np.zeros(len(m))]
+    pts = []
+    for i in range(1, 6):
+        c = detect_square_grid(load_image(d / f"CalibIm{i}.png"), (8, 8))
+        assert c is not None and c.shape == (256, 2)
+        c = c.reshape(8, 8, 4, 2)[::-1].reshape(-1, 2)  # Model.txt rows start at the image bottom
+        ref = np.loadtxt(d / f"data{i}.txt").reshape(-1, 2)
+        assert np.sqrt(np.mean(np.sum((c - ref) ** 2, axis=1))) < 0.4  # measured 0.25-0.33
+        pts.append(c)
+    res = calibrate_camera([obj] * 5, pts, (640, 480), skew=True, tangential=False)
+    # measured: 831.43, 831.79, k1 -0.2299 (Zhang: 832.5, 832.53, -0.2286)
+    assert abs(res.camera.fx / 832.5 - 1) < 0.005 and abs(res.camera.fy / 832.53 - 1) < 0.005
+    assert abs(res.camera.dist[0] + 0.2286) < 0.01
+    assert res.rms_px < 0.45
+    assert detect_square_grid(np.full((480, 640), 200, np.uint8)) is None
+
+
+@pytest.mark.slow
+def test_simulated_calibration_shots(tmp_path: Path) -> None:
+    """The virtual rig's calibration shots (prism3d simulate calib, ~2.5 min to render).
+
+    Measured (seed 0, k1 k2 p1 p2): fx, fy within 0.04 %, cx, cy within 2.5 / 3.2 px,
+    k1 within 0.015 (k2 is barely observable at f = 5107 px and trades off with k1),
+    baseline within 0.02 %, rig rotation 0.027 deg, corner RMS 0.075 px, rectification
+    residual 0.089 px on detected corners and 0.014 px on the true corners.
+    """
+    from prism3d.capture.simulate import simulate_to_folder
+
+    simulate_to_folder("calib", tmp_path, seed=0, noise=True)
+    rig = StereoRig.load(tmp_path / "rig.yaml")
+    images = sorted(tmp_path.glob("calib_*.png"))
+    truth = [np.load(p, allow_pickle=False) for p in sorted(tmp_path.glob("truth_*.npz"))]
+    cal = calibrate_stereo(images, board=(9, 6), square_mm=25.0)
+    assert cal.n_views == len(images) >= 5
+    for est, ref in ((cal.rig.left, rig.left), (cal.rig.right, rig.right)):
+        assert abs(est.fx / ref.fx - 1) < 1e-3 and abs(est.fy / ref.fy - 1) < 1e-3
+        assert abs(est.cx - ref.cx) < 5.0 and abs(est.cy - ref.cy) < 5.0
+        assert abs(est.dist[0] - ref.dist[0]) < 0.03
+    assert abs(cal.rig.baseline_mm / rig.baseline_mm - 1) < 1e-3
+    assert rotation_angle_deg(cal.rig.R @ rig.R.T) < 0.05
+    assert cal.rms_px < 0.12
+    true_l = [t["corners_left"] for t in truth]
+    true_r = [t["corners_right"] for t in truth]
+    assert rectification_residual(cal.rig, true_l, true_r) < 0.05
+
+
+@pytest.mark.realdata
+def test_opencv_stereo_set(shared_data: Path) -> None:
+    d = shared_data / "calibration" / "opencv_stereo_9x6"
+    images = []
+    for i in (1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14):
+        images += [d / f"left{i:02d}.jpg", d / f"right{i:02d}.jpg"]
+    cal = calibrate_stereo(images, pairs=True, tangential=False)
+    assert cal.n_views == 13 and all(dt.found for dt in cal.detections)
+    # joint stereo adjustment (shared board poses) with k1 k2: measured 0.207 / 0.210
+    assert cal.rms_left_px < 0.22 and cal.rms_right_px < 0.22
+    assert abs(cal.rig.baseline_mm - 83.2) < 0.3
+    # noise floor of the detected corners' vertical disparity: measured 0.183
+    assert cal.rectification_rms_px < 0.2
+    # each camera on its own (the shipped reference file has RMS 0.39): measured 0.189 / 0.195
+    obj = board_object_points((9, 6), 25.0)
+    for side in ("left", "right"):
+        pts = [dt.corners for dt in cal.detections if dt.view == side]
+        res = calibrate_camera([obj] * len(pts), pts, (640, 480), tangential=False)
+        assert res.rms_px < 0.20
+
+
+def test_errors(tmp_path: Path) -> None:
+    rig = paper_rig()
+    L, R, _, _ = paper_corners(rig, 0.0)
+    with pytest.raises(CalibrationError, match="at least 3 shots"):
+        calibrate_stereo_points(L[:2], R[:2], rig.left.size)
+    with pytest.raises(CalibrationError, match="at least 3 shots, got 2"):
+        calibrate_stereo_points(L[:3], [R[0], R[1], None], rig.left.size)
+    with pytest.raises(InputError, match="same length"):
+        calibrate_stereo_points(L, R[:4], rig.left.size)
+    with pytest.raises(InputError, match=r"right_points\[0\]: expected 54 corners"):
+        calibrate_stereo_points(L, [R[0][:10]] + R[1:], rig.left.size)
+    with pytest.raises(InputError, match="square_mm"):
+        calibrate_stereo_points(L, R, rig.left.size, square_mm=0)
+    obj = board_object_points((9, 6), 25.0)
+    with pytest.raises(CalibrationError, match="at least 3 views"):
+        calibrate_camera([obj] * 2, L[:2], rig.left.size)
+    with pytest.raises(InputError, match="same length"):
+        calibrate_camera([obj] * 3, L[:2], rig.left.size)
+    with pytest.raises(InputError, match="view 0: 54 object points but 10"):
+        calibrate_camera([obj] * 3, [L[0][:10], L[1], L[2]], rig.left.size)
+    with pytest.raises(InputError, match=r"image_points_list\[0\]: expected finite"):
+        calibrate_camera([obj] * 3, [L[0] * np.nan, L[1], L[2]], rig.left.size)
+    with pytest.raises(InputError, match=r"object_points_list\[0\]: expected \(N >= 4, 3\)"):
+        calibrate_camera([obj[:, :2]] * 3, L[:3], rig.left.size)
+    with pytest.raises(InputError, match="image_size"):
+        calibrate_camera([obj] * 3, L[:3], (0, 10))
+
+    # image-level errors, and no output written
+    blank = np.full((360, 480), 128, np.uint8)
+    cam = small_camera(480, 360, 520.0)
+    board_img, _ = render_board(cam, board_pose((0, 0, 0), 420.0, (20, 0)), ss=2)
+    with pytest.raises(CalibrationError, match="no 9x6 chessboard found in any image"):
+        calibrate_stereo([blank, blank, blank, blank], pairs=True)
+    with pytest.raises(CalibrationError, match=r"no 9x6 chessboard found in <array 2> / <array 3>"):
+        calibrate_stereo([board_img, board_img, blank, blank], pairs=True)
+    with pytest.raises(CalibrationError, match="no 8x6 chessboard found in any image"):
+        calibrate_stereo([board_img, board_img], pairs=True, board=(8, 6))
+    with pytest.raises(CalibrationError, match="at least 3 shots, got 1"):
+        calibrate_stereo([board_img, board_img], pairs=True)
+    with pytest.raises(InputError, match="same size"):
+        calibrate_stereo([board_img, board_img[:, :400]], pairs=True)
+    with pytest.raises(InputError, match="not found"):
+        calibrate_stereo([tmp_path / "nope.png", tmp_path / "nope2.png"], pairs=True)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_calibrate_to_file_and_parse_board(tmp_path: Path) -> None:
+    assert parse_board("9x6") == (9, 6) and parse_board("7X7") == (7, 7)
+    with pytest.raises(InputError, match="COLSxROWS"):
+        parse_board("nine")
+    with pytest.raises(InputError, match="at least 2x2"):
+        parse_board("1x6")
+    with pytest.raises(InputError, match="must end in .yaml"):
+        calibrate_to_file([], tmp_path / "calib.txt")
+    (tmp_path / "d.yaml").mkdir()
+    with pytest.raises(InputError, match="is a folder"):
+        calibrate_to_file([], tmp_path / "d.yaml")
+    blank = tmp_path / "blank.png"
+    import cv2
+
+    cv2.imwrite(str(blank), np.full((60, 80), 128, np.uint8))
+    out = tmp_path / "calib.yaml"
+    with pytest.raises(CalibrationError, match="no 9x6 chessboard"):
+        calibrate_to_file([blank, blank], out, board="9x6", pairs=True)
+    assert not out.exists()
