@@ -1,0 +1,213 @@
+"""One shot to one scan: split, rectify, match, triangulate (``prism3d reconstruct``)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.capture.rig import Rectification, StereoRig
+from prism3d.checks import check_array
+from prism3d.errors import InputError
+from prism3d.progress import ProgressFn, null_progress
+from prism3d.reconstruct.meshing import mesh_from_grid, smooth_depth
+from prism3d.reconstruct.triangulate import Scan, scan_from_depth
+
+__all__ = [
+    "Reconstruction",
+    "convergence_distance_mm",
+    "disparity_range",
+    "reconstruct_shot",
+    "reconstruct_to_files",
+]
+
+
+def convergence_distance_mm(rig: StereoRig) -> float | None:
+    """Distance (along the left optical axis) where the two optical axes pass closest;
+    ``None`` for (near-)parallel cameras."""
+    c_r = rig.T_left_right[:3, 3]
+    z_l = np.array([0.0, 0.0, 1.0])
+    z_r = rig.T_left_right[:3, 2]
+    cross = np.cross(z_l, z_r)
+    if np.linalg.norm(cross) < 1e-6:
+        return None
+    # closest points of the lines s*z_l and c_r + t*z_r
+    A = np.array([[z_l @ z_l, -z_l @ z_r], [z_l @ z_r, -z_r @ z_r]])
+    b = np.array([c_r @ z_l, c_r @ z_r])
+    s, _ = np.linalg.solve(A, b)
+    return float(s) if s > 0 else None
+
+
+def disparity_range(
+    rect: Rectification, depth_range_mm: tuple[float, float]
+) -> tuple[int, int]:
+    """``(min_disp, num_disp)`` covering depths ``[z_near, z_far]`` (num_disp a multiple of 16)."""
+    z0, z1 = (float(v) for v in depth_range_mm)
+    if not (0 < z0 < z1):
+        raise InputError(f"depth range: expected 0 < near < far, got {z0}:{z1}")
+    fb = rect.focal_px * rect.baseline_mm
+    d_min = int(math.floor(fb / z1))
+    d_max = int(math.ceil(fb / z0))
+    num = int(math.ceil((d_max - d_min + 1) / 16.0) * 16)
+    return d_min, num
+
+
+@dataclass
+class Reconstruction:
+    """Everything one shot produced."""
+
+    scan: Scan
+    rect: Rectification
+    left_rect: NDArray[np.uint8]
+    disparity: NDArray[np.float32]
+    """Dense (filled) disparity on the rectified-left grid."""
+    valid: NDArray[np.bool_]
+    """Pixels that passed the matcher's checks and gave a point."""
+    min_disp: int
+    num_disp: int
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def depth_mm(self) -> NDArray[np.float32]:
+        """Rectified-left depth of the valid points (NaN elsewhere)."""
+        return self.scan.depth_mm
+
+
+def reconstruct_shot(
+    shot: NDArray,
+    rig: StereoRig,
+    *,
+    min_disp: int | None = None,
+    num_disp: int | None = None,
+    depth_range_mm: tuple[float, float] | None = None,
+    alpha: float = 1.0,
+    smooth_sigma_px: float = 0.0,
+    progress: ProgressFn = null_progress,
+    **match_kwargs: Any,
+) -> Reconstruction:
+    """Split a side-by-side shot, rectify, match and triangulate it.
+
+    Parameters
+    ----------
+    shot : (H, W, 3) uint8
+        The sensor image (``rig.split.sensor_size``).
+    rig : StereoRig
+        The calibration.
+    min_disp, num_disp : int, optional
+        Disparity search range. By default it covers ``depth_range_mm``.
+    depth_range_mm : (near, far), optional
+        Default: 0.85x to 1.2x the rig's convergence distance.
+    smooth_sigma_px : float
+        Edge-preserving depth smoothing (0 = none); see
+        :func:`~prism3d.reconstruct.meshing.smooth_depth`.
+    match_kwargs
+        Passed to :func:`~prism3d.reconstruct.match.match_stereo_full`.
+    """
+    from prism3d.reconstruct.match import match_stereo_full
+    from prism3d.reconstruct.rectify import rectify_shot
+
+    img = check_array(shot, "shot", ndim=(2, 3))
+    sw, sh = rig.split.sensor_size
+    if img.shape[1] != sw or img.shape[0] != sh:
+        raise InputError(
+            f"shot is {img.shape[1]}x{img.shape[0]} but the calibration expects a {sw}x{sh} sensor image"
+        )
+    t = {}
+    t0 = time.perf_counter()
+    progress(0, 4, "rectify")
+    left, right, rect = rectify_shot(img, rig, alpha=alpha)
+    t["rectify"] = time.perf_counter() - t0
+    if (min_disp is None) != (num_disp is None):
+        raise InputError("give both min_disp and num_disp, or neither (then depth_range_mm is used)")
+    if min_disp is None:
+        if depth_range_mm is None:
+            wd = convergence_distance_mm(rig)
+            if wd is None:
+                raise InputError(
+                    "the cameras are parallel: give the disparity range (--min-disp/--num-disp) "
+                    "or the depth range (--depth-range NEAR:FAR mm)"
+                )
+            depth_range_mm = (0.85 * wd, 1.2 * wd)
+        min_disp, num_disp = disparity_range(rect, depth_range_mm)
+    t0 = time.perf_counter()
+    progress(1, 4, "match")
+    res = match_stereo_full(left, right, min_disp=int(min_disp), num_disp=int(num_disp), **match_kwargs)
+    t["match"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    progress(2, 4, "triangulate")
+    valid = res.valid & np.isfinite(res.disparity) & (res.disparity > 0)
+    depth = np.where(valid, rect.disparity_to_depth(res.disparity), np.nan).astype(np.float32)
+    if smooth_sigma_px > 0:
+        depth = smooth_depth(depth, sigma_px=smooth_sigma_px, focal_px=rect.focal_px,
+                             baseline_mm=rect.baseline_mm)
+    scan = scan_from_depth(depth, rect, left, res.confidence)
+    scan.meta.update(focal_px=rect.focal_px, baseline_mm=rect.baseline_mm, min_disp=int(min_disp),
+                     num_disp=int(num_disp), smooth_sigma_px=float(smooth_sigma_px))
+    t["triangulate"] = time.perf_counter() - t0
+    progress(4, 4, "done")
+    return Reconstruction(scan, rect, left, res.disparity, np.isfinite(scan.depth_mm), int(min_disp),
+                          int(num_disp), t)
+
+
+def reconstruct_to_files(
+    shot_path: str | Path,
+    calib_path: str | Path,
+    out_ply: str | Path,
+    *,
+    disparity_out: str | Path | None = None,
+    depth_out: str | Path | None = None,
+    mesh_out: str | Path | None = None,
+    min_disp: int | None = None,
+    num_disp: int | None = None,
+    depth_range_mm: tuple[float, float] | None = None,
+    smooth_sigma_px: float = 0.0,
+    progress: ProgressFn = null_progress,
+) -> Reconstruction:
+    """What ``prism3d reconstruct SHOT --calib calib.yaml -o scan.ply`` calls.
+
+    Writes the scan PLY (valid points only, left camera frame, mm, with colours,
+    normals and confidence), and optionally the dense disparity (PFM, rectified-left
+    grid), the depth map (float32 mm, rectified-left grid, NaN = no point) and a
+    mesh of the organised grid that does not bridge depth jumps. Outputs are written
+    only after everything has been computed, each atomically.
+    """
+    from prism3d.io.images import read_image, write_depth
+    from prism3d.io.pfm import write_pfm
+
+    out_ply = Path(out_ply)
+    for p in (out_ply, disparity_out, depth_out, mesh_out):
+        if p is not None and Path(p).is_dir():
+            raise InputError(f"{p}: is a directory; give an output file name")
+    if out_ply.suffix.lower() != ".ply":
+        raise InputError(f"{out_ply}: the scan must be written as .ply")
+    rig = StereoRig.load(calib_path)
+    shot = read_image(shot_path)
+    sw, sh = rig.split.sensor_size
+    if shot.shape[1] != sw or shot.shape[0] != sh:
+        raise InputError(f"{shot_path}: image is {shot.shape[1]}x{shot.shape[0]} but {calib_path} "
+                         f"describes a {sw}x{sh} sensor")
+    rec = reconstruct_shot(shot, rig, min_disp=min_disp, num_disp=num_disp, depth_range_mm=depth_range_mm,
+                           smooth_sigma_px=smooth_sigma_px, progress=progress)
+    faces = None
+    if mesh_out is not None:
+        grid, m = rec.scan.grid()
+        verts, faces = mesh_from_grid(grid, m, focal_px=rec.rect.focal_px)
+    comments = [f"{k} {v}" for k, v in rec.scan.meta.items()]
+    from prism3d.io.ply import write_ply
+
+    write_ply(out_ply, rec.scan.points, colors=rec.scan.colors, normals=rec.scan.normals,
+              extra={"confidence": rec.scan.confidence},
+              comments=["prism3d scan", "units mm", "frame left camera (OpenCV axes)", *comments])
+    if mesh_out is not None:
+        write_ply(mesh_out, verts, faces=faces, colors=rec.scan.colors, normals=rec.scan.normals,
+                  comments=["prism3d scan mesh", "units mm", *comments])
+    if disparity_out is not None:
+        write_pfm(disparity_out, rec.disparity)
+    if depth_out is not None:
+        write_depth(depth_out, rec.scan.depth_mm)
+    return rec
