@@ -24,6 +24,7 @@ from prism3d.reconstruct.corners import board_object_points, detect_views, grid_
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "calibration"
 VARIANTS = [
+    ("xjunction", None),
     ("classic", 3),
     ("classic", 5),
     ("classic", 7),
@@ -36,6 +37,8 @@ VARIANTS = [
 def _name(method: str, window: int | None) -> str:
     if method == "sb":
         return "findChessboardCornersSB"
+    if method == "xjunction":
+        return f"classic + X-junction model fit, radius {corners_mod.XJ_RADIUS_FRACTION} x spacing"
     w = f"half-window {window}" if window else f"half-window {corners_mod.WINDOW_FRACTION} x square"
     return f"findChessboardCorners + cornerSubPix, {w}"
 
@@ -86,6 +89,7 @@ def bench_real() -> None:
     for method, window in VARIANTS:
         t = time.perf_counter()
         cal = calibrate_stereo(images, pairs=True, tangential=False, method=method, window=window)
+        cal_def = calibrate_stereo(images, pairs=True, method=method, window=window)
         dt = time.perf_counter() - t
         pts = {s: [x.corners for x in cal.detections if x.view == s] for s in ("left", "right")}
         ok = [
@@ -102,7 +106,8 @@ def bench_real() -> None:
         print(
             f"{_name(method, window):60s} ours: single {single[0]:.4f} / {single[1]:.4f}, "
             f"stereo {cal.rms_left_px:.4f} / {cal.rms_right_px:.4f}, rect {cal.rectification_rms_px:.4f}, "
-            f"B {cal.rig.baseline_mm:.2f} mm  ({dt:.1f} s incl. detection)"
+            f"B {cal.rig.baseline_mm:.2f} mm; default k1k2p1p2 rect {cal_def.rectification_rms_px:.4f} "
+            f"({dt:.1f} s incl. detection)"
         )
     # OpenCV on our default corners
     cal = calibrate_stereo(images, pairs=True, tangential=False)

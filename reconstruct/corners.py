@@ -2,9 +2,14 @@
 
 Corners are found in each view of a side-by-side prism shot (cut with a
 :class:`~prism3d.capture.rig.PrismSplit`) or in separate left/right images.
-Two OpenCV detectors are available:
+Three detectors are available:
 
-``"classic"`` (default)
+``"xjunction"`` (default)
+    ``"classic"`` followed by :func:`refine_xjunction`: a blurred X-junction model
+    (two free edge directions, blur, contrast, linear shading) fitted by
+    Levenberg-Marquardt to the float grey levels within 0.6 x the corner spacing
+    (at most 32 px) of every corner.
+``"classic"``
     ``cv2.findChessboardCorners`` (falling back to ``FILTER_QUADS`` and to the
     sector-based detector for finding only) followed by ``cv2.cornerSubPix`` with a
     search window of half-size ``window`` pixels (``winSize=(window, window)``, a
@@ -16,17 +21,18 @@ Two OpenCV detectors are available:
 Measured (``benchmarks/bench_calibrate.py``, numbers from one run):
 
 * Virtual paper rig (``prism3d simulate calib``, 5 shots, 10 views, squares ~80 px),
-  RMS corner error against the true corners: classic half-window 3: 0.142 px,
-  5: 0.110, 7: 0.094, 11: 0.083, 0.2 x square (~16): 0.076 px; SB: 0.145 px and it
-  missed 7 of the 10 views.
-* OpenCV's real 9x6 stereo set (13 pairs, 640x480, squares 31-45 px), RMS after our
-  adjustment with k1 k2, each camera alone (left / right): classic 3: 0.240 / 0.297,
-  5: 0.204 / 0.212, 7: 0.191 / 0.194, 11: 0.418 / 0.461, 0.2 x square: 0.189 / 0.195;
-  SB: 0.254 / 0.247. (0.25 x square broke down on the right camera, 0.226.)
-
-The square-proportional window is the default: best on the virtual rig and on the
-real set. ``cv2.stereoCalibrate`` on the same corners gives the same joint RMS as our
-adjustment (0.2085 px).
+  RMS corner error against the true corners: xjunction 0.019 px (radius fraction
+  0.4: 0.019, 0.6 capped at 16 px: 0.027, 24 px: 0.022); classic half-window 3:
+  0.142 px, 5: 0.110, 7: 0.094, 11: 0.083, 0.2 x square (~16): 0.077 px (the same on
+  float grey); a quadratic saddle-point fit to the (smoothed) grey levels: 0.039 px;
+  SB: 0.145 px and it missed 7 of the 10 views.
+* OpenCV's real 9x6 stereo set (13 pairs, 640x480, squares 31-45 px), RMS of each
+  camera calibrated alone with k1 k2 (left / right): xjunction 0.164 / 0.156
+  (radius fraction 0.4: 0.166 / 0.159, 0.7: worse in the joint adjustment); classic
+  0.2 x square 0.189 / 0.195 (half-window 3: 0.240 / 0.297, 5: 0.204 / 0.212, 7:
+  0.191 / 0.194, 11: 0.418 / 0.461); saddle point 0.175 / 0.167; SB 0.254 / 0.247.
+  Rectification residual with the default k1 k2 p1 p2 model: xjunction 0.095 px,
+  classic 0.147 px (k1 k2 only: 0.137 / 0.183).
 
 Corner order: OpenCV may return the grid in any of its symmetric orders (reversed
 for a board turned by 180 degrees; for square boards also transposed). We
@@ -42,11 +48,14 @@ References
    calibration using a single shot", ICRA 2012 (sector-based corner ideas).
 .. [2] P. Duda, "Accurate detection and localization of checkerboard corners for
    calibration", BMVC 2018 (``findChessboardCornersSB``).
+.. [3] S. Placht et al., "ROCHADE: Robust Checkerboard Advanced Detection for Camera
+   Calibration", ECCV 2014 (sub-pixel refinement by fitting the grey levels).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,17 +76,23 @@ __all__ = [
     "detect_views",
     "grid_symmetries",
     "load_image",
+    "refine_xjunction",
     "to_gray",
+    "to_gray_float",
 ]
 
 log = logging.getLogger(__name__)
 
 #: Available detector names.
-DETECTORS = ("classic", "sb")
+DETECTORS = ("xjunction", "classic", "sb")
 #: Default cornerSubPix half-window as a fraction of the board's square size in
 #: pixels (see the module docstring for the numbers); ``window=None`` uses it.
 WINDOW_FRACTION = 0.2
 DEFAULT_WINDOW: int | None = None
+#: X-junction fit window radius as a fraction of the corner spacing (``"xjunction"``).
+XJ_RADIUS_FRACTION = 0.6
+#: Largest X-junction fit window radius, pixels.
+XJ_MAX_RADIUS = 32.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -199,6 +214,225 @@ def to_gray(image: NDArray) -> NDArray[np.uint8]:
     return np.ascontiguousarray(img)
 
 
+def to_gray_float(image: NDArray) -> NDArray[np.float64]:
+    """Grey float64 ``(H, W)`` on the 0-255 scale, without rounding to 8 bits.
+
+    RGB is weighted like ``cv2.COLOR_RGB2GRAY`` (0.299, 0.587, 0.114); float input in
+    [0, 1] is scaled by 255. Sub-pixel refinement works on this, so that the grey
+    conversion adds no quantisation to the (8-bit, noisy) image.
+    """
+    img = check_array(image, "image", ndim=(2, 3))
+    if img.dtype.kind not in "fu":
+        raise InputError(f"image: expected uint8 or float in [0, 1], got {img.dtype}")
+    a = np.nan_to_num(img.astype(np.float64))
+    if img.dtype.kind == "f":
+        a = a * 255.0
+    if a.ndim == 3:
+        if a.shape[2] == 1:
+            return np.ascontiguousarray(a[:, :, 0])
+        if a.shape[2] not in (3, 4):
+            raise InputError(f"image: expected 1, 3 or 4 channels, got {a.shape[2]}")
+        a = a[:, :, :3] @ np.array([0.299, 0.587, 0.114])
+    return np.ascontiguousarray(a)
+
+
+def _grid_directions(
+    corners: NDArray[np.float64], board: tuple[int, int]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Per corner: unit row and column directions and the distance to the nearest
+    grid neighbour (pixels), from the detected grid (OpenCV's row-major order)."""
+    cols, rows = board
+    g = corners.reshape(rows, cols, 2)
+
+    def central(axis: int) -> NDArray[np.float64]:
+        d = np.diff(g, axis=axis)
+        pad = [(0, 0)] * 3
+        pad[axis] = (1, 0)
+        before = np.pad(d, pad, mode="edge")
+        pad[axis] = (0, 1)
+        after = np.pad(d, pad, mode="edge")
+        return 0.5 * (before + after)
+
+    def nearest(axis: int) -> NDArray[np.float64]:
+        d = np.linalg.norm(np.diff(g, axis=axis), axis=2)
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (1, 0)
+        a = np.pad(d, pad, mode="constant", constant_values=np.inf)
+        pad[axis] = (0, 1)
+        b = np.pad(d, pad, mode="constant", constant_values=np.inf)
+        return np.minimum(a, b)
+
+    d_row, d_col = central(1).reshape(-1, 2), central(0).reshape(-1, 2)
+    d_row = d_row / np.maximum(np.linalg.norm(d_row, axis=1, keepdims=True), 1e-12)
+    d_col = d_col / np.maximum(np.linalg.norm(d_col, axis=1, keepdims=True), 1e-12)
+    spacing = np.minimum(nearest(1), nearest(0)).ravel()
+    return d_row, d_col, spacing
+
+
+def refine_xjunction(
+    gray: NDArray,
+    corners: NDArray,
+    board: tuple[int, int],
+    *,
+    radius_fraction: float = XJ_RADIUS_FRACTION,
+    max_radius: float = XJ_MAX_RADIUS,
+    max_iter: int = 40,
+) -> NDArray[np.float64]:
+    """Refine chessboard corners by fitting a blurred X-junction model to the grey levels.
+
+    Around every corner, the pixels within ``radius_fraction`` x the distance to the
+    nearest grid neighbour are fitted (Levenberg-Marquardt, all corners at once) with
+
+    ``I(p) = m + A erf(n1 . (p - c) / (sqrt(2) s)) erf(n2 . (p - c) / (sqrt(2) s))
+    + g . (p - p0)``
+
+    an ideal chessboard corner at ``c`` whose two edges have normals ``n1``, ``n2``
+    (angles free: perspective makes them non-orthogonal), blurred by a Gaussian of
+    width ``s`` (optics + pixel integration), with contrast ``A``, mean ``m`` and a
+    linear shading ``g``. The model is point-symmetric about ``c`` like the image of
+    a real corner, so it does not pull the corner towards either square, and it uses
+    every pixel of the window (not only the gradient directions like
+    ``cv2.cornerSubPix``). Corners whose fit fails (moved more than a quarter of the
+    spacing, no contrast, blur out of range) keep their input position.
+
+    Parameters
+    ----------
+    gray : (H, W) float or uint8
+        Grey image (:func:`to_gray_float`; do not round it to 8 bits first).
+    corners : (N, 2) float
+        Initial corners, pixels, in OpenCV's grid order (``rows`` rows of ``cols``).
+    board : (cols, rows)
+        Inner corners.
+    radius_fraction : float
+        Window radius as a fraction of the nearest-neighbour corner spacing.
+    max_radius : float
+        Upper limit of the window radius, pixels (bounds the cost on large boards).
+    max_iter : int
+        Levenberg-Marquardt iterations.
+
+    Returns
+    -------
+    (N, 2) float64
+        Refined corners, same order.
+
+    References
+    ----------
+    .. [1] S. Placht, P. Fürsattel, E. A. Mengue, H. Hofmann, C. Schaller, M. Balda,
+       E. Angelopoulou, "ROCHADE: Robust Checkerboard Advanced Detection for Camera
+       Calibration", ECCV 2014 (saddle-point refinement of smoothed corners).
+    .. [2] D. Chen, G. Zhang, "A new sub-pixel detector for X-corners in camera
+       calibration targets", WSCG 2005.
+    """
+    from scipy.special import erf
+
+    cols, rows = _check_board(board)
+    g = check_array(gray, "gray", ndim=2, dtype_kind="fu").astype(np.float64)
+    c0 = check_array(corners, "corners", dtype_kind="fiu").reshape(-1, 2).astype(np.float64)
+    if c0.shape[0] != cols * rows:
+        raise InputError(
+            f"corners: expected {cols * rows} corners for a {cols}x{rows} board, got {c0.shape[0]}"
+        )
+    H, W = g.shape
+    d_row, d_col, spacing = _grid_directions(c0, (cols, rows))
+    radius = np.clip(float(radius_fraction) * spacing, 2.0, max(float(max_radius), 2.0))
+    ri = int(np.ceil(radius.max()))
+    oy, ox = np.mgrid[-ri : ri + 1, -ri : ri + 1]
+    ox, oy = ox.ravel().astype(np.float64), oy.ravel().astype(np.float64)
+    base = np.rint(c0)
+    px = base[:, :1] + ox[None]  # (N, M) pixel coordinates
+    py = base[:, 1:] + oy[None]
+    inside = (px >= 0) & (px <= W - 1) & (py >= 0) & (py <= H - 1)
+    wgt = (((px - c0[:, :1]) ** 2 + (py - c0[:, 1:]) ** 2 <= radius[:, None] ** 2) & inside).astype(
+        np.float64
+    )
+    img = g[np.clip(py, 0, H - 1).astype(np.intp), np.clip(px, 0, W - 1).astype(np.intp)]
+    rel_x, rel_y = px - base[:, :1], py - base[:, 1:]
+    k_erf = 1.0 / math.sqrt(2.0)
+    k_der = 2.0 / math.sqrt(math.pi)
+
+    def model(p: NDArray[np.float64], sel: NDArray[np.intp]) -> tuple[NDArray, NDArray]:
+        u = px[sel] - p[:, 0:1]
+        v = py[sel] - p[:, 1:2]
+        c1, s1 = np.cos(p[:, 2:3]), np.sin(p[:, 2:3])
+        c2, s2 = np.cos(p[:, 3:4]), np.sin(p[:, 3:4])
+        sig = p[:, 4:5]
+        a1 = (c1 * u + s1 * v) * (k_erf / sig)
+        a2 = (c2 * u + s2 * v) * (k_erf / sig)
+        e1, e2 = erf(a1), erf(a2)
+        g1 = k_der * np.exp(-a1 * a1) * (k_erf / sig)
+        g2 = k_der * np.exp(-a2 * a2) * (k_erf / sig)
+        A = p[:, 6:7]
+        f = p[:, 5:6] + A * e1 * e2 + p[:, 7:8] * rel_x[sel] + p[:, 8:9] * rel_y[sel]
+        J = np.empty(u.shape + (9,))
+        J[..., 0] = -A * (g1 * c1 * e2 + e1 * g2 * c2)
+        J[..., 1] = -A * (g1 * s1 * e2 + e1 * g2 * s2)
+        J[..., 2] = A * g1 * (-s1 * u + c1 * v) * e2
+        J[..., 3] = A * e1 * g2 * (-s2 * u + c2 * v)
+        J[..., 4] = -A * (e1 * g2 * a2 + g1 * a1 * e2) / (k_erf / sig) / sig
+        J[..., 5] = 1.0
+        J[..., 6] = e1 * e2
+        J[..., 7] = rel_x[sel]
+        J[..., 8] = rel_y[sel]
+        return f, J
+
+    # start: edges along the grid lines, 1 px blur, linear terms by least squares
+    n1 = np.arctan2(d_row[:, 0], -d_row[:, 1])  # normal of the edge along the row
+    n2 = np.arctan2(d_col[:, 0], -d_col[:, 1])
+    p = np.zeros((c0.shape[0], 9))
+    p[:, 0:2], p[:, 2], p[:, 3], p[:, 4] = c0, n1, n2, 1.0
+    every = np.arange(c0.shape[0])
+    _, J = model(p, every)
+    lin = J[..., 5:9] * wgt[..., None]
+    lhs = np.einsum("nmi,nmj->nij", lin, J[..., 5:9]) + 1e-9 * np.eye(4)
+    p[:, 5:9] = np.linalg.solve(lhs, np.einsum("nmi,nm->ni", lin, img)[..., None])[..., 0]
+    f, J = model(p, every)
+    r = (f - img) * wgt
+    cost = np.einsum("nm,nm->n", r, r)
+    lam = np.full(c0.shape[0], 1e-3)
+    active = np.ones(c0.shape[0], dtype=bool)
+    for _ in range(int(max_iter)):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        Jw = J[idx] * wgt[idx, :, None]
+        JtJ = np.einsum("nmi,nmj->nij", Jw, J[idx])
+        grad = np.einsum("nmi,nm->ni", Jw, r[idx])
+        diag = np.einsum("nii->ni", JtJ) + 1e-12
+        lhs = JtJ + (lam[idx, None] * diag)[:, :, None] * np.eye(9)[None]
+        try:
+            step = -np.linalg.solve(lhs, grad[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # pragma: no cover - damped systems are regular
+            break
+        trial = p[idx] + step
+        trial[:, 4] = np.maximum(trial[:, 4], 0.2)
+        ft, Jt = model(trial, idx)
+        rt = (ft - img[idx]) * wgt[idx]
+        ct = np.einsum("nm,nm->n", rt, rt)
+        better = ct < cost[idx]
+        acc = idx[better]
+        p[acc], f[acc], J[acc], r[acc], cost[acc] = (
+            trial[better],
+            ft[better],
+            Jt[better],
+            rt[better],
+            ct[better],
+        )
+        lam[acc] *= 0.3
+        lam[idx[~better]] *= 10.0
+        small = np.max(np.abs(step[:, :2]), axis=1) < 1e-5
+        active[idx[(better & small) | (lam[idx] > 1e8)]] = False
+    moved = np.linalg.norm(p[:, :2] - c0, axis=1)
+    ok = (
+        np.all(np.isfinite(p), axis=1)
+        & (moved < 0.25 * spacing)
+        & (p[:, 4] < radius)
+        & (np.abs(p[:, 6]) > 1.0)
+    )
+    if not ok.all():
+        log.debug("x-junction fit failed for %d of %d corners", int((~ok).sum()), ok.size)
+    return np.where(ok[:, None], p[:, :2], c0)
+
+
 def load_image(path: str | Path) -> NDArray[np.uint8]:
     """Read an image file as RGB uint8 ``(H, W, 3)`` (grey files become 3 channels)."""
     import cv2
@@ -215,7 +449,7 @@ def detect_corners(
     image: NDArray,
     board: tuple[int, int] = (9, 6),
     *,
-    method: str = "classic",
+    method: str = "xjunction",
     window: int | None = DEFAULT_WINDOW,
 ) -> NDArray[np.float64] | None:
     """Find a chessboard's inner corners to sub-pixel accuracy.
@@ -226,10 +460,10 @@ def detect_corners(
         One view (RGB or grey).
     board : (cols, rows)
         Inner corners per row and per column (OpenCV ``patternSize``).
-    method : {"classic", "sb"}
+    method : {"xjunction", "classic", "sb"}
         Detector (see the module docstring for measured accuracy).
     window : int, optional
-        ``cornerSubPix`` half-window for ``"classic"``; default 0.2 x the square size
+        ``cornerSubPix`` half-window for ``"classic"`` and ``"xjunction"``; default 0.2 x the square size
         in pixels. Always clipped to below half a square.
 
     Returns
@@ -247,14 +481,26 @@ def detect_corners(
     if min(gray.shape) < 16:  # OpenCV's detectors fail on tiny images
         return None
     try:
-        return _detect(gray, cols, rows, method, None if window is None else int(window))
+        return _detect(
+            gray,
+            cols,
+            rows,
+            method,
+            None if window is None else int(window),
+            to_gray_float(image) if method == "xjunction" else None,
+        )
     except cv2.error as exc:
         log.debug("OpenCV detector failed: %s", exc)
         return None
 
 
 def _detect(
-    gray: NDArray[np.uint8], cols: int, rows: int, method: str, window: int | None
+    gray: NDArray[np.uint8],
+    cols: int,
+    rows: int,
+    method: str,
+    window: int | None,
+    fgray: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64] | None:
     import cv2
 
@@ -282,6 +528,8 @@ def _detect(
             w = max(1, min(round(want), int(sq / 2) - 1))
             crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
             corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (w, w), (-1, -1), crit)
+            if method == "xjunction" and fgray is not None:
+                corners = refine_xjunction(fgray, corners.reshape(-1, 2), (cols, rows))
     if not ok or corners is None or corners.reshape(-1, 2).shape[0] != cols * rows:
         return None
     return canonical_order(corners.reshape(-1, 2).astype(np.float64), (cols, rows))
@@ -305,7 +553,7 @@ def detect_views(
     board: tuple[int, int] = (9, 6),
     pairs: bool = False,
     split: object | None = None,
-    method: str = "classic",
+    method: str = "xjunction",
     window: int | None = DEFAULT_WINDOW,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[list[tuple[CornerDetection, CornerDetection]], tuple[int, int]]:

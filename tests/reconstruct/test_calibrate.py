@@ -19,7 +19,12 @@ from prism3d.reconstruct.calibrate import (
     parse_board,
     rectification_residual,
 )
-from prism3d.reconstruct.corners import board_object_points, detect_square_grid, load_image
+from prism3d.reconstruct.corners import (
+    board_object_points,
+    detect_square_grid,
+    grid_symmetries,
+    load_image,
+)
 
 from prism3d.errors import CalibrationError, InputError
 
@@ -91,6 +96,48 @@ def test_paper_rig_with_noise_k1k2_model() -> None:
     assert 0 < cal.std["fx_left"] < 10
     assert abs(cal.rig.left.fx - 5107.0) < 4 * cal.std["fx_left"] + 1e-9
     assert abs(cal.rig.baseline_mm - 197.9) < 4 * np.linalg.norm([cal.std["tx"], cal.std["tz"]])
+
+
+#: Corner noise (px, per coordinate) of the X-junction detector on the virtual rig's
+#: rendered calibration shots: 0.019 px RMS (2D) against the true corners.
+SIM_CORNER_NOISE = 0.0134
+
+
+@pytest.mark.parametrize("noise_seed", [0, 1])
+def test_virtual_rig_targets_on_simulator_poses(noise_seed: int) -> None:
+    """Issue target (a) on the simulator's own 5 board poses with the detector's noise."""
+    from prism3d.capture.scenes import calibration_board_poses
+
+    rig = paper_rig()
+    obj = board_object_points((9, 6), 25.0)
+    rng = np.random.default_rng(noise_seed)
+    L, R, Lt, Rt = [], [], [], []
+    for T in calibration_board_poses(rig, 5, seed=0):
+        for cam, T_cam_rig, noisy, true in (
+            (rig.left, np.linalg.inv(rig.T_rig_left), L, Lt),
+            (rig.right, np.linalg.inv(rig.T_rig_right), R, Rt),
+        ):
+            Tc = T_cam_rig @ T
+            uv = cam.project(obj @ Tc[:3, :3].T + Tc[:3, 3])
+            true.append(uv)
+            noisy.append(uv + rng.normal(0.0, SIM_CORNER_NOISE, uv.shape))
+    cal = calibrate_stereo_points(L, R, rig.left.size, tangential=False)
+    for est, ref in ((cal.rig.left, rig.left), (cal.rig.right, rig.right)):
+        assert abs(est.fx / ref.fx - 1) < 1e-3 and abs(est.fy / ref.fy - 1) < 1e-3
+        assert abs(est.dist[0] - ref.dist[0]) < 0.005
+    assert abs(cal.rig.baseline_mm / rig.baseline_mm - 1) < 1e-3
+    assert rotation_angle_deg(cal.rig.R @ rig.R.T) < 0.02
+    assert cal.rectification_rms_px < 0.05
+    assert rectification_residual(cal.rig, Lt, Rt) < 0.01
+    # target: cx, cy within 1 px. NOT reliably met: with 5 poses their std is ~0.6 px
+    # at this corner noise (noise seed 0: within 1 px; seed 1: not)
+    pp = max(
+        max(abs(e.cx - r.cx), abs(e.cy - r.cy))
+        for e, r in ((cal.rig.left, rig.left), (cal.rig.right, rig.right))
+    )
+    assert pp < 2.0
+    if pp >= 1.0:
+        pytest.xfail(f"principal point off by {pp:.2f} px (target 1 px) with 5 board poses")
 
 
 def test_paper_rig_default_model_and_outlier_flag() -> None:
@@ -245,52 +292,75 @@ def test_zhang_images_square_detector(shared_data: Path) -> None:
 
 @pytest.mark.slow
 def test_simulated_calibration_shots(tmp_path: Path) -> None:
-    """The virtual rig's calibration shots (prism3d simulate calib, ~2.5 min to render).
-
-    Measured (seed 0, k1 k2 p1 p2): fx, fy within 0.04 %, cx, cy within 2.5 / 3.2 px,
-    k1 within 0.015 (k2 is barely observable at f = 5107 px and trades off with k1),
-    baseline within 0.02 %, rig rotation 0.027 deg, corner RMS 0.075 px, rectification
-    residual 0.089 px on detected corners and 0.014 px on the true corners.
-    """
+    """Issue target (a) end to end: the virtual rig's 5 rendered calibration shots
+    (``prism3d simulate calib``, noise on, seed 0; ~2 min to render), the paper's k1 k2
+    model. Measured: see :func:`prism3d.reconstruct.calibrate.calibrate_stereo`."""
     from prism3d.capture.simulate import simulate_to_folder
 
     simulate_to_folder("calib", tmp_path, seed=0, noise=True)
     rig = StereoRig.load(tmp_path / "rig.yaml")
     images = sorted(tmp_path.glob("calib_*.png"))
     truth = [np.load(p, allow_pickle=False) for p in sorted(tmp_path.glob("truth_*.npz"))]
-    cal = calibrate_stereo(images, board=(9, 6), square_mm=25.0)
-    assert cal.n_views == len(images) >= 5
+    cal = calibrate_stereo(images, board=(9, 6), square_mm=25.0, tangential=False)
+    assert cal.n_views == len(images) == 5
     for est, ref in ((cal.rig.left, rig.left), (cal.rig.right, rig.right)):
         assert abs(est.fx / ref.fx - 1) < 1e-3 and abs(est.fy / ref.fy - 1) < 1e-3
-        assert abs(est.cx - ref.cx) < 5.0 and abs(est.cy - ref.cy) < 5.0
-        assert abs(est.dist[0] - ref.dist[0]) < 0.03
+        assert abs(est.dist[0] - ref.dist[0]) < 0.005
     assert abs(cal.rig.baseline_mm / rig.baseline_mm - 1) < 1e-3
-    assert rotation_angle_deg(cal.rig.R @ rig.R.T) < 0.05
-    assert cal.rms_px < 0.12
+    assert rotation_angle_deg(cal.rig.R @ rig.R.T) < 0.02
+    assert cal.rms_px < 0.04
+    assert cal.rectification_rms_px < 0.05
     true_l = [t["corners_left"] for t in truth]
     true_r = [t["corners_right"] for t in truth]
-    assert rectification_residual(cal.rig, true_l, true_r) < 0.05
+    assert rectification_residual(cal.rig, true_l, true_r) < 0.02
+    # the detected corners against the truth (X-junction fit; classic: 0.077 px)
+    err = []
+    true_views = [x for tr in truth for x in (tr["corners_left"], tr["corners_right"])]
+    for det, tv in zip(cal.detections, true_views, strict=True):
+        err.append(
+            min(
+                np.mean(np.sum((det.corners[p] - tv) ** 2, axis=1)) for p in grid_symmetries((9, 6))
+            )
+        )
+    assert np.sqrt(np.mean(err)) < 0.03
+    # target: cx, cy within 1 px; measured 0.43 / 1.26 (cx), 0.16 / 0.09 (cy): not met
+    pp = max(
+        max(abs(e.cx - r.cx), abs(e.cy - r.cy))
+        for e, r in ((cal.rig.left, rig.left), (cal.rig.right, rig.right))
+    )
+    assert pp < 2.0
+    if pp >= 1.0:
+        pytest.xfail(f"principal point off by {pp:.2f} px (target 1 px) with 5 board poses")
 
 
 @pytest.mark.realdata
 def test_opencv_stereo_set(shared_data: Path) -> None:
+    """Issue target (b) on OpenCV's real 9x6 stereo set (13 pairs, 640x480)."""
     d = shared_data / "calibration" / "opencv_stereo_9x6"
     images = []
     for i in (1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14):
         images += [d / f"left{i:02d}.jpg", d / f"right{i:02d}.jpg"]
-    cal = calibrate_stereo(images, pairs=True, tangential=False)
+    cal = calibrate_stereo(images, pairs=True)  # default model: k1 k2 p1 p2
     assert cal.n_views == 13 and all(dt.found for dt in cal.detections)
-    # joint stereo adjustment (shared board poses) with k1 k2: measured 0.207 / 0.210
-    assert cal.rms_left_px < 0.22 and cal.rms_right_px < 0.22
     assert abs(cal.rig.baseline_mm - 83.2) < 0.3
-    # noise floor of the detected corners' vertical disparity: measured 0.183
-    assert cal.rectification_rms_px < 0.2
-    # each camera on its own (the shipped reference file has RMS 0.39): measured 0.189 / 0.195
+    # vertical disparity of the detected corners after rectification: measured 0.095
+    assert cal.rectification_rms_px <= 0.1
+    assert cal.rms_left_px < 0.2 and cal.rms_right_px < 0.2  # measured 0.172 / 0.168
+    # the paper's model (k1 k2): joint adjustment measured 0.181 / 0.174, rectification 0.137
+    k12 = calibrate_stereo_points(
+        [dt.corners for dt in cal.detections if dt.view == "left"],
+        [dt.corners for dt in cal.detections if dt.view == "right"],
+        (640, 480),
+        tangential=False,
+    )
+    assert k12.rms_left_px <= 0.2 and k12.rms_right_px <= 0.2
+    assert abs(k12.rig.baseline_mm - 83.2) < 0.3
+    # each camera on its own (the shipped reference file has RMS 0.39): measured 0.164 / 0.156
     obj = board_object_points((9, 6), 25.0)
     for side in ("left", "right"):
         pts = [dt.corners for dt in cal.detections if dt.view == side]
         res = calibrate_camera([obj] * len(pts), pts, (640, 480), tangential=False)
-        assert res.rms_px < 0.20
+        assert res.rms_px <= 0.2
 
 
 def test_errors(tmp_path: Path) -> None:

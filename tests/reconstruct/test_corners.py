@@ -15,7 +15,9 @@ from prism3d.reconstruct.corners import (
     detect_views,
     grid_symmetries,
     load_image,
+    refine_xjunction,
     to_gray,
+    to_gray_float,
 )
 
 from prism3d.errors import InputError
@@ -79,15 +81,51 @@ def board_pose(
     return T
 
 
-@pytest.mark.parametrize("method", ["classic", "sb"])
-def test_detect_corners_accuracy_against_truth(method: str) -> None:
+@pytest.mark.parametrize(
+    ("method", "rms", "worst"), [("xjunction", 0.03, 0.1), ("classic", 0.1, 0.3), ("sb", 0.1, 0.3)]
+)
+def test_detect_corners_accuracy_against_truth(method: str, rms: float, worst: float) -> None:
     cam = small_camera()
     img, truth = render_board(cam, board_pose())
     c = detect_corners(img, (9, 6), method=method)
     assert c is not None and c.shape == (54, 2)
     err = np.linalg.norm(c - truth, axis=1)
-    assert np.sqrt(np.mean(err**2)) < 0.1
-    assert err.max() < 0.3
+    assert np.sqrt(np.mean(err**2)) < rms
+    assert err.max() < worst
+
+
+def test_refine_xjunction_beats_cornersubpix() -> None:
+    """The X-junction fit on a strongly tilted, blurred, noisy board (float grey)."""
+    import cv2
+
+    cam = small_camera()
+    img, truth = render_board(cam, board_pose((45.0, -30.0, 10.0), 520.0), noise=3.0, seed=2)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    classic = detect_corners(img, (9, 6), method="classic")
+    assert classic is not None
+    refined = refine_xjunction(to_gray_float(img), classic, (9, 6))
+    e_classic = np.sqrt(np.mean(np.sum((classic - truth) ** 2, axis=1)))
+    e_refined = np.sqrt(np.mean(np.sum((refined - truth) ** 2, axis=1)))
+    assert e_refined < 0.6 * e_classic and e_refined < 0.05
+    # a corner already at the truth stays there; a blank window keeps its input
+    blank = np.full(img.shape, 128.0)
+    np.testing.assert_array_equal(refine_xjunction(blank, classic, (9, 6)), classic)
+
+
+def test_to_gray_float_keeps_precision() -> None:
+    rgb = np.zeros((2, 3, 3), np.uint8)
+    rgb[0, 0] = (10, 20, 31)
+    g = to_gray_float(rgb)
+    assert g.dtype == np.float64 and g.shape == (2, 3)
+    assert g[0, 0] == pytest.approx(0.299 * 10 + 0.587 * 20 + 0.114 * 31)
+    np.testing.assert_allclose(to_gray_float(np.full((2, 2), 0.5, np.float32)), 127.5)
+    assert to_gray_float(np.ones((2, 2, 1), np.uint8)).shape == (2, 2)
+    with pytest.raises(InputError, match="channels"):
+        to_gray_float(np.zeros((4, 4, 5), np.uint8))
+    with pytest.raises(InputError, match="expected uint8 or float"):
+        to_gray_float(np.zeros((4, 4), bool))
+    with pytest.raises(InputError, match="expected 54 corners"):
+        refine_xjunction(np.zeros((20, 20)), np.zeros((10, 2)), (9, 6))
 
 
 def test_rotated_board_gets_canonical_order() -> None:
