@@ -18,6 +18,10 @@ def configure_environment() -> None:
     """Set ``PYOPENGL_PLATFORM`` and ``NUMBA_THREADING_LAYER`` unless already set."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
     os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
+    # OpenMP threads sleep between parallel regions instead of spinning: with many
+    # short numba kernels on a shared 2-core machine, spinning made each launch cost
+    # 5-10 ms (measured); sleeping costs microseconds.
+    os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     # numba reads the variable once, when it is first imported; if something (a test
     # runner, a notebook) imported it before us, set its config directly.
     numba = sys.modules.get("numba")

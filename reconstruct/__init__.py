@@ -19,6 +19,13 @@ _LAZY = {
     "rectify_maps": "rectify",
     "match_stereo": "match",
     "match_stereo_full": "match",
+    "match_files": "match",
+    "StereoResult": "match",
+    "score_disparity": "stereo_eval",
+    "reconstruct_shot": "pipeline",
+    "triangulate": "triangulate",
+    "fit_plane": "flatness",
+    "flatness_test": "flatness",
 }
 
 __all__ = sorted(_LAZY)

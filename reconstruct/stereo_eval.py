@@ -1,0 +1,136 @@
+"""Score a disparity map against ground truth (Middlebury-style error rates).
+
+Conventions: a pixel is *scored* where the ground truth is known (finite and > 0, or
+as told by ``gt_valid``) and inside the optional evaluation ``mask`` (e.g. Middlebury
+``nonocc.png == 255``). A scored pixel without an estimate (NaN, inf, or negative
+when ``negative_invalid``) counts as a bad pixel in the dense rates; the
+``*_valid`` rates use only pixels with an estimate.
+
+References
+----------
+.. [1] D. Scharstein and R. Szeliski, "A taxonomy and evaluation of dense two-frame
+   stereo correspondence algorithms", IJCV 47(1-3), 2002 (bad-pixel rate).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.checks import check_array, check_positive, check_same_shape
+from prism3d.errors import InputError
+
+__all__ = ["DisparityScore", "score_disparity"]
+
+
+@dataclass(frozen=True)
+class DisparityScore:
+    """Error rates of one disparity map.
+
+    Attributes
+    ----------
+    bad1, bad2 : float
+        Fraction (0..1) of scored pixels with ``|d - gt| > 1`` (resp. ``> 2``) px or
+        no estimate.
+    bad1_valid, bad2_valid : float
+        The same over scored pixels that have an estimate.
+    avg_err : float
+        Mean ``|d - gt|`` (px) over scored pixels with an estimate.
+    rms_err : float
+        Root-mean-square error (px) over the same pixels.
+    density : float
+        Fraction of scored pixels that have an estimate.
+    n_scored : int
+        Number of scored pixels.
+    """
+
+    bad1: float
+    bad2: float
+    bad1_valid: float
+    bad2_valid: float
+    avg_err: float
+    rms_err: float
+    density: float
+    n_scored: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain dict (for JSON / tables)."""
+        return asdict(self)
+
+
+def score_disparity(
+    disparity: NDArray[Any],
+    gt: NDArray[Any],
+    *,
+    mask: NDArray[Any] | None = None,
+    gt_valid: NDArray[Any] | None = None,
+    negative_invalid: bool = False,
+    thresholds: tuple[float, float] = (1.0, 2.0),
+) -> DisparityScore:
+    """Compare ``disparity`` with ``gt``.
+
+    Parameters
+    ----------
+    disparity : (H, W) float
+        Estimate in pixels; NaN/inf = no estimate.
+    gt : (H, W) float
+        Ground truth in pixels; non-finite or ``<= 0`` = unknown unless ``gt_valid``
+        is given.
+    mask : (H, W) bool, optional
+        Evaluation region (e.g. non-occluded pixels).
+    gt_valid : (H, W) bool, optional
+        Where the ground truth is known (overrides the ``> 0`` rule).
+    negative_invalid : bool
+        Treat negative estimates as missing (OpenCV's invalid marker).
+    thresholds : (float, float)
+        Error thresholds (px) of ``bad1`` and ``bad2``.
+
+    Returns
+    -------
+    DisparityScore
+
+    Raises
+    ------
+    InputError
+        Shapes differ, arrays are not 2-D, or no pixel is scored.
+    """
+    d = check_array(disparity, "disparity", ndim=2, dtype_kind="fiu").astype(np.float64)
+    g = check_array(gt, "gt", ndim=2, dtype_kind="fiu").astype(np.float64)
+    check_same_shape(d, g, ("disparity", "gt"))
+    t1 = check_positive(thresholds[0], "thresholds[0]")
+    t2 = check_positive(thresholds[1], "thresholds[1]")
+    if gt_valid is None:
+        known = np.isfinite(g) & (g > 0)
+    else:
+        gv = check_array(gt_valid, "gt_valid", ndim=2, dtype_kind="b")
+        check_same_shape(gv, g, ("gt_valid", "gt"))
+        known = gv & np.isfinite(g)
+    if mask is not None:
+        m = check_array(mask, "mask", ndim=2, dtype_kind="b")
+        check_same_shape(m, g, ("mask", "gt"))
+        known &= m
+    n = int(known.sum())
+    if n == 0:
+        raise InputError("gt: no pixel to score (ground truth unknown everywhere in the mask)")
+    has = np.isfinite(d)
+    if negative_invalid:
+        has &= d >= 0
+    has_s = has & known
+    err = np.abs(d[has_s] - g[has_s])
+    nv = max(int(has_s.sum()), 1)
+    bad1_v = int((err > t1).sum())
+    bad2_v = int((err > t2).sum())
+    missing = n - int(has_s.sum())
+    return DisparityScore(
+        bad1=(bad1_v + missing) / n,
+        bad2=(bad2_v + missing) / n,
+        bad1_valid=bad1_v / nv,
+        bad2_valid=bad2_v / nv,
+        avg_err=float(err.mean()) if err.size else float("nan"),
+        rms_err=float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
+        density=int(has_s.sum()) / n,
+        n_scored=n,
+    )
