@@ -247,12 +247,125 @@ def _add_rectify(sub: Any) -> None:
     p.set_defaults(func=_cmd_rectify)
 
 
+# --- match / reconstruct / flatness -------------------------------------------------------
+def _parse_range(text: str | None, what: str) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in text.split(":"))
+    except ValueError as exc:
+        raise InputError(f"{what}: expected NEAR:FAR in mm, got {text!r}") from exc
+    return lo, hi
+
+
+def _cmd_match(args: argparse.Namespace) -> int:
+    from prism3d.io.images import read_image
+    from prism3d.io.pfm import write_pfm
+    from prism3d.reconstruct.match import match_stereo_full
+
+    if args.output.suffix.lower() != ".pfm":
+        raise InputError(f"{args.output}: disparity is written as PFM (.pfm)")
+    left = read_image(args.left)
+    right = read_image(args.right)
+    res = match_stereo_full(left, right, min_disp=args.min_disp, num_disp=args.num_disp)
+    import numpy as np
+
+    disp = res.disparity if args.dense else np.where(res.valid, res.disparity, np.nan).astype(np.float32)
+    write_pfm(args.output, disp)
+    if args.valid_out is not None:
+        from prism3d.io.images import write_image
+
+        write_image(args.valid_out, res.valid)
+    _say(args, f"wrote {args.output} ({100.0 * res.valid.mean():.1f}% confident pixels)")
+    return 0
+
+
+def _add_match(sub: Any) -> None:
+    p = sub.add_parser("match", help="dense stereo matching of a rectified pair -> disparity PFM",
+                       description="Census + semi-global matching with sub-pixel refinement, left-right "
+                       "check and hole filling. Writes d = x_left - x_right (float32 PFM).")
+    p.add_argument("left", type=Path, metavar="LEFT")
+    p.add_argument("right", type=Path, metavar="RIGHT")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="DISP_PFM")
+    p.add_argument("--num-disp", required=True, type=int, metavar="N", help="number of disparity levels")
+    p.add_argument("--min-disp", type=int, default=0, metavar="M", help="smallest disparity (default 0)")
+    p.add_argument("--sparse", dest="dense", action="store_false",
+                   help="write NaN where the match is not confident (default: dense, holes filled)")
+    p.add_argument("--valid-out", type=Path, metavar="PNG", help="also write the confidence mask")
+    p.set_defaults(func=_cmd_match)
+
+
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from prism3d.reconstruct.pipeline import reconstruct_to_files
+
+    rec = reconstruct_to_files(args.shot, args.calib, args.output, disparity_out=args.disparity_out,
+                               depth_out=args.depth_out, mesh_out=args.mesh, min_disp=args.min_disp,
+                               num_disp=args.num_disp, depth_range_mm=_parse_range(args.depth_range, "--depth-range"),
+                               smooth_sigma_px=args.smooth, progress=_progress(args, "reconstruct"))
+    t = rec.timings_s
+    _say(args, f"wrote {args.output}: {len(rec.scan)} points (disparity {rec.min_disp}..{rec.min_disp + rec.num_disp - 1}; "
+               + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()) + ")")
+    return 0
+
+
+def _add_reconstruct(sub: Any) -> None:
+    p = sub.add_parser("reconstruct", help="one prism shot -> metric scan PLY (split, rectify, match, triangulate)",
+                       description="Split the side-by-side shot, rectify with the calibration, match, and "
+                       "triangulate the confident pixels into a coloured point cloud with normals "
+                       "(millimetres, left camera frame).")
+    p.add_argument("shot", type=Path, metavar="SHOT")
+    p.add_argument("--calib", required=True, type=Path, metavar="CALIB_YAML")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="SCAN_PLY")
+    p.add_argument("--disparity-out", type=Path, metavar="PFM", help="dense disparity (rectified-left grid)")
+    p.add_argument("--depth-out", type=Path, metavar="TIFF|NPY|NPZ", help="depth in mm (rectified-left grid)")
+    p.add_argument("--mesh", type=Path, metavar="PLY", help="also write a mesh of the organised scan")
+    p.add_argument("--depth-range", metavar="NEAR:FAR", help="depth search range, mm "
+                   "(default 0.85x..1.2x the rig's convergence distance)")
+    p.add_argument("--min-disp", type=int, help="smallest disparity (instead of --depth-range)")
+    p.add_argument("--num-disp", type=int, help="disparity levels (instead of --depth-range)")
+    p.add_argument("--smooth", type=float, default=0.0, metavar="SIGMA_PX",
+                   help="edge-preserving depth smoothing, Gaussian sigma in pixels (default off)")
+    p.set_defaults(func=_cmd_reconstruct)
+
+
+def _cmd_flatness(args: argparse.Namespace) -> int:
+    from prism3d.reconstruct.flatness import flatness_of_ply
+
+    kw = {}
+    if args.focal is not None:
+        kw["focal_px"] = args.focal
+    if args.baseline is not None:
+        kw["baseline_mm"] = args.baseline
+    rep = flatness_of_ply(args.scan, region_fraction=args.region, **kw)
+    if args.json:
+        _print_json(rep.to_dict())
+    else:
+        print(rep.table())
+    return 0
+
+
+def _add_flatness(sub: Any) -> None:
+    p = sub.add_parser("flatness", help="the paper's plane-fit accuracy test (Table I) on a plate scan",
+                       description="Fit z = ax + by + c by least squares in 5 regions of a flat-plate scan "
+                       "(upper left, upper right, centre, lower left, lower right; eq. 9-13) and report "
+                       "the RMS residual (eq. 14-15) and the depth resolution z^2/(fB) (eq. 16).")
+    p.add_argument("scan", type=Path, metavar="SCAN_PLY")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--region", type=float, default=0.2, help="region side as a fraction of the plate (0.2)")
+    p.add_argument("--focal", type=float, help="focal length, px (default: from the scan's header)")
+    p.add_argument("--baseline", type=float, help="baseline, mm (default: from the scan's header)")
+    p.set_defaults(func=_cmd_flatness)
+
+
 # --- registry ---------------------------------------------------------------------------
 _COMMANDS: list[Callable[[Any], None]] = [
     _add_demo,
     _add_simulate,
     _add_calibrate,
     _add_rectify,
+    _add_match,
+    _add_reconstruct,
+    _add_flatness,
     _add_trigger,
     _add_capture,
 ]

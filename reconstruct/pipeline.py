@@ -22,6 +22,7 @@ __all__ = [
     "Reconstruction",
     "convergence_distance_mm",
     "disparity_range",
+    "local_contrast",
     "reconstruct_shot",
     "reconstruct_to_files",
 ]
@@ -41,6 +42,18 @@ def convergence_distance_mm(rig: StereoRig) -> float | None:
     b = np.array([c_r @ z_l, c_r @ z_r])
     s, _ = np.linalg.solve(A, b)
     return float(s) if s > 0 else None
+
+
+def local_contrast(image: NDArray, *, size: int = 5) -> NDArray[np.float32]:
+    """Local standard deviation ``(H, W)`` of the grey image (8-bit units) in a
+    ``size x size`` window."""
+    import cv2
+
+    img = np.asarray(image, dtype=np.float32)
+    grey = img.mean(axis=2) if img.ndim == 3 else img
+    mean = cv2.blur(grey, (size, size))
+    sq = cv2.blur(grey * grey, (size, size))
+    return np.sqrt(np.maximum(sq - mean * mean, 0.0)).astype(np.float32)
 
 
 def disparity_range(
@@ -87,6 +100,7 @@ def reconstruct_shot(
     depth_range_mm: tuple[float, float] | None = None,
     alpha: float = 1.0,
     smooth_sigma_px: float = 0.0,
+    min_texture: float = 3.0,
     progress: ProgressFn = null_progress,
     **match_kwargs: Any,
 ) -> Reconstruction:
@@ -105,6 +119,10 @@ def reconstruct_shot(
     smooth_sigma_px : float
         Edge-preserving depth smoothing (0 = none); see
         :func:`~prism3d.reconstruct.meshing.smooth_depth`.
+    min_texture : float
+        Pixels whose local grey-level standard deviation (5x5, 8-bit units) is below
+        this are not triangulated: on a featureless (e.g. unlit, black) background any
+        match the checks let through is noise. 0 disables the test.
     match_kwargs
         Passed to :func:`~prism3d.reconstruct.match.match_stereo_full`.
     """
@@ -141,6 +159,10 @@ def reconstruct_shot(
     t0 = time.perf_counter()
     progress(2, 4, "triangulate")
     valid = res.valid & np.isfinite(res.disparity) & (res.disparity > 0)
+    # matches pinned to either end of the search range are not measurements
+    valid &= (res.disparity > min_disp + 1.0) & (res.disparity < min_disp + num_disp - 2.0)
+    if min_texture > 0:
+        valid &= local_contrast(left) >= min_texture
     depth = np.where(valid, rect.disparity_to_depth(res.disparity), np.nan).astype(np.float32)
     if smooth_sigma_px > 0:
         depth = smooth_depth(depth, sigma_px=smooth_sigma_px, focal_px=rect.focal_px,
