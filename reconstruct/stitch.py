@@ -1,0 +1,520 @@
+"""Stitching of multi-view scans into one 360-degree model.
+
+Pipeline (:func:`stitch_scans`):
+
+1. Load the scans (arrays, PLY or PCD); measure the point spacing (median
+   nearest-neighbour distance), from which every distance parameter derives.
+2. Odometry edges ``k+1 -> k``. With a known turntable step: the step's motion is
+   a rotation by exactly ``step`` about a fixed but unknown axis, so it is the
+   same rigid motion ``A`` for every consecutive pair. ``A`` is measured once by a
+   global registration (FPFH + RANSAC) + ICP of the first pair that gives a
+   rotation within 8 deg of the step, projected onto an exact step rotation
+   (:func:`~prism3d.reconstruct.registration.turntable_motion`), and then used as
+   the initial guess of every pair (``A^j`` for views ``j`` steps apart).
+   Without a hint each consecutive pair is registered globally.
+   Every edge is refined by multi-scale point-to-plane ICP.
+3. Loop-closure edges between non-adjacent views whose (predicted) viewing
+   directions differ by at most 100 deg -- including last -> first of a 360
+   sequence -- refined by ICP from the chained odometry and kept when their
+   fitness passes.
+4. A pose graph over all views, optimised globally (Levenberg-Marquardt with a
+   line process that discounts wrong loop closures).
+5. Failure detection: an odometry edge with too little overlap (fitness), a large
+   inlier RMSE, or a large residual after the optimisation (the loop does not
+   close) raises :class:`~prism3d.errors.ReconstructionError` naming the views
+   (or logs a warning with ``on_failure="warn"``).
+6. Fusion (:mod:`prism3d.reconstruct.fusion`): voxel-averaged coloured cloud and
+   an optional watertight Poisson mesh.
+
+The model frame is the first scan's frame.
+
+References
+----------
+.. [1] S. Choi, Q.-Y. Zhou, V. Koltun, "Robust reconstruction of indoor scenes",
+   CVPR 2015 (pose graph with line process).
+.. [2] R. Kuemmerle et al., "g2o: A general framework for graph optimization",
+   ICRA 2011.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.checks import check_array, check_choice, check_positive
+from prism3d.errors import InputError, ReconstructionError
+from prism3d.io.atomic import atomic_path, atomic_write_text
+from prism3d.progress import ProgressFn
+from prism3d.reconstruct.fusion import fuse_clouds, poisson_mesh
+from prism3d.reconstruct.registration import (
+    global_register,
+    point_spacing,
+    refine_icp,
+    rotation_angle_deg,
+    turntable_motion,
+)
+
+__all__ = ["StitchResult", "load_cloud", "stitch_scans", "stitch_to_files"]
+
+log = logging.getLogger(__name__)
+
+#: Version of the ``poses.json`` written by :func:`stitch_to_files`.
+POSES_SCHEMA_VERSION = 1
+
+Cloud = tuple[NDArray, NDArray | None, NDArray | None]
+
+
+@dataclass
+class StitchResult:
+    """A stitched model.
+
+    Attributes
+    ----------
+    T_model_scan : list of (4, 4) float64
+        Per input scan, the transform mapping its points into the model frame
+        (= the first scan's frame; ``T_model_scan[0]`` is the identity).
+    points : (N, 3) float64
+        Fused, voxel-averaged model cloud (input units).
+    colors : (N, 3) uint8 or None
+        Present when every scan had colours.
+    normals : (N, 3) float32
+        Outward unit normals.
+    mesh_vertices : (V, 3) float64 or None
+    mesh_faces : (F, 3) int64 or None
+    mesh_colors : (V, 3) uint8 or None
+    diagnostics : dict
+        ``spacing``, ``registration_voxel``, ``edges`` (list of dicts: ``source``,
+        ``target``, ``kind`` odometry/loop, ``fitness``, ``inlier_rmse``,
+        ``residual_deg``, ``residual`` (translation residual, input units),
+        ``kept``), ``warnings`` (list of str) and ``seconds`` per stage.
+    """
+
+    T_model_scan: list[NDArray[np.float64]]
+    points: NDArray[np.float64]
+    colors: NDArray[np.uint8] | None
+    normals: NDArray[np.float32]
+    mesh_vertices: NDArray[np.float64] | None = None
+    mesh_faces: NDArray[np.int64] | None = None
+    mesh_colors: NDArray[np.uint8] | None = None
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+
+def load_cloud(path: str | Path) -> Cloud:
+    """Read a scan from ``.ply`` or ``.pcd``: ``(points, colors, normals)``.
+
+    Raises
+    ------
+    InputError
+        Missing/unreadable file, unknown suffix, or no points; the message names
+        the file.
+    """
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == ".ply":
+        from prism3d.io.ply import read_ply
+
+        d = read_ply(p)
+        pts, col, nrm = d.points, d.colors, d.normals
+    elif suffix == ".pcd":
+        from prism3d.io.pcd import read_pcd
+
+        d2 = read_pcd(p)
+        pts, col, nrm = d2.points, d2.colors, d2.normals
+    else:
+        raise InputError(f"{p}: unknown point-cloud format {suffix!r} (expected .ply or .pcd)")
+    if len(pts) == 0:
+        raise InputError(f"{p}: the scan has no points")
+    return np.asarray(pts, dtype=np.float64), col, nrm
+
+
+def _rigid_inverse(T: NDArray) -> NDArray[np.float64]:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def _residual(T_a: NDArray, T_b: NDArray, radius: float) -> tuple[float, float]:
+    """Rotation angle (deg) and largest point displacement within ``radius`` of
+    the origin between two transforms."""
+    D = _rigid_inverse(T_a) @ T_b
+    ang = rotation_angle_deg(D)
+    disp = float(np.linalg.norm(D[:3, 3]) + np.radians(ang) * radius)
+    return ang, disp
+
+
+def _validate_clouds(clouds: Sequence) -> tuple[list[Cloud], list[str]]:
+    if isinstance(clouds, (str, Path)) or not isinstance(clouds, Sequence):
+        raise InputError(f"clouds: expected a list of scans or paths, got {type(clouds).__name__}")
+    if len(clouds) < 2:
+        raise InputError(f"clouds: stitching needs at least 2 scans, got {len(clouds)}")
+    out: list[Cloud] = []
+    names: list[str] = []
+    for k, c in enumerate(clouds):
+        if isinstance(c, (str, Path)):
+            name = str(c)
+            pts, col, nrm = load_cloud(c)
+        else:
+            name = f"scan {k}"
+            if not isinstance(c, (tuple, list)) or len(c) != 3:
+                raise InputError(f"clouds[{k}]: expected (points, colors or None, normals or None) or a path")
+            pts, col, nrm = c
+        P = np.asarray(check_array(pts, f"{name} points", shape=(None, 3), dtype_kind="fiu"), dtype=np.float64)
+        finite = np.isfinite(P).all(axis=1)
+        if finite.sum() < 30:
+            raise InputError(f"{name}: expected at least 30 finite points, got {int(finite.sum())}")
+        C = None
+        if col is not None:
+            C = check_array(col, f"{name} colors", shape=(len(P), 3), dtype_kind="fu")
+            if C.dtype.kind == "f":
+                C = np.clip(np.round(C * 255.0), 0, 255)
+            C = np.asarray(C, dtype=np.uint8)[finite]
+        N = None
+        if nrm is not None:
+            N = np.asarray(check_array(nrm, f"{name} normals", shape=(len(P), 3), dtype_kind="f"))[finite]
+        out.append((P[finite], C, N))
+        names.append(name)
+    return out, names
+
+
+def _registration_copy(points: NDArray, spacing: float, max_points: int) -> tuple[NDArray, float]:
+    """Down-sample a scan for registration to at most ~``max_points`` points."""
+    import open3d as o3d
+
+    if len(points) <= max_points:
+        return points, spacing
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    v = spacing * np.sqrt(len(points) / max_points)
+    down = np.asarray(pc.voxel_down_sample(v).points)
+    return down, float(v)
+
+
+def stitch_scans(
+    clouds: Sequence[Cloud | str | Path],
+    *,
+    turntable_step_deg: float | None = None,
+    voxel: float | None = None,
+    mesh: bool = True,
+    mesh_depth: int | None = None,
+    mesh_trim_quantile: float = 0.0,
+    smooth_iterations: int = 0,
+    min_fitness: float = 0.2,
+    max_residual_deg: float = 1.0,
+    max_registration_points: int = 40000,
+    loop_max_angle_deg: float = 100.0,
+    on_failure: str = "raise",
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+) -> StitchResult:
+    """Register scans of one object taken from several views and fuse them.
+
+    Parameters
+    ----------
+    clouds : list of (points, colors, normals) or of paths
+        Each scan in its own sensor frame (the sensor at the origin, e.g. a
+        prism3d scan in its left-camera frame): ``points (N, 3)`` float, any unit
+        (millimetres or metres), ``colors (N, 3)`` uint8 or float in [0, 1] or
+        None, ``normals (N, 3)`` or None. Paths: ``.ply`` or ``.pcd``. Scans are
+        in acquisition order (consecutive scans overlap).
+    turntable_step_deg : float, optional
+        Known rotation between consecutive views (a turntable). Used to predict
+        every relative pose and to reject wrong global matches.
+    voxel : float, optional
+        Fusion voxel and base ICP distance scale, cloud units. Default: the
+        median point spacing of the scans.
+    mesh : bool
+        Also build a Poisson mesh.
+    mesh_depth : int, optional
+        Poisson octree depth (default from extent / spacing).
+    mesh_trim_quantile : float
+        Density-quantile trimming of the mesh (0 keeps it watertight).
+    smooth_iterations : int
+        Taubin smoothing passes on the mesh.
+    min_fitness : float
+        Smallest acceptable overlap fraction of an odometry edge; loop-closure
+        edges below it are skipped.
+    max_residual_deg : float
+        Largest rotation residual of an edge after the pose-graph optimisation.
+    max_registration_points : int
+        Scans are voxel-down-sampled to about this size for registration
+        (fusion uses every point).
+    loop_max_angle_deg : float
+        Non-adjacent views are tried as loop closures when their predicted
+        relative rotation is at most this.
+    on_failure : {"raise", "warn"}
+        Failed checks raise :class:`ReconstructionError` or log warnings (also
+        listed in ``diagnostics["warnings"]``).
+    seed : int
+        Seed of the global registration (results are deterministic).
+    progress : callable(done, total, label), optional
+
+    Returns
+    -------
+    StitchResult
+
+    Raises
+    ------
+    InputError
+        Fewer than 2 scans, empty scans, unreadable files, bad parameters.
+    ReconstructionError
+        Scans that cannot be registered (no overlap, loop does not close),
+        naming the views.
+    """
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    reg = o3d.pipelines.registration
+    check_choice(on_failure, "on_failure", ("raise", "warn"))
+    check_positive(min_fitness, "min_fitness")
+    check_positive(max_residual_deg, "max_residual_deg")
+    if turntable_step_deg is not None:
+        check_positive(abs(float(turntable_step_deg)), "turntable_step_deg")
+        if abs(float(turntable_step_deg)) >= 180:
+            raise InputError(f"turntable_step_deg: expected |step| < 180, got {turntable_step_deg}")
+    t_start = time.perf_counter()
+    seconds: dict[str, float] = {}
+    scans, names = _validate_clouds(clouds)
+    n = len(scans)
+    n_pairs_est = 2 * n
+    total_steps = n_pairs_est + 3
+    step_i = 0
+
+    def tick(label: str) -> None:
+        nonlocal step_i
+        step_i += 1
+        if progress is not None:
+            progress(min(step_i, total_steps), total_steps, label)
+
+    warnings_: list[str] = []
+
+    def fail(msg: str) -> None:
+        if on_failure == "raise":
+            raise ReconstructionError(msg)
+        log.warning(msg)
+        warnings_.append(msg)
+
+    t0 = time.perf_counter()
+    spacings = [point_spacing(s[0], seed=seed) for s in scans]
+    spacing = float(np.median(spacings)) if voxel is None else float(check_positive(voxel, "voxel"))
+    reg_pts = []
+    reg_sp = []
+    for s in scans:
+        p, v = _registration_copy(s[0], spacing, max_registration_points)
+        reg_pts.append(p)
+        reg_sp.append(v)
+    rsp = float(max(reg_sp))
+    radius = float(max(np.percentile(np.linalg.norm(p - p.mean(axis=0), axis=1), 95) for p in reg_pts))
+    seconds["prepare"] = time.perf_counter() - t0
+
+    # --- odometry edges ---------------------------------------------------
+    t0 = time.perf_counter()
+    edges: list[dict[str, Any]] = []
+    results: dict[tuple[int, int], Any] = {}
+
+    def icp(i: int, j: int, init: NDArray):
+        """Register scan j onto scan i (T_i_j)."""
+        return refine_icp(reg_pts[j], reg_pts[i], init, spacing=rsp)
+
+    A: NDArray | None = None
+    if turntable_step_deg is not None:
+        for k in range(min(n - 1, 3)):
+            T, _, _ = global_register(reg_pts[k + 1], reg_pts[k], seed=seed)
+            r = icp(k, k + 1, T)
+            cand = turntable_motion(r.T_target_source, float(turntable_step_deg))
+            if cand is not None and r.fitness >= min_fitness:
+                A = cand
+                break
+            log.info("turntable axis from views %d-%d rejected (fitness %.3f)", k, k + 1, r.fitness)
+        if A is None:
+            fail(
+                f"could not find the turntable motion of {turntable_step_deg} deg between "
+                f"{names[0]} .. {names[min(n - 1, 3)]}: global registration found no rotation "
+                "of that size"
+            )
+    for k in range(n - 1):
+        r = None
+        if A is not None:
+            r = icp(k, k + 1, A)
+            if r.fitness < min_fitness:
+                r = None
+        if r is None:
+            T, _, _ = global_register(reg_pts[k + 1], reg_pts[k], seed=seed)
+            r = icp(k, k + 1, T)
+        results[(k, k + 1)] = r
+        if r.fitness < min_fitness:
+            fail(
+                f"views {names[k]} and {names[k + 1]} do not overlap enough to register "
+                f"(fitness {r.fitness:.3f} < {min_fitness}); are they consecutive views of one object?"
+            )
+        if r.inlier_rmse > 1.5 * r.max_distance:
+            fail(f"views {names[k]} and {names[k + 1]}: registration residual too large ({r.inlier_rmse:.3g})")
+        tick(f"odometry {k}-{k + 1}")
+    seconds["odometry"] = time.perf_counter() - t0
+
+    # chained initial poses
+    T_model = [np.eye(4)]
+    for k in range(n - 1):
+        T_model.append(T_model[-1] @ results[(k, k + 1)].T_target_source)
+
+    # --- loop closures ----------------------------------------------------
+    t0 = time.perf_counter()
+    for i in range(n):
+        for j in range(i + 2, n):
+            if A is not None:
+                init = np.linalg.matrix_power(A, j - i)
+            else:
+                init = _rigid_inverse(T_model[i]) @ T_model[j]
+            if rotation_angle_deg(init) > loop_max_angle_deg:
+                continue
+            r = icp(i, j, init)
+            if r.fitness >= min_fitness and r.inlier_rmse <= 1.5 * r.max_distance:
+                results[(i, j)] = r
+            else:
+                log.info("loop closure %s-%s skipped (fitness %.3f)", names[i], names[j], r.fitness)
+            tick(f"loop {i}-{j}")
+    seconds["loop_closures"] = time.perf_counter() - t0
+
+    # --- pose graph -------------------------------------------------------
+    t0 = time.perf_counter()
+    graph = reg.PoseGraph()
+    for T in T_model:
+        graph.nodes.append(reg.PoseGraphNode(T))
+    for (i, j), r in sorted(results.items()):
+        graph.edges.append(
+            reg.PoseGraphEdge(j, i, r.T_target_source, r.information, uncertain=(j != i + 1))
+        )
+    if len(results) > n - 1:
+        option = reg.GlobalOptimizationOption(
+            max_correspondence_distance=3.0 * rsp,
+            edge_prune_threshold=0.25,
+            preference_loop_closure=1.0,
+            reference_node=0,
+        )
+        reg.global_optimization(
+            graph,
+            reg.GlobalOptimizationLevenbergMarquardt(),
+            reg.GlobalOptimizationConvergenceCriteria(),
+            option,
+        )
+    T0_inv = _rigid_inverse(np.asarray(graph.nodes[0].pose))
+    T_model = [T0_inv @ np.asarray(nd.pose, dtype=np.float64) for nd in graph.nodes]
+    kept_pairs = {(e.target_node_id, e.source_node_id) for e in graph.edges}
+    for (i, j), r in sorted(results.items()):
+        rel = _rigid_inverse(T_model[i]) @ T_model[j]
+        ang, disp = _residual(rel, r.T_target_source, radius)
+        kind = "odometry" if j == i + 1 else "loop"
+        edges.append(
+            dict(source=j, target=i, kind=kind, fitness=r.fitness, inlier_rmse=r.inlier_rmse,
+                 residual_deg=ang, residual=disp, kept=(i, j) in kept_pairs)
+        )
+        if kind == "odometry" and (ang > max_residual_deg or disp > 20.0 * rsp):
+            fail(
+                f"views {names[i]} and {names[j]}: the pose graph disagrees with their pairwise "
+                f"registration by {ang:.2f} deg / {disp:.3g} (loop does not close; a wrong match?)"
+            )
+        elif kind == "loop" and (ang > max_residual_deg or disp > 20.0 * rsp):
+            log.warning("loop closure %s-%s inconsistent (%.2f deg); discounted", names[i], names[j], ang)
+    for T in T_model:
+        if abs(np.linalg.det(T[:3, :3]) - 1.0) > 1e-6:
+            raise ReconstructionError("stitching produced a non-rigid pose")
+    seconds["pose_graph"] = time.perf_counter() - t0
+    tick("pose graph")
+
+    # --- fusion -----------------------------------------------------------
+    t0 = time.perf_counter()
+    pts, col, nrm = fuse_clouds(
+        [s[0] for s in scans], T_model, voxel=spacing, colors=[s[1] for s in scans]
+    )
+    seconds["fusion"] = time.perf_counter() - t0
+    tick("fusion")
+    mv = mf = mc = None
+    if mesh:
+        t0 = time.perf_counter()
+        mv, mf, mc = poisson_mesh(
+            pts, nrm, colors=col, spacing=spacing, depth=mesh_depth,
+            trim_quantile=mesh_trim_quantile, smooth_iterations=smooth_iterations,
+        )
+        seconds["mesh"] = time.perf_counter() - t0
+    tick("mesh")
+    seconds["total"] = time.perf_counter() - t_start
+    diag = dict(
+        spacing=spacing,
+        registration_voxel=rsp,
+        turntable_motion=None if A is None else A.tolist(),
+        edges=edges,
+        warnings=warnings_,
+        seconds=seconds,
+        names=names,
+    )
+    return StitchResult(T_model, pts, col, nrm, mv, mf, mc, diag)
+
+
+def stitch_to_files(
+    scan_paths: Sequence[str | Path],
+    out_model_ply: str | Path,
+    *,
+    mesh_out: str | Path | None = None,
+    turntable_step_deg: float | None = None,
+    progress: ProgressFn | None = None,
+    **options: Any,
+) -> StitchResult:
+    """Stitch scan files and write the model (the ``prism3d stitch`` command).
+
+    Writes ``out_model_ply`` (fused cloud with colours and normals), ``mesh_out``
+    when given (Poisson mesh with vertex colours), and ``poses.json`` beside the
+    model: ``{"schema_version": 1, "scans": [{"path": <input path as given>,
+    "T_model_scan": 4x4 list}, ...]}``. All files appear together or not at all.
+
+    Parameters
+    ----------
+    scan_paths : list of path
+        ``.ply`` / ``.pcd`` scans in acquisition order.
+    out_model_ply : path
+    mesh_out : path, optional
+    turntable_step_deg : float, optional
+    progress : callable(done, total, label), optional
+    **options
+        Passed to :func:`stitch_scans`.
+
+    Returns
+    -------
+    StitchResult
+    """
+    from prism3d.io.ply import write_ply
+
+    if isinstance(scan_paths, (str, Path)):
+        raise InputError("scan_paths: expected a list of scan files")
+    paths = [str(p) for p in scan_paths]
+    for p in paths:
+        if not Path(p).is_file():
+            raise InputError(f"{p}: scan file not found")
+    res = stitch_scans(
+        paths, turntable_step_deg=turntable_step_deg, mesh=mesh_out is not None,
+        progress=progress, **options,
+    )
+    out = Path(out_model_ply)
+    doc = {
+        "schema_version": POSES_SCHEMA_VERSION,
+        "model": out.name,
+        "scans": [{"path": p, "T_model_scan": T.tolist()} for p, T in zip(paths, res.T_model_scan, strict=True)],
+    }
+    with contextlib.ExitStack() as stack:
+        tmp_model = stack.enter_context(atomic_path(out))
+        tmp_poses = stack.enter_context(atomic_path(out.parent / "poses.json"))
+        tmp_mesh = stack.enter_context(atomic_path(mesh_out)) if mesh_out is not None else None
+        write_ply(tmp_model, res.points, colors=res.colors, normals=res.normals,
+                  comments=["prism3d stitch: fused model, frame of the first scan"])
+        atomic_write_text(tmp_poses, json.dumps(doc, indent=1))
+        if tmp_mesh is not None:
+            write_ply(tmp_mesh, res.mesh_vertices, faces=res.mesh_faces, colors=res.mesh_colors,
+                      comments=["prism3d stitch: Poisson mesh"])
+    return res
