@@ -201,7 +201,6 @@ def _prepare(points: NDArray, voxel: float, *, normals: NDArray | None = None, v
 
 
 def _global_voxel(points: NDArray, spacing: float, target_points: int) -> float:
-    o3d = _o3d()
     pc = _make_cloud(points)
     v = max(spacing * 2.0, 1e-12)
     for _ in range(4):
