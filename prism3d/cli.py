@@ -357,6 +357,39 @@ def _add_flatness(sub: Any) -> None:
     p.set_defaults(func=_cmd_flatness)
 
 
+# --- stitch --------------------------------------------------------------------------------
+def _cmd_stitch(args: argparse.Namespace) -> int:
+    from prism3d.reconstruct.stitch import stitch_to_files
+
+    if len(args.scans) < 2:
+        raise InputError("stitch needs at least 2 scans")
+    opts: dict[str, Any] = {}
+    if args.voxel is not None:
+        opts["voxel"] = args.voxel
+    if args.smooth:
+        opts["smooth_iterations"] = args.smooth
+    res = stitch_to_files(args.scans, args.output, mesh_out=args.mesh, turntable_step_deg=args.turntable_step,
+                          progress=_progress(args, "stitch"), **opts)
+    _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
+               + (f", mesh {args.mesh}" if args.mesh else ""))
+    return 0
+
+
+def _add_stitch(sub: Any) -> None:
+    p = sub.add_parser("stitch", help="register and fuse scans of several views into one 360-degree model",
+                       description="Register the scans pairwise (turntable prior or deterministic global "
+                       "registration, then multi-scale ICP), optimise a pose graph with loop closure, fuse "
+                       "the points and optionally mesh them (screened Poisson). Writes poses.json beside the "
+                       "model: T_model_scan for each input.")
+    p.add_argument("scans", nargs="+", type=Path, metavar="SCANS", help="PLY or PCD scans in acquisition order")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="MODEL_PLY")
+    p.add_argument("--mesh", type=Path, metavar="MESH_PLY", help="also write a watertight mesh")
+    p.add_argument("--turntable-step", type=float, metavar="DEG", help="known rotation between views")
+    p.add_argument("--voxel", type=float, help="fusion voxel size in the scans' units (default: from spacing)")
+    p.add_argument("--smooth", type=int, default=0, metavar="N", help="mesh smoothing iterations (default 0)")
+    p.set_defaults(func=_cmd_stitch)
+
+
 # --- registry ---------------------------------------------------------------------------
 _COMMANDS: list[Callable[[Any], None]] = [
     _add_demo,
@@ -366,6 +399,7 @@ _COMMANDS: list[Callable[[Any], None]] = [
     _add_match,
     _add_reconstruct,
     _add_flatness,
+    _add_stitch,
     _add_trigger,
     _add_capture,
 ]
