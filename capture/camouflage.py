@@ -26,10 +26,12 @@ reproduces the same pattern on the scaled model.
 
 The random lattice is periodic with a period of 32 cells (32 patches: ~1 m on a
 1:35 model, ~40 m on a full-size tank), far larger than any target it paints.
-Everything is vectorised numpy, evaluated in cache-sized chunks; one gather fetches
-the 8 corners of every point's cell for all layers at once (10 million points take
-~1.2-1.7 s on one core of our machines). Lattices and calibrated thresholds are
-cached per (seed, octaves, fractions), so building many fields is cheap.
+The reference implementation is vectorised numpy (``_noise``, used to calibrate the
+thresholds); :meth:`CamouflageField.labels` runs the same operations, in the same
+precision and order, in a parallel numba kernel (bit-identical labels, several times
+faster; layers are tested from the top down, so covered layers are never evaluated).
+Lattices and calibrated thresholds are cached per (seed, octaves, fractions), so
+building many fields is cheap.
 
 References
 ----------
@@ -65,6 +67,7 @@ _LATTICE = 32  # lattice period (cells) per axis; power of two for cheap wrappin
 _MASK = _LATTICE - 1
 _CHUNK = 1 << 13  # points per chunk: keeps the (8, layers, chunk) temporaries in L2 cache
 _CALIBRATION_POINTS = 1 << 17
+_KERNEL_CHUNK = 1 << 20  # points per numba call: bounds the (octaves, 3, chunk) temporary
 
 
 @dataclass(frozen=True)
@@ -342,17 +345,23 @@ class CamouflageField:
         (N,) uint8
             Index into :attr:`colors` (0 = base coat).
         """
+        from prism3d.capture._scene_kernels import camouflage_labels
+
         pts = check_array(points_obj, "points_obj", shape=(None, 3), dtype_kind="fiu")
         out = np.zeros(len(pts), dtype=np.uint8)
-        for start in range(0, len(pts), _CHUNK):
-            chunk = np.asarray(pts[start : start + _CHUNK], dtype=np.float64)
-            noise = _noise(
-                chunk, self.patch_size_mm, self._tables, self._rotations, self._offsets
+        octaves = len(self._rotations)
+        qbuf = np.empty(octaves * 3 * min(len(pts), _KERNEL_CHUNK))
+        for start in range(0, len(pts), _KERNEL_CHUNK):
+            chunk = np.asarray(pts[start : start + _KERNEL_CHUNK], dtype=np.float64)
+            # the matrix products are numpy's (same rounding as `_noise`); the
+            # per-point loops run in a numba kernel that repeats `_noise` exactly.
+            # Big chunks: handing the cores between BLAS and numba threads is slow.
+            q = qbuf[: octaves * 3 * len(chunk)].reshape(octaves, 3, len(chunk))
+            for o in range(octaves):
+                np.matmul(self._rotations[o] * ((2.0**o) / self.patch_size_mm), chunk.T, out=q[o])
+            camouflage_labels(
+                q, self._offsets, self._tables, self._thresholds, out[start : start + _KERNEL_CHUNK]
             )
-            lab = np.zeros(len(chunk), dtype=np.uint8)
-            for k in range(noise.shape[1]):
-                lab[noise[:, k] > self._thresholds[k]] = k + 1
-            out[start : start + _CHUNK] = lab
         return out
 
     def __call__(self, points_obj: NDArray[np.float64]) -> NDArray[np.float64]:

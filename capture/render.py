@@ -13,6 +13,16 @@ Backends
     is then recomputed in float64 (Moller-Trumbore on the hit triangle), so a plane
     at depth z renders depth z to ~1e-9 mm and every pixel sees exactly what
     ``CameraModel.project`` predicts. Build once, render many cameras.
+
+    Speed (a full 2592x1944 simulated shot in a few seconds): the camera-frame
+    rays of a camera model are computed once and cached on the renderer; rays are
+    cast in bands of ~1 M, after a bounding-box cull, and only the hits are kept
+    (:meth:`RaycastRenderer.trace_camera` / :meth:`~RaycastRenderer.stream_camera`
+    give compact hits, the streaming form without full-image buffers); shadow
+    tests are a float32 any-hit pass whose blocked answers are re-decided exactly
+    in float64, and are skipped when the whole scene is one plane (a plane cannot
+    shadow itself). All per-ray loops are parallel numba kernels
+    (:mod:`prism3d.capture._render_kernels`).
 :class:`~prism3d.capture._pyrender_backend.PyrenderRenderer`
     Fast OpenGL (OSMesa) rasterisation for chips: RGB, depth, mask; pinhole only.
 
@@ -22,31 +32,38 @@ read noise), :func:`gaussian_blur`, :func:`quantize`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import cast as _narrow
 
 import numpy as np
 from numpy.typing import NDArray
-
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.rig import CameraModel
+
 from prism3d.checks import check_array, check_positive
 from prism3d.errors import InputError
 
 __all__ = [
-    "RenderResult",
+    "CameraHits",
+    "PyrenderRenderer",
     "RayHits",
     "RaycastRenderer",
-    "PyrenderRenderer",
-    "camera_rays",
-    "box_downsample",
+    "RenderResult",
     "SensorNoise",
+    "box_downsample",
+    "camera_rays",
     "gaussian_blur",
     "quantize",
 ]
 
 #: Rays per Open3D call (bounds temporary memory to a few hundred MB).
 _CHUNK = 1 << 20
+#: Camera models whose pixel rays a renderer keeps (a shot uses 1x, supersampled and
+#: rectified cameras; ~32 bytes per pixel each).
+_RAY_CACHE_SIZE = 3
+#: A point within this distance of a planar scene's plane counts as on it (mm).
+_PLANE_TOL_MM = 1e-6
 
 
 @dataclass(eq=False)
@@ -152,7 +169,8 @@ class RaycastRenderer:
 
     Notes
     -----
-    Open3D intersects in float32, which only decides *which* triangle a ray hits;
+    A renderer reuses internal buffers and caches camera rays: use one renderer per
+    thread. Open3D intersects in float32, which only decides *which* triangle a ray hits;
     distances, barycentric coordinates, points and normals are recomputed in float64
     on that triangle (Moller-Trumbore). A ray that float32 puts a hair beside a
     triangle edge may pick the neighbouring triangle: on a continuous surface that
@@ -172,11 +190,12 @@ class RaycastRenderer:
         self._poses = [T for _, T in items]
         self._poses_inv = [np.linalg.inv(T) for T in self._poses]
         self._scene = o3d.t.geometry.RaycastingScene()
-        a_list, e1_list, e2_list, n_list = [], [], [], []
+        a_list, e1_list, e2_list, n_list, v_list = [], [], [], [], []
         offsets = [0]
         gid_to_obj = {}
         for i, (mesh, T) in enumerate(items):
             v = mesh.vertices @ T[:3, :3].T + T[:3, 3]
+            v_list.append(v)
             tri = v[mesh.faces]
             e1 = tri[:, 1] - tri[:, 0]
             e2 = tri[:, 2] - tri[:, 0]
@@ -202,6 +221,16 @@ class RaycastRenderer:
         self._e2 = np.concatenate(e2_list)
         self._n = np.concatenate(n_list)
         self._offsets = np.asarray(offsets, dtype=np.int64)
+        self._ray_cache: dict[tuple, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+        # padded scene bounding box: rays that miss it are never cast (the pad covers
+        # Open3D's float32 copy of the vertices with a wide margin)
+        allv = np.concatenate(v_list)
+        pad = 1e-3 + 1e-5 * float(np.abs(allv).max())
+        self._box_lo = allv.min(axis=0) - pad
+        self._box_hi = allv.max(axis=0) + pad
+        self._plane = _scene_plane(allv)
+        # reused float32 Open3D ray buffer (a renderer is not meant for concurrent use)
+        self._rays_buf = np.empty((0, 6), dtype=np.float32)
 
     @property
     def n_objects(self) -> int:
@@ -224,76 +253,161 @@ class RaycastRenderer:
         shared = o.shape == (3,)
         if not shared and o.shape != d.shape:
             raise InputError(f"origins: expected shape (3,) or {d.shape}, got {o.shape}")
+        if not normalized:
+            d = d / np.linalg.norm(d, axis=1, keepdims=True)
         n = len(d)
+        hits = self._trace(o.reshape(1, 3) if shared else o, d)
         t = np.full(n, np.inf)
         obj = np.full(n, -1, dtype=np.int32)
         face = np.full(n, -1, dtype=np.int64)
         uv = np.zeros((n, 2))
         pts = np.full((n, 3), np.nan)
         nrm = np.full((n, 3), np.nan)
-        for s in range(0, n, _CHUNK):
-            e = min(n, s + _CHUNK)
-            oc = o.reshape(1, 3) if shared else o[s:e]
-            dc = d[s:e] if normalized else d[s:e] / np.linalg.norm(d[s:e], axis=1, keepdims=True)
-            self._cast_chunk(oc, dc, t[s:e], obj[s:e], face[s:e], uv[s:e], pts[s:e], nrm[s:e])
+        i = hits.index
+        t[i] = hits.t
+        obj[i] = hits.object_id
+        face[i] = hits.face_id
+        uv[i] = hits.bary_uv
+        pts[i] = hits.points
+        nrm[i] = hits.normals
         return RayHits(t, obj, face, uv, pts, nrm)
 
-    def _cast_chunk(self, o, d, t_out, obj_out, face_out, uv_out, pts_out, nrm_out) -> None:
+    def _trace(
+        self, o: NDArray[np.float64], d: NDArray[np.float64], z: NDArray[np.float64] | None = None
+    ) -> _Hits:
+        """Hits only (compact) of unit rays ``d`` ``(N, 3)`` from ``o`` ``(1, 3)`` or ``(N, 3)``.
+
+        With ``z`` ``(N,)`` given, the returned ``extra`` holds ``z`` at the hits.
+        """
+        d = np.ascontiguousarray(d, dtype=np.float64)
+
+        def band(s: int, e: int) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+            return d[s:e], (None if z is None else z[s:e])
+
+        hits = self._trace_bands(np.ascontiguousarray(o, dtype=np.float64), len(d), _CHUNK, band)
+        return _narrow(_Hits, hits)  # accumulate mode always returns the hits
+
+    def _scratch_rays(self, n: int) -> NDArray[np.float32]:
+        """A reused ``(n, 6)`` float32 Open3D ray buffer (n <= _CHUNK)."""
+        if len(self._rays_buf) < n:
+            self._rays_buf = np.empty((n, 6), dtype=np.float32)
+        return self._rays_buf[:n]
+
+    def _trace_bands(
+        self,
+        o: NDArray[np.float64],
+        n: int,
+        chunk: int,
+        band: Callable[[int, int], tuple[NDArray[np.float64], NDArray[np.float64] | None]],
+        consume: Callable[[int, int, _Hits], None] | None = None,
+    ) -> _Hits | None:
+        """Cast ``n`` rays produced ``chunk`` at a time by ``band(start, end)`` ->
+        ``(unit directions (e-s, 3) float64, optional per-ray extra (e-s,))``.
+
+        Without ``consume``: returns all hits, compact. With it: calls
+        ``consume(start, end, hits)`` once per chunk (also for a chunk without
+        hits) with the chunk's hits in buffers that the next chunk overwrites, and
+        returns None -- a streaming pass whose memory does not grow with ``n``.
+        """
         import open3d as o3d
+        from prism3d.capture._render_kernels import cull_rays, pack_rays_sel, refine_compact
 
-        from prism3d.capture._render_kernels import refine_hits
-
-        rays = np.empty((len(d), 6), dtype=np.float32)
-        rays[:, :3] = o
-        rays[:, 3:] = d
-        ans = self._scene.cast_rays(o3d.core.Tensor(rays), nthreads=0)
-        gid = ans["geometry_ids"].numpy().astype(np.int64)
-        t32 = ans["t_hit"].numpy()
-        hit = (gid != np.iinfo(np.uint32).max) & np.isfinite(t32)
-        if not np.any(hit):
-            return
-        idx = np.nonzero(hit)[0]
-        objs = self._gid_map[np.minimum(gid[idx], len(self._gid_map) - 1)]
-        prim = ans["primitive_ids"].numpy()[idx].astype(np.int64)
-        gface = self._offsets[objs] + prim
-        m = len(idx)
-        tt = np.empty(m)
-        uvv = np.empty((m, 2))
-        pp = np.empty((m, 3))
-        nn = np.empty((m, 3))
-        oo = np.ascontiguousarray(o if len(o) == 1 else o[idx])
-        refine_hits(
-            oo,
-            np.ascontiguousarray(d[idx]),
-            gface,
-            self._a,
-            self._e1,
-            self._e2,
-            self._n,
-            t32[idx].astype(np.float64),
-            ans["primitive_uvs"].numpy()[idx].astype(np.float64),
-            tt,
-            uvv,
-            pp,
-            nn,
+        keep = np.empty(min(n, chunk), dtype=np.bool_)
+        # accumulate: outputs sized for the worst case (every ray hits); pages never
+        # written cost nothing, the result is a view [:m]. stream: one chunk's worth.
+        size = n if consume is None else min(n, chunk)
+        index = np.empty(size, dtype=np.int64)
+        obj = np.empty(size, dtype=np.int32)
+        face = np.empty(size, dtype=np.int64)
+        t = np.empty(size)
+        uv = np.empty((size, 2))
+        pts = np.empty((size, 3))
+        nrm = np.empty((size, 3))
+        extra: NDArray[np.float64] | None = None
+        m = 0
+        for s in range(0, n, chunk):
+            e = min(n, s + chunk)
+            if consume is not None:
+                m = 0
+            dc, zc = band(s, e)
+            oc = o if len(o) == 1 else o[s:e]
+            kc = keep[: e - s]
+            cull_rays(oc, dc, self._box_lo, self._box_hi, kc)
+            rid = np.flatnonzero(kc)
+            k = 0
+            if len(rid):
+                r = self._scratch_rays(len(rid))
+                pack_rays_sel(oc, dc, rid, r)
+                ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(r), nthreads=0)
+                gid = ans["geometry_ids"].numpy()
+                t32 = ans["t_hit"].numpy()
+                idx = np.flatnonzero((gid != np.iinfo(np.uint32).max) & np.isfinite(t32))
+                k = len(idx)
+            if k:
+                refine_compact(
+                    oc, dc, rid, idx, gid, ans["primitive_ids"].numpy(), t32, ans["primitive_uvs"].numpy(),
+                    self._gid_map, self._offsets, self._a, self._e1, self._e2, self._n, s,
+                    index[m : m + k], obj[m : m + k], face[m : m + k], t[m : m + k], uv[m : m + k],
+                    pts[m : m + k], nrm[m : m + k],
+                )
+                if zc is not None:
+                    if extra is None:
+                        extra = np.empty(size)
+                    extra[m : m + k] = zc[rid[idx]]
+            m += k
+            if consume is not None:
+                consume(s, e, _Hits(
+                    index[:m], obj[:m], face[:m], t[:m], uv[:m], pts[:m], nrm[:m],
+                    None if extra is None else extra[:m],
+                ))
+        if consume is not None:
+            return None
+        return _Hits(
+            index[:m], obj[:m], face[:m], t[:m], uv[:m], pts[:m], nrm[:m],
+            None if extra is None else extra[:m],
         )
-        t_out[idx] = tt
-        obj_out[idx] = objs
-        face_out[idx] = prim
-        uv_out[idx] = uvv
-        pts_out[idx] = pp
-        nrm_out[idx] = nn
 
     def albedo(self, hits: RayHits) -> NDArray[np.float64]:
         """Albedo ``(N, 3)`` float64 at the hits (0 for misses), via ``SceneMesh.albedo_at``."""
-        out = np.zeros((len(hits.t), 3))
+        return self._albedo(hits.object_id, hits.face_id, hits.bary_uv, hits.points)
+
+    def _albedo(
+        self,
+        obj: NDArray[np.int32],
+        face: NDArray[np.int64],
+        uv: NDArray[np.float64],
+        points: NDArray[np.float64],
+        dtype: type = np.float64,
+    ) -> NDArray:
+        """Albedo ``(M, 3)`` (``dtype``) at world points on the objects ``obj`` (0 for -1).
+
+        Same values as ``SceneMesh.albedo_at``; a :class:`CamouflageField` (the
+        common case) is evaluated through its labels and palette directly.
+        """
+        from prism3d.capture.camouflage import CamouflageField
+
+        m = len(obj)
+        whole = len(self._meshes) == 1 and m > 0 and int(obj.min()) == 0
+        out = np.empty((m, 3), dtype=dtype) if whole else np.zeros((m, 3), dtype=dtype)
         for i, mesh in enumerate(self._meshes):
-            sel = np.nonzero(hits.object_id == i)[0]
-            if len(sel) == 0:
-                continue
+            if whole:
+                sel: NDArray | slice = slice(None)
+            else:
+                sel = np.flatnonzero(obj == i)
+                if len(sel) == 0:
+                    continue
             Ti = self._poses_inv[i]
-            p_obj = hits.points[sel] @ Ti[:3, :3].T + Ti[:3, 3]
-            out[sel] = mesh.albedo_at(p_obj, hits.face_id[sel], hits.bary_uv[sel])
+            p_obj = points[sel]
+            if not np.array_equal(Ti[:3, :3], np.eye(3)):
+                p_obj = p_obj @ Ti[:3, :3].T
+            if np.any(Ti[:3, 3] != 0):
+                p_obj = p_obj + Ti[:3, 3]
+            field = mesh.albedo_field
+            if isinstance(field, CamouflageField):
+                # palette colours are validated in [0, 1]: albedo_at's clip is a no-op
+                out[sel] = np.take(field._colors.astype(dtype), field.labels(p_obj), axis=0)
+            else:
+                out[sel] = mesh.albedo_at(p_obj, face[sel], uv[sel])
         return out
 
     def visible_from(
@@ -304,20 +418,78 @@ class RaycastRenderer:
         A ray is cast from the source towards each point; the point is visible when
         the first hit lies no nearer than the point itself (minus
         ``tol_mm + 1e-7 * distance``). Points that are NaN give False.
+
+        Notes
+        -----
+        Implemented as a float32 any-hit test (Open3D ``test_occlusions``) of the
+        segments, with the direction ``point - source`` so the point sits at ray
+        parameter 1 and one ``tfar`` just below 1 covers every segment; only the
+        segments it reports as blocked are re-cast and decided by the float64 rule
+        above (in an open scene that is almost none of them). When the whole scene
+        lies in one plane and the source is off it, points on that plane are
+        visible without any ray (the segment meets the plane only at its end).
         """
         p = check_array(points_world, "points_world", shape=(None, 3)).astype(np.float64)
         src = check_array(source_world, "source_world", shape=(3,)).astype(np.float64)
-        out = np.zeros(len(p), dtype=bool)
-        ok = np.all(np.isfinite(p), axis=1)
-        if not np.any(ok):
-            return out
-        d = p[ok] - src
-        dist = np.linalg.norm(d, axis=1)
-        good = dist > 0
-        hits = self.cast(src, np.where(good[:, None], d, np.array([0.0, 0.0, 1.0])))
-        vis = hits.t >= dist - (float(tol_mm) + 1e-7 * dist)
-        out[np.nonzero(ok)[0]] = vis & good
-        return out
+        return self._visible(p, src, float(tol_mm))
+
+    def _visible(
+        self,
+        p: NDArray[np.float64],
+        src: NDArray[np.float64],
+        tol: float,
+        sel: NDArray[np.int64] | None = None,
+    ) -> NDArray[np.bool_]:
+        """:meth:`visible_from` of the points ``p[sel]`` (all of ``p`` when ``sel`` is None)."""
+        import open3d as o3d
+        from prism3d.capture._render_kernels import on_plane, pack_segments
+
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        src = np.ascontiguousarray(src, dtype=np.float64)
+        sel = np.arange(len(p)) if sel is None else np.ascontiguousarray(sel, dtype=np.int64)
+        if self._plane is not None:
+            # the whole scene lies in one plane and the source is off it: a segment
+            # from the source to a point of that plane meets the plane (hence the
+            # scene) only at the point itself, so such a point is visible; exactly
+            # what the rays would say, without casting them
+            nrm, c = self._plane
+            if abs(float(src @ nrm) - c) > _PLANE_TOL_MM:
+                on = np.empty(len(sel), dtype=bool)
+                on_plane(p, sel, nrm, c, _PLANE_TOL_MM, on)
+                if np.any(on):
+                    out = np.ones(len(sel), dtype=bool)
+                    rest = np.flatnonzero(~on)
+                    if len(rest):
+                        out[rest] = self._visible(p, src, tol, sel[rest])
+                    return out
+        n = len(sel)
+        dist = np.empty(n)
+        blocked = np.zeros(n, dtype=bool)
+        for s in range(0, n, _CHUNK):
+            e = min(n, s + _CHUNK)
+            r = self._scratch_rays(e - s)
+            dmax = pack_segments(p, sel[s:e], src, r, dist[s:e])
+            if dmax <= 0.0:
+                continue
+            # blocked (float64 rule) <=> first hit t < dist * (1 - e_i), with
+            # e_i = tol / dist_i + 1e-7 >= e_min: any hit at parameter < 1 - e_min / 2
+            # flags all of them (and perhaps a near-self hit, cleared below)
+            e_min = tol / dmax + 1e-7
+            occ = self._scene.test_occlusions(
+                o3d.core.Tensor.from_numpy(r), tnear=0.0, tfar=1.0 - 0.5 * e_min, nthreads=0
+            )
+            blocked[s:e] = occ.numpy()
+        good = dist > 0.0
+        vis = good & ~blocked
+        cand = np.flatnonzero(good & blocked)
+        if len(cand):
+            pc = p[sel[cand]]
+            dd = dist[cand]
+            hits = self._trace(src.reshape(1, 3), (pc - src) / dd[:, None])
+            t = np.full(len(cand), np.inf)
+            t[hits.index] = hits.t
+            vis[cand] = t >= dd - (tol + 1e-7 * dd)
+        return vis
 
     # -- cameras ----------------------------------------------------------------------
     def render(
@@ -336,26 +508,180 @@ class RaycastRenderer:
             raise InputError(f"camera: expected a CameraModel, got {type(camera).__name__}")
         T = _check_pose(T_world_cam, "T_world_cam")
         w, h = camera.size
-        rays, z_cam = camera_rays(camera, T[:3, :3])
-        hits = self.cast(T[:3, 3], rays.reshape(-1, 3), normalized=True)
-        return self._result(hits, z_cam.reshape(-1), T, (h, w), with_albedo)
-
-    def _result(self, hits: RayHits, z_cam, T, hw, with_albedo) -> RenderResult:
-        h, w = hw
-        m = hits.hit
-        depth = hits.t * z_cam  # inf * z for misses, replaced below
-        depth[~m] = np.nan
-        normals_cam = hits.normals @ T[:3, :3]  # R^T n for each row
-        alb = self.albedo(hits) if with_albedo else np.zeros((len(m), 3))
+        hits = self.trace_camera(camera, T)
+        n = h * w
+        i = hits.index
+        depth = np.full(n, np.nan, dtype=np.float32)
+        depth[i] = hits.t * hits.z_cam
+        normals_cam = np.full((n, 3), np.nan, dtype=np.float32)
+        normals_cam[i] = hits.normals @ T[:3, :3]  # R^T n for each row
+        pts = np.full((n, 3), np.nan)
+        pts[i] = hits.points
+        alb = np.zeros((n, 3), dtype=np.float32)
+        if with_albedo:
+            alb[i] = self._albedo(hits.object_id, hits.face_id, hits.bary_uv, hits.points)
+        mask = np.zeros(n, dtype=bool)
+        mask[i] = True
+        obj = np.full(n, -1, dtype=np.int32)
+        obj[i] = hits.object_id
+        face = np.full(n, -1, dtype=np.int64)
+        face[i] = hits.face_id
         return RenderResult(
-            depth_mm=depth.astype(np.float32).reshape(h, w),
-            normals_cam=normals_cam.astype(np.float32).reshape(h, w, 3),
-            points_world=hits.points.reshape(h, w, 3),
-            albedo=alb.astype(np.float32).reshape(h, w, 3),
-            mask=m.reshape(h, w),
-            object_id=hits.object_id.reshape(h, w),
-            face_id=hits.face_id.reshape(h, w),
+            depth_mm=depth.reshape(h, w),
+            normals_cam=normals_cam.reshape(h, w, 3),
+            points_world=pts.reshape(h, w, 3),
+            albedo=alb.reshape(h, w, 3),
+            mask=mask.reshape(h, w),
+            object_id=obj.reshape(h, w),
+            face_id=face.reshape(h, w),
         )
+
+    def _camera_frame_rays(self, camera: CameraModel) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Camera-frame unit rays ``(H*W, 3)`` and their z ``(H*W,)``, cached per
+        intrinsics (K, distortion, size) on this renderer: the Newton inversion of
+        the distortion is paid once per camera model, not once per render (the two
+        views of a symmetric rig share one entry)."""
+        from prism3d.capture._render_kernels import grid_rays
+
+        key = (camera.K.tobytes(), camera.dist.tobytes(), tuple(camera.size))
+        hit = self._ray_cache.pop(key, None)
+        if hit is None:
+            w, h = camera.size
+            d = np.empty((h, w, 3))
+            z = np.empty((h, w))
+            grid_rays(
+                np.ascontiguousarray(camera.K), np.ascontiguousarray(camera.dist), w, 0, np.eye(3), d, z
+            )
+            hit = (d.reshape(-1, 3), z.reshape(-1))
+            for a in hit:
+                a.setflags(write=False)
+            while len(self._ray_cache) >= _RAY_CACHE_SIZE:
+                self._ray_cache.pop(next(iter(self._ray_cache)))
+        self._ray_cache[key] = hit  # most recently used last
+        return hit
+
+    def trace_camera(self, camera: CameraModel, T_world_cam: NDArray[np.float64]) -> CameraHits:
+        """All hits of a camera's pixel rays, compact (hit pixels only).
+
+        For callers that need only the hit pixels (the scene simulator): no full-size
+        maps are built. ``T_world_cam`` must be a valid pose (not re-checked).
+        """
+        hits: list[CameraHits] = []
+        self._camera_bands(camera, T_world_cam, None, 1, hits)
+        return hits[0]
+
+    def stream_camera(
+        self,
+        camera: CameraModel,
+        T_world_cam: NDArray[np.float64],
+        consume: Callable[[int, int, CameraHits], None],
+        *,
+        rows_multiple: int = 1,
+    ) -> None:
+        """Cast a camera's pixel rays in bands of whole rows, streaming the hits.
+
+        ``consume(first_pixel, end_pixel, hits)`` is called for every band (a
+        multiple of ``rows_multiple`` rows, ~1 M rays) with that band's hits, in
+        buffers the next band overwrites: memory does not grow with the image.
+        """
+        self._camera_bands(camera, T_world_cam, consume, rows_multiple, [])
+
+    def _camera_bands(
+        self,
+        camera: CameraModel,
+        T_world_cam: NDArray[np.float64],
+        consume: Callable[[int, int, CameraHits], None] | None,
+        rows_multiple: int,
+        out: list[CameraHits],
+    ) -> None:
+        from prism3d.capture._render_kernels import rotate_rays
+
+        w, h = camera.size
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        R = np.ascontiguousarray(T[:3, :3])
+        o = T[:3, 3].reshape(1, 3).copy()
+        rays_cam, z_cam = self._camera_frame_rays(camera)
+        rm = max(1, int(rows_multiple))
+        rows = max(rm, (_CHUNK // w) // rm * rm)
+        d = np.empty((min(rows, h) * w, 3))
+
+        def band(s: int, e: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+            rotate_rays(rays_cam[s:e], R, d[: e - s])
+            return d[: e - s], z_cam[s:e]
+
+        def wrap(hits: _Hits) -> CameraHits:
+            zc = hits.extra if hits.extra is not None else np.zeros(0)
+            return CameraHits(
+                hits.index, hits.object_id, hits.face_id, hits.t, hits.bary_uv, hits.points,
+                hits.normals, zc, (h, w),
+            )
+
+        if consume is not None:
+            self._trace_bands(o, h * w, rows * w, band, lambda s, e, hb: consume(s, e, wrap(hb)))
+        else:
+            out.append(wrap(_narrow(_Hits, self._trace_bands(o, h * w, rows * w, band))))
+
+
+def _scene_plane(v: NDArray[np.float64]) -> tuple[NDArray[np.float64], float] | None:
+    """``(unit normal, offset)`` of the plane ``n . x = c`` holding every scene vertex
+    ``v`` (world frame) within ``_PLANE_TOL_MM / 10``, or None (not planar)."""
+    if len(v) < 3:
+        return None
+    centre = v.mean(axis=0)
+    _, _, vt = np.linalg.svd(v - centre, full_matrices=False)
+    nrm = vt[2]
+    c = float(centre @ nrm)
+    if float(np.abs(v @ nrm - c).max()) > 0.1 * _PLANE_TOL_MM:
+        return None
+    return nrm, c
+
+
+@dataclass(eq=False)
+class _Hits:
+    """Compact hits: ``index`` (M,) of the hit rays, then per-hit fields."""
+
+    index: NDArray[np.int64]
+    object_id: NDArray[np.int32]
+    face_id: NDArray[np.int64]
+    t: NDArray[np.float64]
+    bary_uv: NDArray[np.float64]
+    points: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    extra: NDArray[np.float64] | None = None
+
+
+@dataclass(eq=False)
+class CameraHits:
+    """The hit pixels of a camera render (:meth:`RaycastRenderer.trace_camera`).
+
+    Attributes
+    ----------
+    index : (M,) int64
+        Flat pixel index ``v * W + u`` of each hit, increasing.
+    object_id : (M,) int32
+    face_id : (M,) int64
+    t : (M,) float64
+        Distance along the unit ray, mm.
+    bary_uv : (M, 2) float64
+    points : (M, 3) float64
+        Hit points, world frame, mm.
+    normals : (M, 3) float64
+        Unit normals, world frame, facing the camera.
+    z_cam : (M,) float64
+        Camera-frame z of the unit ray (depth = ``t * z_cam``).
+    shape : (int, int)
+        ``(H, W)`` of the camera.
+    """
+
+    index: NDArray[np.int64]
+    object_id: NDArray[np.int32]
+    face_id: NDArray[np.int64]
+    t: NDArray[np.float64]
+    bary_uv: NDArray[np.float64]
+    points: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    z_cam: NDArray[np.float64]
+    shape: tuple[int, int]
 
 
 def camera_rays(
@@ -376,7 +702,7 @@ def camera_rays(
     out = np.empty((h, w, 3), dtype=np.float64)
     out_z = np.empty((h, w), dtype=np.float64)
     grid_rays(
-        np.ascontiguousarray(camera.K), np.ascontiguousarray(camera.dist), w, h,
+        np.ascontiguousarray(camera.K), np.ascontiguousarray(camera.dist), w, 0,
         np.ascontiguousarray(R), out, out_z,
     )
     return out, out_z
@@ -447,15 +773,37 @@ class SensorNoise:
         check_positive(self.read_noise_dn, "read_noise_dn", strict=False)
 
     def apply(self, image01: NDArray, rng: np.random.Generator) -> NDArray[np.float64]:
-        """Noisy image in DN (float64, unclipped) from a clean image in [0, 1]."""
-        x = np.clip(np.asarray(image01, dtype=np.float64), 0.0, 1.0) * 255.0
-        electrons = rng.poisson(x * self.gain_e_per_dn)
-        out = electrons / self.gain_e_per_dn
-        if self.read_noise_dn > 0:
-            out = out + rng.normal(0.0, self.read_noise_dn, size=x.shape)
-        return out
+        """Noisy image in DN (float64, unclipped) from a clean image in [0, 1].
+
+        ``rng`` supplies one 63-bit key; each pixel value then draws its shot and
+        read noise from its own counter-based stream (splitmix64 keyed by the key
+        and the element index) in a parallel numba kernel: the same generator state
+        gives the same image whatever the number of threads. Poisson variates:
+        multiplication method below a mean of 10 electrons, else Hormann's PTRS;
+        read noise: Box-Muller.
+
+        References
+        ----------
+        .. [1] W. Hormann, "The transformed rejection method for generating Poisson
+           random variables", Insurance: Mathematics and Economics 12 (1993).
+        .. [2] G. L. Steele, D. Lea, C. H. Flood, "Fast splittable pseudorandom
+           number generators", OOPSLA 2014 (splitmix64).
+        """
+        from prism3d.capture._render_kernels import sensor_noise
+
+        x = np.asarray(image01, dtype=np.float64)
+        flat = np.ascontiguousarray(x).reshape(-1)
+        key = np.uint64(int(rng.integers(0, 2**63, dtype=np.int64)))
+        out = np.empty(flat.shape)
+        sensor_noise(flat, float(self.gain_e_per_dn), float(self.read_noise_dn), key, out)
+        return out.reshape(x.shape)
 
 
 def quantize(image_dn: NDArray) -> NDArray[np.uint8]:
-    """Round DN values to uint8 with clipping to [0, 255]."""
-    return np.clip(np.rint(np.asarray(image_dn, dtype=np.float64)), 0, 255).astype(np.uint8)
+    """Round DN values to uint8 (half to even, as ``np.rint``) with clipping to [0, 255]."""
+    from prism3d.capture._render_kernels import quantize_u8
+
+    x = np.asarray(image_dn, dtype=np.float64)
+    out = np.empty(x.shape, dtype=np.uint8)
+    quantize_u8(np.ascontiguousarray(x).reshape(-1), out.reshape(-1))
+    return out

@@ -22,6 +22,14 @@ Image model (per view pixel, linear, values in [0, 1])::
   never averaged across edges). The two views are then put on the sensor with
   :meth:`PrismSplit.join` (mirror flips applied), and sensor noise is added.
 
+Speed: a full 2592x1944 shot with the pattern and 2x2 supersampling takes a few
+seconds on 2 cores (``benchmarks/bench_simulate.py``). Only hit pixels are carried
+(compact arrays); the supersampled colour rays are streamed in bands of whole output
+rows and each band is lit, shaded and box-averaged at once; lighting, pattern
+sampling, shadow rays, truth maps and noise are parallel numba kernels; the
+rectified-disparity view casts depth-only rays. Camera rays are cached per camera
+model on the renderer, so later shots of a sequence skip the distortion inversion.
+
 Contract of :func:`simulate_to_folder` (``prism3d simulate plate|calib|scene OUT``):
 see its docstring.
 """
@@ -37,19 +45,23 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-
+from prism3d.capture.camouflage import CamouflageField
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.pattern import stripe_pattern
 from prism3d.capture.render import (
+    CameraHits,
     RaycastRenderer,
-    RenderResult,
     SensorNoise,
-    box_downsample,
     gaussian_blur,
     quantize,
 )
-from prism3d.capture.camouflage import CamouflageField
-from prism3d.capture.rig import CameraModel, Rectification, StereoRig, compute_rectification, paper_rig
+from prism3d.capture.rig import (
+    CameraModel,
+    Rectification,
+    StereoRig,
+    compute_rectification,
+    paper_rig,
+)
 from prism3d.capture.scenes import (
     TextureAlbedo,
     calibration_board_poses,
@@ -59,18 +71,19 @@ from prism3d.capture.scenes import (
     translation,
     turntable_poses,
 )
+
 from prism3d.checks import check_array, check_choice, check_in_range, check_positive
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path, atomic_write_text
 
 __all__ = [
+    "TRUTH_SCHEMA_VERSION",
     "Projector",
     "Shot",
     "simulate_shot",
     "simulate_to_folder",
-    "write_ply",
     "working_distance_mm",
-    "TRUTH_SCHEMA_VERSION",
+    "write_ply",
 ]
 
 #: Version of the truth ``.npz`` / ``poses.json`` layout.
@@ -166,36 +179,47 @@ class Projector:
         ``white`` is 1 inside the frustum and 0 outside; ``rgb`` is the bilinearly
         sampled pattern (``white`` repeated for a white flash).
         """
+        P = np.ascontiguousarray(check_array(points_rig, "points_rig", shape=(None, 3)), dtype=np.float64)
+        _, rgb, white, _ = self._light(P, np.zeros_like(P), 1.0)
+        return rgb, white.astype(np.float64)
+
+    def _pattern01(self) -> NDArray[np.float64]:
+        """The pattern as float64 in [0, 1] (cached; a 1x1 dummy for a white flash)."""
+        cached = self.__dict__.get("_pattern01_cache")
+        if cached is None:
+            if self.pattern is None:
+                cached = np.zeros((1, 1, 3))
+            else:
+                cached = self.pattern.astype(np.float64) / 255.0
+            object.__setattr__(self, "_pattern01_cache", cached)
+        return cached
+
+    def _light(
+        self, P: NDArray[np.float64], N: NDArray[np.float64], flash: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
+        """``(k, rgb, white, lit)`` at rig-frame points ``P`` with unit normals ``N``.
+
+        ``k (N,) = flash * max(0, n . l) * (ref / distance)^2`` before the shadow
+        test, ``rgb (N, 3)`` the projector colour (0 outside the frustum), ``white``
+        inside the frustum, ``lit`` = inside and facing the projector (the points
+        that need a shadow ray). One parallel numba pass (``light_hits``).
+        """
+        from prism3d.capture._render_kernels import light_hits
+
+        m = len(P)
+        k = np.empty(m)
+        rgb = np.empty((m, 3))
+        white = np.empty(m, dtype=bool)
+        lit = np.empty(m, dtype=bool)
         T_proj_rig = np.linalg.inv(self.T_rig_proj)
-        pc = points_rig @ T_proj_rig[:3, :3].T + T_proj_rig[:3, 3]
-        z = pc[:, 2]
         w, h = self.size
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = self.K[0, 0] * pc[:, 0] / z + self.K[0, 1] * pc[:, 1] / z + self.K[0, 2]
-            v = self.K[1, 1] * pc[:, 1] / z + self.K[1, 2]
-        inside = (z > 0) & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
-        white = inside.astype(np.float64)
-        if self.pattern is None:
-            return np.repeat(white[:, None], 3, axis=1), white
-        rgb = np.zeros((len(pc), 3))
-        idx = np.nonzero(inside)[0]
-        if len(idx):
-            uu = np.clip(u[idx], 0.0, w - 1.0)
-            vv = np.clip(v[idx], 0.0, h - 1.0)
-            u0 = np.minimum(np.floor(uu).astype(np.int64), w - 2) if w > 1 else np.zeros(len(idx), np.int64)
-            v0 = np.minimum(np.floor(vv).astype(np.int64), h - 2) if h > 1 else np.zeros(len(idx), np.int64)
-            fu = (uu - u0)[:, None]
-            fv = (vv - v0)[:, None]
-            P = self.pattern.astype(np.float64) / 255.0
-            u1 = np.minimum(u0 + 1, w - 1)
-            v1 = np.minimum(v0 + 1, h - 1)
-            rgb[idx] = (
-                (1 - fu) * (1 - fv) * P[v0, u0]
-                + fu * (1 - fv) * P[v0, u1]
-                + (1 - fu) * fv * P[v1, u0]
-                + fu * fv * P[v1, u1]
-            )
-        return rgb, white
+        light_hits(
+            np.ascontiguousarray(P), np.ascontiguousarray(N), self.position_rig,
+            np.ascontiguousarray(T_proj_rig[:3, :3]), T_proj_rig[:3, 3].copy(), self.K, w, h,
+            self._pattern01(), self.pattern is not None, float(self.ref_distance_mm), float(flash),
+            k, rgb, white, lit,
+        )
+        return k, rgb, white, lit
 
 
 def working_distance_mm(rig: StereoRig, default: float = 1250.0) -> float:
@@ -233,31 +257,19 @@ class Shot:
 
 def _illumination(
     renderer: RaycastRenderer,
-    res: RenderResult,
-    R_world_cam: NDArray[np.float64],
+    hits: CameraHits,
     projector: Projector,
-    ambient: float,
     flash: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``(illumination (N, 3), shading (N,))`` at the hit pixels of ``res`` (rig frame = world)."""
-    m = res.mask.reshape(-1)
-    idx = np.nonzero(m)[0]
-    P = res.points_world.reshape(-1, 3)[idx]
-    n_world = res.normals_cam.reshape(-1, 3)[idx].astype(np.float64) @ R_world_cam.T
-    src = projector.position_rig
-    lvec = src - P
-    dist = np.linalg.norm(lvec, axis=1)
-    ndotl = np.maximum(0.0, np.einsum("ij,ij->i", n_world, lvec) / dist)
-    rgb, white = projector.light_at(P)
-    lit = (ndotl > 0) & (white > 0)
-    vis = np.zeros(len(P))
-    li = np.nonzero(lit)[0]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """``(k, rgb, white)`` at the hits: flash factor AFTER the shadow test (0 in
+    shadow), projector colour and frustum flag (rig frame = world)."""
+    k, rgb, white, lit = projector._light(hits.points, hits.normals, flash)
+    li = np.flatnonzero(lit)
     if len(li):
-        vis[li] = renderer.visible_from(P[li], src).astype(np.float64)
-    k = flash * ndotl * vis * (projector.ref_distance_mm / dist) ** 2
-    illum = ambient + k[:, None] * rgb
-    shading = ambient + k * white
-    return illum, shading
+        vis = renderer._visible(hits.points, projector.position_rig, 1e-3, li)
+        k[li[~vis]] = 0.0
+    k[~lit] = 0.0
+    return k, rgb, white
 
 
 def _render_view(
@@ -271,39 +283,68 @@ def _render_view(
     supersample: int,
 ) -> tuple[NDArray[np.float64], dict[str, NDArray]]:
     """Clean colour image ``(H, W, 3)`` in [0, 1] and the truth maps of one view."""
+    from prism3d.capture._render_kernels import box_mean, scatter_truth, shade_colour
+
     w, h = cam.size
-    # truth: one exact ray per output pixel centre
-    R = T_rig_cam[:3, :3]
-    res1 = renderer.render(cam, T_rig_cam)
-    illum1, shade1 = _illumination(renderer, res1, R, projector, ambient, flash)
-    m1 = res1.mask.reshape(-1)
-    shading = np.full(h * w, np.nan, dtype=np.float32)
-    shading[m1] = shade1
-    illum = np.full((h * w, 3), np.nan, dtype=np.float32)
-    illum[m1] = illum1
+    n = h * w
+    # truth: one exact ray per output pixel centre, streamed in bands of rows
+    depth = np.full(n, np.nan, dtype=np.float32)
+    mask = np.zeros(n, dtype=bool)
+    albedo = np.zeros((n, 3), dtype=np.float32)
+    shading = np.full(n, np.nan, dtype=np.float32)
+    illum = np.full((n, 3), np.nan, dtype=np.float32)
+    normals = np.full((n, 3), np.nan, dtype=np.float32)
+    object_id = np.full(n, -1, dtype=np.int32)
+    R = np.ascontiguousarray(T_rig_cam[:3, :3])
+    img1 = np.full((n, 3), float(background)) if supersample == 1 else np.zeros((0, 3))
+
+    def truth_band(s: int, e: int, hb: CameraHits) -> None:
+        if len(hb.index) == 0:
+            return
+        alb = renderer._albedo(hb.object_id, hb.face_id, hb.bary_uv, hb.points, np.float32)
+        k, rgb, white = _illumination(renderer, hb, projector, flash)
+        scatter_truth(
+            hb.index, hb.t, hb.z_cam, alb, k, rgb, white, hb.normals, R, hb.object_id, ambient,
+            depth, mask, albedo, shading, illum, normals, object_id,
+        )
+        if supersample == 1:
+            shade_colour(hb.index, alb, k, rgb, ambient, img1)
+
+    renderer.stream_camera(cam, T_rig_cam, truth_band)
     truth = {
-        "depth_mm": res1.depth_mm,
-        "mask": res1.mask,
-        "albedo": res1.albedo,
+        "depth_mm": depth.reshape(h, w),
+        "mask": mask.reshape(h, w),
+        "albedo": albedo.reshape(h, w, 3),
         "shading": shading.reshape(h, w),
         "illumination": illum.reshape(h, w, 3),
-        "normals": res1.normals_cam,
-        "object_id": res1.object_id,
+        "normals": normals.reshape(h, w, 3),
+        "object_id": object_id.reshape(h, w),
     }
-
-    def colour(res: RenderResult, il: NDArray[np.float64]) -> NDArray[np.float64]:
-        hh, ww = res.mask.shape
-        img = np.full((hh * ww, 3), float(background))
-        mm = res.mask.reshape(-1)
-        img[mm] = np.clip(res.albedo.reshape(-1, 3)[mm].astype(np.float64) * il, 0.0, 1.0)
-        return img.reshape(hh, ww, 3)
-
     if supersample == 1:
-        img = colour(res1, illum1)
-    else:
-        res_s = renderer.render(cam.scaled(supersample), T_rig_cam)
-        illum_s, _ = _illumination(renderer, res_s, R, projector, ambient, flash)
-        img = box_downsample(colour(res_s, illum_s), supersample)
+        return img1.reshape(h, w, 3), truth
+    # colour: supersampled rays streamed in bands of whole output rows, each band
+    # shaded and box-averaged at once (memory stays ~one band)
+    ss = supersample
+    cs = cam.scaled(ss)
+    ws = cs.size[0]
+    img = np.empty((h, w, 3))
+    band_img = np.empty((0, 3), dtype=np.float32)
+
+    def shade_band(s: int, e: int, hb: CameraHits) -> None:
+        nonlocal band_img
+        if len(band_img) < e - s:
+            band_img = np.empty((e - s, 3), dtype=np.float32)
+        b = band_img[: e - s]
+        b.fill(background)
+        if len(hb.index):
+            alb_s = renderer._albedo(hb.object_id, hb.face_id, hb.bary_uv, hb.points, np.float32)
+            k_s, rgb_s, _ = _illumination(renderer, hb, projector, flash)
+            shade_colour(hb.index - s, alb_s, k_s, rgb_s, ambient, b)
+        r0 = s // ws // ss
+        r1 = e // ws // ss
+        box_mean(b.reshape(-1, ws, 3), ss, img[r0:r1])
+
+    renderer.stream_camera(cs, T_rig_cam, shade_band, rows_multiple=ss)
     return img, truth
 
 
@@ -402,12 +443,20 @@ def simulate_shot(
     R1_4 = np.eye(4)
     R1_4[:3, :3] = rect.R1
     T_rig_rect = rig.T_rig_left @ np.linalg.inv(R1_4)
-    rres = renderer.render(rect.camera, T_rig_rect, with_albedo=False)
-    z = rres.depth_mm.astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        disp = rect.focal_px * rect.baseline_mm / z
-    truth["disparity_rect"] = disp.astype(np.float32)
-    truth["depth_rect_mm"] = rres.depth_mm
+    rw, rhh = rect.camera.size
+    disp = np.full(rw * rhh, np.nan, dtype=np.float32)
+    depth_rect = np.full(rw * rhh, np.nan, dtype=np.float32)
+    fb = rect.focal_px * rect.baseline_mm
+
+    def rect_band(s: int, e: int, hb: CameraHits) -> None:  # depth only: no albedo, no light
+        z = hb.t * hb.z_cam
+        depth_rect[hb.index] = z
+        with np.errstate(divide="ignore", invalid="ignore"):
+            disp[hb.index] = fb / z
+
+    renderer.stream_camera(rect.camera, T_rig_rect, rect_band)
+    truth["disparity_rect"] = disp.reshape(rhh, rw)
+    truth["depth_rect_mm"] = depth_rect.reshape(rhh, rw)
     for k in ("R1", "R2", "P1", "P2", "Q"):
         truth[k] = np.asarray(getattr(rect, k), dtype=np.float64)
     truth["T_rig_left"] = rig.T_rig_left.copy()
@@ -433,9 +482,8 @@ def _write_png(path: Path, rgb: NDArray[np.uint8]) -> None:
 
 
 def _write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            (np.savez_compressed if compress else np.savez)(fh, **arrays)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        (np.savez_compressed if compress else np.savez)(fh, **arrays)
 
 
 def write_ply(path: str | Path, mesh: SceneMesh) -> None:
@@ -458,11 +506,10 @@ def write_ply(path: str | Path, mesh: SceneMesh) -> None:
     fa = np.empty(len(F), dtype=fdt)
     fa["n"] = 3
     fa["i"] = F.astype(np.int32)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(va.tobytes())
-            fh.write(fa.tobytes())
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(va.tobytes())
+        fh.write(fa.tobytes())
 
 
 def _has_own_albedo(mesh: SceneMesh) -> bool:

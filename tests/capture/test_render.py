@@ -5,8 +5,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
-import prism3d  # noqa: F401  (sets PYOPENGL_PLATFORM before any OpenGL import)
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.render import (
     RaycastRenderer,
@@ -18,6 +16,8 @@ from prism3d.capture.render import (
 )
 from prism3d.capture.rig import CameraModel, PrismSplit, look_at, paper_rig
 from prism3d.capture.scenes import flat_plate, rotation_about, translation
+
+import prism3d  # noqa: F401  (sets PYOPENGL_PLATFORM before any OpenGL import)
 from prism3d.errors import InputError
 
 
@@ -224,3 +224,101 @@ def test_pyrender_rejects_distortion_and_skew(pyrender_plate):
         r.render(small_camera(), np.eye(4))
     with pytest.raises(InputError, match="skew"):
         r.render(small_camera(dist=(), skew=1.0), np.eye(4))
+
+
+# -- fast paths (streaming, ray cache, culling, planar shadows, counter-based noise) ----
+def _tilted_plate_scene():
+    T = translation(30, -20, 1250) @ rotation_about((1, 1, 0), 0.5)
+    return RaycastRenderer([(flat_plate(400, 300, albedo=(0.3, 0.5, 0.7)), T)])
+
+
+def test_stream_camera_bands_match_trace_camera(monkeypatch):
+    from prism3d.capture import render as render_mod
+
+    r = _tilted_plate_scene()
+    cam = small_camera()
+    T = look_at(np.array([40.0, -30.0, 0.0]), np.array([0.0, 0.0, 1250.0]))
+    whole = r.trace_camera(cam, T)
+    monkeypatch.setattr(render_mod, "_CHUNK", 7 * cam.width + 5)  # bands of 6 rows
+    bands = []
+
+    def consume(s, e, hb):
+        assert e - s == min(6 * cam.width, cam.width * cam.height - s)
+        assert np.all((hb.index >= s) & (hb.index < e))
+        bands.append([a.copy() for a in (hb.index, hb.t, hb.points, hb.normals, hb.z_cam, hb.face_id)])
+
+    r.stream_camera(cam, T, consume, rows_multiple=2)
+    got = [np.concatenate(x) for x in zip(*bands, strict=True)]
+    ref = (whole.index, whole.t, whole.points, whole.normals, whole.z_cam, whole.face_id)
+    for a, b in zip(got, ref, strict=True):
+        np.testing.assert_array_equal(a, b)
+    # the compact hits are the render's maps
+    res = r.render(cam, T)
+    assert np.array_equal(np.flatnonzero(res.mask), whole.index)
+    np.testing.assert_array_equal(res.depth_mm.reshape(-1)[whole.index], (whole.t * whole.z_cam).astype(np.float32))
+
+
+def test_camera_rays_are_cached_per_camera_model():
+    r = _tilted_plate_scene()
+    cam = small_camera()
+    r.render(cam, np.eye(4))
+    r.render(cam, look_at(np.zeros(3), np.array([10.0, 0.0, 1250.0])))
+    assert len(r._ray_cache) == 1
+    d, z = next(iter(r._ray_cache.values()))
+    rays, zc = camera_rays(cam)
+    assert np.array_equal(d, rays.reshape(-1, 3)) and np.array_equal(z, zc.reshape(-1))
+    for k in range(2, 5):
+        r.render(cam.scaled(k), np.eye(4))
+    assert len(r._ray_cache) == 3  # bounded
+
+
+def test_bounding_box_cull_changes_nothing():
+    r = _tilted_plate_scene()
+    rng = np.random.default_rng(5)
+    d = np.c_[rng.uniform(-0.3, 0.3, (20000, 2)), np.ones(20000)]
+    o = rng.uniform(-50, 50, (20000, 3))
+    a = r.cast(o, d)
+    assert 0.1 < a.hit.mean() < 0.9
+    r._box_lo = np.full(3, -np.inf)
+    r._box_hi = np.full(3, np.inf)
+    b = r.cast(o, d)
+    for f in ("t", "object_id", "face_id", "bary_uv", "points", "normals"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
+def test_planar_scene_shadow_shortcut_matches_rays():
+    r = _tilted_plate_scene()
+    assert r._plane is not None
+    res = r.render(small_camera(), np.eye(4))
+    on = res.points_world[res.mask]
+    nrm, c = r._plane
+    behind = on[:50] + 5.0 * nrm * np.sign(c)  # 5 mm beyond the plate, seen through it
+    pts = np.concatenate([on, behind, [[np.nan, 0.0, 0.0]]])
+    src = np.array([20.0, 10.0, 0.0])
+    fast = r.visible_from(pts, src)
+    r._plane = None  # force the ray test
+    slow = r.visible_from(pts, src)
+    np.testing.assert_array_equal(fast, slow)
+    assert fast[: len(on)].all() and not fast[len(on) :].any()
+    two = RaycastRenderer([(flat_plate(300, 300), translation(0, 0, 1250)), (flat_plate(50, 50), translation(0, 0, 1000))])
+    assert two._plane is None
+
+
+def test_sensor_noise_low_light_and_thread_independence():
+    import numba
+
+    model = SensorNoise(gain_e_per_dn=1.0, read_noise_dn=0.0)
+    img = np.full((300, 300, 3), 3.0 / 255.0)  # 3 electrons: the small-mean sampler
+    e = model.apply(img, np.random.default_rng(2))
+    assert np.array_equal(e, np.round(e))
+    assert e.mean() == pytest.approx(3.0, abs=0.03) and e.var() == pytest.approx(3.0, rel=0.05)
+    assert model.apply(np.zeros((4, 4)), np.random.default_rng(0)).max() == 0.0
+    big = np.random.default_rng(0).uniform(0, 1, (64, 64, 3))
+    full = SensorNoise().apply(big, np.random.default_rng(9))
+    n = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = SensorNoise().apply(big, np.random.default_rng(9))
+    finally:
+        numba.set_num_threads(n)
+    assert np.array_equal(full, one)

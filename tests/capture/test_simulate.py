@@ -7,8 +7,6 @@ import json
 import cv2
 import numpy as np
 import pytest
-
-import prism3d  # noqa: F401  (sets the environment)
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
 from prism3d.capture.rig import compute_rectification, paper_rig
 from prism3d.capture.scenes import (
@@ -19,7 +17,14 @@ from prism3d.capture.scenes import (
     rotation_about,
     translation,
 )
-from prism3d.capture.simulate import Projector, simulate_shot, simulate_to_folder, working_distance_mm
+from prism3d.capture.simulate import (
+    Projector,
+    simulate_shot,
+    simulate_to_folder,
+    working_distance_mm,
+)
+
+import prism3d  # noqa: F401  (sets the environment)
 from prism3d.errors import InputError
 
 
@@ -314,3 +319,43 @@ def test_uniform_albedo_mesh_roundtrip():
     m = SceneMesh(np.eye(3), np.array([[0, 1, 2]]), albedo_field=UniformAlbedo((0.2, 0.3, 0.4)))
     assert np.allclose(m.vertex_colors(), [0.2, 0.3, 0.4])
     assert compute_rectification(eighth_rig()).size[0] > 0
+
+
+# -- fast paths ------------------------------------------------------------------------
+def test_streamed_supersampled_shot_does_not_depend_on_band_size(monkeypatch):
+    from prism3d.capture import render as render_mod
+
+    rig = eighth_rig()
+    proj = Projector.for_rig(rig, pattern=True)
+    plate = flat_plate(300, 300)  # speckle texture albedo
+    occ = flat_plate(40, 40, albedo=(0.8, 0.8, 0.8), name="occluder")
+    objs = [(plate, translation(0, 0, 1250)), (occ, translation(20, -10, 900))]
+    a = simulate_shot(rig, objs, projector=proj, supersample=2, noise=False)
+    monkeypatch.setattr(render_mod, "_CHUNK", 4 * 324 + 7)  # many small bands
+    b = simulate_shot(rig, objs, projector=proj, supersample=2, noise=False)
+    assert np.array_equal(a.sensor_image, b.sensor_image)
+    for k, v in a.truth.items():
+        np.testing.assert_array_equal(v, b.truth[k], err_msg=k)
+
+
+def test_projector_light_at_is_bilinear_in_the_pattern():
+    pat = np.zeros((4, 6, 3), np.uint8)
+    pat[..., 0] = np.arange(6) * 40  # red ramps along u
+    pat[..., 1] = (np.arange(4) * 60)[:, None]  # green along v
+    pat[..., 2] = 255
+    proj = Projector(np.array([[10.0, 0, 2.5], [0, 10.0, 1.5], [0, 0, 1]]), (6, 4), pat, ref_distance_mm=100.0)
+    # projector pixel (u, v) = 10 * (x, y) / z + (2.5, 1.5)
+    pts = np.array([[0.0, 0.0, 100.0], [13.0, -7.0, 100.0], [0.0, 0.0, -100.0], [100.0, 0, 100.0], [-30.0, -20.0, 100.0]])
+    rgb, white = proj.light_at(pts)
+    assert white.tolist() == [1.0, 1.0, 0.0, 0.0, 1.0]
+    u = 10 * pts[:, 0] / 100 + 2.5
+    v = 10 * pts[:, 1] / 100 + 1.5
+    for i in (0, 1):
+        assert rgb[i, 0] == pytest.approx(40 * u[i] / 255, abs=1e-12)
+        assert rgb[i, 1] == pytest.approx(60 * v[i] / 255, abs=1e-12)
+        assert rgb[i, 2] == pytest.approx(1.0, abs=1e-12)
+    assert np.array_equal(rgb[2:4], np.zeros((2, 3)))
+    assert rgb[4, 0] == 0.0 and rgb[4, 1] == 0.0  # edge at (-0.5, -0.5): clamped to pixel (0, 0)
+    flash = Projector(proj.K, (6, 4))
+    rgb_w, white_w = flash.light_at(pts)
+    assert np.array_equal(rgb_w, np.repeat(white_w[:, None], 3, axis=1))
