@@ -109,8 +109,6 @@ def test_vertex_albedo_is_interpolated():
 
 
 def test_supersampling_box_average():
-    cam = small_camera(dist=())
-    s = cam.scaled(3)
     # the centre of output pixel (u, v) is the mean of its 3x3 sub-pixel centres
     img = np.arange(36, dtype=np.float64).reshape(6, 6)
     out = box_downsample(img, 3)

@@ -254,7 +254,7 @@ def test_simulate_to_folder_calib_contract_and_determinism(tmp_path):
     s2 = simulate_to_folder("calib", tmp_path / "b", rig=rig, views=2, supersample=1, seed=5)
     names = ["calib_00.png", "calib_01.png", "rig.yaml", "truth_00.npz", "truth_01.npz"]
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == names
-    assert s1["files"] == names and s1["pattern"] is False
+    assert s1["files"] == names == s2["files"] and s1["pattern"] is False
     for n in ("calib_00.png", "calib_01.png"):
         assert (tmp_path / "a" / n).read_bytes() == (tmp_path / "b" / n).read_bytes()
     with np.load(tmp_path / "a" / "truth_01.npz", allow_pickle=False) as z:
