@@ -120,6 +120,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         from prism3d.capture.rig import StereoRig
 
         rig = StereoRig.load(args.rig)
+    if args.camouflage is None:
+        args.camouflage = args.kind == "scene"
     target = None
     if args.kind == "scene":
         from prism3d.datasets.targets import builtin_target
@@ -148,8 +150,8 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--pattern", dest="pattern", action="store_true", default=None,
                    help="project the colour grating (default: on for plate/scene, off for calib)")
     p.add_argument("--no-pattern", dest="pattern", action="store_false", help="white flash only")
-    p.add_argument("--camouflage", dest="camouflage", action="store_true", default=True,
-                   help="camouflage paint on the target/plate (default)")
+    p.add_argument("--camouflage", dest="camouflage", action="store_true", default=None,
+                   help="camouflage paint (default: on for scene targets, off for the plate)")
     p.add_argument("--no-camouflage", dest="camouflage", action="store_false")
     p.add_argument("--views", type=int, help="number of shots (default: 1 plate, 5 calib, 8 scene)")
     p.add_argument("--seed", type=int, default=0)

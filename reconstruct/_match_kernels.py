@@ -6,6 +6,11 @@ case ``dlo == min_disp`` everywhere and ``K == num_disp``; the coarse-to-fine pa
 gives every pixel a narrow window around the upsampled coarse disparity. Costs are
 stored compactly as ``(H, W, K)`` uint8 (matching cost) and uint16 (aggregated cost).
 
+Speed: census codes are planar ``(C, H, W)`` uint32 (5x5 windows) and the right
+view's rows are stored mirrored, so the candidates of one left pixel are contiguous
+and the Hamming loop over ``k`` vectorises (SIMD popcount); SGM path buffers are
+uint16 so the recursion runs 16-32 lanes wide.
+
 References
 ----------
 .. [1] R. Zabih and J. Woodfill, "Non-parametric local transforms for computing
@@ -34,13 +39,16 @@ INF16 = 0x3FFF  # "no such disparity" in uint16 path costs; sums of 8 stay < 655
 
 
 @intrinsic
-def _ctpop64(typingctx, x):  # pragma: no cover - compiled by numba
-    """LLVM ``ctpop`` on a uint64 (a single POPCNT instruction on x86-64)."""
-    sig = types.uint64(types.uint64)
+def _popcount(typingctx, x):  # pragma: no cover - compiled by numba
+    """LLVM ``ctpop`` on an unsigned integer (POPCNT; vectorised as VPOPCNT/PSHUFB)."""
+    if not isinstance(x, types.Integer):
+        return None
+    sig = x(x)
 
     def codegen(context, builder, signature, args):
-        fnty = ir.FunctionType(ir.IntType(64), [ir.IntType(64)])
-        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.ctpop.i64")
+        ity = ir.IntType(x.bitwidth)
+        fnty = ir.FunctionType(ity, [ity])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, f"llvm.ctpop.i{x.bitwidth}")
         return builder.call(fn, args)
 
     return sig, codegen
@@ -50,82 +58,104 @@ def _ctpop64(typingctx, x):  # pragma: no cover - compiled by numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def census_transform(padded, ry, rx, out):
+def census_transform(padded, ry, rx, reverse, out):
     """Census transform with a ``(2ry+1) x (2rx+1)`` window, every channel.
 
     padded : (C, H + 2ry, W + 2rx) float32, channel planes with replicated borders;
-    out : (H, W, C) uint64, bit set when the neighbour is darker than the centre
-    (at most 64 comparisons, centre excluded).
+    out : (C, H, W) uint32 or uint64, bit set when the neighbour is darker than the
+    centre (at most 64 comparisons, centre excluded). With ``reverse`` every row is
+    stored mirrored (``out[c, y, W - 1 - x]``): the right view's layout in
+    :func:`matching_cost`, where the candidates of one left pixel are then contiguous.
     """
-    h, w, nc = out.shape
+    nc, h, w = out.shape
+    one = out.dtype.type(1)
+    zero = out.dtype.type(0)
     for y in prange(h):
-        bits = np.empty(w, np.uint64)
+        bits = np.empty(w, out.dtype)
         for c in range(nc):
             centre = padded[c, y + ry, rx:rx + w]
-            bits[:] = 0
+            bits[:] = zero
             for dy in range(-ry, ry + 1):
                 for dx in range(-rx, rx + 1):
                     if dy == 0 and dx == 0:
                         continue
                     nb = padded[c, y + ry + dy, rx + dx:rx + dx + w]
                     for x in range(w):
-                        bits[x] = (bits[x] << np.uint64(1)) | np.uint64(nb[x] < centre[x])
-            for x in range(w):
-                out[y, x, c] = bits[x]
+                        bits[x] = (bits[x] << one) | (one if nb[x] < centre[x] else zero)
+            if reverse:
+                for x in range(w):
+                    out[c, y, w - 1 - x] = bits[x]
+            else:
+                for x in range(w):
+                    out[c, y, x] = bits[x]
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def matching_cost(census_l, census_r, feat_l, feat_r, ad_lut, dlo, k_levels, oob_cost, out):
+def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, k_levels,
+                  oob_cost, out):
     """Census Hamming distance summed over channels plus a truncated absolute
     difference of per-pixel features.
 
-    census_l, census_r : (H, W, C) uint64; feat_l, feat_r : (H, W, F) uint8 (F may be
-    0); ad_lut : (255 * F + 1,) int32, cost added for a summed absolute difference;
-    dlo : (H, W) int32; out : (H, W, K) uint8, ``out[y, x, k]`` = cost of disparity
-    ``dlo[y, x] + k`` saturated at 255; ``oob_cost`` where the right pixel ``x - d``
-    falls outside the image.
+    census_l : (C, H, W) uint32/uint64 left census; census_rr : the right census with
+    mirrored rows (``census_transform(..., reverse=True)``); feat_l, feat_rr : (F, H, W)
+    uint8 features, the right one mirrored likewise (F may be 0). The AD term of a
+    summed absolute feature difference ``a`` is ``floor(ad_scale * min(a, ad_clip) +
+    0.5)``. dlo : (H, W) int32; out : (H, W, K) uint8, ``out[y, x, k]`` = cost of
+    disparity ``dlo[y, x] + k`` saturated at 255; ``oob_cost`` where the right pixel
+    ``x - d`` falls outside the image.
+
+    With mirrored right rows, the right pixel ``x - dlo - k`` of candidate ``k`` sits
+    at index ``W - 1 - x + dlo + k``: consecutive candidates are consecutive in
+    memory, so the loops over ``k`` vectorise (SIMD popcount).
     """
-    h, w, nc = census_l.shape
-    nf = feat_l.shape[2]
-    clf = census_l.reshape(-1)
-    crf = census_r.reshape(-1)
-    flf = feat_l.reshape(-1)
-    frf = feat_r.reshape(-1)
-    outf = out.reshape(-1)
+    nc, h, w = census_l.shape
+    nf = feat_l.shape[0]
+    clip = np.float32(ad_clip)
+    scale = np.float32(ad_scale)
+    half = np.float32(0.5)
     for y in prange(h):
         acc = np.empty(k_levels, np.int32)
+        adb = np.empty(k_levels, np.int32)
         for x in range(w):
             d0 = dlo[y, x]
-            ob = (y * w + x) * k_levels
+            o = out[y, x]
             # candidates with 0 <= x - d0 - k < w
             k_lo = max(0, x - d0 - (w - 1))
             k_hi = min(k_levels, x - d0 + 1)
             if k_hi <= k_lo:
-                for k in range(k_levels):
-                    outf[ob + k] = oob_cost
+                o[:] = oob_cost
                 continue
-            for k in range(k_lo, k_hi):
-                acc[k] = 0
-            pl = (y * w + x) * nc
-            pr = (y * w + x - d0) * nc  # right pixel of k = 0
-            for c in range(nc):
-                cl = clf[pl + c]
-                for k in range(k_lo, k_hi):
-                    acc[k] += np.int32(_ctpop64(cl ^ crf[pr - k * nc + c]))
+            n = k_hi - k_lo
+            j0 = w - 1 - x + d0 + k_lo
+            a = acc[:n]
+            cl = census_l[0, y, x]
+            cr = census_rr[0, y, j0:j0 + n]
+            for k in range(n):
+                a[k] = np.int32(_popcount(cl ^ cr[k]))
+            for c in range(1, nc):
+                cl = census_l[c, y, x]
+                cr = census_rr[c, y, j0:j0 + n]
+                for k in range(n):
+                    a[k] += np.int32(_popcount(cl ^ cr[k]))
             if nf > 0:
-                fl0 = (y * w + x) * nf
-                fr0 = (y * w + x - d0) * nf
-                for k in range(k_lo, k_hi):
-                    a = 0
-                    for f in range(nf):
-                        a += abs(np.int32(flf[fl0 + f]) - np.int32(frf[fr0 - k * nf + f]))
-                    acc[k] += ad_lut[a]
+                v = adb[:n]
+                fl = np.int32(feat_l[0, y, x])
+                fr = feat_rr[0, y, j0:j0 + n]
+                for k in range(n):
+                    v[k] = abs(fl - np.int32(fr[k]))
+                for f in range(1, nf):
+                    fl = np.int32(feat_l[f, y, x])
+                    fr = feat_rr[f, y, j0:j0 + n]
+                    for k in range(n):
+                        v[k] += abs(fl - np.int32(fr[k]))
+                for k in range(n):
+                    a[k] += np.int32(min(np.float32(v[k]), clip) * scale + half)
             for k in range(k_lo):
-                outf[ob + k] = oob_cost
-            for k in range(k_lo, k_hi):
-                outf[ob + k] = np.uint8(min(acc[k], 255))
+                o[k] = oob_cost
+            for k in range(n):
+                o[k_lo + k] = np.uint8(min(a[k], 255))
             for k in range(k_hi, k_levels):
-                outf[ob + k] = oob_cost
+                o[k] = oob_cost
 
 
 # ------------------------------------------------------------------- SGM aggregation
@@ -144,33 +174,35 @@ def _step(costf, coff, lp, minprev, shift, lc, aggf, k_levels, p1, p2):
 
     ``L[k] = C[k] + min(Lq[j], Lq[j-1] + P1, Lq[j+1] + P1, min Lq + P2) - min Lq`` with
     ``j = k + shift`` (shift = dlo_p - dlo_q, clamped to +-k_levels). Path buffers
-    ``lp`` (previous pixel) and ``lc`` (current pixel, distinct arrays so the loop
-    vectorises) hold ``3 * k_levels + 2`` values: level ``k`` sits at
+    ``lp`` (previous pixel) and ``lc`` (current pixel, distinct uint16 arrays so the
+    loop vectorises; values stay below ``INF16 + P1``) hold ``3 * k_levels + 2`` values: level ``k`` sits at
     ``k_levels + 1 + k`` and every other entry stays ``INF16``, so the shifted read
     needs no branch. ``costf[coff + k]`` is the matching cost and
     ``aggf[coff + k]`` the sum over paths. Returns min_k L[k].
     """
-    big = np.int32(minprev + p2)
     if shift > k_levels:
         shift = k_levels
     elif shift < -k_levels:
         shift = -k_levels
     src = k_levels + 1 + shift
     dst = k_levels + 1
-    # slices + two simple loops: LLVM vectorises these (one fused loop does not)
+    # slices + simple uint16 loops: LLVM vectorises these (32 lanes with AVX-512)
     a = lp[src - 1:src + k_levels + 1]
     c = costf[coff:coff + k_levels]
     o = lc[dst:dst + k_levels]
     g = aggf[coff:coff + k_levels]
+    big = np.uint16(minprev + p2)
+    p1u = np.uint16(p1)
+    mp = np.uint16(minprev)
     for k in range(k_levels):
-        v = min(min(a[k + 1], a[k] + p1), min(a[k + 2] + p1, big))
-        o[k] = np.int32(c[k]) + v - minprev
-    mn = np.int32(INF16)
+        v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
+        r = np.uint16(np.uint16(np.uint16(c[k]) + v) - mp)
+        o[k] = r
+        g[k] = np.uint16(g[k] + r)
+    mn = np.uint16(INF16)
     for k in range(k_levels):
-        v = o[k]
-        g[k] += np.uint16(v)
-        mn = min(mn, v)
-    return mn
+        mn = min(mn, o[k])
+    return np.int32(mn)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -180,7 +212,7 @@ def _start(costf, coff, lc, aggf, k_levels):
     mn = np.int32(INF16)
     for k in range(k_levels):
         c = np.int32(costf[coff + k])
-        lc[dst + k] = c
+        lc[dst + k] = np.uint16(c)
         aggf[coff + k] += np.uint16(c)
         mn = min(mn, c)
     return mn
@@ -211,8 +243,8 @@ def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg):
         else:
             x = np.int64(x_col)
             y = np.int64(s - n_row + y_first)
-        lp = np.full(stride, np.int32(INF16), np.int32)
-        lc = np.full(stride, np.int32(INF16), np.int32)
+        lp = np.full(stride, np.uint16(INF16), np.uint16)
+        lc = np.full(stride, np.uint16(INF16), np.uint16)
         mn = _start(costf, (y * w + x) * kl, lc, aggf, kl)
         while True:
             yq = y
@@ -243,8 +275,8 @@ def aggregate_vertical(cost, dlo, guide, p1, p2, gamma, dy, block, agg):
         x0 = b * block
         x1 = min(w, x0 + block)
         nbx = x1 - x0
-        lp = np.full(nbx * stride, np.int32(INF16), np.int32)
-        lc = np.full(nbx * stride, np.int32(INF16), np.int32)
+        lp = np.full(nbx * stride, np.uint16(INF16), np.uint16)
+        lc = np.full(nbx * stride, np.uint16(INF16), np.uint16)
         mins = np.empty(nbx, np.int32)
         y = 0 if dy > 0 else h - 1
         for i in range(nbx):
@@ -275,19 +307,24 @@ def select_disparity(agg, dlo, uniqueness, disp, best_cost, conf):
     between the best cost and the best cost outside +-1 of the winner).
     """
     h, w, kl = agg.shape
+    big = np.uint16(0xFFFF)
     for y in prange(h):
         for x in range(w):
-            b = 0
-            bc = np.int32(agg[y, x, 0])
-            for k in range(1, kl):
-                c = np.int32(agg[y, x, k])
-                if c < bc:
-                    bc = c
-                    b = k
-            second = np.int32(1 << 30)
+            row = agg[y, x]
+            # vectorised min, then its first index, then the best outside +-1
+            m = big
             for k in range(kl):
-                if k < b - 1 or k > b + 1:
-                    second = min(second, np.int32(agg[y, x, k]))
+                m = min(m, row[k])
+            b = 0
+            while row[b] != m:
+                b += 1
+            bc = np.int32(m)
+            s1 = big
+            for k in range(b - 1):
+                s1 = min(s1, row[k])
+            for k in range(b + 2, kl):
+                s1 = min(s1, row[k])
+            second = np.int32(1 << 30) if (b < 2 and b + 2 >= kl) else np.int32(s1)
             best_cost[y, x] = bc
             if second >= (1 << 30):
                 g = 1.0
@@ -427,7 +464,7 @@ def bspline_rows(img, out):
             out[y, k] = 6.0 * cm
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True, fastmath=True, error_model="numpy")
 def refine_lk(left, right_coef, disp, wy, wx, iters, max_step):
     """Refine valid disparities by 1-D Gauss-Newton (Lucas-Kanade) warping.
 
@@ -441,7 +478,8 @@ def refine_lk(left, right_coef, disp, wy, wx, iters, max_step):
     than ``max_step`` from it or the window has no horizontal texture.
     """
     h, w = disp.shape
-    sixth = 1.0 / 6.0
+    sixth = np.float32(1.0 / 6.0)
+    one = np.float32(1.0)
     for y in prange(h):
         for x in range(w):
             d_in = disp[y, x]
@@ -454,29 +492,30 @@ def refine_lk(left, right_coef, disp, wy, wx, iters, max_step):
             for _ in range(iters):
                 xs = x - d
                 x0 = int(np.floor(xs))
-                t = xs - x0
                 if x0 - wx - 1 < 0 or x0 + wx + 2 >= w:
                     ok = False
                     break
-                omt = 1.0 - t
+                t = np.float32(xs - x0)
+                omt = one - t
                 t2 = t * t
                 a0 = omt * omt * omt * sixth
-                a1 = (3.0 * t2 * t - 6.0 * t2 + 4.0) * sixth
-                a2 = (-3.0 * t2 * t + 3.0 * t2 + 3.0 * t + 1.0) * sixth
+                a1 = (np.float32(3.0) * t2 * t - np.float32(6.0) * t2 + np.float32(4.0)) * sixth
+                a2 = (np.float32(-3.0) * t2 * t + np.float32(3.0) * t2 + np.float32(3.0) * t
+                      + one) * sixth
                 a3 = t2 * t * sixth
-                g0 = -0.5 * omt * omt
-                g1 = 1.5 * t2 - 2.0 * t
-                g2 = -1.5 * t2 + t + 0.5
-                g3 = 0.5 * t2
-                num = 0.0
-                den = 0.0
+                g0 = np.float32(-0.5) * omt * omt
+                g1 = np.float32(1.5) * t2 - np.float32(2.0) * t
+                g2 = np.float32(-1.5) * t2 + t + np.float32(0.5)
+                g3 = np.float32(0.5) * t2
+                num = np.float32(0.0)
+                den = np.float32(0.0)
                 for v in range(y - wy, y + wy + 1):
                     # rolling 4-tap window over the row: one load per sample
-                    q0 = np.float64(right_coef[v, x0 - wx - 1])
-                    q1 = np.float64(right_coef[v, x0 - wx])
-                    q2 = np.float64(right_coef[v, x0 - wx + 1])
+                    q0 = right_coef[v, x0 - wx - 1]
+                    q1 = right_coef[v, x0 - wx]
+                    q2 = right_coef[v, x0 - wx + 1]
                     for u in range(-wx, wx + 1):
-                        q3 = np.float64(right_coef[v, x0 + u + 2])
+                        q3 = right_coef[v, x0 + u + 2]
                         val = a0 * q0 + a1 * q1 + a2 * q2 + a3 * q3
                         g = g0 * q0 + g1 * q1 + g2 * q2 + g3 * q3
                         # r(d) = L - R(x - d); dr/dd = +R'(x - d)
@@ -489,7 +528,7 @@ def refine_lk(left, right_coef, disp, wy, wx, iters, max_step):
                 if den <= 1e-6:
                     ok = False
                     break
-                step = -num / den
+                step = -np.float64(num) / np.float64(den)
                 d += step
                 if abs(d - d_in) > max_step:
                     ok = False

@@ -121,13 +121,26 @@ def _prepare(img: Any, name: str) -> NDArray[np.float32]:
     return np.ascontiguousarray(out)
 
 
-def _census(img: NDArray[np.float32], ry: int, rx: int) -> NDArray[np.uint64]:
+def _census(img: NDArray[np.float32], ry: int, rx: int, reverse: bool) -> NDArray[np.unsignedinteger]:
+    """(C, H, W) census codes (uint32 up to 32 comparisons, else uint64); rows mirrored
+    when ``reverse`` (the right view's layout for :func:`._match_kernels.matching_cost`)."""
     h, w, c = img.shape
     planes = np.moveaxis(img, 2, 0)
     padded = np.ascontiguousarray(np.pad(planes, ((0, 0), (ry, ry), (rx, rx)), mode="edge"))
-    out = np.empty((h, w, c), np.uint64)
-    _k.census_transform(padded, ry, rx, out)
+    nbits = (2 * ry + 1) * (2 * rx + 1) - 1
+    out = np.empty((c, h, w), np.uint32 if nbits <= 32 else np.uint64)
+    _k.census_transform(padded, ry, rx, reverse, out)
     return out
+
+
+def _grey(img: NDArray[np.float32]) -> NDArray[np.float32]:
+    """(H, W) channel mean of an (H, W, C) image (cv2.transform: much faster than
+    ``img.mean(axis=2)``)."""
+    c = img.shape[2]
+    if c == 1:
+        return np.ascontiguousarray(img[:, :, 0])
+    m = np.full((1, c), 1.0 / c, np.float32)
+    return np.ascontiguousarray(cv2.transform(img, m).reshape(img.shape[:2]))
 
 
 def _bandpass(grey: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -205,22 +218,23 @@ def _match_level(
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """One SGM pass with per-pixel windows; returns (raw disparity NaN=invalid, conf)."""
     h, w, nc = left.shape
-    cl = _census(left, prm.census_ry, prm.census_rx)
-    cr = _census(right, prm.census_ry, prm.census_rx)
+    cl = _census(left, prm.census_ry, prm.census_rx, False)
+    cr = _census(right, prm.census_ry, prm.census_rx, True)
     nbits = (2 * prm.census_ry + 1) * (2 * prm.census_rx + 1) - 1
     oob = np.uint8(min(255, (nbits * nc) // 2))
     cost = np.empty((h, w, k_levels), np.uint8)
     if prm.ad_weight > 0:
         fl, fr = _features(left, right, prm.ad_mode)
+        fl = np.ascontiguousarray(np.moveaxis(fl, 2, 0))
+        fr = np.ascontiguousarray(np.moveaxis(fr, 2, 0)[:, :, ::-1])
     else:
-        fl = fr = np.zeros((h, w, 0), np.uint8)
-    nf = fl.shape[2]
-    # cost added for a summed |difference| a: weight * nc * min(a / nf, trunc)
-    a = np.arange(255 * nf + 1, dtype=np.float64) / max(nf, 1)
-    lut = np.rint(prm.ad_weight * nc * np.minimum(a, prm.ad_trunc)).astype(np.int32)
-    _k.matching_cost(cl, cr, fl, fr, lut, dlo, k_levels, oob, cost)
+        fl = fr = np.zeros((0, h, w), np.uint8)
+    nf = max(fl.shape[0], 1)
+    # AD cost of a summed |difference| a: weight * nc * min(a / nf, trunc)
+    _k.matching_cost(cl, cr, fl, fr, prm.ad_weight * nc / nf, prm.ad_trunc * nf, dlo, k_levels,
+                     oob, cost)
     del cl, cr
-    guide = np.ascontiguousarray(left.mean(axis=2))
+    guide = _grey(left)
     p1 = np.int32(prm.p1 * nc)
     p2 = np.int32(prm.p2 * nc)
     agg = np.zeros((h, w, k_levels), np.uint16)
@@ -243,7 +257,7 @@ def _match_level(
         _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range))
     if subpixel == "lk":
         lg = _bandpass(guide)
-        rg = _bandpass(np.ascontiguousarray(right.mean(axis=2)))
+        rg = _bandpass(_grey(right))
         rcoef = np.empty_like(rg)
         _k.bspline_rows(rg, rcoef)
         r = prm.lk_window // 2

@@ -287,3 +287,39 @@ def test_beats_opencv_sgbm(shared_data: Path, scene: str) -> None:
     s_ref = score_disparity(ref, gt, mask=mask)
     assert s_ours.density == 1.0
     assert s_ours.bad2 <= 0.7 * s_ref.bad2, (scene, s_ours.bad2, s_ref.bad2)
+
+
+# ------------------------------------------------------------------ kernel known answers
+
+
+def test_matching_cost_kernel_matches_brute_force() -> None:
+    """Mirrored-row cost kernel == direct census Hamming + truncated AD, including
+    per-pixel windows (coarse-to-fine layout) and out-of-image candidates."""
+    from prism3d.reconstruct import _match_kernels as k
+    from prism3d.reconstruct.match import _census
+
+    rng = np.random.default_rng(11)
+    h, w, nc, kl = 9, 23, 3, 7
+    left = rng.integers(0, 256, (h, w, nc)).astype(np.float32)
+    right = rng.integers(0, 256, (h, w, nc)).astype(np.float32)
+    cl = _census(left, 2, 2, False)
+    cr = _census(right, 2, 2, True)
+    assert cl.dtype == np.uint32 and cl.shape == (nc, h, w)
+    np.testing.assert_array_equal(cr[:, :, ::-1], _census(right, 2, 2, False))
+    fl = np.ascontiguousarray(np.moveaxis(left.astype(np.uint8), 2, 0))
+    fr_plain = np.moveaxis(right.astype(np.uint8), 2, 0)
+    fr = np.ascontiguousarray(fr_plain[:, :, ::-1])
+    dlo = rng.integers(-3, 18, (h, w)).astype(np.int32)
+    out = np.empty((h, w, kl), np.uint8)
+    k.matching_cost(cl, cr, fl, fr, 1.0, 45.0, dlo, kl, np.uint8(36), out)
+    crp = cr[:, :, ::-1]
+    for y in range(h):
+        for x in range(w):
+            for kk in range(kl):
+                xr = x - dlo[y, x] - kk
+                if not 0 <= xr < w:
+                    assert out[y, x, kk] == 36
+                    continue
+                ham = sum((int(cl[c, y, x]) ^ int(crp[c, y, xr])).bit_count() for c in range(nc))
+                ad = int(np.abs(fl[:, y, x].astype(int) - fr_plain[:, y, xr].astype(int)).sum())
+                assert out[y, x, kk] == min(255, ham + min(ad, 45)), (y, x, kk)
