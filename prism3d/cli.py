@@ -392,6 +392,61 @@ def _add_stitch(sub: Any) -> None:
     p.set_defaults(func=_cmd_stitch)
 
 
+# --- ATR: decamo / features ------------------------------------------------------------------
+def _cmd_decamo(args: argparse.Namespace) -> int:
+    from prism3d.atr import decamo
+
+    if args.depth is None:
+        if args.calib is None:
+            raise InputError("decamo: give DEPTH, or a shot with --calib to reconstruct the depth first")
+        out = decamo.decamo_from_shot(args.image, args.calib, args.output)
+    else:
+        out = decamo.decamo_to_folder(args.image, args.depth, args.output, calib=args.calib,
+                                      focal_px=args.focal, view=args.view)
+    _say(args, f"wrote albedo.png, shading.tiff, shape.png, false_shadow.png to {args.output}")
+    del out
+    return 0
+
+
+def _add_decamo(sub: Any) -> None:
+    p = sub.add_parser("decamo", help="remove camouflage using depth: albedo, shading, shape image, false shadows",
+                       description="Estimate the lighting (2nd-order spherical harmonics) from the image and "
+                       "the surface normals of its depth map, separate shading from the piecewise-constant "
+                       "paint, and write albedo.png, shading.tiff (float32), shape.png (the surface relit "
+                       "with uniform albedo: the true 3D profile) and false_shadow.png. Without DEPTH, IMAGE "
+                       "is a prism shot reconstructed with --calib first.")
+    p.add_argument("image", type=Path, metavar="IMAGE")
+    p.add_argument("depth", nargs="?", metavar="DEPTH",
+                   help="depth map in mm: .tiff, .npy, .pfm or FILE.npz:KEY (e.g. truth.npz:depth_left_mm)")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT_DIR")
+    p.add_argument("--calib", type=Path, help="calibration/rig YAML giving the camera intrinsics")
+    p.add_argument("--focal", type=float, metavar="PX", help="focal length in px (principal point at the centre)")
+    p.add_argument("--view", choices=["left", "right"], default="left", help="which camera of --calib")
+    p.set_defaults(func=_cmd_decamo)
+
+
+def _cmd_features(args: argparse.Namespace) -> int:
+    from prism3d.atr.features import features_to_parquet
+
+    _check_out_not_dir(args.output)
+    df = features_to_parquet(args.inputs, args.output, units=args.units, up=args.up,
+                             progress=_progress(args, "features"))
+    _say(args, f"wrote {args.output}: {len(df)} rows x {df.shape[1]} columns")
+    return 0
+
+
+def _add_features(sub: Any) -> None:
+    p = sub.add_parser("features", help="size, profile, range and surface features -> Parquet",
+                       description="One row of named, unit-bearing features per model or scan (meshes: OBJ, "
+                       "PLY, GLB, OFF, STL; scans: PLY, PCD). Units and up axis are never guessed: give "
+                       "--units/--up, or a FILE.units.yaml sidecar. Columns are documented in docs/features.md.")
+    p.add_argument("inputs", nargs="+", type=Path, metavar="MODEL_OR_SCAN")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="FEATURES_PARQUET")
+    p.add_argument("--units", choices=["mm", "cm", "m", "in"], help="units of files that do not declare them")
+    p.add_argument("--up", choices=["y", "z"], help="up axis of files that do not declare it")
+    p.set_defaults(func=_cmd_features)
+
+
 # --- registry ---------------------------------------------------------------------------
 _COMMANDS: list[Callable[[Any], None]] = [
     _add_demo,
@@ -402,6 +457,8 @@ _COMMANDS: list[Callable[[Any], None]] = [
     _add_reconstruct,
     _add_flatness,
     _add_stitch,
+    _add_decamo,
+    _add_features,
     _add_trigger,
     _add_capture,
 ]
