@@ -1,0 +1,434 @@
+"""Recognition evaluation: Pcc, confusion, per-aspect / per-range accuracy, ROC, PSR
+distributions, plots, and a feature-based baseline classifier.
+
+:func:`evaluate_bank` renders test chips of ``[(class, SceneMesh), ...]`` at poses
+the bank was not trained on (default: azimuths a quarter step past the training
+ones), classifies them, scores target chips against clutter-only chips (for ROC) and
+returns a JSON-ready dict; with ``out_json`` it also writes the per-chip results
+table (Parquet) and the plots (PNG) beside the JSON, atomically.
+
+Detection ROC: a chip is declared "target" when its best score over the bank is
+>= a threshold; Pd is over target chips, Pfa over clutter chips (the same poses
+rendered without the target). "False alarms per image" counts, for each threshold,
+the mean number of clutter chips above it per target image set (= Pfa here, one
+decision per chip).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from prism3d.atr.bank import FilterBank, check_targets, render_class_chips
+from prism3d.atr.chips import _bounding_sphere, _ground_mesh, chip_poses, render_chips
+from prism3d.atr.poses import parse_range
+
+from prism3d.errors import InputError
+
+__all__ = [
+    "accuracy_by",
+    "confusion_matrix",
+    "evaluate_bank",
+    "feature_baseline",
+    "pcc",
+    "plot_confusion",
+    "plot_per_aspect",
+    "plot_psr_histograms",
+    "plot_roc",
+    "roc_curve",
+]
+
+log = logging.getLogger(__name__)
+
+
+def _labels(values: Sequence[str], classes: Sequence[str], name: str) -> NDArray[np.int64]:
+    idx = {c: i for i, c in enumerate(classes)}
+    out = []
+    for v in values:
+        if v not in idx:
+            raise InputError(f"{name}: unknown class {v!r}; the bank's classes are {list(classes)}")
+        out.append(idx[v])
+    return np.asarray(out, dtype=np.int64)
+
+
+def pcc(true: Sequence[str], pred: Sequence[str]) -> float:
+    """Probability of correct classification (fraction of equal labels)."""
+    t, p = list(true), list(pred)
+    if len(t) != len(p) or not t:
+        raise InputError(
+            f"pcc: expected two equal, non-empty label lists, got {len(t)} and {len(p)}"
+        )
+    return float(np.mean([a == b for a, b in zip(t, p, strict=True)]))
+
+
+def confusion_matrix(
+    true: Sequence[str], pred: Sequence[str], classes: Sequence[str]
+) -> NDArray[np.int64]:
+    """``(C, C)`` counts, row = true class, column = predicted class."""
+    t = _labels(true, classes, "true labels")
+    p = _labels(pred, classes, "predicted labels")
+    if len(t) != len(p):
+        raise InputError(f"confusion_matrix: {len(t)} true vs {len(p)} predicted labels")
+    m = np.zeros((len(classes), len(classes)), dtype=np.int64)
+    np.add.at(m, (t, p), 1)
+    return m
+
+
+def accuracy_by(
+    values: NDArray, correct: NDArray, bin_width: float | None = None
+) -> dict[float, float]:
+    """Accuracy per value (or per bin of ``bin_width``, keyed by bin centre)."""
+    v = np.asarray(values, dtype=np.float64)
+    c = np.asarray(correct, dtype=bool)
+    if bin_width is not None:
+        v = np.round(v / bin_width) * bin_width
+    return {float(k): float(c[v == k].mean()) for k in np.unique(v)}
+
+
+def roc_curve(target_scores: NDArray, clutter_scores: NDArray) -> dict[str, list[float]]:
+    """Pd vs Pfa over every threshold; also the area under the curve.
+
+    Returns
+    -------
+    dict
+        ``thresholds`` (descending), ``pd``, ``pfa`` (same length), ``auc``.
+    """
+    t = np.asarray(target_scores, dtype=np.float64).ravel()
+    c = np.asarray(clutter_scores, dtype=np.float64).ravel()
+    if t.size == 0 or c.size == 0:
+        raise InputError("roc_curve: need at least one target and one clutter score")
+    th = np.unique(np.concatenate([t, c]))[::-1]
+    pd_ = np.array([np.mean(t >= x) for x in th])
+    pfa = np.array([np.mean(c >= x) for x in th])
+    x = np.concatenate([[0.0], pfa, [1.0]])
+    y = np.concatenate([[0.0], pd_, [1.0]])
+    auc = float(np.sum(np.diff(x) * (y[1:] + y[:-1]) / 2))
+    return {"thresholds": th.tolist(), "pd": pd_.tolist(), "pfa": pfa.tolist(), "auc": auc}
+
+
+def evaluate_bank(
+    bank: FilterBank,
+    targets: Sequence[tuple[str, object]],
+    *,
+    azimuth: str | Sequence[float] | None = None,
+    elevation: str | Sequence[float] | None = None,
+    range_mm: str | float | Sequence[float] | None = None,
+    camouflage: bool = True,
+    noise_sigma: float = 0.0,
+    depth_noise_mm: float = 0.0,
+    lighting_variation: float = 0.0,
+    clutter: str | None = None,
+    seed: int = 1,
+    out_json: str | Path | None = None,
+) -> dict:
+    """Evaluate a bank on rendered test chips (module docstring).
+
+    Parameters
+    ----------
+    bank : FilterBank
+    targets : list of (class_name, SceneMesh)
+        Every class must be one of ``bank.classes`` (else :class:`InputError`).
+    azimuth, elevation : str or sequence, optional
+        Test grid. Default azimuths: the training azimuths shifted by a quarter
+        step (unseen, interleaved); default elevations: the training ones.
+    camouflage, noise_sigma, depth_noise_mm, lighting_variation, clutter, seed
+        Test conditions (:func:`~prism3d.atr.chips.render_chips`).
+    out_json : path, optional
+        Write the dict as JSON, plus ``<stem>_chips.parquet`` (one row per chip)
+        and ``<stem>_confusion.png``, ``_aspect.png``, ``_roc.png``, ``_psr.png``.
+
+    Returns
+    -------
+    dict
+        ``classes``, ``pcc``, ``confusion`` (list of lists, rows = true),
+        ``per_class`` (accuracy), ``per_aspect`` (accuracy per bin centre, keys as
+        strings), ``per_elevation``, ``per_range``, ``roc`` (:func:`roc_curve` of
+        best scores, target vs clutter chips), ``pd_at_pfa`` (Pd at Pfa <= 1%, 5%,
+        10%), ``scores_target``, ``scores_clutter``, ``psr_target``,
+        ``psr_clutter``, ``n_chips``, ``conditions``.
+    """
+    if not isinstance(bank, FilterBank):
+        raise InputError(f"bank: expected a FilterBank, got {type(bank).__name__}")
+    items = check_targets(targets)
+    for c, m in items:
+        if c not in bank.classes:
+            raise InputError(
+                f"targets: unknown class {c!r} for target {m.name!r}; the bank's classes are {bank.classes}"
+            )
+    md = bank.metadata
+    if azimuth is None:
+        tr = md.get("azimuth") or [0.0]
+        step = float(np.median(np.diff(sorted(tr)))) if len(tr) > 1 else bank.bin_deg
+        azimuth = [a + step / 4.0 for a in tr]
+    if elevation is None:
+        elevation = md.get("elevation") or [20.0]
+    if range_mm is None and md.get("range_mm"):
+        range_mm = md["range_mm"]
+    framing = md.get("framing", "fit")
+    kw = {
+        "camouflage": camouflage,
+        "noise_sigma": noise_sigma,
+        "depth_noise_mm": depth_noise_mm,
+        "lighting_variation": lighting_variation,
+        "clutter": clutter,
+        "seed": seed,
+    }
+    X, labels, az, el, rng_, fx = render_class_chips(
+        items,
+        channel=bank.channel,
+        azimuth=parse_range(azimuth),
+        elevation=elevation,
+        range_mm=range_mm,
+        size=bank.size,
+        framing=framing,
+        **kw,
+    )
+    df = bank.classify(X, fx)
+    df.insert(0, "true_class", labels)
+    df["az_deg"], df["el_deg"], df["range_mm"] = az, el, rng_
+    correct = df["true_class"].to_numpy() == df["pred_class"].to_numpy()
+    df["correct"] = correct
+    # clutter-only chips at the same poses (ground, or noise background, or empty)
+    cl_scores, cl_psr = [], []
+    for i, (_, mesh) in enumerate(items):
+        rmm = range_mm if range_mm is not None else 4.0 * _bounding_sphere(mesh)[1]
+        poses = chip_poses(
+            mesh, parse_range(azimuth), elevation, rmm, size=bank.size, framing=framing
+        )
+        bg = _ground_mesh(mesh, seed + i)
+        cs = render_chips(
+            bg,
+            poses,
+            size=bank.size,
+            channels=(bank.channel,),
+            **dict(kw, clutter="noise" if clutter == "noise" else None, seed=seed + 31 * i),
+        )
+        r = bank.responses(cs)
+        cl_scores.append(r[bank.metric].max(axis=1))
+        cl_psr.append(r["psr"].max(axis=1))
+    cl_scores_a = np.concatenate(cl_scores)
+    cl_psr_a = np.concatenate(cl_psr)
+    cls_scores = np.array([df[f"score_{c}"].to_numpy() for c in bank.classes]).max(axis=0)
+    roc = roc_curve(cls_scores, cl_scores_a)
+    pd_at = {}
+    for lim in (0.01, 0.05, 0.1):
+        ok = [p for p, f in zip(roc["pd"], roc["pfa"], strict=True) if f <= lim]
+        pd_at[str(lim)] = float(max(ok)) if ok else 0.0
+    conf = confusion_matrix(labels, df["pred_class"].tolist(), bank.classes)
+    res = {
+        "classes": list(bank.classes),
+        "channel": bank.channel,
+        "metric": bank.metric,
+        "pcc": float(correct.mean()),
+        "confusion": conf.tolist(),
+        "per_class": {
+            c: float(correct[np.array(labels) == c].mean()) for c in bank.classes if c in labels
+        },
+        "per_aspect": {
+            f"{k:g}": v
+            for k, v in accuracy_by(np.asarray(az) % 360.0, correct, bank.bin_deg).items()
+        },
+        "per_elevation": {f"{k:g}": v for k, v in accuracy_by(el, correct).items()},
+        "per_range": {f"{k:g}": v for k, v in accuracy_by(rng_, correct).items()},
+        "roc": roc,
+        "pd_at_pfa": pd_at,
+        "scores_target": cls_scores.tolist(),
+        "scores_clutter": cl_scores_a.tolist(),
+        "psr_target": df["psr"].tolist(),
+        "psr_clutter": cl_psr_a.tolist(),
+        "n_chips": len(df),
+        "conditions": {
+            "camouflage": bool(camouflage),
+            "noise_sigma": float(noise_sigma),
+            "depth_noise_mm": float(depth_noise_mm),
+            "clutter": clutter,
+            "lighting_variation": float(lighting_variation),
+            "seed": int(seed),
+            "azimuth": [float(a) for a in parse_range(azimuth)],
+        },
+    }
+    if out_json is not None:
+        _write_results(res, df, Path(out_json))
+    return res
+
+
+def _write_results(res: dict, df, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from prism3d.io.atomic import atomic_path, atomic_write_text
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(res, indent=1))
+    stem = path.with_suffix("")
+    with atomic_path(Path(f"{stem}_chips.parquet")) as tmp:
+        df.to_parquet(tmp, index=False)
+    for name, fig in (
+        ("confusion", plot_confusion(res)),
+        ("aspect", plot_per_aspect(res)),
+        ("roc", plot_roc(res)),
+        ("psr", plot_psr_histograms(res)),
+    ):
+        with atomic_path(Path(f"{stem}_{name}.png")) as tmp:
+            fig.savefig(tmp, format="png", dpi=80)
+        plt.close(fig)
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_confusion(res: dict):  # -> matplotlib Figure
+    """Confusion matrix (row-normalised colours, counts printed)."""
+    plt = _plt()
+    m = np.asarray(res["confusion"], dtype=float)
+    cls = res["classes"]
+    fig, ax = plt.subplots(figsize=(4, 3.5))
+    norm = m / np.maximum(m.sum(axis=1, keepdims=True), 1)
+    ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
+    for i in range(len(cls)):
+        for j in range(len(cls)):
+            ax.text(
+                j,
+                i,
+                f"{int(m[i, j])}",
+                ha="center",
+                va="center",
+                color="k" if norm[i, j] < 0.6 else "w",
+            )
+    ax.set_xticks(range(len(cls)), cls)
+    ax.set_yticks(range(len(cls)), cls)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("true")
+    ax.set_title(f"{res.get('channel', '')}: Pcc = {100 * res['pcc']:.1f}%")
+    fig.tight_layout()
+    return fig
+
+
+def plot_per_aspect(res: dict):  # -> matplotlib Figure
+    """Accuracy per azimuth bin on a polar plot (0 deg = nose-on)."""
+    plt = _plt()
+    az = np.array([float(k) for k in res["per_aspect"]])
+    acc = np.array(list(res["per_aspect"].values()))
+    order = np.argsort(az)
+    fig = plt.figure(figsize=(4, 4))
+    ax = fig.add_subplot(projection="polar")
+    a = np.radians(np.append(az[order], az[order][0]))
+    ax.plot(a, np.append(acc[order], acc[order][0]), "o-")
+    ax.set_ylim(0, 1.05)
+    ax.set_title(f"{res.get('channel', '')}: accuracy per aspect")
+    return fig
+
+
+def plot_roc(res: dict):  # -> matplotlib Figure
+    """Pd vs Pfa (target chips vs clutter-only chips)."""
+    plt = _plt()
+    r = res["roc"]
+    fig, ax = plt.subplots(figsize=(4, 3.5))
+    ax.plot([0] + r["pfa"] + [1], [0] + r["pd"] + [1], "-")
+    ax.set_xlabel("Pfa (false alarms per clutter chip)")
+    ax.set_ylabel("Pd")
+    ax.set_xscale("symlog", linthresh=0.01)
+    ax.set_title(f"ROC, AUC = {r['auc']:.3f}")
+    fig.tight_layout()
+    return fig
+
+
+def plot_psr_histograms(res: dict):  # -> matplotlib Figure
+    """Histograms of the best PSR: target chips vs clutter chips."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(4, 3.5))
+    t = np.asarray(res["psr_target"])
+    c = np.asarray(res["psr_clutter"])
+    bins = np.linspace(min(t.min(), c.min()), max(t.max(), c.max()), 30)
+    ax.hist(t, bins, alpha=0.6, label="targets")
+    ax.hist(c, bins, alpha=0.6, label="clutter")
+    ax.set_xlabel("best PSR")
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+def feature_baseline(
+    targets: Sequence[tuple[str, object]],
+    *,
+    feature_fn: Callable[[NDArray, NDArray, NDArray], dict[str, float]] | None = None,
+    train_azimuth: str | Sequence[float] = "0:360:10",
+    test_azimuth: str | Sequence[float] | None = None,
+    elevation: str | Sequence[float] = "20",
+    size: int = 64,
+    camouflage: bool = True,
+    depth_noise_mm: float = 0.0,
+    seed: int = 0,
+) -> dict:
+    """Feature-based baseline: a RandomForest (``random_state=0``) on view features.
+
+    ``feature_fn(depth_mm, mask, K) -> dict[str, float]`` computes the features of
+    one depth view (default: :func:`prism3d.atr.features.view_features`). Training
+    and test views are depth chips at ``range``-true framing (sizes are features).
+
+    Returns
+    -------
+    dict
+        ``pcc``, ``confusion``, ``classes``, ``feature_names``.
+    """
+    from sklearn.ensemble import RandomForestClassifier
+
+    items = check_targets(targets)
+    if feature_fn is None:
+        try:
+            from prism3d.atr.features import view_features as feature_fn  # type: ignore[no-redef]
+        except ImportError:
+            raise InputError(
+                "feature_baseline: prism3d.atr.features.view_features is not available; pass feature_fn"
+            ) from None
+    classes = sorted({c for c, _ in items}, key=[c for c, _ in items].index)
+    tr = parse_range(train_azimuth)
+    if test_azimuth is None:
+        step = float(np.median(np.diff(sorted(tr)))) if len(tr) > 1 else 10.0
+        test_azimuth = [a + step / 4.0 for a in tr]
+
+    def table(az, sd):
+        rows, labs = [], []
+        for i, (c, mesh) in enumerate(items):
+            cs = render_chips(
+                mesh,
+                None,
+                azimuth=az,
+                elevation=elevation,
+                size=size,
+                framing="range",
+                channels=("depth", "mask"),
+                camouflage=camouflage,
+                depth_noise_mm=depth_noise_mm,
+                seed=sd + i,
+            )
+            for j, p in enumerate(cs.poses):
+                rows.append(feature_fn(cs["depth"][j], cs["mask"][j], p.K))
+                labs.append(c)
+        names = sorted(rows[0])
+        return np.array([[float(r.get(n, np.nan)) for n in names] for r in rows]), labs, names
+
+    Xtr, ytr, names = table(tr, seed)
+    Xte, yte, _ = table(parse_range(test_azimuth), seed + 100)
+    Xtr = np.nan_to_num(Xtr)
+    Xte = np.nan_to_num(Xte)
+    clf = RandomForestClassifier(n_estimators=200, random_state=0, n_jobs=1).fit(Xtr, ytr)
+    pred = clf.predict(Xte).tolist()
+    return {
+        "pcc": pcc(yte, pred),
+        "confusion": confusion_matrix(yte, pred, classes).tolist(),
+        "classes": classes,
+        "feature_names": names,
+    }

@@ -1,0 +1,435 @@
+"""Viewing poses for training and test chips: grids, view-sphere samplings, tables.
+
+A chip pose places an OpenCV camera (x right, y down, z forward) on a sphere around
+the target's bounding-box centre. Angles follow the target's object frame (x forward,
+y left, z up, millimetres):
+
+* ``az_deg`` -- azimuth of the camera position, counter-clockwise seen from above,
+  measured from the +x axis (0 = looking at the nose, 90 = looking at the left side,
+  180 = looking at the tail);
+* ``el_deg`` -- elevation of the camera above the x-y plane (90 = straight down);
+* ``range_mm`` -- camera distance from the bounding-box centre;
+* ``roll_deg`` -- rotation of the image about the optical axis (positive turns the
+  scene clockwise in the image).
+
+The camera looks at the centre with the object's +z appearing up in the image.
+Every pose is fully recorded (angles, intrinsics ``K`` and ``T_cam_obj``) so that a
+chip can be reproduced or back-projected from its manifest row alone.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.checks import check_array
+from prism3d.errors import InputError
+
+__all__ = [
+    "POSE_COLUMNS",
+    "ChipPose",
+    "camera_T_obj_cam",
+    "directions_to_az_el",
+    "fibonacci_directions",
+    "grid_directions",
+    "icosphere_directions",
+    "make_poses",
+    "parse_range",
+    "poses_table",
+]
+
+#: Columns of :func:`poses_table` (then ``T_cam_obj_00`` ... ``T_cam_obj_33``).
+POSE_COLUMNS = ("az_deg", "el_deg", "range_mm", "roll_deg", "fx", "fy", "cx", "cy")
+
+
+@dataclass(frozen=True)
+class ChipPose:
+    """One chip's viewpoint and camera.
+
+    Parameters
+    ----------
+    az_deg, el_deg : float
+        Azimuth and elevation of the camera in the object frame, degrees (module
+        docstring).
+    range_mm : float
+        Camera distance from the target's bounding-box centre, mm (> 0).
+    roll_deg : float
+        Image roll about the optical axis, degrees.
+    K : (3, 3) float64
+        Pinhole intrinsics of the chip camera (no distortion, no skew).
+    T_cam_obj : (4, 4) float64
+        Object frame -> camera frame (OpenCV): ``p_cam = T_cam_obj @ p_obj``.
+    """
+
+    az_deg: float
+    el_deg: float
+    range_mm: float
+    roll_deg: float
+    K: NDArray[np.float64]
+    T_cam_obj: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        K = check_array(self.K, "K", shape=(3, 3), dtype_kind="fiu").astype(np.float64)
+        T = check_array(self.T_cam_obj, "T_cam_obj", shape=(4, 4), dtype_kind="fiu").astype(
+            np.float64
+        )
+        if not (math.isfinite(self.range_mm) and self.range_mm > 0):
+            raise InputError(f"range_mm: expected a positive finite distance, got {self.range_mm}")
+        K.setflags(write=False)
+        T.setflags(write=False)
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "T_cam_obj", T)
+
+    @property
+    def T_obj_cam(self) -> NDArray[np.float64]:
+        """Camera pose in the object frame (``T_world_cam`` for a renderer whose world
+        is the object frame)."""
+        return np.linalg.inv(self.T_cam_obj)
+
+    def row(self) -> dict[str, float]:
+        """The pose as one flat table row (:data:`POSE_COLUMNS` + 16 ``T_cam_obj_ij``)."""
+        r = {
+            "az_deg": float(self.az_deg),
+            "el_deg": float(self.el_deg),
+            "range_mm": float(self.range_mm),
+            "roll_deg": float(self.roll_deg),
+            "fx": float(self.K[0, 0]),
+            "fy": float(self.K[1, 1]),
+            "cx": float(self.K[0, 2]),
+            "cy": float(self.K[1, 2]),
+        }
+        for i in range(4):
+            for j in range(4):
+                r[f"T_cam_obj_{i}{j}"] = float(self.T_cam_obj[i, j])
+        return r
+
+    @classmethod
+    def from_row(cls, row: dict) -> ChipPose:
+        """Inverse of :meth:`row` (a dict or a pandas row)."""
+        try:
+            K = np.array(
+                [[row["fx"], 0.0, row["cx"]], [0.0, row["fy"], row["cy"]], [0.0, 0.0, 1.0]]
+            )
+            T = np.array(
+                [[row[f"T_cam_obj_{i}{j}"] for j in range(4)] for i in range(4)], dtype=np.float64
+            )
+            return cls(
+                float(row["az_deg"]),
+                float(row["el_deg"]),
+                float(row["range_mm"]),
+                float(row["roll_deg"]),
+                K,
+                T,
+            )
+        except KeyError as exc:
+            raise InputError(f"pose row: missing column {exc.args[0]!r}") from None
+
+
+def parse_range(spec: str | float | Sequence[float]) -> list[float]:
+    """Parse an angle or range list: ``"A0:A1:STEP"``, ``"v1,v2,..."`` or one number.
+
+    ``"A0:A1:STEP"`` is end-exclusive (``"0:360:10"`` -> 0, 10, ..., 350: 360 would
+    repeat 0), except that the end is included when it is reached exactly and is not
+    a full turn from the start (``"10:60:25"`` -> 10, 35, 60). Numbers and sequences
+    pass through as floats.
+
+    Raises
+    ------
+    InputError
+        Malformed text, a non-positive step, or an empty result.
+    """
+    if isinstance(spec, (int, float, np.integer, np.floating)) and not isinstance(spec, bool):
+        return [float(spec)]
+    if not isinstance(spec, str):
+        try:
+            vals = [float(v) for v in spec]
+        except (TypeError, ValueError):
+            raise InputError(
+                f"range spec: expected 'A0:A1:STEP', 'v1,v2' or numbers, got {spec!r}"
+            ) from None
+        if not vals:
+            raise InputError("range spec: empty list")
+        return vals
+    text = spec.strip()
+    try:
+        if ":" in text:
+            parts = [float(p) for p in text.split(":")]
+            if len(parts) != 3:
+                raise ValueError
+            a0, a1, step = parts
+            if not step > 0:
+                raise InputError(f"range spec {spec!r}: STEP must be > 0, got {step}")
+            n = math.floor((a1 - a0) / step + 1e-9)
+            vals = [a0 + i * step for i in range(max(n, 0) + 1)]
+            if vals and (
+                vals[-1] > a1 + 1e-9
+                or (abs(vals[-1] - a1) < 1e-9 and abs((a1 - a0) - 360.0) < 1e-9)
+            ):
+                vals = vals[:-1]
+        else:
+            vals = [float(p) for p in text.split(",") if p.strip()]
+    except InputError:
+        raise
+    except ValueError:
+        raise InputError(
+            f"range spec: expected 'A0:A1:STEP' or 'v1,v2,...', got {spec!r}"
+        ) from None
+    if not vals:
+        raise InputError(f"range spec {spec!r}: no values")
+    return [round(v, 9) for v in vals]
+
+
+def grid_directions(
+    azimuths_deg: Iterable[float], elevations_deg: Iterable[float]
+) -> NDArray[np.float64]:
+    """``(N, 2)`` (az, el) degrees of a full grid, elevation-major then azimuth."""
+    az = [float(a) for a in azimuths_deg]
+    el = [float(e) for e in elevations_deg]
+    if not az or not el:
+        raise InputError("grid_directions: need at least one azimuth and one elevation")
+    return np.array([(a, e) for e in el for a in az], dtype=np.float64).reshape(-1, 2)
+
+
+def directions_to_az_el(dirs: NDArray) -> NDArray[np.float64]:
+    """Unit vectors ``(N, 3)`` (object frame, centre -> camera) to ``(N, 2)`` (az, el) deg,
+    azimuth in [0, 360)."""
+    d = check_array(dirs, "dirs", shape=(None, 3), dtype_kind="f")
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    az = np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 360.0
+    el = np.degrees(np.arcsin(np.clip(d[:, 2], -1.0, 1.0)))
+    return np.stack([az, el], axis=1)
+
+
+def fibonacci_directions(
+    n: int, *, min_el_deg: float = -90.0, max_el_deg: float = 90.0
+) -> NDArray[np.float64]:
+    """Near-uniform view directions by the Fibonacci (golden-angle) spiral.
+
+    Points are equally spaced in ``sin(el)`` between the elevation limits (equal
+    area) and turn by the golden angle, so any ``n`` is near-uniform.
+
+    Returns
+    -------
+    (n, 2) float64
+        (az, el) degrees.
+
+    References
+    ----------
+    .. [1] A. Gonzalez, "Measurement of areas on a sphere using Fibonacci and
+       latitude-longitude lattices", Mathematical Geosciences 42 (2010).
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise InputError(f"n: expected a positive integer, got {n!r}")
+    if not -90.0 <= min_el_deg < max_el_deg <= 90.0:
+        raise InputError(
+            f"elevation limits: expected -90 <= min < max <= 90, got {min_el_deg}, {max_el_deg}"
+        )
+    s0, s1 = math.sin(math.radians(min_el_deg)), math.sin(math.radians(max_el_deg))
+    i = np.arange(n, dtype=np.float64)
+    s = s0 + (i + 0.5) / n * (s1 - s0)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    az = np.degrees(i * golden) % 360.0
+    el = np.degrees(np.arcsin(s))
+    return np.stack([az, el], axis=1)
+
+
+def icosphere_directions(
+    subdivisions: int = 1, *, min_el_deg: float = -90.0
+) -> NDArray[np.float64]:
+    """View directions at the vertices of a subdivided icosahedron (10 * 4**k + 2).
+
+    Each subdivision splits every triangle into four and projects the new vertices
+    on the unit sphere. Directions below ``min_el_deg`` are dropped.
+
+    Returns
+    -------
+    (N, 2) float64
+        (az, el) degrees, sorted by elevation then azimuth (deterministic).
+    """
+    if (
+        isinstance(subdivisions, bool)
+        or not isinstance(subdivisions, (int, np.integer))
+        or not 0 <= subdivisions <= 6
+    ):
+        raise InputError(f"subdivisions: expected an integer in [0, 6], got {subdivisions!r}")
+    p = (1.0 + math.sqrt(5.0)) / 2.0
+    v = np.array(
+        [
+            [-1, p, 0],
+            [1, p, 0],
+            [-1, -p, 0],
+            [1, -p, 0],
+            [0, -1, p],
+            [0, 1, p],
+            [0, -1, -p],
+            [0, 1, -p],
+            [p, 0, -1],
+            [p, 0, 1],
+            [-p, 0, -1],
+            [-p, 0, 1],
+        ],
+        dtype=np.float64,
+    )
+    f = np.array(
+        [
+            [0, 11, 5],
+            [0, 5, 1],
+            [0, 1, 7],
+            [0, 7, 10],
+            [0, 10, 11],
+            [1, 5, 9],
+            [5, 11, 4],
+            [11, 10, 2],
+            [10, 7, 6],
+            [7, 1, 8],
+            [3, 9, 4],
+            [3, 4, 2],
+            [3, 2, 6],
+            [3, 6, 8],
+            [3, 8, 9],
+            [4, 9, 5],
+            [2, 4, 11],
+            [6, 2, 10],
+            [8, 6, 7],
+            [9, 8, 1],
+        ],
+        dtype=np.int64,
+    )
+    verts = list(v / np.linalg.norm(v, axis=1, keepdims=True))
+    for _ in range(int(subdivisions)):
+        cache: dict[tuple[int, int], int] = {}
+
+        def mid(a: int, b: int, cache: dict[tuple[int, int], int] = cache) -> int:
+            key = (min(a, b), max(a, b))
+            if key not in cache:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                cache[key] = len(verts) - 1
+            return cache[key]
+
+        nf = []
+        for a, b, c in f:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        f = np.asarray(nf, dtype=np.int64)
+    ae = directions_to_az_el(np.asarray(verts))
+    ae = np.round(ae, 9) % np.array([360.0, 1e9])
+    ae = ae[ae[:, 1] >= min_el_deg - 1e-9]
+    order = np.lexsort((ae[:, 0], ae[:, 1]))
+    return ae[order]
+
+
+def camera_T_obj_cam(
+    az_deg: float,
+    el_deg: float,
+    range_mm: float,
+    roll_deg: float = 0.0,
+    center_obj: NDArray | Sequence[float] = (0.0, 0.0, 0.0),
+) -> NDArray[np.float64]:
+    """``T_obj_cam`` of a camera at (az, el, range) around ``center_obj`` looking at it.
+
+    Object +z appears up in the image. At |el| = 90 deg (looking along z) the
+    horizontal direction pointing away from the azimuth, ``-(cos az, sin az, 0)``,
+    appears up instead, so the pose stays defined. Roll then turns the camera about
+    its optical axis.
+    """
+    c = np.asarray(center_obj, dtype=np.float64).reshape(3)
+    a, e = math.radians(az_deg), math.radians(el_deg)
+    d = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+    eye = c + range_mm * d
+    z = -d
+    up = np.array([0.0, 0.0, 1.0])
+    if abs(d[2]) > 1.0 - 1e-9:
+        up = np.array([-math.cos(a), -math.sin(a), 0.0]) * np.sign(d[2])
+    x = np.cross(-up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    r = math.radians(roll_deg)
+    cr, sr = math.cos(r), math.sin(r)
+    # rotate the camera's x, y axes about z by -roll (scene turns clockwise by +roll)
+    x2 = cr * x - sr * y
+    y2 = sr * x + cr * y
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x2, y2, z, eye
+    return T
+
+
+def make_poses(
+    directions_deg: NDArray | Sequence[tuple[float, float]],
+    ranges_mm: Sequence[float] | float,
+    *,
+    K: NDArray | None = None,
+    size: int = 128,
+    focal_px: float | None = None,
+    rolls_deg: Sequence[float] | float = 0.0,
+    center_obj: NDArray | Sequence[float] = (0.0, 0.0, 0.0),
+) -> list[ChipPose]:
+    """All combinations of (az, el) directions x ranges x rolls as :class:`ChipPose`.
+
+    Parameters
+    ----------
+    directions_deg : (N, 2) float
+        (az, el) degrees (:func:`grid_directions`, :func:`fibonacci_directions`,
+        :func:`icosphere_directions`).
+    ranges_mm : float or sequence of float
+        Camera distances, mm.
+    K : (3, 3) float64, optional
+        Intrinsics used for every pose. Default: ``focal_px`` (default ``size``)
+        with the principal point at the chip centre ``((size-1)/2, (size-1)/2)``.
+        :func:`~prism3d.atr.chips.render_chips` replaces ``K`` per its framing.
+    size : int
+        Chip size in pixels (for the default ``K``).
+    rolls_deg : float or sequence of float
+        Rolls about the optical axis.
+    center_obj : (3,) float
+        Point looked at, object frame mm (the bounding-box centre, typically).
+
+    Returns
+    -------
+    list of ChipPose
+        Ordered range-major, then direction, then roll (deterministic).
+    """
+    dirs = check_array(
+        np.asarray(directions_deg, dtype=np.float64).reshape(-1, 2),
+        "directions_deg",
+        shape=(None, 2),
+        min_size=2,
+    )
+    ranges = parse_range(ranges_mm)
+    rolls = parse_range(rolls_deg)
+    for r in ranges:
+        if not (math.isfinite(r) and r > 0):
+            raise InputError(f"ranges_mm: expected positive distances, got {r}")
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
+        raise InputError(f"size: expected a positive integer chip size, got {size!r}")
+    if K is None:
+        f = float(size if focal_px is None else focal_px)
+        c0 = (size - 1) / 2.0
+        K = np.array([[f, 0.0, c0], [0.0, f, c0], [0.0, 0.0, 1.0]])
+    out = []
+    for rng in ranges:
+        for az, el in dirs:
+            for roll in rolls:
+                T_obj_cam = camera_T_obj_cam(az, el, rng, roll, center_obj)
+                out.append(
+                    ChipPose(
+                        float(az), float(el), float(rng), float(roll), K, np.linalg.inv(T_obj_cam)
+                    )
+                )
+    return out
+
+
+def poses_table(poses: Sequence[ChipPose]):  # -> pandas.DataFrame
+    """Poses as a pandas DataFrame, one row per pose.
+
+    Columns: ``az_deg, el_deg, range_mm, roll_deg, fx, fy, cx, cy`` and the 16
+    entries ``T_cam_obj_ij`` (row ``i``, column ``j``) of the 4x4 transform.
+    """
+    import pandas as pd
+
+    cols = list(POSE_COLUMNS) + [f"T_cam_obj_{i}{j}" for i in range(4) for j in range(4)]
+    return pd.DataFrame([p.row() for p in poses], columns=cols)
