@@ -447,6 +447,114 @@ def _add_features(sub: Any) -> None:
     p.set_defaults(func=_cmd_features)
 
 
+# --- ATR: render / bank ---------------------------------------------------------------------
+def _cmd_render(args: argparse.Namespace) -> int:
+    from prism3d.atr.chips import render_to_folder
+    from prism3d.datasets.resolve import resolve_model
+
+    if Path(args.model).is_file():
+        if args.units is None:
+            raise InputError(f"{args.model}: give --units (mm, cm, m, in): mesh files do not say their units")
+        model: Any = args.model
+    else:
+        model = resolve_model(args.model, camouflage=args.camouflage, seed=args.seed)[1]
+    manifest = render_to_folder(model, args.output, azimuth=args.azimuth, elevation=args.elevation,
+                                range_mm=args.range, size=args.size, framing=args.framing,
+                                pixels_per_m=args.pixels_per_m, channels=args.channels, units=args.units or "mm",
+                                up=args.up, fmt=args.format, camouflage=args.camouflage, clutter=args.clutter,
+                                noise_sigma=args.noise, seed=args.seed, backend=args.backend)
+    _say(args, f"wrote chips and {manifest}")
+    return 0
+
+
+def _add_render(sub: Any) -> None:
+    p = sub.add_parser("render", help="render a model at many poses into training chips + manifest",
+                       description="Render MODEL (a mesh file or a built-in target name) at every azimuth x "
+                       "elevation x range into chips (intensity, depth mm, mask, shape image) and a Parquet "
+                       "manifest holding every pose and camera field.")
+    p.add_argument("model", metavar="MODEL", help="mesh file (OBJ/PLY/GLB/OFF/STL) or built-in target name")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR")
+    p.add_argument("--azimuth", default="0:360:10", metavar="A0:A1:STEP", help="degrees (default 0:360:10)")
+    p.add_argument("--elevation", default="10:60:25", metavar="E0:E1:STEP", help="degrees (default 10:60:25)")
+    p.add_argument("--range", metavar="R1,R2,...", help="camera distances, mm (default: 4 bounding radii)")
+    p.add_argument("--size", type=int, default=128, help="chip side, px (default 128)")
+    p.add_argument("--framing", choices=["fit", "range"], default="fit",
+                   help="fit: fill the chip; range: fixed pixels per metre (size follows range)")
+    p.add_argument("--pixels-per-m", type=float, help="with --framing range")
+    p.add_argument("--channels", nargs="+", default=["intensity", "depth", "mask", "shape"],
+                   choices=["intensity", "depth", "mask", "shape"])
+    p.add_argument("--units", choices=["mm", "cm", "m", "in"], help="units of a mesh file")
+    p.add_argument("--up", choices=["y", "z"], default="z", help="up axis of a mesh file (default z)")
+    p.add_argument("--format", choices=["npz", "png"], default="npz", help="chip files (default npz)")
+    p.add_argument("--no-camouflage", dest="camouflage", action="store_false", help="uniform grey paint")
+    p.add_argument("--clutter", choices=["ground", "noise"], help="background clutter")
+    p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA", help="intensity noise std in [0, 1]")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--backend", choices=["raycast", "pyrender"], default="raycast")
+    p.set_defaults(func=_cmd_render)
+
+
+def _cmd_bank(args: argparse.Namespace) -> int:
+    from prism3d.datasets.resolve import resolve_targets
+
+    if args.action == "train":
+        from prism3d.atr.bank import train_bank
+
+        if args.output is None:
+            raise InputError("bank train: give -o BANK.npz")
+        targets = resolve_targets(args.targets, units=args.units, up=args.up, camouflage=args.camouflage,
+                                  seed=args.seed)
+        grid = {k: v for k, v in (("azimuth", args.azimuth), ("elevation", args.elevation)) if v is not None}
+        bank = train_bank(targets, channel=args.channel, bin_deg=args.bin_deg, size=args.size, **grid)
+        bank.save(args.output)
+        _say(args, f"wrote {args.output}: {len(bank.classes)} classes, channel {args.channel}")
+        return 0
+    from prism3d.atr.bank import FilterBank
+    from prism3d.atr.evaluate import evaluate_bank
+
+    if args.bank is None:
+        raise InputError("bank eval: give the bank file (bank eval BANK.npz ...)")
+    bank = FilterBank.load(args.bank)
+    # test targets wear a different camouflage pattern than the training ones
+    targets = resolve_targets(args.targets, units=args.units, up=args.up, camouflage=args.camouflage,
+                              seed=args.seed + 1)
+    res = evaluate_bank(bank, targets, azimuth=args.azimuth, elevation=args.elevation, camouflage=args.camouflage,
+                        noise_sigma=args.noise, clutter="noise" if args.clutter else None, out_json=args.json)
+    if not args.quiet:
+        print(f"Pcc {100 * res['pcc']:.1f}% over {len(res['classes'])} classes ({', '.join(res['classes'])})")
+        for c, row in zip(res["classes"], res["confusion"], strict=True):
+            print(f"  {c:<10} " + " ".join(f"{v:5d}" for v in row))
+    return 0
+
+
+def _add_bank(sub: Any) -> None:
+    p = sub.add_parser("bank", help="correlation filter banks: train on rendered models, evaluate",
+                       description="train: render the targets at the training poses and build one OT-MACH "
+                       "filter per class and aspect bin (parameters chosen on held-out views); eval: "
+                       "classify unseen poses (azimuths between the training ones) and report Pcc, confusion, "
+                       "per-aspect accuracy and ROC (results JSON + plots beside it).")
+    p.add_argument("action", choices=["train", "eval"])
+    p.add_argument("bank", nargs="?", type=Path, metavar="BANK_NPZ", help="eval: the bank file")
+    p.add_argument("--targets", nargs="+", default=["builtin"],
+                   help="'builtin', built-in names, or mesh files FILE[=CLASS] (default builtin)")
+    p.add_argument("-o", "--output", type=Path, metavar="BANK_NPZ", help="train: output bank")
+    p.add_argument("--channel", choices=["intensity", "depth", "shape"], default="depth")
+    p.add_argument("--azimuth", default=None, metavar="A0:A1:STEP",
+                   help="train default 0:360:10; eval default: between the training azimuths")
+    p.add_argument("--elevation", default=None, metavar="E0:E1:STEP", help="train default 20")
+    p.add_argument("--bin-deg", type=float, default=10.0, help="aspect bin width, degrees (default 10)")
+    p.add_argument("--size", type=int, default=64, help="chip side, px (default 64)")
+    p.add_argument("--camouflage", dest="camouflage", action="store_true", default=True)
+    p.add_argument("--no-camouflage", dest="camouflage", action="store_false")
+    p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA", help="eval: intensity noise std")
+    p.add_argument("--clutter", action="store_true", help="eval: clutter backgrounds and clutter-only chips")
+    p.add_argument("--units", choices=["mm", "cm", "m", "in"], help="units of mesh files")
+    p.add_argument("--up", choices=["y", "z"], help="up axis of mesh files")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", type=Path, metavar="RESULTS_JSON", help="eval: write results (+ plots beside it)")
+    p.set_defaults(func=_cmd_bank)
+
+
 # --- registry ---------------------------------------------------------------------------
 _COMMANDS: list[Callable[[Any], None]] = [
     _add_demo,
@@ -459,6 +567,8 @@ _COMMANDS: list[Callable[[Any], None]] = [
     _add_stitch,
     _add_decamo,
     _add_features,
+    _add_render,
+    _add_bank,
     _add_trigger,
     _add_capture,
 ]
