@@ -309,6 +309,9 @@ def _stage_model360(ctx: DemoContext) -> Section:
         + ". Stitching: turntable prior (45 deg), multi-scale point-to-plane ICP, pose graph with loop closure."
     )
     ctx.results["model"] = res
+    from prism3d.report import point_cloud_viewer
+
+    s.raw_html.append(point_cloud_viewer(res.points, res.colors))
     s.figure("stitched model", cloud_figure(res.points, res.colors, "model"))
     s.link("model.ply", "model.ply")
     if res.mesh_vertices is not None:

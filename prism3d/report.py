@@ -20,7 +20,68 @@ import numpy as np
 
 from prism3d.io.atomic import atomic_write_text
 
-__all__ = ["Section", "Report", "figure_png", "image_png"]
+__all__ = ["Section", "Report", "figure_png", "image_png", "point_cloud_viewer"]
+
+# A small self-contained point-cloud viewer: 2-D canvas, no WebGL (works in headless
+# browsers without a GPU), drag to rotate, wheel to zoom, painter's algorithm by depth.
+_VIEWER_JS = """
+(function(){
+  function start(id){
+    var el=document.getElementById(id), cv=el.querySelector('canvas'), ctx=cv.getContext('2d');
+    var d=JSON.parse(el.querySelector('script[type="application/json"]').textContent);
+    var P=d.p, C=d.c, n=P.length/3, yaw=0.6, pitch=-0.35, zoom=1.0, drag=null;
+    var cx=0,cy=0,cz=0,r=0,i;
+    for(i=0;i<n;i++){cx+=P[3*i];cy+=P[3*i+1];cz+=P[3*i+2];}
+    cx/=n;cy/=n;cz/=n;
+    for(i=0;i<n;i++){var dx=P[3*i]-cx,dy=P[3*i+1]-cy,dz=P[3*i+2]-cz;r=Math.max(r,Math.sqrt(dx*dx+dy*dy+dz*dz));}
+    var order=new Array(n), depth=new Float32Array(n), sx=new Float32Array(n), sy=new Float32Array(n);
+    function draw(){
+      var w=cv.width,h=cv.height,s=zoom*0.45*Math.min(w,h)/r;
+      var cyw=Math.cos(yaw),syw=Math.sin(yaw),cp=Math.cos(pitch),sp=Math.sin(pitch);
+      for(var k=0;k<n;k++){
+        var x=P[3*k]-cx,y=P[3*k+1]-cy,z=P[3*k+2]-cz;
+        var x1=cyw*x+syw*z, z1=-syw*x+cyw*z;
+        var y2=cp*y-sp*z1, z2=sp*y+cp*z1;
+        sx[k]=w/2+s*x1; sy[k]=h/2+s*y2; depth[k]=z2; order[k]=k;
+      }
+      order.sort(function(a,b){return depth[b]-depth[a];});
+      ctx.fillStyle='#ffffff'; ctx.fillRect(0,0,w,h);
+      for(var j=0;j<n;j++){var q=order[j];
+        ctx.fillStyle='rgb('+C[3*q]+','+C[3*q+1]+','+C[3*q+2]+')';
+        ctx.fillRect(sx[q]-1,sy[q]-1,2.2,2.2);}
+    }
+    cv.addEventListener('mousedown',function(e){drag=[e.clientX,e.clientY];});
+    window.addEventListener('mouseup',function(){drag=null;});
+    window.addEventListener('mousemove',function(e){if(!drag)return;
+      yaw+=(e.clientX-drag[0])*0.01; pitch+=(e.clientY-drag[1])*0.01; drag=[e.clientX,e.clientY]; draw();});
+    cv.addEventListener('wheel',function(e){e.preventDefault();zoom*=e.deltaY<0?1.1:1/1.1;draw();},{passive:false});
+    el.setAttribute('data-points', String(n)); draw(); el.setAttribute('data-ready','1');
+  }
+  document.querySelectorAll('.p3d-viewer').forEach(function(e){start(e.id);});
+})();
+"""
+
+
+def point_cloud_viewer(points: np.ndarray, colors: np.ndarray | None, *, max_points: int = 25000,
+                       element_id: str = "viewer3d", width: int = 820, height: int = 560) -> str:
+    """HTML of an interactive (drag to rotate, wheel to zoom) view of a coloured point
+    cloud, self-contained (data inline, no WebGL, no network).
+
+    The camera-frame y axis points down, so the cloud is shown with y up.
+    """
+    import json
+
+    p = np.asarray(points, dtype=np.float64)
+    c = np.full((len(p), 3), 90, np.uint8) if colors is None else np.asarray(colors, dtype=np.uint8)
+    if len(p) > max_points:
+        idx = np.random.default_rng(0).choice(len(p), max_points, replace=False)
+        p, c = p[idx], c[idx]
+    p = p * np.array([1.0, -1.0, 1.0])  # y up on screen
+    data = json.dumps({"p": np.round(p, 2).ravel().tolist(), "c": c.ravel().tolist()}, separators=(",", ":"))
+    return (f"<div class='p3d-viewer' id='{html.escape(element_id)}'>"
+            f"<canvas width='{width}' height='{height}' style='border:1px solid #dde3ea;cursor:grab'></canvas>"
+            f"<script type='application/json'>{data}</script>"
+            "<p class='meta'>Drag to rotate, scroll to zoom.</p></div>")
 
 
 def image_png(image: np.ndarray, *, max_side: int = 900) -> bytes:
@@ -136,6 +197,8 @@ class Report:
             if s.links:
                 parts.append("<p class='links'>Files: " + "".join(
                     f"<a href='{html.escape(rel)}'>{html.escape(label)}</a>" for label, rel in s.links) + "</p>")
+        if any("p3d-viewer" in h for sec in self.sections for h in sec.raw_html):
+            parts.append(f"<script>{_VIEWER_JS}</script>")
         parts.append("</body></html>")
         return "\n".join(parts)
 
