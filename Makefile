@@ -6,8 +6,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # Debian packages: open3d needs libusb; headless pyrender needs OSMesa; numba's OpenMP
-# layer needs libgomp.
-SYS_PKGS := libusb-1.0-0 libosmesa6 libgl1 libegl1 libgomp1
+# layer needs libgomp; the report is checked in a real headless Chromium.
+SYS_PKGS := libusb-1.0-0 libosmesa6 libgl1 libegl1 libgomp1 chromium
 export PYOPENGL_PLATFORM ?= osmesa
 export NUMBA_THREADING_LAYER ?= omp
 export MPLBACKEND ?= Agg

@@ -433,4 +433,21 @@ def run_demo(
         # write after every stage so an interrupted demo still leaves a report
         report.write(out / "report.html")
     progress(len(stages), len(stages), "done")
+    _screenshot(out)
     return out / "report.html", failed
+
+
+def _screenshot(out: Path) -> None:
+    """Save ``report_screenshot.png`` when a headless Chromium is available."""
+    from prism3d.browser import check_page, find_chromium
+
+    if find_chromium() is None:
+        log.info("no Chromium: skipping the report screenshot")
+        return
+    try:
+        check = check_page(out / "report.html", screenshot=out / "report_screenshot.png", height=3000)
+    except Exception as exc:  # a screenshot is a nicety; never fail the demo for it
+        log.warning("report screenshot failed: %s", exc)
+        return
+    for line in check.console_errors:
+        log.warning("report console error: %s", line)

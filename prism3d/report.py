@@ -61,6 +61,17 @@ _VIEWER_JS = """
 })();
 """
 
+# Marks the page with how many figures decoded (``data-images-ok`` / ``data-images``
+# on <body>), so a headless browser check can tell that every image rendered.
+_HEALTH_JS = """
+window.addEventListener('load',function(){
+  var imgs=document.images, ok=0;
+  for(var i=0;i<imgs.length;i++){ if(imgs[i].complete && imgs[i].naturalWidth>0) ok++; }
+  document.body.setAttribute('data-images', String(imgs.length));
+  document.body.setAttribute('data-images-ok', String(ok));
+});
+"""
+
 
 def point_cloud_viewer(points: np.ndarray, colors: np.ndarray | None, *, max_points: int = 25000,
                        element_id: str = "viewer3d", width: int = 820, height: int = 560) -> str:
@@ -199,6 +210,7 @@ class Report:
                     f"<a href='{html.escape(rel)}'>{html.escape(label)}</a>" for label, rel in s.links) + "</p>")
         if any("p3d-viewer" in h for sec in self.sections for h in sec.raw_html):
             parts.append(f"<script>{_VIEWER_JS}</script>")
+        parts.append(f"<script>{_HEALTH_JS}</script>")
         parts.append("</body></html>")
         return "\n".join(parts)
 
