@@ -1,0 +1,501 @@
+"""Adding targets to a database: mesh files (explicit units and up axis) and built-ins.
+
+Every added target becomes one row of ``targets.parquet`` and one normalised model
+``models/<target_id>.ply`` (binary PLY, millimetres, object frame z up / x forward,
+origin at the footprint centre on the ground, vertex colours, comments ``units mm``
+and ``up z``).
+
+Units are never guessed: they come from ``units=`` (``--units``), a sidecar
+``FILE.units.yaml`` (``units: m`` / ``up: y``), or, for PLY files written by
+prism3d, the header comment ``units mm``. A file without any of them is refused.
+Files in arbitrary units (many free asset packs) can be rescaled to a stated length
+with ``length_mm`` (the longest horizontal extent after the up-axis rotation).
+
+Duplicates are found by content: the SHA-256 of the source file bytes (for
+built-ins, of the generated normalised model). A duplicate is skipped with a message,
+or is an error with ``strict=True``. All inputs are loaded and checked before the
+database is touched, so a bad file changes nothing. The read-modify-write of the
+targets table runs under an exclusive lock on ``DB/.lock`` and replaces the table
+atomically, so concurrent ``add`` calls from several processes are safe.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from prism3d.datasets.db import (
+    TABLE_SCHEMA_VERSION,
+    TargetDB,
+    _as_db,
+    _check_name,
+    _now,
+    sha256_file,
+    write_table,
+)
+
+from prism3d.errors import DatasetError, Prism3dError
+
+__all__ = [
+    "KIT_SCALE",
+    "MESH_SUFFIXES",
+    "QUATERNIUS_VEHICLES",
+    "UNITS_MM",
+    "AddReport",
+    "add_builtin",
+    "add_meshes",
+    "add_quaternius_vehicles",
+]
+
+log = logging.getLogger(__name__)
+
+UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
+_UPS = ("y", "z")
+
+
+@dataclass
+class AddReport:
+    """What an ``add`` did.
+
+    Attributes
+    ----------
+    added : list of str
+        New target ids.
+    skipped : list of str
+        One message per duplicate that was skipped.
+    """
+
+    added: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        lines = [
+            f"added {len(self.added)} target(s)"
+            + (f": {', '.join(self.added)}" if self.added else "")
+        ]
+        lines += [f"skipped: {m}" for m in self.skipped]
+        return "\n".join(lines)
+
+
+@dataclass
+class _Pending:
+    """A loaded target, ready to be written (model PLY bytes already generated)."""
+
+    name: str
+    target_class: str
+    source_kind: str
+    source_file: str
+    source_sha256: str
+    model_bytes: bytes
+    units: str
+    scale_to_mm: float
+    up: str
+    dims: tuple[float, float, float]
+    n_vertices: int
+    n_faces: int
+    provenance: str
+    builtin_scale: float = float("nan")
+
+
+def _sanitize(name: str) -> str:
+    s = re.sub(r"[^A-Za-z0-9_.\-]", "_", name).strip("._-") or "target"
+    return s[:100]
+
+
+def _ply_units(path: Path) -> str | None:
+    from prism3d.io.ply import read_ply
+
+    try:
+        ply = read_ply(path)
+    except Prism3dError as exc:
+        raise DatasetError(f"{path}: cannot read PLY ({exc})") from None
+    for c in ply.comments:
+        m = re.fullmatch(r"\s*units\s+(\w+)\s*;?.*", c)
+        if m:
+            return m.group(1)
+    return None
+
+
+def _resolve_units(path: Path, units: str | None, up: str | None) -> tuple[str, str]:
+    """Units and up axis of a mesh file from flags, sidecar or PLY comment (never guessed)."""
+    from prism3d.atr.features import read_units_sidecar
+
+    try:
+        side = read_units_sidecar(path) or {}
+    except Prism3dError as exc:
+        raise DatasetError(str(exc)) from None
+    file_units = _ply_units(path) if path.suffix.lower() == ".ply" else None
+    for nm, v, allowed in (("units", units, UNITS_MM), ("up", up, _UPS)):
+        if v is not None and v not in allowed:
+            raise DatasetError(f"{nm}: expected one of {', '.join(allowed)}, got {v!r}")
+    declared = side.get("units", file_units)
+    if declared is not None and units is not None and declared != units:
+        raise DatasetError(
+            f"{path}: declares units {declared!r} (sidecar or PLY comment) but units={units!r} was given"
+        )
+    u = declared if declared is not None else units
+    if u is None:
+        raise DatasetError(
+            f"{path}: units unknown; pass --units (mm, cm, m, in) or write {path.name}.units.yaml "
+            "with 'units: ...' and 'up: ...' (units are never guessed)"
+        )
+    if u not in UNITS_MM:
+        raise DatasetError(f"{path}: units: expected one of {', '.join(UNITS_MM)}, got {u!r}")
+    if "up" in side and up is not None and side["up"] != up:
+        raise DatasetError(f"{path}: sidecar says up {side['up']!r} but up={up!r} was given")
+    up_v = side.get("up", up)
+    if up_v is None:
+        up_v = "z" if file_units is not None else None  # prism3d PLY files are z up
+    if up_v is None:
+        raise DatasetError(
+            f"{path}: up axis unknown; pass --up (y or z) or set 'up:' in {path.name}.units.yaml"
+        )
+    if up_v not in _UPS:
+        raise DatasetError(f"{path}: up: expected one of {', '.join(_UPS)}, got {up_v!r}")
+    return u, up_v
+
+
+def _model_bytes(mesh: Any, comments: list[str]) -> bytes:
+    from prism3d.io.ply import write_ply
+
+    cols = (
+        mesh.vertex_albedo
+        if mesh.vertex_albedo is not None
+        else np.full((len(mesh.vertices), 3), 0.7)
+    )
+    with tempfile.TemporaryDirectory() as d:
+        f = Path(d) / "m.ply"
+        write_ply(f, mesh.vertices, colors=cols, faces=mesh.faces, comments=comments)
+        return f.read_bytes()
+
+
+def _load_file(
+    path: Path,
+    target_class: str,
+    units: str | None,
+    up: str | None,
+    length_mm: float | None,
+    yaw_deg: float,
+) -> _Pending:
+    from prism3d.atr.chips import load_mesh_file
+    from prism3d.capture.mesh import SceneMesh
+
+    if not path.is_file():
+        raise DatasetError(f"{path}: file not found")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise DatasetError(
+            f"{path}: unsupported mesh format {path.suffix!r}; expected one of {' '.join(MESH_SUFFIXES)}"
+        )
+    u, up_v = _resolve_units(path, units, up)
+    try:
+        mesh = load_mesh_file(path, units=u, up=up_v, yaw_deg=yaw_deg)
+    except Prism3dError as exc:
+        raise DatasetError(f"{path}: cannot load mesh ({exc})") from None
+    scale = UNITS_MM[u]
+    if length_mm is not None:
+        if not (isinstance(length_mm, (int, float)) and math.isfinite(length_mm) and length_mm > 0):
+            raise DatasetError(f"length_mm: expected a positive length, got {length_mm!r}")
+        ext = float(np.max(np.ptp(mesh.vertices[:, :2], axis=0)))
+        if not ext > 0:
+            raise DatasetError(f"{path}: degenerate mesh (zero horizontal extent)")
+        k = float(length_mm) / ext
+        mesh = SceneMesh(
+            mesh.vertices * k, mesh.faces, vertex_albedo=mesh.vertex_albedo, name=mesh.name
+        )
+        scale *= k
+    dims = tuple(float(x) for x in np.ptp(mesh.vertices, axis=0))
+    if not all(math.isfinite(d) for d in dims) or max(dims) <= 0:
+        raise DatasetError(f"{path}: degenerate mesh (extents {dims})")
+    sha = sha256_file(path)
+    comments = [
+        "units mm",
+        "up z",
+        "prism3d normalised target model (x forward, y left, z up)",
+        f"source {path.name} sha256 {sha}",
+        f"scale_to_mm {scale:.9g}",
+    ]
+    return _Pending(
+        name=path.stem,
+        target_class=target_class,
+        source_kind="file",
+        source_file=str(path.resolve()),
+        source_sha256=sha,
+        model_bytes=_model_bytes(mesh, comments),
+        units=u,
+        scale_to_mm=scale,
+        up=up_v,
+        dims=dims,  # type: ignore[arg-type]
+        n_vertices=len(mesh.vertices),
+        n_faces=len(mesh.faces),
+        provenance=f"file {path.name}",
+    )
+
+
+def _commit(db: TargetDB, pending: list[_Pending], strict: bool) -> AddReport:
+    """Under the DB lock: skip duplicates, write models, then the targets table."""
+    import pandas as pd
+
+    from prism3d.io.atomic import atomic_write_bytes
+
+    report = AddReport()
+    with db.lock():
+        table = db.targets()
+        by_sha = dict(zip(table["source_sha256"], table["target_id"]))
+        ids = set(table["target_id"])
+        rows = []
+        for p in pending:
+            if p.source_sha256 in by_sha:
+                msg = f"{p.source_file}: already in the database as {by_sha[p.source_sha256]} (same sha256)"
+                if strict:
+                    raise DatasetError(f"duplicate: {msg}")
+                log.info("skipping duplicate %s", msg)
+                report.skipped.append(msg)
+                continue
+            tid = _sanitize(p.name)
+            k = 2
+            while tid in ids:
+                tid = f"{_sanitize(p.name)}_{k}"
+                k += 1
+            ids.add(tid)
+            by_sha[p.source_sha256] = tid
+            rows.append((tid, p))
+        new_rows = []
+        for tid, p in rows:
+            rel = f"models/{tid}.ply"
+            atomic_write_bytes(db.path / rel, p.model_bytes)
+            new_rows.append(
+                {
+                    "target_id": tid,
+                    "class": p.target_class,
+                    "name": p.name,
+                    "source_kind": p.source_kind,
+                    "source_file": p.source_file,
+                    "source_sha256": p.source_sha256,
+                    "model_file": rel,
+                    "model_sha256": _sha_bytes(p.model_bytes),
+                    "units": p.units,
+                    "scale_to_mm": float(p.scale_to_mm),
+                    "up": p.up,
+                    "length_mm": p.dims[0],
+                    "width_mm": p.dims[1],
+                    "height_mm": p.dims[2],
+                    "n_vertices": p.n_vertices,
+                    "n_faces": p.n_faces,
+                    "provenance": p.provenance,
+                    "builtin_scale": float(p.builtin_scale),
+                    "added": _now(),
+                    "schema_version": TABLE_SCHEMA_VERSION,
+                }
+            )
+            report.added.append(tid)
+        if new_rows:
+            new = pd.DataFrame(new_rows, columns=list(table.columns))
+            out = new if len(table) == 0 else pd.concat([table, new], ignore_index=True)
+            write_table(out, db.targets_file, kind="targets")
+    return report
+
+
+def _sha_bytes(b: bytes) -> str:
+    import hashlib
+
+    return hashlib.sha256(b).hexdigest()
+
+
+def _check_dups(db: TargetDB, pending: list[_Pending], strict: bool) -> None:
+    """Strict mode: refuse duplicates (in the DB or within the batch) before writing."""
+    if not strict:
+        return
+    known = set(db.targets()["source_sha256"])
+    seen: set[str] = set()
+    for p in pending:
+        if p.source_sha256 in known or p.source_sha256 in seen:
+            raise DatasetError(
+                f"duplicate: {p.source_file} is already in the database (same sha256); nothing added"
+            )
+        seen.add(p.source_sha256)
+
+
+def add_meshes(
+    db: TargetDB | str | Path,
+    paths: Sequence[str | Path],
+    *,
+    target_class: str,
+    units: str | None = None,
+    up: str | None = None,
+    length_mm: float | None = None,
+    yaw_deg: float = 0.0,
+    strict: bool = False,
+) -> AddReport:
+    """Add mesh files as targets (``prism3d db add DB MESH... --class C --units U --up A``).
+
+    Parameters
+    ----------
+    db : TargetDB or path
+    paths : sequence of path
+        OBJ, PLY, GLB/glTF, OFF or STL files.
+    target_class : str
+        Class label of every file given (e.g. ``tank``).
+    units : {"mm", "cm", "m", "in"}, optional
+        Units of the files' coordinates, unless declared by a sidecar
+        ``FILE.units.yaml`` or a PLY ``units`` comment (a contradiction is an error).
+    up : {"y", "z"}, optional
+        Up axis of the files (glTF is y up), unless declared by the sidecar.
+    length_mm : float, optional
+        Rescale each model so its longest horizontal extent is this long, mm
+        (for files in arbitrary units; recorded in ``scale_to_mm``).
+    yaw_deg : float
+        Rotation about the up axis to put the nose on +x.
+    strict : bool
+        A duplicate (same source sha256) is an error instead of a skip.
+
+    Returns
+    -------
+    AddReport
+
+    Raises
+    ------
+    DatasetError
+        Missing file, unsupported format, unknown units/up, corrupt mesh, duplicate
+        with ``strict``; nothing is written then.
+    """
+    db = _as_db(db)
+    _check_name(target_class, "class")
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    if not paths:
+        raise DatasetError("add: no mesh files given")
+    pending = [
+        _load_file(Path(p), target_class, units, up, length_mm, float(yaw_deg)) for p in paths
+    ]
+    _check_dups(db, pending, strict)
+    return _commit(db, pending, strict)
+
+
+def add_builtin(
+    db: TargetDB | str | Path,
+    names: Sequence[str] | None = None,
+    *,
+    scale: float | str = "model",
+    strict: bool = False,
+) -> AddReport:
+    """Add built-in targets (``prism3d db add DB --builtin [NAMES...]``).
+
+    The model file is the exported PLY (:func:`~prism3d.datasets.targets.export_builtin_target`,
+    paint sampled at vertices); render jobs use the exact procedural paint of
+    :func:`~prism3d.datasets.targets.builtin_target` at the same ``scale``. The
+    duplicate key is the sha256 of the generated model.
+    """
+    from prism3d.datasets.targets import builtin_target, export_builtin_target, list_builtin_targets
+
+    db = _as_db(db)
+    all_names = list_builtin_targets()
+    names = all_names if not names else list(names)
+    for n in names:
+        if n not in all_names:
+            raise DatasetError(
+                f"unknown built-in target {n!r}; valid names: {', '.join(all_names)}"
+            )
+    pending = []
+    with tempfile.TemporaryDirectory() as d:
+        for n in names:
+            try:
+                mesh = builtin_target(n, scale=scale)
+                f = export_builtin_target(n, Path(d) / f"{n}.ply", scale=scale)
+            except Prism3dError as exc:
+                raise DatasetError(f"built-in {n}: {exc}") from None
+            data = f.read_bytes()
+            md = mesh.metadata
+            pending.append(
+                _Pending(
+                    name=n,
+                    target_class=md["class"],
+                    source_kind="builtin",
+                    source_file=f"builtin:{n}",
+                    source_sha256=_sha_bytes(data),
+                    model_bytes=data,
+                    units="mm",
+                    scale_to_mm=1.0,
+                    up="z",
+                    dims=(md["length_mm"], md["width_mm"], md["height_mm"]),
+                    n_vertices=len(mesh.vertices),
+                    n_faces=len(mesh.faces),
+                    provenance=f"{md['provenance']} {md['model_scale_label']} scale {md['scale']:.9g}",
+                    builtin_scale=float(md["scale"]),
+                )
+            )
+    _check_dups(db, pending, strict)
+    return _commit(db, pending, strict)
+
+
+#: Ingest policy of the Quaternius CC0 low-poly vehicles (``meshes/quaternius_vehicles_cc0``
+#: of the shared test data): ``name -> (class, up, yaw_deg, nominal real length m)``.
+#: The files' coordinates are in arbitrary FBX units (extents 40-1800 after the
+#: assimp conversion), so "units" are declared as ``m`` (what glTF says) and every
+#: model is then rescaled to its nominal real length x the hobby kit scale of its
+#: class (:data:`KIT_SCALE`), like the built-in targets. glTF is y up; the car pack
+#: was exported z up. ``yaw_deg`` puts the long axis on x (ships, vans, cars).
+QUATERNIUS_VEHICLES: dict[str, tuple[str, str, float, float]] = {
+    "tank_1": ("tank", "y", 0.0, 7.5),
+    "tank_2": ("tank", "y", 0.0, 7.5),
+    "tank_3": ("tank", "y", 0.0, 7.0),
+    "tank_4": ("tank", "y", 0.0, 7.5),
+    "airplane_military_1": ("jet", "y", 0.0, 17.0),
+    "airplane_military_2": ("jet", "y", 0.0, 17.0),
+    "airplane_commercial": ("aircraft", "y", 0.0, 40.0),
+    "airplane_private": ("aircraft", "y", 0.0, 9.0),
+    "airplane_small": ("aircraft", "y", 0.0, 7.0),
+    "ship_boat": ("ship", "y", 90.0, 8.0),
+    "ship_cruise": ("ship", "y", 90.0, 300.0),
+    "ship_lifeboat": ("ship", "y", 90.0, 7.0),
+    "ship_sail": ("ship", "y", 90.0, 40.0),
+    "ship_viking": ("ship", "y", 90.0, 23.0),
+    "car_normal_1": ("vehicle", "z", 90.0, 4.5),
+    "car_police_suv": ("vehicle", "z", 90.0, 4.8),
+    "car_sports": ("vehicle", "z", 90.0, 4.4),
+    "car_suv": ("vehicle", "z", 90.0, 4.8),
+    "bus": ("vehicle", "y", 0.0, 12.0),
+    "bus_school": ("vehicle", "y", 0.0, 11.0),
+    "van_ambulance": ("vehicle", "y", 90.0, 6.0),
+}
+#: Kit scale per class for :data:`QUATERNIUS_VEHICLES` (models of 30-600 mm).
+KIT_SCALE = {"tank": 1 / 35, "jet": 1 / 72, "aircraft": 1 / 72, "ship": 1 / 700, "vehicle": 1 / 35}
+
+
+def add_quaternius_vehicles(
+    db: TargetDB | str | Path,
+    folder: str | Path,
+    *,
+    names: Sequence[str] | None = None,
+    strict: bool = False,
+) -> AddReport:
+    """Add the Quaternius CC0 vehicles (``folder/glb/<name>.glb``) with the documented
+    policy :data:`QUATERNIUS_VEHICLES` (class, up axis, yaw, kit-scale length)."""
+    folder = Path(folder)
+    report = AddReport()
+    for n in names or list(QUATERNIUS_VEHICLES):
+        if n not in QUATERNIUS_VEHICLES:
+            raise DatasetError(
+                f"unknown Quaternius model {n!r}; known: {', '.join(QUATERNIUS_VEHICLES)}"
+            )
+        cls, up, yaw, length_m = QUATERNIUS_VEHICLES[n]
+        r = add_meshes(
+            db,
+            [folder / "glb" / f"{n}.glb"],
+            target_class=cls,
+            units="m",
+            up=up,
+            yaw_deg=yaw,
+            length_mm=length_m * 1000.0 * KIT_SCALE[cls],
+            strict=strict,
+        )
+        report.added += r.added
+        report.skipped += r.skipped
+    return report

@@ -1,0 +1,831 @@
+"""Render and feature jobs over a target database, in-process or on a Dask cluster.
+
+A job is split into *units*; a unit is one target x a slice of its poses (render) or
+one finished render unit (features) or one target's model (model features). A unit
+writes its chips first, each atomically, and its manifest part LAST, atomically; so a
+part file present means a complete unit. A part records the hash of the job spec
+(Parquet key-value metadata ``prism3d_spec_hash``): rerunning a job skips every unit
+whose part exists with the same hash (resume). A unit killed half-way leaves only
+orphan chips, which the rerun overwrites (same names, same bytes: rendering is
+deterministic per unit, and chip ``.npz`` files are written with fixed zip
+timestamps, so their sha256 is reproducible).
+
+Runners: ``workers=0`` runs units in this process (debugging); ``workers=N`` starts a
+``dask.distributed.LocalCluster`` of N single-threaded worker processes started with
+``spawn`` (safe with numba/OpenMP and OSMesa; importing prism3d in the worker sets
+``PYOPENGL_PLATFORM``/``NUMBA_THREADING_LAYER``); ``scheduler="tcp://host:port"``
+uses an existing cluster. A failing unit is retried ``retries`` times, then reported
+(target and pose range) without stopping the other units.
+
+Each render unit records its worker's pid, resident memory (psutil RSS, sampled at
+the end of the unit) and time in the part's metadata (``prism3d_unit_stats``, JSON);
+see :func:`unit_stats`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+import os
+import time
+import zipfile
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from prism3d.datasets.db import (
+    TargetDB,
+    _as_db,
+    _check_name,
+    open_db,
+    read_metadata,
+    read_table,
+    sha256_file,
+    write_table,
+)
+
+from prism3d.errors import DatasetError, Prism3dError
+from prism3d.progress import ProgressFn
+
+__all__ = [
+    "JOB_SCHEMA_VERSION",
+    "JobReport",
+    "RenderSpec",
+    "Unit",
+    "job_status",
+    "plan_units",
+    "run_features_job",
+    "run_render_job",
+    "unit_stats",
+    "write_npz_deterministic",
+]
+
+log = logging.getLogger(__name__)
+
+JOB_SCHEMA_VERSION = 1
+_CHANNELS = ("intensity", "depth", "mask", "shape")
+
+
+# ---------------------------------------------------------------------------------
+# Specs and units
+# ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    """A render job: what to render (stored as ``renders/<job>/job.yaml``).
+
+    Attributes
+    ----------
+    name : str
+        Job name (folder name under ``renders/``).
+    targets : tuple of str
+        Target ids, fixed when the job is created.
+    azimuth, elevation : str
+        Angle grids in degrees (``"0:360:10"``, ``"10,30"``, ``"20"``).
+    range_mm : str or None
+        Range grid, mm; None = 4 bounding-sphere radii of each target.
+    size : int
+        Chip side, pixels.
+    channels : tuple of str
+        Subset of intensity, depth, mask, shape.
+    framing : {"fit", "range"}
+    camouflage : bool
+    clutter : {None, "ground", "noise"}
+    seed : int
+        Job seed (each unit derives its own seed from it, the target and the slice).
+    chips_per_unit : int
+        Poses per unit (50-200 balances overhead and lost work on a kill).
+    backend : {"raycast", "pyrender"}
+    """
+
+    name: str
+    targets: tuple[str, ...]
+    azimuth: str = "0:360:30"
+    elevation: str = "20"
+    range_mm: str | None = None
+    size: int = 128
+    channels: tuple[str, ...] = _CHANNELS
+    framing: str = "fit"
+    camouflage: bool = True
+    clutter: str | None = None
+    seed: int = 0
+    chips_per_unit: int = 100
+    backend: str = "raycast"
+
+    def __post_init__(self) -> None:
+        from prism3d.atr.poses import parse_range
+
+        _check_name(self.name, "job")
+        if not self.targets:
+            raise DatasetError(f"job {self.name}: no targets to render (add targets first)")
+        for nm in ("azimuth", "elevation") + (("range_mm",) if self.range_mm is not None else ()):
+            v = getattr(self, nm)
+            try:
+                parse_range(str(v))
+            except Prism3dError as exc:
+                raise DatasetError(f"{nm}: {exc}") from None
+            object.__setattr__(self, nm, str(v))
+        if (
+            isinstance(self.size, bool)
+            or not isinstance(self.size, int)
+            or not 8 <= self.size <= 4096
+        ):
+            raise DatasetError(f"size: expected an integer in [8, 4096], got {self.size!r}")
+        chans = tuple(self.channels)
+        if not chans or any(c not in _CHANNELS for c in chans) or len(set(chans)) != len(chans):
+            raise DatasetError(
+                f"channels: expected distinct names among {', '.join(_CHANNELS)}, got {chans}"
+            )
+        object.__setattr__(self, "channels", chans)
+        object.__setattr__(self, "targets", tuple(self.targets))
+        if self.framing not in ("fit", "range"):
+            raise DatasetError(f"framing: expected fit or range, got {self.framing!r}")
+        if self.clutter not in (None, "ground", "noise"):
+            raise DatasetError(f"clutter: expected none, ground or noise, got {self.clutter!r}")
+        if self.backend not in ("raycast", "pyrender"):
+            raise DatasetError(f"backend: expected raycast or pyrender, got {self.backend!r}")
+        for nm, lo in (("seed", 0), ("chips_per_unit", 1)):
+            v = getattr(self, nm)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise DatasetError(f"{nm}: expected an integer >= {lo}, got {v!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["targets"] = list(self.targets)
+        d["channels"] = list(self.channels)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], where: str = "job spec") -> RenderSpec:
+        allowed = {f.name for f in fields(cls)}
+        unknown = set(d) - allowed
+        if unknown:
+            raise DatasetError(
+                f"{where}: unknown keys {sorted(unknown)}; allowed: {sorted(allowed)}"
+            )
+        try:
+            return cls(
+                **{
+                    **d,
+                    "targets": tuple(d.get("targets", ())),
+                    "channels": tuple(d.get("channels", _CHANNELS)),
+                }
+            )
+        except TypeError as exc:
+            raise DatasetError(f"{where}: {exc}") from None
+
+    @property
+    def spec_hash(self) -> str:
+        """SHA-256 of the canonical JSON of the spec (what a finished unit must match)."""
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
+
+    @property
+    def n_poses(self) -> int:
+        """Poses per target (azimuths x elevations x ranges)."""
+        from prism3d.atr.poses import parse_range
+
+        n_r = 1 if self.range_mm is None else len(parse_range(self.range_mm))
+        return len(parse_range(self.azimuth)) * len(parse_range(self.elevation)) * n_r
+
+
+@dataclass(frozen=True)
+class Unit:
+    """One unit of work: ``target_id`` poses ``[start, stop)``."""
+
+    unit_id: str
+    target_id: str
+    start: int
+    stop: int
+
+    def describe(self) -> str:
+        return f"target {self.target_id} poses {self.start}..{self.stop - 1}"
+
+
+def plan_units(spec: RenderSpec) -> list[Unit]:
+    """Split a render job into units (per target, ``chips_per_unit`` poses each)."""
+    n = spec.n_poses
+    out = []
+    for tid in spec.targets:
+        for s in range(0, n, spec.chips_per_unit):
+            out.append(Unit(f"{tid}-{s:06d}", tid, s, min(n, s + spec.chips_per_unit)))
+    return out
+
+
+# ---------------------------------------------------------------------------------
+# Worker-side code
+# ---------------------------------------------------------------------------------
+
+
+def write_npz_deterministic(path: str | Path, arrays: dict[str, NDArray]) -> str:
+    """Write arrays as a compressed ``.npz`` with fixed zip timestamps, atomically.
+
+    The same arrays always give the same bytes (``np.savez_compressed`` stamps the
+    current time), so the file's sha256 identifies its content. Readable by
+    ``np.load(path, allow_pickle=False)``.
+
+    Returns
+    -------
+    str
+        The hex sha256 of the written file.
+    """
+    from prism3d.io.atomic import atomic_path
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in sorted(arrays):
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            npy = io.BytesIO()
+            np.lib.format.write_array(npy, np.ascontiguousarray(arrays[name]), allow_pickle=False)
+            zf.writestr(info, npy.getvalue())
+    data = buf.getvalue()
+    # temp file + rename, without a per-file fsync (it cost 3 ms per chip, more than the
+    # rendering, and serialised the workers on the disk): a killed process leaves the
+    # old file or the new one; after a power loss, ``verify`` finds damaged chips by hash.
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return hashlib.sha256(data).hexdigest()
+
+
+def _target_mesh(db: TargetDB, tid: str) -> tuple[Any, str]:
+    """The render mesh of target ``tid`` and its class."""
+    from prism3d.capture.mesh import SceneMesh
+
+    from prism3d.io.ply import read_ply
+
+    t = db.targets()
+    rows = t[t["target_id"] == tid]
+    if len(rows) != 1:
+        raise DatasetError(f"{db.path}: target {tid!r} not in targets.parquet")
+    r = rows.iloc[0]
+    if r["source_kind"] == "builtin":
+        from prism3d.datasets.targets import builtin_target
+
+        mesh = builtin_target(r["name"], scale=float(r["builtin_scale"]))
+        return mesh, str(r["class"])
+    ply = read_ply(db.resolve(r["model_file"], f"target {tid} model_file"))
+    if ply.faces is None or not len(ply.faces):
+        raise DatasetError(f"{r['model_file']}: model has no faces")
+    alb = None if ply.colors is None else ply.colors.astype(np.float64) / 255.0
+    return SceneMesh(ply.points, ply.faces, vertex_albedo=alb, name=tid), str(r["class"])
+
+
+def _unit_seed(seed: int, unit: Unit) -> int:
+    h = hashlib.sha256(f"{seed}/{unit.target_id}/{unit.start}".encode()).digest()
+    return int.from_bytes(h[:4], "little")
+
+
+def _rss_mb() -> float:
+    import psutil
+
+    return psutil.Process().memory_info().rss / 2**20
+
+
+def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str, Any]:
+    """Render one unit: its chips, then its manifest part (worker entry point).
+
+    Returns
+    -------
+    dict
+        Unit stats: ``unit``, ``chips``, ``seconds``, ``pid``, ``rss_mb``.
+    """
+    from prism3d.atr.chips import _bounding_sphere, chip_poses, render_chips
+
+    t0 = time.perf_counter()
+    db = open_db(db_path)
+    spec = RenderSpec.from_dict(spec_dict)
+    mesh, cls = _target_mesh(db, unit.target_id)
+    rng = spec.range_mm if spec.range_mm is not None else 4.0 * _bounding_sphere(mesh)[1]
+    poses = chip_poses(
+        mesh, spec.azimuth, spec.elevation, rng, size=spec.size, framing=spec.framing
+    )
+    poses = poses[unit.start : unit.stop]
+    chips = render_chips(
+        mesh,
+        poses,
+        size=spec.size,
+        channels=spec.channels,
+        camouflage=spec.camouflage,
+        clutter=spec.clutter,
+        seed=_unit_seed(spec.seed, unit),
+        backend=spec.backend,
+    )
+    table = chips.table.drop(columns=["chip", "target"])
+    files, shas = [], []
+    for i in range(len(poses)):
+        idx = unit.start + i
+        rel = f"renders/{spec.name}/chips/{unit.target_id}/{idx:06d}.npz"
+        shas.append(
+            write_npz_deterministic(
+                db.path / rel, {ch: chips.channels[ch][i] for ch in spec.channels}
+            )
+        )
+        files.append(rel)
+    table.insert(0, "target_id", unit.target_id)
+    table.insert(1, "class", cls)
+    table.insert(2, "chip_index", np.arange(unit.start, unit.stop, dtype=np.int64))
+    table.insert(3, "unit", unit.unit_id)
+    table["size"] = np.int64(spec.size)
+    table["framing"] = spec.framing
+    table["chip_file"] = files
+    table["channels"] = ",".join(spec.channels)
+    table["sha256"] = shas
+    stats = {
+        "unit": unit.unit_id,
+        "chips": len(poses),
+        "seconds": round(time.perf_counter() - t0, 4),
+        "pid": os.getpid(),
+        "rss_mb": round(_rss_mb(), 1),
+    }
+    part = db.job_dir(spec.name) / "manifest" / f"part-{unit.unit_id}.parquet"
+    write_table(
+        table,
+        part,
+        kind="manifest",
+        extra_meta={"prism3d_spec_hash": spec.spec_hash, "prism3d_unit_stats": json.dumps(stats)},
+    )
+    return stats
+
+
+def features_unit(db_path: str, job: str, unit_id: str) -> dict[str, Any]:
+    """View features of one finished render unit (worker entry point)."""
+    from prism3d.atr.features import view_features
+
+    t0 = time.perf_counter()
+    db = open_db(db_path)
+    src = db.job_dir(job) / "manifest" / f"part-{unit_id}.parquet"
+    src_sha = sha256_file(src)
+    m = read_table(src)
+    if "depth" not in str(m["channels"].iloc[0]).split(","):
+        raise DatasetError(
+            f"job {job}: view features need the depth channel (rendered: {m['channels'].iloc[0]})"
+        )
+    rows = []
+    keep = ["target_id", "class", "chip_index", "az_deg", "el_deg", "range_mm", "roll_deg"]
+    for r in m.to_dict("records"):
+        with np.load(db.resolve(r["chip_file"], "manifest chip_file"), allow_pickle=False) as z:
+            depth = z["depth"]
+            mask = z["mask"] if "mask" in z.files else None
+        K = np.array([[r["fx"], 0.0, r["cx"]], [0.0, r["fy"], r["cy"]], [0.0, 0.0, 1.0]])
+        try:
+            # view_features' Hu-moment log evaluates both np.where branches (harmless NaN)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                f = view_features(depth, mask, K)
+        except Prism3dError:
+            f = {}  # target not visible: the row keeps NaN features
+        rows.append({**{k: r[k] for k in keep}, **f})
+    import pandas as pd
+
+    df = pd.DataFrame(rows)
+    out = db.path / "features" / job / f"part-{unit_id}.parquet"
+    write_table(df, out, kind="view_features", extra_meta={"prism3d_source_sha256": src_sha})
+    return {
+        "unit": unit_id,
+        "chips": len(df),
+        "seconds": round(time.perf_counter() - t0, 4),
+        "pid": os.getpid(),
+        "rss_mb": round(_rss_mb(), 1),
+    }
+
+
+def model_features_unit(db_path: str, target_id: str) -> dict[str, Any]:
+    """Model features of one target's normalised model (worker entry point)."""
+    import pandas as pd
+    from prism3d.atr.features import model_features
+
+    from prism3d.io.ply import read_ply
+
+    db = open_db(db_path)
+    t = db.targets()
+    r = t[t["target_id"] == target_id].iloc[0]
+    ply = read_ply(db.resolve(r["model_file"], "model_file"))
+    f = model_features(ply.points, ply.faces, up="z")
+    df = pd.DataFrame([{"target_id": target_id, "class": r["class"], **f}])
+    write_table(
+        df,
+        db.path / "features" / "models" / f"part-{target_id}.parquet",
+        kind="model_features",
+        extra_meta={"prism3d_source_sha256": r["model_sha256"]},
+    )
+    return {
+        "unit": f"model-{target_id}",
+        "chips": 0,
+        "pid": os.getpid(),
+        "rss_mb": round(_rss_mb(), 1),
+    }
+
+
+# ---------------------------------------------------------------------------------
+# Runners
+# ---------------------------------------------------------------------------------
+
+
+@dataclass
+class JobReport:
+    """Outcome of a job run.
+
+    Attributes
+    ----------
+    job : str
+    total_units, skipped_units, done_units : int
+        All units, units already finished before this run (resumed), units finished now.
+    failed : list of dict
+        ``unit``, ``what`` (target and pose range), ``error`` per failed unit.
+    stats : list of dict
+        Per-unit stats (``pid``, ``rss_mb``, ``seconds``, ``chips``) of units run now.
+    seconds : float
+    """
+
+    job: str
+    total_units: int = 0
+    skipped_units: int = 0
+    done_units: int = 0
+    failed: list[dict[str, str]] = field(default_factory=list)
+    stats: list[dict[str, Any]] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+    @property
+    def exit_code(self) -> int:
+        """0 when every unit is done, 1 when a unit failed."""
+        return 0 if self.ok else 1
+
+    def summary(self) -> str:
+        head = (
+            f"job {self.job}: {self.skipped_units + self.done_units}/{self.total_units} units done "
+            f"({self.done_units} now, {self.skipped_units} resumed), {len(self.failed)} failed, "
+            f"{self.seconds:.1f} s"
+        )
+        lines = [head]
+        lines += [f"  FAILED {f['unit']} ({f['what']}): {f['error']}" for f in self.failed]
+        return "\n".join(lines)
+
+
+_Task = tuple[str, str, Callable[..., dict[str, Any]], tuple]
+
+
+def _execute(
+    tasks: list[_Task],
+    report: JobReport,
+    *,
+    workers: int,
+    scheduler: str | None,
+    retries: int,
+    progress: ProgressFn | None,
+) -> None:
+    """Run ``(unit_id, what, fn, args)`` tasks; fill ``report`` (never raises for a unit)."""
+    n = len(tasks)
+    done = 0
+    if progress is not None:
+        progress(0, n, report.job)
+
+    def finish(unit_id: str, what: str, res: Any, err: BaseException | None) -> None:
+        nonlocal done
+        done += 1
+        if err is None:
+            report.done_units += 1
+            report.stats.append(res)
+        else:
+            log.warning("unit %s (%s) failed: %s", unit_id, what, err)
+            report.failed.append(
+                {"unit": unit_id, "what": what, "error": f"{type(err).__name__}: {err}"}
+            )
+        if progress is not None:
+            progress(done, n, unit_id)
+
+    if not tasks:
+        return
+    if scheduler is None and workers == 0:
+        for unit_id, what, fn, args in tasks:
+            err: BaseException | None = None
+            res = None
+            for _attempt in range(retries + 1):
+                try:
+                    res = fn(*args)
+                    err = None
+                    break
+                except Exception as exc:  # noqa: BLE001 - one unit's failure must not stop the job
+                    err = exc
+            finish(unit_id, what, res, err)
+        return
+    import dask
+    from distributed import Client, LocalCluster, as_completed
+
+    # one core per worker process: numba's parallel kernels would otherwise start one
+    # thread per core in every worker and the workers would fight for the cores
+    environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
+    environ.setdefault("NUMBA_NUM_THREADS", 1)
+    cfg = {
+        "distributed.worker.multiprocessing-method": "spawn",
+        "distributed.nanny.pre-spawn-environ": environ,
+    }
+    with dask.config.set(cfg):
+        if scheduler is not None:
+            cluster = None
+            client = Client(scheduler)
+        else:
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=":0",  # a free port: never clash with another cluster
+                silence_logs=logging.ERROR,
+            )
+            client = Client(cluster)
+        try:
+            futs = []
+            names: dict[str, tuple[str, str]] = {}
+            for unit_id, what, fn, args in tasks:
+                key = f"{report.job}-{unit_id}-{time.time_ns()}"
+                futs.append(client.submit(fn, *args, key=key, retries=retries, pure=False))
+                names[key] = (unit_id, what)
+            for fut in as_completed(futs):
+                unit_id, what = names[fut.key]
+                try:
+                    res = fut.result()
+                    finish(unit_id, what, res, None)
+                except Exception as exc:  # noqa: BLE001 - reported per unit
+                    finish(unit_id, what, None, exc)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
+def _check_runner(workers: int, scheduler: str | None, retries: int) -> None:
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise DatasetError(f"workers: expected an integer >= 0, got {workers!r}")
+    if scheduler is not None and not (isinstance(scheduler, str) and "://" in scheduler):
+        raise DatasetError(
+            f"scheduler: expected an address like tcp://HOST:PORT, got {scheduler!r}"
+        )
+    if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+        raise DatasetError(f"retries: expected an integer >= 0, got {retries!r}")
+
+
+def load_spec(db: TargetDB, job: str) -> RenderSpec:
+    """The stored spec of render job ``job``."""
+    import yaml
+
+    f = db.job_dir(job) / "job.yaml"
+    if not f.is_file():
+        raise DatasetError(
+            f"{db.path}: no render job {job!r}; jobs: {', '.join(db.jobs()) or 'none'}"
+        )
+    try:
+        d = yaml.safe_load(f.read_text())
+    except yaml.YAMLError as exc:
+        raise DatasetError(f"{f}: invalid YAML ({exc})") from None
+    if not isinstance(d, dict) or d.get("schema_version") != JOB_SCHEMA_VERSION:
+        raise DatasetError(
+            f"{f}: unknown schema_version {d.get('schema_version') if isinstance(d, dict) else None!r} "
+            f"(this prism3d reads {JOB_SCHEMA_VERSION})"
+        )
+    d = dict(d)
+    d.pop("schema_version")
+    d.pop("spec_hash", None)
+    return RenderSpec.from_dict(d, str(f))
+
+
+def _part_done(part: Path, key: str, value: str) -> bool:
+    if not part.is_file():
+        return False
+    try:
+        return read_metadata(part).get(key) == value
+    except DatasetError:
+        return False
+
+
+def run_render_job(
+    db: TargetDB | str | Path,
+    job: str,
+    *,
+    azimuth: str = "0:360:30",
+    elevation: str = "20",
+    range_mm: str | None = None,
+    size: int = 128,
+    channels: Sequence[str] = _CHANNELS,
+    targets: Sequence[str] | None = None,
+    classes: Sequence[str] | None = None,
+    framing: str = "fit",
+    camouflage: bool = True,
+    clutter: str | None = None,
+    seed: int = 0,
+    chips_per_unit: int = 100,
+    backend: str = "raycast",
+    workers: int = 0,
+    scheduler: str | None = None,
+    retries: int = 2,
+    progress: ProgressFn | None = None,
+) -> JobReport:
+    """Create (or resume) render job ``job`` and run its unfinished units.
+
+    ``prism3d db render DB --job NAME --azimuth A --elevation E --range R --size S
+    --channels C,.. --targets T,.. --workers N --scheduler ADDR``.
+
+    On the first run the spec (with the target list resolved: ``targets`` ids and/or
+    ``classes``, default every target) is stored in ``renders/<job>/job.yaml``; a
+    rerun with the same parameters resumes, a rerun with different parameters is an
+    error (choose a new job name).
+
+    Returns
+    -------
+    JobReport
+        ``exit_code`` is 1 when any unit failed after its retries.
+
+    Raises
+    ------
+    DatasetError
+        Bad parameters, unknown targets, a job name reused with another spec.
+    """
+    import yaml
+
+    from prism3d.io.atomic import atomic_write_text
+
+    t0 = time.perf_counter()
+    db = _as_db(db)
+    _check_runner(workers, scheduler, retries)
+    table = db.targets()
+    ids = list(table["target_id"])
+    if targets:
+        unknown = [t for t in targets if t not in ids]
+        if unknown:
+            raise DatasetError(
+                f"targets: unknown target ids {unknown}; known: {', '.join(ids) or 'none'}"
+            )
+    sel = table
+    if targets:
+        sel = sel[sel["target_id"].isin(list(targets))]
+    if classes:
+        sel = sel[sel["class"].isin(list(classes))]
+    chosen = tuple(sorted(sel["target_id"]))
+    jf = db.job_dir(job) / "job.yaml"
+    if jf.is_file() and not targets and not classes:
+        chosen = load_spec(
+            db, job
+        ).targets  # resume with the job's targets (new ones are not added)
+    spec = RenderSpec(
+        name=job,
+        targets=chosen,
+        azimuth=str(azimuth),
+        elevation=str(elevation),
+        range_mm=None if range_mm is None else str(range_mm),
+        size=size,
+        channels=tuple(channels),
+        framing=framing,
+        camouflage=camouflage,
+        clutter=clutter,
+        seed=seed,
+        chips_per_unit=chips_per_unit,
+        backend=backend,
+    )
+    if jf.is_file():
+        old = load_spec(db, job)
+        if old.spec_hash != spec.spec_hash:
+            diff = {
+                k: (v, spec.to_dict()[k])
+                for k, v in old.to_dict().items()
+                if spec.to_dict()[k] != v
+            }
+            raise DatasetError(
+                f"job {job!r} exists with a different spec (stored vs given: {diff}); "
+                "rerun with the same parameters to resume, or choose a new --job name"
+            )
+    else:
+        atomic_write_text(
+            jf,
+            yaml.safe_dump(
+                {
+                    "schema_version": JOB_SCHEMA_VERSION,
+                    "spec_hash": spec.spec_hash,
+                    **spec.to_dict(),
+                },
+                sort_keys=False,
+            ),
+        )
+    units = plan_units(spec)
+    report = JobReport(job=job, total_units=len(units))
+    mdir = db.job_dir(job) / "manifest"
+    tasks: list[_Task] = []
+    sd = spec.to_dict()
+    for u in units:
+        if _part_done(mdir / f"part-{u.unit_id}.parquet", "prism3d_spec_hash", spec.spec_hash):
+            report.skipped_units += 1
+        else:
+            tasks.append((u.unit_id, u.describe(), render_unit, (str(db.path), sd, u)))
+    _execute(
+        tasks, report, workers=workers, scheduler=scheduler, retries=retries, progress=progress
+    )
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+def run_features_job(
+    db: TargetDB | str | Path,
+    job: str,
+    *,
+    workers: int = 0,
+    scheduler: str | None = None,
+    retries: int = 2,
+    models: bool = True,
+    progress: ProgressFn | None = None,
+) -> JobReport:
+    """Features of render job ``job`` (``prism3d db features DB --job NAME``).
+
+    Writes ``features/<job>/part-<unit>.parquet`` (view features of every chip of
+    each finished render unit; needs the depth channel) and, with ``models``,
+    ``features/models/part-<target_id>.parquet`` (model features of each target of the
+    job). Resumable: a part whose recorded source sha256 matches is skipped.
+    """
+    t0 = time.perf_counter()
+    db = _as_db(db)
+    _check_runner(workers, scheduler, retries)
+    spec = load_spec(db, job)
+    if "depth" not in spec.channels:
+        raise DatasetError(
+            f"job {job}: view features need the depth channel (rendered: {', '.join(spec.channels)})"
+        )
+    mdir = db.job_dir(job) / "manifest"
+    fdir = db.path / "features" / job
+    tasks: list[_Task] = []
+    report = JobReport(job=f"{job}-features")
+    for part in sorted(mdir.glob("part-*.parquet")):
+        unit_id = part.stem[len("part-") :]
+        report.total_units += 1
+        if _part_done(fdir / part.name, "prism3d_source_sha256", sha256_file(part)):
+            report.skipped_units += 1
+        else:
+            tasks.append(
+                (
+                    unit_id,
+                    f"features of render unit {unit_id}",
+                    features_unit,
+                    (str(db.path), job, unit_id),
+                )
+            )
+    if models:
+        t = db.targets().set_index("target_id")
+        for tid in spec.targets:
+            report.total_units += 1
+            f = db.path / "features" / "models" / f"part-{tid}.parquet"
+            if _part_done(f, "prism3d_source_sha256", str(t.loc[tid, "model_sha256"])):
+                report.skipped_units += 1
+            else:
+                tasks.append(
+                    (
+                        f"model-{tid}",
+                        f"model features of {tid}",
+                        model_features_unit,
+                        (str(db.path), tid),
+                    )
+                )
+    _execute(
+        tasks, report, workers=workers, scheduler=scheduler, retries=retries, progress=progress
+    )
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+def job_status(db: TargetDB, job: str) -> dict[str, Any]:
+    """``units``, ``done_units``, ``chips`` (rows of finished parts), ``features`` (bool)."""
+    import pyarrow.parquet as pq
+
+    spec = load_spec(db, job)
+    units = plan_units(spec)
+    mdir = db.job_dir(job) / "manifest"
+    done = chips = 0
+    for u in units:
+        p = mdir / f"part-{u.unit_id}.parquet"
+        if _part_done(p, "prism3d_spec_hash", spec.spec_hash):
+            done += 1
+            chips += pq.read_metadata(str(p)).num_rows
+    fdir = db.path / "features" / job
+    return {
+        "units": len(units),
+        "done_units": done,
+        "chips": chips,
+        "features": fdir.is_dir() and any(fdir.glob("part-*.parquet")),
+    }
+
+
+def unit_stats(db: TargetDB | str | Path, job: str) -> Any:
+    """Per-unit worker stats of a render job (``pid``, ``rss_mb``, ``seconds``, ``chips``)
+    from the manifest parts' metadata, as a DataFrame."""
+    import pandas as pd
+
+    db = _as_db(db)
+    rows = []
+    for p in sorted((db.job_dir(job) / "manifest").glob("part-*.parquet")):
+        s = read_metadata(p).get("prism3d_unit_stats")
+        if s:
+            rows.append(json.loads(s))
+    return pd.DataFrame(rows)
