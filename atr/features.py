@@ -509,7 +509,8 @@ def view_features(depth_mm: NDArray, mask: NDArray | None, K: NDArray | CameraMo
     mo = cv2.moments(m8, binaryImage=True)
     hu = cv2.HuMoments(mo).ravel()
     with np.errstate(divide="ignore"):
-        hu_log = np.where(hu != 0, -np.sign(hu) * np.log10(np.abs(hu)), 0.0)
+        safe = np.where(hu != 0, np.abs(hu), 1.0)  # log10 only of non-zero moments
+        hu_log = np.where(hu != 0, -np.sign(hu) * np.log10(safe), 0.0)
     out.update({f"hu_{i + 1}": float(v) for i, v in enumerate(hu_log)})
     mu20, mu02, mu11 = mo["mu20"], mo["mu02"], mo["mu11"]
     tr = mu20 + mu02

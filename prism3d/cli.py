@@ -555,6 +555,116 @@ def _add_bank(sub: Any) -> None:
     p.set_defaults(func=_cmd_bank)
 
 
+# --- datasets: the target database ---------------------------------------------------------
+def _cmd_db(args: argparse.Namespace) -> int:
+    from prism3d.datasets import db as dbm
+
+    a = args.db_action
+    if a == "init":
+        dbm.init_db(args.db)
+        _say(args, f"created target database {args.db}")
+        return 0
+    if a == "add":
+        from prism3d.datasets import ingest
+
+        if args.builtin is not None:
+            if args.meshes:
+                raise InputError("db add: give mesh files or --builtin, not both")
+            rep = ingest.add_builtin(args.db, args.builtin or None, strict=args.strict)
+        else:
+            if not args.meshes:
+                raise InputError("db add: give mesh files (with --class) or --builtin")
+            if args.target_class is None:
+                raise InputError("db add: give the targets' --class")
+            rep = ingest.add_meshes(args.db, args.meshes, target_class=args.target_class, units=args.units,
+                                    up=args.up, length_mm=args.length_mm, yaw_deg=args.yaw, strict=args.strict)
+        _say(args, rep.summary())
+        return 0
+    if a == "render":
+        from prism3d.datasets.jobs import run_render_job
+
+        rep = run_render_job(args.db, args.job, azimuth=args.azimuth, elevation=args.elevation, range_mm=args.range,
+                             size=args.size, channels=args.channels, targets=args.targets, classes=args.classes,
+                             framing=args.framing, camouflage=args.camouflage, seed=args.seed,
+                             workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "render"))
+        print(rep.summary())
+        return rep.exit_code
+    if a == "features":
+        from prism3d.datasets.jobs import run_features_job
+
+        rep = run_features_job(args.db, args.job, workers=args.workers, scheduler=args.scheduler,
+                               progress=_progress(args, "features"))
+        print(rep.summary())
+        return rep.exit_code
+    if a == "info":
+        info = dbm.open_db(args.db).info()
+        print(dbm.info_json(info) if args.json else dbm.format_info(info))
+        return 0
+    problems = dbm.verify_db(args.db)
+    for p in problems:
+        print(p)
+    _say(args, "verify: OK" if not problems else f"verify: {len(problems)} problem(s)")
+    return 1 if problems else 0
+
+
+def _add_db(sub: Any) -> None:
+    p = sub.add_parser("db", help="the target database: init, add, render, features, info, verify",
+                       description="A target database is a folder (format: datasets/FORMAT.md) readable by "
+                       "pandas, pyarrow and DuckDB: targets, normalised models, render jobs (chips + Parquet "
+                       "manifests), feature tables. Jobs are split into units, resume where they stopped and "
+                       "run in-process or on a Dask cluster.")
+    dsub = p.add_subparsers(dest="db_action", metavar="ACTION", required=True, parser_class=_Parser)
+    q = dsub.add_parser("init", help="create an empty database", description="Create an empty target database.")
+    q.add_argument("db", type=Path, metavar="DB")
+    q = dsub.add_parser("add", help="add mesh files (with --class) or the built-in targets",
+                        description="Add targets. Mesh files need --class, and --units/--up unless a "
+                        "FILE.units.yaml sidecar declares them (never guessed). Duplicates (same content hash) "
+                        "are skipped (--strict: an error).")
+    q.add_argument("db", type=Path, metavar="DB")
+    q.add_argument("meshes", nargs="*", type=Path, metavar="MESH")
+    q.add_argument("--builtin", nargs="*", metavar="NAME", help="add built-in targets (all when no names)")
+    q.add_argument("--class", dest="target_class", metavar="C", help="class of the mesh files")
+    q.add_argument("--units", choices=["mm", "cm", "m", "in"])
+    q.add_argument("--up", choices=["y", "z"])
+    q.add_argument("--length-mm", type=float, help="rescale each mesh to this length, mm")
+    q.add_argument("--yaw", type=float, default=0.0, metavar="DEG", help="turn about up so x is forward")
+    q.add_argument("--strict", action="store_true", help="a duplicate is an error")
+    q = dsub.add_parser("render", help="render job: chips of every target at every pose (resumable)",
+                        description="Render every target at azimuth x elevation x range into chips and "
+                        "manifest parts. Re-running resumes; --workers N uses a local Dask cluster, "
+                        "--scheduler an existing one.")
+    q.add_argument("db", type=Path, metavar="DB")
+    q.add_argument("--job", required=True, metavar="NAME")
+    q.add_argument("--azimuth", default="0:360:30", metavar="A0:A1:STEP")
+    q.add_argument("--elevation", default="20", metavar="E0:E1:STEP")
+    q.add_argument("--range", metavar="R1,R2,...", help="camera distances, mm")
+    q.add_argument("--size", type=int, default=128)
+    q.add_argument("--channels", nargs="+", default=["intensity", "depth", "mask", "shape"],
+                   choices=["intensity", "depth", "mask", "shape"])
+    q.add_argument("--targets", nargs="+", metavar="ID", help="only these target ids")
+    q.add_argument("--classes", nargs="+", metavar="C", help="only these classes")
+    q.add_argument("--framing", choices=["fit", "range"], default="fit")
+    q.add_argument("--no-camouflage", dest="camouflage", action="store_false")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--workers", type=int, default=0, help="local Dask workers (0 = in this process)")
+    q.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler")
+    q = dsub.add_parser("features", help="features job over a render job's chips and the models",
+                        description="Compute view features of every chip of a render job (and model features "
+                        "of every target) into Parquet parts; resumable like render.")
+    q.add_argument("db", type=Path, metavar="DB")
+    q.add_argument("--job", required=True, metavar="NAME")
+    q.add_argument("--workers", type=int, default=0)
+    q.add_argument("--scheduler", metavar="tcp://HOST:PORT")
+    q = dsub.add_parser("info", help="counts per table, class and job", description="Summarise the database.")
+    q.add_argument("db", type=Path, metavar="DB")
+    q.add_argument("--json", action="store_true")
+    q = dsub.add_parser("verify", help="check files, hashes, paths and schema versions",
+                        description="Every manifest row has its files, hashes match, no path escapes the "
+                        "database folder, schema versions are known. Exit 1 listing problems.")
+    q.add_argument("db", type=Path, metavar="DB")
+    p.set_defaults(func=_cmd_db)
+
+
 # --- registry ---------------------------------------------------------------------------
 _COMMANDS: list[Callable[[Any], None]] = [
     _add_demo,
@@ -569,6 +679,7 @@ _COMMANDS: list[Callable[[Any], None]] = [
     _add_features,
     _add_render,
     _add_bank,
+    _add_db,
     _add_trigger,
     _add_capture,
 ]
