@@ -15,6 +15,7 @@ References
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -134,3 +135,55 @@ def score_disparity(
         density=int(has_s.sum()) / n,
         n_scored=n,
     )
+
+
+#: The ground-truthed real stereo pairs of the shared test data (see its README).
+BENCHMARK_SCENES = ("tsukuba", "venus", "teddy", "cones", "aloe", "playground", "terrace", "kitti")
+
+
+def load_benchmark_pair(data_root: str | Path, name: str) -> tuple[NDArray, NDArray, NDArray[np.float32], NDArray | None]:
+    """Load one real benchmark pair: ``(left RGB, right RGB, gt disparity (0 = unknown), mask)``.
+
+    ``data_root`` is the shared data folder (holding ``stereo/``); ``mask`` is the
+    Middlebury non-occluded mask (``None`` where the data set has none). Middlebury
+    2001/2003 ground truth is stored scaled (x16 tsukuba, x8 venus, x4 teddy/cones);
+    ETH3D's PFM marks unknown with inf; KITTI's 16-bit PNG is disparity x 256.
+    """
+    import cv2
+
+    from prism3d.io.images import read_image
+    from prism3d.io.pfm import read_pfm
+
+    if name not in BENCHMARK_SCENES:
+        raise InputError(f"unknown benchmark scene {name!r}; valid: {', '.join(BENCHMARK_SCENES)}")
+    st = Path(data_root) / "stereo"
+    mask = None
+
+    def grey(path: Path, flags: int = cv2.IMREAD_GRAYSCALE) -> NDArray:
+        img = cv2.imread(str(path), flags)
+        if img is None:
+            raise InputError(f"{path}: cannot read the ground truth")
+        return img
+
+    if name in ("tsukuba", "venus", "teddy", "cones"):
+        files = {"tsukuba": ("im3.png", "im4.png", 16), "venus": ("im2.ppm", "im6.ppm", 8),
+                 "teddy": ("im2.png", "im6.png", 4), "cones": ("im2.png", "im6.png", 4)}
+        a, b, scale = files[name]
+        d = st / "middlebury_2001_2003" / name
+        left, right = read_image(d / a), read_image(d / b)
+        gt = grey(d / "groundtruth.png") / float(scale)
+        mask = grey(d / "nonocc.png") == 255
+    elif name == "aloe":
+        d = st / "middlebury_2006_aloe"
+        left, right = read_image(d / "aloeL.jpg"), read_image(d / "aloeR.jpg")
+        gt = grey(d / "aloeGT.png").astype(np.float64)
+    elif name in ("playground", "terrace"):
+        d = st / "eth3d_two_view" / name
+        left, right = read_image(d / "im0.png"), read_image(d / "im1.png")
+        gt = read_pfm(d / "disp0.pfm").astype(np.float64)
+        gt[~np.isfinite(gt)] = 0.0
+    else:
+        d = st / "kitti2015_sample"
+        left, right = read_image(d / "image_2_000046_10.png"), read_image(d / "image_3_000046_10.png")
+        gt = grey(d / "disp_occ_0_000046_10.png", cv2.IMREAD_UNCHANGED) / 256.0
+    return left, right, gt.astype(np.float32), mask

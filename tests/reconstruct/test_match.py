@@ -7,6 +7,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from prism3d.reconstruct.stereo_eval import load_benchmark_pair
 import pytest
 from prism3d.reconstruct.match import StereoResult, match_files, match_stereo, match_stereo_full
 from prism3d.reconstruct.stereo_eval import score_disparity
@@ -226,41 +228,9 @@ def test_nothing_matchable_raises() -> None:
 _SCENES = ["tsukuba", "venus", "teddy", "cones", "aloe", "playground", "terrace", "kitti"]
 
 
-def _rgb(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        pytest.skip(f"cannot read {path}")
-    return np.ascontiguousarray(img[:, :, ::-1])
-
-
 def _load_scene(root: Path, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """(left RGB, right RGB, gt disparity (0 = unknown), evaluation mask or None)."""
-    st = root / "stereo"
-    mask = None
-    if name in ("tsukuba", "venus", "teddy", "cones"):
-        files = {"tsukuba": ("im3.png", "im4.png", 16), "venus": ("im2.ppm", "im6.ppm", 8),
-                 "teddy": ("im2.png", "im6.png", 4), "cones": ("im2.png", "im6.png", 4)}
-        a, b, scale = files[name]
-        d = st / "middlebury_2001_2003" / name
-        left, right = _rgb(d / a), _rgb(d / b)
-        gt = cv2.imread(str(d / "groundtruth.png"), cv2.IMREAD_GRAYSCALE) / float(scale)
-        mask = cv2.imread(str(d / "nonocc.png"), cv2.IMREAD_GRAYSCALE) == 255
-    elif name == "aloe":
-        d = st / "middlebury_2006_aloe"
-        left, right = _rgb(d / "aloeL.jpg"), _rgb(d / "aloeR.jpg")
-        gt = cv2.imread(str(d / "aloeGT.png"), cv2.IMREAD_GRAYSCALE).astype(np.float64)
-    elif name in ("playground", "terrace"):
-        from prism3d.io.pfm import read_pfm
-
-        d = st / "eth3d_two_view" / name
-        left, right = _rgb(d / "im0.png"), _rgb(d / "im1.png")
-        gt = read_pfm(d / "disp0.pfm").astype(np.float64)
-        gt[~np.isfinite(gt)] = 0.0
-    else:
-        d = st / "kitti2015_sample"
-        left, right = _rgb(d / "image_2_000046_10.png"), _rgb(d / "image_3_000046_10.png")
-        gt = cv2.imread(str(d / "disp_occ_0_000046_10.png"), cv2.IMREAD_UNCHANGED) / 256.0
-    return left, right, gt.astype(np.float32), mask
+    return load_benchmark_pair(root, name)
 
 
 def _sgbm(left: np.ndarray, right: np.ndarray, num_disp: int) -> np.ndarray:
