@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from prism3d.atr.poses import ChipPose, camera_T_obj_cam, parse_range, poses_table
 from prism3d.capture.mesh import SceneMesh
 
+from prism3d.io.mesh import UNITS_MM
 from prism3d.checks import check_array, check_choice
 from prism3d.errors import InputError
 
@@ -577,7 +578,6 @@ def _render_pyrender(
 
 
 # -- mesh files and the render command ------------------------------------------------------
-_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
 
 def load_mesh_file(
@@ -614,44 +614,13 @@ def load_mesh_file(
         ground (bounding-box centre in x, y; minimum z = 0); vertex albedo from the
         file's face/vertex colours (material colours), grey when there are none.
     """
-    import trimesh
+    from prism3d.io.mesh import read_mesh
 
-    from prism3d.checks import check_file
-
-    p = check_file(path, "mesh file")
-    check_choice(units, "units", tuple(_UNITS_MM))
+    check_choice(units, "units", tuple(UNITS_MM))
     check_choice(up, "up", ("y", "z"))
-    try:
-        loaded = trimesh.load(str(p), force=None, process=False)
-    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
-        raise InputError(f"{p}: cannot read mesh ({exc})") from None
-    geoms = []
-    if isinstance(loaded, trimesh.Scene):
-        for node in loaded.graph.nodes_geometry:
-            T, gname = loaded.graph[node]
-            g = loaded.geometry[gname]
-            if isinstance(g, trimesh.Trimesh) and len(g.faces):
-                g = g.copy()
-                g.apply_transform(T)
-                geoms.append(g)
-    elif isinstance(loaded, trimesh.Trimesh):
-        geoms = [loaded]
-    if not geoms:
-        raise InputError(f"{p}: no triangles in the file (empty mesh)")
-    verts, faces, cols = [], [], []
-    off = 0
-    for g in geoms:
-        try:
-            vc = np.asarray(g.visual.to_color().vertex_colors, dtype=np.float64)[:, :3] / 255.0
-        except Exception:  # noqa: BLE001 - textures trimesh cannot convert: fall back to grey
-            vc = np.full((len(g.vertices), 3), 0.7)
-        if vc.shape != (len(g.vertices), 3):
-            vc = np.full((len(g.vertices), 3), 0.7)
-        verts.append(np.asarray(g.vertices, dtype=np.float64))
-        faces.append(np.asarray(g.faces, dtype=np.int64) + off)
-        cols.append(vc)
-        off += len(g.vertices)
-    v = np.concatenate(verts) * _UNITS_MM[units]
+    data = read_mesh(path)
+    p = Path(path)
+    v = data.vertices * UNITS_MM[units]
     if up == "y":
         v = np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1)
     if yaw_deg:
@@ -671,8 +640,8 @@ def load_mesh_file(
         v = v * (length_mm / ext)
     return SceneMesh(
         v,
-        np.concatenate(faces),
-        vertex_albedo=np.clip(np.concatenate(cols), 0, 1),
+        data.faces,
+        vertex_albedo=data.vertex_colors if data.vertex_colors is not None else np.full((len(v), 3), 0.7),
         name=name or p.stem,
         metadata={"source": str(p), "units": units, "up": up, "yaw_deg": float(yaw_deg)},
     )

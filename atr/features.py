@@ -58,6 +58,7 @@ from prism3d.atr.geometry import (
 from prism3d.capture.rig import CameraModel
 
 from prism3d.checks import check_array, check_choice
+from prism3d.io.mesh import UNITS_MM
 from prism3d.errors import InputError
 
 __all__ = [
@@ -76,7 +77,6 @@ __all__ = [
 FEATURES_SCHEMA_VERSION = 1
 
 #: Millimetres per unit accepted by ``units``.
-UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
 N_SAMPLES = 4096  # surface samples for profile / surface features (fixed seed)
 N_STATIONS = 10  # profile stations along the length axis
@@ -601,24 +601,17 @@ def _load(path: Path) -> tuple[str, NDArray, NDArray | None, NDArray | None, str
             return "mesh", ply.points, ply.faces, None, units
         return "scan", ply.points, None, ply.normals, units
     if ext in _MESH_EXT:
-        import trimesh
+        from prism3d.io.mesh import read_mesh
 
-        try:
-            mesh = trimesh.load(str(path), force="mesh", process=False)
-        except Exception as exc:
-            raise InputError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
-        if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
-            raise InputError(f"{path}: empty mesh (no triangles)")
-        return "mesh", np.asarray(mesh.vertices), np.asarray(mesh.faces), None, None
+        mesh = read_mesh(path)
+        return "mesh", mesh.vertices, mesh.faces, None, None
     if ext == ".pcd":
-        import open3d as o3d
+        from prism3d.io.pcd import read_pcd
 
-        pc = o3d.io.read_point_cloud(str(path))
-        pts = np.asarray(pc.points)
-        if len(pts) == 0:
-            raise InputError(f"{path}: empty or unreadable point cloud")
-        nrm = np.asarray(pc.normals) if pc.has_normals() else None
-        return "scan", pts, None, nrm, None
+        pc = read_pcd(path)
+        if len(pc.points) == 0:
+            raise InputError(f"{path}: empty point cloud")
+        return "scan", pc.points, None, pc.normals, None
     raise InputError(
         f"{path}: unsupported format {ext!r} (meshes: .obj .glb .gltf .off .stl .ply; scans: .ply .pcd)"
     )

@@ -41,6 +41,7 @@ from prism3d.datasets.db import (
     write_table,
 )
 
+from prism3d.io.mesh import UNITS_MM
 from prism3d.errors import DatasetError, Prism3dError
 
 __all__ = [
@@ -56,7 +57,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 _UPS = ("y", "z")
 

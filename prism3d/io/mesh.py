@@ -1,0 +1,95 @@
+"""Triangle meshes from the files users have (OBJ, PLY, GLB/GLTF, OFF, STL).
+
+One loader for every layer: scene graphs (GLB) are flattened with their node
+transforms applied, per-vertex colours come from vertex colours or material
+colours where trimesh can convert them. Coordinates stay in the file's units;
+:data:`UNITS_MM` converts them (units are never guessed: callers ask the user).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.checks import check_file
+from prism3d.errors import InputError
+
+__all__ = ["UNITS_MM", "MESH_SUFFIXES", "MeshData", "read_mesh"]
+
+#: Millimetres per unit.
+UNITS_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+#: File types :func:`read_mesh` reads.
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
+
+
+@dataclass
+class MeshData:
+    """A mesh as stored in a file (file units, file axes)."""
+
+    vertices: NDArray[np.float64]
+    faces: NDArray[np.int64]
+    vertex_colors: NDArray[np.float64] | None
+    """(N, 3) in [0, 1], or None when the file has no colours."""
+
+
+def read_mesh(path: str | Path) -> MeshData:
+    """Read a triangle mesh; a multi-part scene is concatenated in its world frame.
+
+    Raises
+    ------
+    InputError
+        Missing file, unsupported type, unreadable content, or no triangles.
+    """
+    import trimesh
+
+    p = check_file(path, "mesh file")
+    if p.suffix.lower() not in MESH_SUFFIXES:
+        raise InputError(f"{p}: unsupported mesh format {p.suffix!r} (use {' '.join(MESH_SUFFIXES)})")
+    try:
+        loaded = trimesh.load(str(p), force=None, process=False)
+    except Exception as exc:  # trimesh raises many types on bad files
+        raise InputError(f"{p}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+    geoms = []
+    if isinstance(loaded, trimesh.Scene):
+        for node in loaded.graph.nodes_geometry:
+            T, gname = loaded.graph[node]
+            g = loaded.geometry[gname]
+            if isinstance(g, trimesh.Trimesh) and len(g.faces):
+                g = g.copy()
+                g.apply_transform(T)
+                geoms.append(g)
+    elif isinstance(loaded, trimesh.Trimesh) and len(loaded.faces):
+        geoms = [loaded]
+    if not geoms:
+        raise InputError(f"{p}: no triangles in the file (empty mesh)")
+    verts, faces, cols = [], [], []
+    any_colour = False
+    off = 0
+    for g in geoms:
+        vc = None
+        try:
+            vis = g.visual
+            material = getattr(vis, "material", None)
+            if vis.kind == "texture" and getattr(vis, "uv", None) is None and material is not None:
+                # a material colour without a texture (OBJ Kd, glTF baseColorFactor)
+                rgb = np.asarray(material.main_color, dtype=np.float64)[:3] / 255.0
+                vc = np.broadcast_to(rgb, (len(g.vertices), 3)).copy()
+            elif vis.kind is not None:
+                vc = np.asarray(vis.to_color().vertex_colors, dtype=np.float64)[:, :3] / 255.0
+        except Exception:  # textures trimesh cannot convert: no colour
+            vc = None
+        if vc is None or vc.shape != (len(g.vertices), 3):
+            vc = np.full((len(g.vertices), 3), 0.7)
+        else:
+            any_colour = True
+        verts.append(np.asarray(g.vertices, dtype=np.float64))
+        faces.append(np.asarray(g.faces, dtype=np.int64) + off)
+        cols.append(vc)
+        off += len(g.vertices)
+    v = np.concatenate(verts)
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"{p}: vertices contain NaN or inf")
+    return MeshData(v, np.concatenate(faces), np.clip(np.concatenate(cols), 0, 1) if any_colour else None)
