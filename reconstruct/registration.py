@@ -38,11 +38,15 @@ from prism3d.errors import InputError, ReconstructionError
 
 __all__ = [
     "RegistrationResult",
-    "point_spacing",
-    "rigid_fit",
+    "ScanFeatures",
+    "ScanPyramid",
     "global_register",
+    "icp_pyramids",
+    "match_features",
+    "point_spacing",
     "refine_icp",
     "register_pair",
+    "rigid_fit",
     "rotation_angle_deg",
     "turntable_motion",
 ]
@@ -253,23 +257,78 @@ def global_register(
     ----------
     .. [1] Rusu et al., ICRA 2009 (FPFH). .. [2] Fischler and Bolles, 1981.
     """
-    o3d = _o3d()
     src = _check_points(source, "source")
     dst = _check_points(target, "target")
     if voxel is None:
         voxel = _global_voxel(src, point_spacing(src), target_points)
     check_positive(voxel, "voxel")
-    s = _prepare(src, voxel, viewpoint=viewpoint_source)
-    d = _prepare(dst, voxel, viewpoint=viewpoint_target)
-    if len(s.points) < 10 or len(d.points) < 10:
-        raise ReconstructionError("global registration: too few points after down-sampling")
-    param = o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100)
-    fs = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(s, param).data).T
-    fd = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(d, param).data).T
-    ps = np.asarray(s.points)
-    pd = np.asarray(d.points)
-    _, s2d = cKDTree(fd).query(fs, k=1)
-    _, d2s = cKDTree(fs).query(fd, k=1)
+    fs = ScanFeatures(src, voxel, viewpoint=viewpoint_source)
+    fd = ScanFeatures(dst, voxel, viewpoint=viewpoint_target)
+    T, frac = match_features(fs, fd, max_hypotheses=max_hypotheses, seed=seed)
+    return T, frac, float(voxel)
+
+
+class ScanFeatures:
+    """FPFH descriptors of a cloud voxel-down-sampled at ``voxel`` (computed once
+    per scan, matched against any number of other scans by :func:`match_features`).
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    voxel : float
+        Feature voxel (cloud units); normals use a ``3 * voxel`` radius and the
+        descriptor a ``5 * voxel`` radius.
+    viewpoint : (3,) float, optional
+        Sensor position orienting normals (default the origin).
+
+    Attributes
+    ----------
+    points : (M, 3) float64
+    features : (M, 33) float64
+    voxel : float
+    """
+
+    def __init__(self, points: NDArray, voxel: float, *, viewpoint: NDArray | None = None) -> None:
+        o3d = _o3d()
+        pts = _check_points(points, "points")
+        check_positive(voxel, "voxel")
+        down = _prepare(pts, voxel, viewpoint=viewpoint)
+        if len(down.points) < 10:
+            raise ReconstructionError("global registration: too few points after down-sampling")
+        param = o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100)
+        self.features = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(down, param).data).T.copy()
+        self.points = np.asarray(down.points, dtype=np.float64).copy()
+        self.voxel = float(voxel)
+        self._tree = cKDTree(self.features)
+
+
+def match_features(
+    source: ScanFeatures,
+    target: ScanFeatures,
+    *,
+    max_hypotheses: int = 40000,
+    seed: int = 0,
+) -> tuple[NDArray[np.float64], float]:
+    """RANSAC over mutual FPFH matches: coarse ``T_target_source``.
+
+    Hypotheses are 3 matches passing an edge-length test (rigid motions keep
+    distances); the one with most matches within ``1.5 * voxel`` wins and is
+    refitted on its inliers. Deterministic for a given ``seed``.
+
+    Returns
+    -------
+    T_target_source : (4, 4) float64
+    inlier_fraction : float
+
+    References
+    ----------
+    .. [1] Rusu et al., ICRA 2009. .. [2] Fischler and Bolles, 1981.
+    """
+    voxel = max(source.voxel, target.voxel)
+    ps, pd = source.points, target.points
+    fs, fd = source.features, target.features
+    _, s2d = target._tree.query(fs, k=1)
+    _, d2s = source._tree.query(fd, k=1)
     mutual = d2s[s2d] == np.arange(len(fs))
     si = np.nonzero(mutual)[0]
     if len(si) < 30:
@@ -324,7 +383,159 @@ def global_register(
             break
         T = rigid_fit(a[inl], b[inl])
     r = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1)
-    return T, float((r < thr).mean()), float(voxel)
+    return T, float((r < thr).mean())
+
+
+class ScanPyramid:
+    """A cloud prepared for repeated ICP: voxel levels with oriented normals.
+
+    Built once per scan (down-sampling and normal estimation dominate the cost of
+    a well-initialised ICP), then used as source or target of any number of
+    :func:`icp_pyramids` calls. Level ``i`` is the cloud voxel-averaged at
+    ``scales[i] * spacing`` (``scales[i] <= 1``: the points as given).
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    spacing : float
+        Point spacing of ``points`` (cloud units).
+    scales : tuple of float
+        Coarse to fine; a final ``1.0`` is appended when missing.
+    normals : (N, 3) float, optional
+        Used at the finest level instead of estimated normals.
+    viewpoint : (3,) float, optional
+        Sensor position orienting estimated normals (default the origin).
+    """
+
+    def __init__(
+        self,
+        points: NDArray,
+        spacing: float,
+        *,
+        scales: tuple[float, ...] = (8.0, 4.0, 2.0, 1.0),
+        normals: NDArray | None = None,
+        viewpoint: NDArray | None = None,
+    ) -> None:
+        o3d = _o3d()
+        pts = _check_points(points, "points")
+        check_positive(spacing, "spacing")
+        scales = tuple(float(s) for s in scales)
+        if not scales or scales[-1] > 1:
+            scales = scales + (1.0,)
+        vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, dtype=np.float64)
+        full = _make_cloud(pts, normals)
+        self.spacing = float(spacing)
+        self.scales = scales
+        self.n_points = len(pts)
+        self._levels = []
+        for sc in scales:
+            v = sc * spacing
+            pc = full.voxel_down_sample(v) if sc > 1 else o3d.geometry.PointCloud(full)
+            if sc <= 1 and normals is not None:
+                n = np.asarray(pc.normals)
+                pc.normals = o3d.utility.Vector3dVector(n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12))
+            else:
+                pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3.0 * max(v, spacing), max_nn=20))
+                pc.orient_normals_towards_camera_location(vp)
+            self._levels.append(pc)
+
+    def level_sizes(self) -> list[int]:
+        """Number of points per level, coarse to fine."""
+        return [len(pc.points) for pc in self._levels]
+
+
+def icp_pyramids(
+    source: ScanPyramid,
+    target: ScanPyramid,
+    T_init: NDArray,
+    *,
+    first_scale: float | None = None,
+    max_iterations: int | tuple[int, ...] = 30,
+    method: str = "point_to_plane",
+) -> RegistrationResult:
+    """Multi-scale rigid ICP between two prepared clouds.
+
+    At each level (coarse to fine, starting at ``first_scale``) correspondences
+    are searched within ``2 * max(scale, 1) * spacing`` and weighted by Tukey's
+    biweight (``k = max(scale, 1) * spacing``), which discounts boundary and
+    non-overlap pairs; the point-to-plane step is solved by Gauss-Newton.
+
+    Parameters
+    ----------
+    source, target : ScanPyramid
+        Built with the same ``scales`` and ``spacing``.
+    T_init : (4, 4) float
+        Initial ``T_target_source``.
+    first_scale : float, optional
+        Skip the levels coarser than this (a good ``T_init`` needs only the fine
+        levels).
+    max_iterations : int or tuple of int
+        Per level.
+    method : {"point_to_plane", "point_to_point"}
+
+    Returns
+    -------
+    RegistrationResult
+
+    References
+    ----------
+    .. [3] Chen and Medioni, 1992.
+    """
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    check_choice(method, "method", ("point_to_plane", "point_to_point"))
+    if source.scales != target.scales or source.spacing != target.spacing:
+        raise InputError("source/target pyramids: built with different scales or spacing")
+    T = np.asarray(check_array(T_init, "T_init", shape=(4, 4), dtype_kind="fiu"), dtype=np.float64)
+    spacing = source.spacing
+    levels = [i for i, sc in enumerate(source.scales) if first_scale is None or sc <= first_scale]
+    if not levels:
+        levels = [len(source.scales) - 1]
+    its = (max_iterations,) * len(levels) if isinstance(max_iterations, int) else tuple(max_iterations)
+    if len(its) != len(levels):
+        raise InputError(f"max_iterations: expected {len(levels)} values (one per level), got {len(its)}")
+    dist = 2.0 * spacing
+    s_l = d_l = None
+    ran = False
+    for i, it in zip(levels, its, strict=True):
+        sc = source.scales[i]
+        s_l, d_l = source._levels[i], target._levels[i]
+        last = i == len(source.scales) - 1
+        if not last and min(len(s_l.points), len(d_l.points)) < min(1500, source.n_points // 4):
+            continue  # too coarse for this cloud: a handful of points only misleads ICP
+        v = max(sc, 1.0) * spacing
+        dist = 2.0 * v
+        if method == "point_to_plane":
+            est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=v))
+        else:
+            est = reg.TransformationEstimationPointToPoint(False)
+        res = reg.registration_icp(
+            s_l, d_l, dist, T, est,
+            reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(it)),
+        )
+        T = np.asarray(res.transformation, dtype=np.float64).copy()
+        ran = True
+    if not ran or s_l is None:
+        raise ReconstructionError("ICP: no usable level")
+    if np.linalg.det(T[:3, :3]) <= 0:  # cannot happen with a rigid estimator; never return one
+        raise ReconstructionError("ICP returned a non-rotation")
+    # registration_icp evaluates its result (fitness, RMSE, correspondences) at
+    # the returned transform.
+    corr = np.asarray(res.correspondence_set)
+    info = _information(np.asarray(d_l.points)[corr[:, 1]] if len(corr) else np.zeros((0, 3)))
+    return RegistrationResult(T, float(res.fitness), float(res.inlier_rmse), info, float(dist))
+
+
+def _information(q: NDArray) -> NDArray[np.float64]:
+    """Information matrix of point correspondences at target points ``q`` (M, 3):
+    ``sum J^T J`` with ``J = [[q]_x^T | I]`` (rotation first, Open3D's convention)."""
+    J = np.zeros((len(q), 3, 6))
+    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    J[:, 0, 1], J[:, 0, 2] = z, -y
+    J[:, 1, 0], J[:, 1, 2] = -z, x
+    J[:, 2, 0], J[:, 2, 1] = y, -x
+    J[:, 0, 3] = J[:, 1, 4] = J[:, 2, 5] = 1.0
+    return np.einsum("mki,mkj->ij", J, J)
 
 
 def refine_icp(
@@ -344,7 +555,8 @@ def refine_icp(
 
     Level ``i`` down-samples both clouds at ``scales[i] * spacing`` and matches
     within ``2 * max(scales[i], 1) * spacing``, with Tukey's robust loss
-    (``k = max(scales[i], 1) * spacing``).
+    (``k = max(scales[i], 1) * spacing``). See :class:`ScanPyramid` and
+    :func:`icp_pyramids` to prepare each cloud once for many registrations.
 
     Parameters
     ----------
@@ -374,54 +586,22 @@ def refine_icp(
     ----------
     .. [3] Chen and Medioni, 1992.
     """
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
     src = _check_points(source, "source")
     dst = _check_points(target, "target")
-    T = np.asarray(check_array(T_init, "T_init", shape=(4, 4), dtype_kind="fiu"), dtype=np.float64)
+    check_array(T_init, "T_init", shape=(4, 4), dtype_kind="fiu")
     if spacing is None:
         spacing = point_spacing(src)
     check_positive(spacing, "spacing")
     check_choice(method, "method", ("point_to_plane", "point_to_point"))
     if len(scales) != len(max_iterations):
         raise InputError(f"scales and max_iterations: lengths differ ({len(scales)} vs {len(max_iterations)})")
-    s_full = _make_cloud(src, source_normals)
-    d_full = _make_cloud(dst, target_normals)
-    dist = 2.0 * spacing
-    s_l = d_l = None
     scales = tuple(scales)
     max_iterations = tuple(max_iterations)
     if scales[-1] > 1:
         scales, max_iterations = scales + (1.0,), max_iterations + (max_iterations[-1],)
-    for sc, it in zip(scales, max_iterations, strict=True):
-        v = sc * spacing
-        s_l = s_full.voxel_down_sample(v) if sc > 1 else s_full
-        if sc > 1 and len(s_l.points) < min(2000, len(src) // 4):
-            continue  # too coarse for this cloud: a handful of points only misleads ICP
-        d_l = d_full.voxel_down_sample(v) if sc > 1 else d_full
-        if target_normals is None:
-            d_l.estimate_normals(
-                o3d.geometry.KDTreeSearchParamHybrid(radius=3.0 * max(v, spacing), max_nn=30)
-            )
-            vp = np.zeros(3) if viewpoint_target is None else np.asarray(viewpoint_target, dtype=np.float64)
-            d_l.orient_normals_towards_camera_location(vp)
-        dist = max(2.0 * v, 2.0 * spacing)
-        # Tukey's biweight discounts boundary / sharp-edge correspondences, which
-        # otherwise bias point-to-plane ICP by a few hundredths of a degree.
-        if method == "point_to_plane":
-            est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max(v, spacing)))
-        else:
-            est = reg.TransformationEstimationPointToPoint(False)
-        res = reg.registration_icp(
-            s_l, d_l, dist, T, est,
-            reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=it),
-        )
-        T = np.asarray(res.transformation, dtype=np.float64).copy()
-    if np.linalg.det(T[:3, :3]) <= 0:  # cannot happen with a rigid estimator; never return one
-        raise ReconstructionError("ICP returned a non-rotation")
-    ev = reg.evaluate_registration(s_l, d_l, dist, T)
-    info = np.asarray(reg.get_information_matrix_from_point_clouds(s_l, d_l, dist, T), dtype=np.float64)
-    return RegistrationResult(T, float(ev.fitness), float(ev.inlier_rmse), info, float(dist))
+    ps = ScanPyramid(src, spacing, scales=scales, normals=source_normals)
+    pd = ScanPyramid(dst, spacing, scales=scales, normals=target_normals, viewpoint=viewpoint_target)
+    return icp_pyramids(ps, pd, T_init, max_iterations=max_iterations, method=method)
 
 
 def _rotvec(R: NDArray) -> NDArray[np.float64]:

@@ -12,11 +12,14 @@ Pipeline (:func:`stitch_scans`):
    (:func:`~prism3d.reconstruct.registration.turntable_motion`), and then used as
    the initial guess of every pair (``A^j`` for views ``j`` steps apart).
    Without a hint each consecutive pair is registered globally.
-   Every edge is refined by multi-scale point-to-plane ICP.
+   Every edge is refined by multi-scale point-to-plane ICP with Tukey's robust
+   loss. Registration works on copies voxel-down-sampled to about
+   ``max_registration_points`` points; each copy is prepared once (voxel levels
+   with normals, FPFH features) and shared by all its edges.
 3. Loop-closure edges between non-adjacent views whose (predicted) viewing
    directions differ by at most 100 deg -- including last -> first of a 360
-   sequence -- refined by ICP from the chained odometry and kept when their
-   fitness passes.
+   sequence -- refined by ICP at the finest level from the chained odometry and
+   kept when their fitness passes; each edge carries its information matrix.
 4. A pose graph over all views, optimised globally (Levenberg-Marquardt with a
    line process that discounts wrong loop closures).
 5. Failure detection: an odometry edge with too little overlap (fitness), a large
@@ -49,19 +52,22 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from prism3d.reconstruct.fusion import fuse_clouds, mesh_is_closed, poisson_mesh
+from prism3d.reconstruct.registration import (
+    ScanFeatures,
+    ScanPyramid,
+    _global_voxel,
+    icp_pyramids,
+    match_features,
+    point_spacing,
+    rotation_angle_deg,
+    turntable_motion,
+)
 
 from prism3d.checks import check_array, check_choice, check_positive
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.io.atomic import atomic_path, atomic_write_text
 from prism3d.progress import ProgressFn
-from prism3d.reconstruct.fusion import fuse_clouds, poisson_mesh
-from prism3d.reconstruct.registration import (
-    global_register,
-    point_spacing,
-    refine_icp,
-    rotation_angle_deg,
-    turntable_motion,
-)
 
 __all__ = ["StitchResult", "load_cloud", "stitch_scans", "stitch_to_files"]
 
@@ -95,7 +101,9 @@ class StitchResult:
         ``spacing``, ``registration_voxel``, ``edges`` (list of dicts: ``source``,
         ``target``, ``kind`` odometry/loop, ``fitness``, ``inlier_rmse``,
         ``residual_deg``, ``residual`` (translation residual, input units),
-        ``kept``), ``warnings`` (list of str) and ``seconds`` per stage.
+        ``kept``), ``mesh_closed`` (every mesh edge shared by exactly two faces;
+        None without a mesh), ``warnings`` (list of str) and ``seconds`` per
+        stage.
     """
 
     T_model_scan: list[NDArray[np.float64]]
@@ -209,7 +217,7 @@ def stitch_scans(
     smooth_iterations: int = 0,
     min_fitness: float = 0.2,
     max_residual_deg: float = 1.0,
-    max_registration_points: int = 40000,
+    max_registration_points: int = 30000,
     loop_max_angle_deg: float = 100.0,
     on_failure: str = "raise",
     seed: int = 0,
@@ -236,7 +244,10 @@ def stitch_scans(
     mesh_depth : int, optional
         Poisson octree depth (default from extent / spacing).
     mesh_trim_quantile : float
-        Density-quantile trimming of the mesh (0 keeps it watertight).
+        Density-quantile trimming of the mesh. 0 (default) keeps it closed
+        (watertight) but invents a smooth surface where no scan looked; > 0 removes
+        that guess and opens holes there (see
+        :func:`~prism3d.reconstruct.fusion.poisson_mesh`).
     smooth_iterations : int
         Taubin smoothing passes on the mesh.
     min_fitness : float
@@ -313,6 +324,17 @@ def stitch_scans(
         reg_sp.append(v)
     rsp = float(max(reg_sp))
     radius = float(max(np.percentile(np.linalg.norm(p - p.mean(axis=0), axis=1), 95) for p in reg_pts))
+    # Every scan is prepared once (voxel levels + normals, FPFH features on demand)
+    # and reused by all the edges it takes part in.
+    pyramids = [ScanPyramid(p, rsp) for p in reg_pts]
+    feat_voxel = _global_voxel(reg_pts[0], rsp, 3000)
+    features: dict[int, ScanFeatures] = {}
+
+    def feats(k: int) -> ScanFeatures:
+        if k not in features:
+            features[k] = ScanFeatures(reg_pts[k], feat_voxel)
+        return features[k]
+
     seconds["prepare"] = time.perf_counter() - t0
 
     # --- odometry edges ---------------------------------------------------
@@ -320,18 +342,22 @@ def stitch_scans(
     edges: list[dict[str, Any]] = []
     results: dict[tuple[int, int], Any] = {}
 
-    def icp(i: int, j: int, init: NDArray):
+    def icp(i: int, j: int, init: NDArray, first_scale: float | None = None):
         """Register scan j onto scan i (T_i_j)."""
-        return refine_icp(reg_pts[j], reg_pts[i], init, spacing=rsp)
+        return icp_pyramids(pyramids[j], pyramids[i], init, first_scale=first_scale)
+
+    def global_pair(i: int, j: int):
+        T, _ = match_features(feats(j), feats(i), seed=seed)
+        return icp(i, j, T)
 
     A: NDArray | None = None
     if turntable_step_deg is not None:
         for k in range(min(n - 1, 3)):
-            T, _, _ = global_register(reg_pts[k + 1], reg_pts[k], seed=seed)
-            r = icp(k, k + 1, T)
+            r = global_pair(k, k + 1)
             cand = turntable_motion(r.T_target_source, float(turntable_step_deg))
             if cand is not None and r.fitness >= min_fitness:
                 A = cand
+                results[(k, k + 1)] = r
                 break
             log.info("turntable axis from views %d-%d rejected (fitness %.3f)", k, k + 1, r.fitness)
         if A is None:
@@ -341,14 +367,13 @@ def stitch_scans(
                 "of that size"
             )
     for k in range(n - 1):
-        r = None
-        if A is not None:
-            r = icp(k, k + 1, A)
+        r = results.get((k, k + 1))
+        if r is None and A is not None:
+            r = icp(k, k + 1, A, first_scale=4.0)
             if r.fitness < min_fitness:
                 r = None
         if r is None:
-            T, _, _ = global_register(reg_pts[k + 1], reg_pts[k], seed=seed)
-            r = icp(k, k + 1, T)
+            r = global_pair(k, k + 1)
         results[(k, k + 1)] = r
         if r.fitness < min_fitness:
             fail(
@@ -369,13 +394,10 @@ def stitch_scans(
     t0 = time.perf_counter()
     for i in range(n):
         for j in range(i + 2, n):
-            if A is not None:
-                init = np.linalg.matrix_power(A, j - i)
-            else:
-                init = _rigid_inverse(T_model[i]) @ T_model[j]
+            init = _rigid_inverse(T_model[i]) @ T_model[j]
             if rotation_angle_deg(init) > loop_max_angle_deg:
                 continue
-            r = icp(i, j, init)
+            r = icp(i, j, init, first_scale=2.0)
             if r.fitness >= min_fitness and r.inlier_rmse <= 1.5 * r.max_distance:
                 results[(i, j)] = r
             else:
@@ -413,8 +435,8 @@ def stitch_scans(
         ang, disp = _residual(rel, r.T_target_source, radius)
         kind = "odometry" if j == i + 1 else "loop"
         edges.append(
-            dict(source=j, target=i, kind=kind, fitness=r.fitness, inlier_rmse=r.inlier_rmse,
-                 residual_deg=ang, residual=disp, kept=(i, j) in kept_pairs)
+            {"source": j, "target": i, "kind": kind, "fitness": r.fitness, "inlier_rmse": r.inlier_rmse,
+             "residual_deg": ang, "residual": disp, "kept": (i, j) in kept_pairs}
         )
         if kind == "odometry" and (ang > max_residual_deg or disp > 20.0 * rsp):
             fail(
@@ -437,6 +459,7 @@ def stitch_scans(
     seconds["fusion"] = time.perf_counter() - t0
     tick("fusion")
     mv = mf = mc = None
+    mesh_closed = None
     if mesh:
         t0 = time.perf_counter()
         mv, mf, mc = poisson_mesh(
@@ -444,12 +467,16 @@ def stitch_scans(
             trim_quantile=mesh_trim_quantile, smooth_iterations=smooth_iterations,
         )
         seconds["mesh"] = time.perf_counter() - t0
+        mesh_closed = mesh_is_closed(mf)
+        if not mesh_closed and mesh_trim_quantile == 0:
+            log.warning("the Poisson mesh is not closed")
     tick("mesh")
     seconds["total"] = time.perf_counter() - t_start
-    diag = dict(
+    diag = dict(  # noqa: C408
         spacing=spacing,
         registration_voxel=rsp,
         turntable_motion=None if A is None else A.tolist(),
+        mesh_closed=mesh_closed,
         edges=edges,
         warnings=warnings_,
         seconds=seconds,

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from prism3d.errors import InputError
 from prism3d.reconstruct.registration import (
     global_register,
     point_spacing,
@@ -15,6 +13,8 @@ from prism3d.reconstruct.registration import (
     rotation_angle_deg,
     turntable_motion,
 )
+
+from prism3d.errors import InputError
 
 BUNNY_REF = np.array(
     [
@@ -91,7 +91,7 @@ def test_global_then_icp_recovers_pose_and_is_deterministic():
     src = _surface()
     T_true = _pose([0.3, 1, 0.2], 25, [8, -3, 12])
     dst = _apply(T_true, _surface(seed=1))
-    T1, frac, vox = global_register(src, dst, seed=3)
+    T1, _, _ = global_register(src, dst, seed=3)
     T2, _, _ = global_register(src, dst, seed=3)
     np.testing.assert_array_equal(T1, T2)
     assert rotation_angle_deg(np.linalg.inv(T_true) @ T1) < 5
@@ -120,15 +120,39 @@ def test_errors():
 
 @pytest.mark.realdata
 def test_bunny_bun0_to_bun4_matches_pcl_reference(shared_data):
+    """bun0 -> bun4 (metres, ~400 points each) without a start guess.
+
+    PCL's reference is classic point-to-point ICP (max distance 0.05 m, i.e. every
+    point of bun0 takes part, overlap or not). From our global registration that
+    estimator reproduces it; our default robust point-to-plane ICP (only the
+    overlap, Tukey-weighted) converges ~6.5 deg away, where Open3D's generalized
+    ICP -- an independent estimator -- also lands: on these sparse partial scans the
+    two objectives have different minima, so the default is checked against both.
+    """
+    o3d = pytest.importorskip("open3d")
     from prism3d.io.pcd import read_pcd
 
     a = read_pcd(shared_data / "pointclouds/pcl/bun0.pcd").points
     b = read_pcd(shared_data / "pointclouds/pcl/bun4.pcd").points
-    # PCL's reference is point-to-point ICP from the identity, max distance 0.05 m, 50 iterations.
-    r = refine_icp(a, b, np.eye(4), method="point_to_point", spacing=0.025, scales=(1.0,), max_iterations=(50,))
+    T_glob, _, _ = global_register(a, b, seed=0)  # no start guess
+    assert rotation_angle_deg(np.linalg.inv(BUNNY_REF) @ T_glob) < 10
+    r = refine_icp(a, b, T_glob, method="point_to_point", spacing=0.025, scales=(1.0,), max_iterations=(50,))
     err_deg = rotation_angle_deg(np.linalg.inv(BUNNY_REF) @ r.T_target_source)
     err_mm = 1000 * np.linalg.norm(r.T_target_source[:3, 3] - BUNNY_REF[:3, 3])
     assert err_deg < 1.0 and err_mm < 2.0, (err_deg, err_mm)
+    # The default pipeline (global + robust multi-scale point-to-plane ICP).
+    d = register_pair(a, b)
+    reg = o3d.pipelines.registration
+    pa = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(a))
+    pb = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(b))
+    for pc in (pa, pb):
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.02, max_nn=30))
+    g = reg.registration_generalized_icp(pa, pb, 0.012, BUNNY_REF, reg.TransformationEstimationForGeneralizedICP(),
+                                         reg.ICPConvergenceCriteria(1e-9, 1e-9, 100))
+    T_g = np.asarray(g.transformation)
+    assert rotation_angle_deg(np.linalg.inv(T_g) @ d.T_target_source) < 1.0
+    assert 1000 * np.linalg.norm(d.T_target_source[:3, 3] - T_g[:3, 3]) < 2.0
+    assert rotation_angle_deg(np.linalg.inv(BUNNY_REF) @ d.T_target_source) < 8.0
 
 
 @pytest.mark.realdata

@@ -1,5 +1,7 @@
 """Multi-view stitching: 8 turntable views of the built-in tank, with and without a
-turntable hint; files, determinism of outputs, failure detection, bad input."""
+turntable hint, against the issue's targets (0.05 deg, 0.1 mm RMS surface motion,
+0.3 mm fused RMS); files, failure detection, bad input. The slow tests use the
+scene simulator's full-resolution views."""
 
 from __future__ import annotations
 
@@ -7,10 +9,10 @@ import json
 
 import numpy as np
 import pytest
-
-from prism3d.errors import InputError, ReconstructionError
 from prism3d.reconstruct.registration import rotation_angle_deg
 from prism3d.reconstruct.stitch import stitch_scans, stitch_to_files
+
+from prism3d.errors import InputError, ReconstructionError
 
 
 def _rz(deg):
@@ -20,10 +22,9 @@ def _rz(deg):
     return T
 
 
-@pytest.fixture(scope="module")
-def tank_views():
-    """8 views at 45 deg of tank_t1 (raycast, ~1 mm spacing, 0.1 mm noise along the
-    ray, 10 % dropouts): scans in each left-camera frame + true T_world_cam."""
+def _raycast_views(W=720, H=540, f=3000.0, views=8, step_deg=45.0, noise_mm=0.15, dropout=0.1, seed=7):
+    """Views of tank_t1 on a turntable (raycast, ~0.4 mm spacing, Gaussian noise
+    along the ray, random dropouts): scans in each camera frame + true T_world_cam."""
     o3d = pytest.importorskip("open3d")
     from prism3d.capture.rig import look_at
     from prism3d.datasets.targets import builtin_target
@@ -35,77 +36,149 @@ def tank_views():
             o3d.core.Tensor(tank.vertices.astype(np.float32)), o3d.core.Tensor(tank.faces.astype(np.int32))
         )
     )
-    W, H, f = 360, 270, 1300.0
     u, v = np.meshgrid(np.arange(W) - (W - 1) / 2, np.arange(H) - (H - 1) / 2)
     rays_cam = np.stack([u / f, v / f, np.ones_like(u)], -1).reshape(-1, 3)
     rays_cam /= np.linalg.norm(rays_cam, axis=1, keepdims=True)
     T0 = look_at([0.0, -1200.0, 380.0], [0.0, 0.0, 20.0], up=[0.0, 0.0, 1.0])
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(seed)
     scans, poses = [], []
-    for k in range(8):
-        T = _rz(45.0 * k) @ T0
+    for k in range(views):
+        T = _rz(step_deg * k) @ T0
         d_world = rays_cam @ T[:3, :3].T
         rays = np.concatenate([np.broadcast_to(T[:3, 3], d_world.shape), d_world], 1).astype(np.float32)
         hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        ok = np.isfinite(hit) & (rng.random(len(hit)) > 0.1)
-        t = hit[ok] + rng.normal(0, 0.1, ok.sum())
+        ok = np.isfinite(hit) & (rng.random(len(hit)) > dropout)
+        t = hit[ok] + rng.normal(0, noise_mm, ok.sum())
         pts = rays_cam[ok] * t[:, None]
         col = np.tile(np.array([[90, 110, 60]], np.uint8), (len(pts), 1))
         scans.append((pts, col, None))
         poses.append(T)
-    return scans, poses, tank
+    return scans, poses, tank.vertices, tank.faces
 
 
-def _check(res, poses, tank, max_deg, max_rms_mm, max_fused_rms_mm):
-    import open3d as o3d
+@pytest.fixture(scope="module")
+def tank_views():
+    return _raycast_views()
 
+
+def _pose_errors(res, poses, V):
+    """Per view: rotation error (deg) and RMS motion (mm) of the true surface."""
     T0_inv = np.linalg.inv(poses[0])
+    out = []
     for k, T in enumerate(res.T_model_scan):
         true = T0_inv @ poses[k]
         assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
-        assert rotation_angle_deg(np.linalg.inv(true) @ T) < max_deg, k
-        Vk = tank.vertices @ np.linalg.inv(poses[k])[:3, :3].T + np.linalg.inv(poses[k])[:3, 3]
+        Vk = V @ np.linalg.inv(poses[k])[:3, :3].T + np.linalg.inv(poses[k])[:3, 3]
         diff = (Vk @ T[:3, :3].T + T[:3, 3]) - (Vk @ true[:3, :3].T + true[:3, 3])
-        assert np.sqrt(np.mean(np.sum(diff**2, 1))) < max_rms_mm, k
-    V0 = tank.vertices @ T0_inv[:3, :3].T + T0_inv[:3, 3]
+        out.append((rotation_angle_deg(np.linalg.inv(true) @ T), float(np.sqrt(np.mean(np.sum(diff**2, 1))))))
+    return out
+
+
+def _fused_rms(res, poses, V, F):
+    import open3d as o3d
+
+    T0_inv = np.linalg.inv(poses[0])
+    V0 = V @ T0_inv[:3, :3].T + T0_inv[:3, 3]
     sc = o3d.t.geometry.RaycastingScene()
     sc.add_triangles(o3d.t.geometry.TriangleMesh(o3d.core.Tensor(V0.astype(np.float32)),
-                                                 o3d.core.Tensor(tank.faces.astype(np.int32))))
+                                                 o3d.core.Tensor(F.astype(np.int32))))
     d = sc.compute_distance(o3d.core.Tensor(res.points.astype(np.float32))).numpy()
-    assert np.sqrt(np.mean(d**2)) < max_fused_rms_mm
+    return float(np.sqrt(np.mean(d**2)))
 
 
-def test_eight_views_with_turntable_hint(tank_views, tmp_path):
-    scans, poses, tank = tank_views
+def _check(res, poses, V, F):
+    """The issue's targets: every view within 0.05 deg, the true surface moved by at
+    most 0.1 mm RMS, the fused cloud within 0.3 mm RMS of the true mesh."""
+    errs = _pose_errors(res, poses, V)
+    assert max(a for a, _ in errs) <= 0.05, errs
+    assert max(b for _, b in errs) <= 0.1, errs
+    assert _fused_rms(res, poses, V, F) <= 0.3
+
+
+def test_eight_views_with_turntable_hint(tank_views):
+    from prism3d.reconstruct.fusion import mesh_is_closed
+
+    scans, poses, V, F = tank_views
     calls = []
-    res = stitch_scans(scans, turntable_step_deg=45.0, mesh=True, progress=lambda d, t, s: calls.append(d))
-    _check(res, poses, tank, max_deg=0.1, max_rms_mm=0.5, max_fused_rms_mm=0.4)
+    res = stitch_scans(scans, turntable_step_deg=45.0, mesh=True, mesh_depth=7,
+                       max_registration_points=20000, progress=lambda d, t, s: calls.append(d))
+    _check(res, poses, V, F)
     assert res.mesh_faces is not None and len(res.mesh_faces) > 1000
+    assert mesh_is_closed(res.mesh_faces) and res.diagnostics["mesh_closed"]
     assert res.colors is not None and res.mesh_colors is not None
     kinds = {(e["target"], e["source"]): e["kind"] for e in res.diagnostics["edges"]}
     assert kinds[(0, 7)] == "loop"  # 360 deg loop closure found
     assert calls and calls[-1] == max(calls)
 
 
-@pytest.mark.slow
 def test_eight_views_without_hint(tank_views):
-    scans, poses, tank = tank_views
-    res = stitch_scans(scans, mesh=False)
-    _check(res, poses, tank, max_deg=0.1, max_rms_mm=0.5, max_fused_rms_mm=0.4)
-    assert res.mesh_vertices is None
+    scans, poses, V, F = tank_views
+    res = stitch_scans(scans, mesh=False, max_registration_points=20000)
+    _check(res, poses, V, F)
+    assert res.mesh_vertices is None and res.diagnostics["turntable_motion"] is None
+
+
+def _rig_set():
+    """8 views at 45 deg of tank_t1 rendered once by the scene simulator (slow;
+    cached in $PRISM3D_STITCH_SET or /tmp/prism3d_stitch_tank8)."""
+    import os
+    from pathlib import Path
+
+    folder = Path(os.environ.get("PRISM3D_STITCH_SET", "/tmp/prism3d_stitch_tank8"))
+    if not (folder / "poses.json").exists():
+        from prism3d.capture.simulate import simulate_to_folder
+        from prism3d.datasets.targets import builtin_target
+
+        simulate_to_folder("scene", folder, target=builtin_target("tank_t1"), views=8, seed=1, supersample=1)
+    return folder
+
+
+def _truth_scans(folder, stride=1, noise_mm=0.15, dropout=0.1, seed=0):
+    """Scans back-projected from the simulator's true left depth (every pixel, as a
+    reconstruction gives), with noise along the ray and dropouts."""
+    from prism3d.capture.rig import StereoRig
+
+    from prism3d.io.ply import read_ply
+
+    rig = StereoRig.load(folder / "rig.yaml")
+    rays = rig.left.pixel_grid_rays()[::stride, ::stride]
+    views = json.loads((folder / "poses.json").read_text())["views"]
+    rng = np.random.default_rng(seed)
+    scans, poses = [], []
+    for v in views:
+        t = np.load(folder / v["truth"], allow_pickle=False)
+        z = t["depth_left_mm"][::stride, ::stride]
+        m = np.isfinite(z)
+        r = rays[m]
+        p = r / r[:, 2:3] * z[m][:, None] + r * rng.normal(0, noise_mm, m.sum())[:, None]
+        col = (np.clip(t["albedo_left"][::stride, ::stride][m], 0, 1) * 255).astype(np.uint8)
+        keep = rng.random(len(p)) >= dropout
+        scans.append((p[keep], col[keep], None))
+        poses.append(np.array(v["T_world_cam"]))
+    target = read_ply(folder / "target.ply")
+    return scans, poses, target.points, target.faces
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("hint", [45.0, None])
+def test_virtual_rig_eight_views_full_density(hint):
+    folder = _rig_set()
+    scans, poses, V, F = _truth_scans(folder)
+    res = stitch_scans(scans, turntable_step_deg=hint, mesh=False)
+    _check(res, poses, V, F)
 
 
 def test_stitch_to_files_writes_model_mesh_and_poses(tank_views, tmp_path):
     from prism3d.io.ply import read_ply, write_ply
 
-    scans, _, _ = tank_views
+    scans = tank_views[0]
     paths = []
     for k in (0, 1, 2):
         p = tmp_path / f"scan_{k}.ply"
         write_ply(p, scans[k][0], colors=scans[k][1])
         paths.append(p)
     res = stitch_to_files(paths, tmp_path / "out" / "model.ply", mesh_out=tmp_path / "out" / "mesh.ply",
-                          turntable_step_deg=45.0)
+                          turntable_step_deg=45.0, mesh_depth=6, max_registration_points=8000)
     model = read_ply(tmp_path / "out" / "model.ply")
     mesh = read_ply(tmp_path / "out" / "mesh.ply")
     assert len(model.points) == len(res.points) and mesh.faces is not None
@@ -119,10 +192,10 @@ def test_stitch_to_files_writes_model_mesh_and_poses(tank_views, tmp_path):
 
 
 def test_non_overlapping_scans_raise_naming_views(tank_views):
-    scans, _, _ = tank_views
+    scans = tank_views[0]
     far = (scans[4][0] + [5000.0, 0, 0], None, None)  # a different place entirely
     with pytest.raises(ReconstructionError, match="scan 0 and scan 1"):
-        stitch_scans([scans[0], far], mesh=False)
+        stitch_scans([scans[0], far], mesh=False, max_registration_points=8000)
 
 
 def test_bad_input():
