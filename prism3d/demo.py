@@ -126,7 +126,7 @@ def demo_rig(ctx: DemoContext) -> Any:
     from prism3d.capture.rig import paper_rig
 
     if ctx.fast:
-        return paper_rig(sensor_size=(648, 486), focal_px=5107.0 / 4)
+        return paper_rig(sensor_size=(1296, 972), focal_px=5107.0 / 2)
     return paper_rig()
 
 
@@ -289,7 +289,9 @@ def _stage_model360(ctx: DemoContext) -> Section:
                   comments=["prism3d scan", "units mm"])
         if k == 0:
             ctx.results["view0"] = rec
-    res = stitch_scans(scans, turntable_step_deg=45.0)
+    res = stitch_scans(scans, turntable_step_deg=45.0, on_failure="warn")
+    for w in res.diagnostics.get("warnings", []):
+        s.paragraphs.append(f"<b>Warning:</b> {w}")
     write_ply(ctx.path("model.ply"), res.points, colors=res.colors, normals=res.normals,
               comments=["prism3d model", "units mm", "frame: left camera of view 0"])
     if res.mesh_vertices is not None:
