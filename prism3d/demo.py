@@ -329,12 +329,29 @@ def _stage_decamo(ctx: DemoContext) -> Section:
     from prism3d.atr.decamo import decamouflage
     from prism3d.report import image_png
 
+    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.datasets.targets import builtin_target
+    from prism3d.io.images import read_image
+    from prism3d.reconstruct.rectify import rectify_shot
+
     s = Section("Camouflage removal on one view (depth from the reconstruction)")
     rec = ctx.results.get("view0")
     if rec is None:
         raise RuntimeError("the 360-degree model stage must run first")
-    left = np.asarray(rec.left_rect)
-    res = decamouflage(left, rec.depth_mm, rec.rect.camera)
+    # the grating colours the light, so the texture comes from a second, white-flash
+    # exposure of the same view; the depth is the grating shot's reconstruction
+    true = ctx.results.get("true_rig") or demo_rig(ctx)
+    cal = ctx.results.get("calibration")
+    out = ctx.path("decamo")
+    simulate_to_folder("scene", out, rig=true, target=builtin_target("tank_t1", seed=ctx.seed), views=1,
+                       pattern=False, seed=ctx.seed, supersample=1)
+    left, _, _ = rectify_shot(read_image(out / "shot_00.png"), cal.rig if cal is not None else true)
+    from prism3d.reconstruct.meshing import smooth_depth
+
+    # normals need a smooth surface: per-pixel depth noise (~0.2 mm at 0.25 mm pixel
+    # spacing) would make them useless
+    depth = smooth_depth(rec.depth_mm, sigma_px=4.0, focal_px=rec.rect.focal_px, baseline_mm=rec.rect.baseline_mm)
+    res = decamouflage(left, depth, rec.rect.camera)
     m = np.isfinite(rec.depth_mm)
     rows, cols = np.nonzero(m)
     r0, r1 = max(rows.min() - 20, 0), min(rows.max() + 20, m.shape[0])
@@ -346,7 +363,7 @@ def _stage_decamo(ctx: DemoContext) -> Section:
         hi = np.percentile(a[m[crop]] if a.ndim == 2 else a[m[crop]].ravel(), 99.5) or 1.0
         return np.clip(a / hi * 255.0, 0, 255).astype(np.uint8)
 
-    s.figure("camouflaged view (rectified left)", image_png(left[crop], max_side=420))
+    s.figure("camouflaged view (white flash, rectified left)", image_png(left[crop], max_side=420))
     s.figure("albedo (the paint)", image_png(to8(res.albedo[crop]), max_side=420))
     s.figure("shading", image_png(to8(res.shading[crop]), max_side=420))
     s.figure("shape image: true 3D profile, false shadows gone", image_png(to8(res.shape[crop]), max_side=420))
