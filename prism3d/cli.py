@@ -171,7 +171,10 @@ def _cmd_capture(args: argparse.Namespace) -> int:
         from prism3d.capture.rig import StereoRig
 
         expected = StereoRig.load(args.calib).split.sensor_size
-    paths = capture_shots(args.trigger, args.camera, args.output, count=args.count, interval_s=args.interval,
+    camera = args.camera
+    if camera == "virtual":  # the physically simulated paper rig, not a stand-in
+        camera = "virtual:plate"
+    paths = capture_shots(args.trigger, camera, args.output, count=args.count, interval_s=args.interval,
                           pattern_id=args.pattern, flash=not args.no_flash, expected_size=expected,
                           progress=_progress(args, "capture"), trigger_timeout=args.timeout,
                           grab_timeout=args.grab_timeout, resolver=_virtual_resolver)
