@@ -101,6 +101,20 @@ class RenderResult:
     rgb: NDArray[np.uint8] | None = None
 
 
+def _raycast_threads() -> int:
+    """Threads Open3D may use per cast: ``PRISM3D_NUM_THREADS`` (0 or unset = all cores).
+
+    Job runners set it to 1 in each worker process so that N workers use N cores
+    instead of N x all cores fighting each other.
+    """
+    import os
+
+    try:
+        return max(0, int(os.environ.get("PRISM3D_NUM_THREADS", "0")))
+    except ValueError:
+        return 0
+
+
 @dataclass(eq=False)
 class RayHits:
     """Float64-refined ray hits for ``N`` rays (see :meth:`RaycastRenderer.cast`).
@@ -338,7 +352,7 @@ class RaycastRenderer:
             if len(rid):
                 r = self._scratch_rays(len(rid))
                 pack_rays_sel(oc, dc, rid, r)
-                ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(r), nthreads=0)
+                ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(r), nthreads=_raycast_threads())
                 gid = ans["geometry_ids"].numpy()
                 t32 = ans["t_hit"].numpy()
                 idx = np.flatnonzero((gid != np.iinfo(np.uint32).max) & np.isfinite(t32))
@@ -476,7 +490,7 @@ class RaycastRenderer:
             # flags all of them (and perhaps a near-self hit, cleared below)
             e_min = tol / dmax + 1e-7
             occ = self._scene.test_occlusions(
-                o3d.core.Tensor.from_numpy(r), tnear=0.0, tfar=1.0 - 0.5 * e_min, nthreads=0
+                o3d.core.Tensor.from_numpy(r), tnear=0.0, tfar=1.0 - 0.5 * e_min, nthreads=_raycast_threads()
             )
             blocked[s:e] = occ.numpy()
         good = dist > 0.0

@@ -524,6 +524,8 @@ def _execute(
     # thread per core in every worker and the workers would fight for the cores
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
     environ.setdefault("NUMBA_NUM_THREADS", 1)
+    environ.setdefault("PRISM3D_NUM_THREADS", 1)  # Open3D ray casting (capture.render)
+    environ.setdefault("OMP_NUM_THREADS", 1)
     cfg = {
         "distributed.worker.multiprocessing-method": "spawn",
         "distributed.nanny.pre-spawn-environ": environ,
