@@ -51,7 +51,7 @@ from numpy.typing import NDArray
 from prism3d.atr.geometry import as_camera, depth_to_points, normals_from_depth
 from prism3d.capture.rig import CameraModel
 
-from prism3d.checks import check_array, check_choice, check_in_range, check_positive
+from prism3d.checks import check_array, check_choice, check_in_range, check_positive, check_same_shape
 from prism3d.errors import InputError
 
 __all__ = [
@@ -299,8 +299,7 @@ def decamouflage(
     surface = np.isfinite(d) & (d > 0)
     if mask is not None:
         m = check_array(mask, "mask", ndim=2)
-        if m.shape != d.shape:
-            raise InputError(f"mask and depth_mm must have the same shape, got {m.shape} and {d.shape}")
+        check_same_shape(m, d, ("mask", "depth_mm"))
         surface &= m.astype(bool)
     if gamma != 1.0:
         img = np.clip(img, 0.0, 1.0) ** float(gamma)

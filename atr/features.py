@@ -57,7 +57,7 @@ from prism3d.atr.geometry import (
 )
 from prism3d.capture.rig import CameraModel
 
-from prism3d.checks import check_array, check_choice
+from prism3d.checks import check_array, check_choice, check_same_shape
 from prism3d.io.mesh import UNITS_MM
 from prism3d.errors import InputError
 
@@ -476,8 +476,7 @@ def view_features(depth_mm: NDArray, mask: NDArray | None, K: NDArray | CameraMo
     m = np.isfinite(d) & (d > 0)
     if mask is not None:
         mk = check_array(mask, "mask", ndim=2)
-        if mk.shape != d.shape:
-            raise InputError(f"mask and depth_mm must have the same shape, got {mk.shape} and {d.shape}")
+        check_same_shape(mk, d, ("mask", "depth_mm"))
         m &= mk.astype(bool)
     n = int(m.sum())
     if n == 0:
