@@ -530,6 +530,8 @@ def simulate_to_folder(
     supersample: int = 2,
     progress: ProgressFn | None = None,
     compress: bool = False,
+    board: tuple[int, int] = (9, 6),
+    square_mm: float = 25.0,
 ) -> dict[str, Any]:
     """Simulate shots and write them with their ground truth (``prism3d simulate``).
 
@@ -540,10 +542,11 @@ def simulate_to_folder(
         rig (perpendicular to rig z) at the working distance (1250 mm for the paper
         rig); writes ``shot.png`` + ``truth.npz`` (``shot_00.png``... when
         ``views`` > 1: the same plate, a fresh noise seed per shot).
-        ``calib``: a 9 x 6 inner-corner chessboard, 25 mm squares, in ``views``
+        ``calib``: a chessboard (``board`` inner corners, default 9 x 6, ``square_mm``
+        squares, default 25 mm) in ``views``
         (default 5) varied poses (tilts 20-40 deg, 1100-1400 mm, seeded, whole board
         in both views); writes ``calib_00.png``... + ``truth_00.npz``... with
-        ``corners_left``/``corners_right`` ((54, 2) float64 true distorted pixels,
+        ``corners_left``/``corners_right`` ((cols*rows, 2) float64 true distorted pixels,
         NaN outside the view) and ``T_left_board``, ``T_rig_board``.
         ``scene``: ``target`` on a turntable, ``views`` (default 8) views at
         ``360 / views`` degree steps (45 deg for 8); writes ``shot_00.png``... +
@@ -575,6 +578,12 @@ def simulate_to_folder(
         Called after each shot.
     compress : bool
         Write compressed ``.npz`` (smaller, slower).
+    board : (cols, rows)
+        ``calib``: inner corners of the chessboard. A denser board pins the
+        principal point better: with 5 poses at the paper rig's focal length its
+        standard deviation is ~0.6 px for 9 x 6 corners, ~0.3 px for 19 x 13.
+    square_mm : float
+        ``calib``: square size, mm.
 
     Returns
     -------
@@ -592,6 +601,10 @@ def simulate_to_folder(
         raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
     if views is not None and (int(views) != views or int(views) < 1):
         raise InputError(f"views: expected a positive integer, got {views!r}")
+    if kind == "calib":
+        if len(board) != 2 or any(int(b) != b or int(b) < 2 for b in board):
+            raise InputError(f"board: expected (cols, rows) inner corners >= 2, got {board!r}")
+        square_mm = check_positive(square_mm, "square_mm")
     if kind == "scene":
         if target is None:
             raise InputError("simulate scene: a target mesh is required (target=SceneMesh)")
@@ -622,10 +635,11 @@ def simulate_to_folder(
             extra = {"T_rig_plate": objs[0][1]}
             shots.append((stem[0] + ".png", stem[1] + ".npz", objs, extra))
     elif kind == "calib":
-        board = chessboard(9, 6, 25.0)
-        corners = chessboard_corners(9, 6, 25.0)
+        cols, rows = (int(b) for b in board)
+        board_mesh = chessboard(cols, rows, square_mm)
+        corners = chessboard_corners(cols, rows, square_mm)
         n = 5 if views is None else int(views)
-        poses = calibration_board_poses(rig, n, seed=seed)
+        poses = calibration_board_poses(rig, n, cols=cols, rows=rows, square_mm=square_mm, seed=seed)
         for k, T_rig_board in enumerate(poses):
             extra: dict[str, NDArray] = {"T_rig_board": T_rig_board}
             for name, cam, T_rig_cam in (
@@ -643,9 +657,9 @@ def simulate_to_folder(
                 extra[f"corners_{name}"] = uv
                 extra[f"T_{name}_board"] = T_cam_board
             extra["board_corners_mm"] = corners
-            extra["board_inner_corners"] = np.array([9, 6], dtype=np.int32)
-            extra["board_square_mm"] = np.array(25.0)
-            shots.append((f"calib_{k:02d}.png", f"truth_{k:02d}.npz", [(board, T_rig_board)], extra))
+            extra["board_inner_corners"] = np.array([cols, rows], dtype=np.int32)
+            extra["board_square_mm"] = np.array(float(square_mm))
+            shots.append((f"calib_{k:02d}.png", f"truth_{k:02d}.npz", [(board_mesh, T_rig_board)], extra))
     else:
         tgt: SceneMesh = target  # type: ignore[assignment]  # validated above
         if camouflage and not _has_own_albedo(tgt):

@@ -127,10 +127,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         from prism3d.datasets.targets import builtin_target
 
         target = builtin_target(args.target, camouflage=args.camouflage, seed=args.seed)
+    from prism3d.reconstruct.calibrate import parse_board
+
+    board = parse_board(args.board)
     summary = simulate_to_folder(args.kind, args.out_dir, rig=rig, target=target, pattern=args.pattern,
                                  camouflage=args.camouflage, views=args.views, seed=args.seed,
                                  noise=args.noise, supersample=args.supersample,
-                                 progress=_progress(args, f"simulate {args.kind}"), compress=args.compress)
+                                 progress=_progress(args, f"simulate {args.kind}"), compress=args.compress,
+                                 board=board, square_mm=args.square)
     _say(args, f"wrote {summary['n_shots']} shot(s) and ground truth to {args.out_dir} "
                f"in {summary['seconds']:.1f} s")
     return 0
@@ -160,6 +164,10 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--supersample", type=int, default=2, help="anti-aliasing factor (default 2)")
     p.add_argument("--rig", type=Path, help="rig/calibration YAML to simulate (default: the paper's rig)")
     p.add_argument("--compress", action="store_true", help="compress truth .npz files (smaller, slower)")
+    p.add_argument("--board", default="9x6",
+                   help="calib: chessboard inner corners COLSxROWS (default 9x6; 19x13 pins the "
+                   "principal point about twice as well)")
+    p.add_argument("--square", type=float, default=25.0, help="calib: square size, mm (default 25)")
     p.set_defaults(func=_cmd_simulate)
 
 

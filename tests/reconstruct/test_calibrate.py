@@ -99,20 +99,22 @@ def test_paper_rig_with_noise_k1k2_model() -> None:
 
 
 #: Corner noise (px, per coordinate) of the X-junction detector on the virtual rig's
-#: rendered calibration shots: 0.019 px RMS (2D) against the true corners.
-SIM_CORNER_NOISE = 0.0134
+#: rendered calibration shots: 0.019 px RMS (2D) against the true corners for the 9x6
+#: board of 25 mm squares (~100 px); 0.017-0.026 px (2D) for the 19x13 board of
+#: 12 mm squares (~49 px, a smaller fit window; seeds 0-2), taken as 0.02 per coordinate.
+SIM_CORNER_NOISE = {(9, 6): 0.0134, (19, 13): 0.02}
+SQUARE_MM = {(9, 6): 25.0, (19, 13): 12.0}
 
 
-@pytest.mark.parametrize("noise_seed", [0, 1])
-def test_virtual_rig_targets_on_simulator_poses(noise_seed: int) -> None:
-    """Issue target (a) on the simulator's own 5 board poses with the detector's noise."""
+def _simulator_pose_corners(board, noise_seed, pose_seed=0):
     from prism3d.capture.scenes import calibration_board_poses
 
     rig = paper_rig()
-    obj = board_object_points((9, 6), 25.0)
+    sq = SQUARE_MM[board]
+    obj = board_object_points(board, sq)
     rng = np.random.default_rng(noise_seed)
     L, R, Lt, Rt = [], [], [], []
-    for T in calibration_board_poses(rig, 5, seed=0):
+    for T in calibration_board_poses(rig, 5, cols=board[0], rows=board[1], square_mm=sq, seed=pose_seed):
         for cam, T_cam_rig, noisy, true in (
             (rig.left, np.linalg.inv(rig.T_rig_left), L, Lt),
             (rig.right, np.linalg.inv(rig.T_rig_right), R, Rt),
@@ -120,8 +122,12 @@ def test_virtual_rig_targets_on_simulator_poses(noise_seed: int) -> None:
             Tc = T_cam_rig @ T
             uv = cam.project(obj @ Tc[:3, :3].T + Tc[:3, 3])
             true.append(uv)
-            noisy.append(uv + rng.normal(0.0, SIM_CORNER_NOISE, uv.shape))
-    cal = calibrate_stereo_points(L, R, rig.left.size, tangential=False)
+            noisy.append(uv + rng.normal(0.0, SIM_CORNER_NOISE[board], uv.shape))
+    cal = calibrate_stereo_points(L, R, rig.left.size, board=board, square_mm=sq, tangential=False)
+    return rig, cal, Lt, Rt
+
+
+def _check_targets_except_principal_point(rig, cal, Lt, Rt):
     for est, ref in ((cal.rig.left, rig.left), (cal.rig.right, rig.right)):
         assert abs(est.fx / ref.fx - 1) < 1e-3 and abs(est.fy / ref.fy - 1) < 1e-3
         assert abs(est.dist[0] - ref.dist[0]) < 0.005
@@ -129,15 +135,39 @@ def test_virtual_rig_targets_on_simulator_poses(noise_seed: int) -> None:
     assert rotation_angle_deg(cal.rig.R @ rig.R.T) < 0.02
     assert cal.rectification_rms_px < 0.05
     assert rectification_residual(cal.rig, Lt, Rt) < 0.01
-    # target: cx, cy within 1 px. NOT reliably met: with 5 poses their std is ~0.6 px
-    # at this corner noise (noise seed 0: within 1 px; seed 1: not)
-    pp = max(
-        max(abs(e.cx - r.cx), abs(e.cy - r.cy))
-        for e, r in ((cal.rig.left, rig.left), (cal.rig.right, rig.right))
-    )
-    assert pp < 2.0
-    if pp >= 1.0:
-        pytest.xfail(f"principal point off by {pp:.2f} px (target 1 px) with 5 board poses")
+
+
+def _pp_errors(rig, cal):
+    return {
+        f"{c}_{side}": getattr(e, c) - getattr(r, c)
+        for side, e, r in (("left", cal.rig.left, rig.left), ("right", cal.rig.right, rig.right))
+        for c in ("cx", "cy")
+    }
+
+
+@pytest.mark.parametrize("pose_seed,noise_seed", [(0, 0), (0, 1), (1, 2), (2, 3), (3, 4)])
+def test_virtual_rig_targets_dense_board(pose_seed: int, noise_seed: int) -> None:
+    """Issue target (a), all of it, on the simulator's poses with the detector's noise:
+    5 poses of the 19x13 board (the demo's) pin cx, cy to within 1 px."""
+    rig, cal, Lt, Rt = _simulator_pose_corners((19, 13), noise_seed, pose_seed)
+    _check_targets_except_principal_point(rig, cal, Lt, Rt)
+    err = _pp_errors(rig, cal)
+    assert max(abs(v) for v in err.values()) < 1.0, err
+    assert max(cal.std[k] for k in err) < 0.5
+
+
+@pytest.mark.parametrize("noise_seed", [0, 1])
+def test_virtual_rig_9x6_board_principal_point_is_weak(noise_seed: int) -> None:
+    """With 54 corners per view the principal point is weakly determined at f = 5107 px:
+    its standard deviation is ~0.6 px (OpenCV's calibrateCameraExtended reports
+    0.9-1.4 px for one camera on the same corners), so 1 px is met only by chance.
+    Every other target holds, and the reported standard deviations are honest."""
+    rig, cal, Lt, Rt = _simulator_pose_corners((9, 6), noise_seed)
+    _check_targets_except_principal_point(rig, cal, Lt, Rt)
+    err = _pp_errors(rig, cal)
+    assert 0.4 < max(cal.std[k] for k in err) < 0.9
+    for k, v in err.items():
+        assert abs(v) < 4 * cal.std[k], (k, v, cal.std[k])
 
 
 def test_paper_rig_default_model_and_outlier_flag() -> None:
@@ -291,21 +321,25 @@ def test_zhang_images_square_detector(shared_data: Path) -> None:
 
 
 @pytest.mark.slow
-def test_simulated_calibration_shots(tmp_path: Path) -> None:
+@pytest.mark.parametrize("seed", [0, 1])
+def test_simulated_calibration_shots(tmp_path: Path, seed: int) -> None:
     """Issue target (a) end to end: the virtual rig's 5 rendered calibration shots
-    (``prism3d simulate calib``, noise on, seed 0; ~2 min to render), the paper's k1 k2
-    model. Measured: see :func:`prism3d.reconstruct.calibrate.calibrate_stereo`."""
+    (``prism3d simulate calib --board 19x13 --square 12``, noise on; ~1 min per seed),
+    the paper's k1 k2 model. Measured (seeds 0, 1, 2): cx, cy within 0.32 px, fx
+    within 0.007 %, baseline within 0.004 %, rotation within 0.003 deg."""
     from prism3d.capture.simulate import simulate_to_folder
 
-    simulate_to_folder("calib", tmp_path, seed=0, noise=True)
+    board, sq = (19, 13), 12.0
+    simulate_to_folder("calib", tmp_path, seed=seed, noise=True, board=board, square_mm=sq)
     rig = StereoRig.load(tmp_path / "rig.yaml")
     images = sorted(tmp_path.glob("calib_*.png"))
     truth = [np.load(p, allow_pickle=False) for p in sorted(tmp_path.glob("truth_*.npz"))]
-    cal = calibrate_stereo(images, board=(9, 6), square_mm=25.0, tangential=False)
+    cal = calibrate_stereo(images, board=board, square_mm=sq, tangential=False)
     assert cal.n_views == len(images) == 5
     for est, ref in ((cal.rig.left, rig.left), (cal.rig.right, rig.right)):
         assert abs(est.fx / ref.fx - 1) < 1e-3 and abs(est.fy / ref.fy - 1) < 1e-3
         assert abs(est.dist[0] - ref.dist[0]) < 0.005
+        assert abs(est.cx - ref.cx) < 1.0 and abs(est.cy - ref.cy) < 1.0
     assert abs(cal.rig.baseline_mm / rig.baseline_mm - 1) < 1e-3
     assert rotation_angle_deg(cal.rig.R @ rig.R.T) < 0.02
     assert cal.rms_px < 0.04
@@ -313,24 +347,14 @@ def test_simulated_calibration_shots(tmp_path: Path) -> None:
     true_l = [t["corners_left"] for t in truth]
     true_r = [t["corners_right"] for t in truth]
     assert rectification_residual(cal.rig, true_l, true_r) < 0.02
-    # the detected corners against the truth (X-junction fit; classic: 0.077 px)
+    # the detected corners against the truth (X-junction fit)
     err = []
     true_views = [x for tr in truth for x in (tr["corners_left"], tr["corners_right"])]
     for det, tv in zip(cal.detections, true_views, strict=True):
-        err.append(
-            min(
-                np.mean(np.sum((det.corners[p] - tv) ** 2, axis=1)) for p in grid_symmetries((9, 6))
-            )
-        )
-    assert np.sqrt(np.mean(err)) < 0.03
-    # target: cx, cy within 1 px; measured 0.43 / 1.26 (cx), 0.16 / 0.09 (cy): not met
-    pp = max(
-        max(abs(e.cx - r.cx), abs(e.cy - r.cy))
-        for e, r in ((cal.rig.left, rig.left), (cal.rig.right, rig.right))
-    )
-    assert pp < 2.0
-    if pp >= 1.0:
-        pytest.xfail(f"principal point off by {pp:.2f} px (target 1 px) with 5 board poses")
+        err.append(min(np.mean(np.sum((det.corners[p] - tv) ** 2, axis=1)) for p in grid_symmetries(board)))
+    corner_rms = float(np.sqrt(np.mean(err)))
+    # SIM_CORNER_NOISE (per coordinate) used by the fast tests is not optimistic
+    assert corner_rms < np.sqrt(2) * SIM_CORNER_NOISE[board]
 
 
 @pytest.mark.realdata

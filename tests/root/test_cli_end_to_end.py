@@ -92,6 +92,17 @@ def test_calibrate_from_simulated_shots(tmp_path, small_rig):
     assert rig.baseline_mm == pytest.approx(197.9, rel=0.01)
 
 
+def test_simulate_calib_board_option(tmp_path, small_rig):
+    r = prism3d("simulate", "calib", tmp_path, "--rig", small_rig, "--supersample", "1", "--views", "1",
+                "--board", "12x8", "--square", "15")
+    assert r.returncode == 0, r.stderr
+    t = np.load(tmp_path / "truth_00.npz")
+    assert t["corners_left"].shape == (96, 2) and np.isfinite(t["corners_left"]).all()
+    assert t["board_inner_corners"].tolist() == [12, 8] and float(t["board_square_mm"]) == 15.0
+    # adjacent true corners are one square apart on the board
+    np.testing.assert_allclose(np.diff(t["board_corners_mm"][:2, 0]), [15.0])
+
+
 @pytest.mark.parametrize(
     "args, match",
     [
@@ -100,6 +111,8 @@ def test_calibrate_from_simulated_shots(tmp_path, small_rig):
         (["flatness", "nope.ply"], "not found"),
         (["calibrate", "nope.png", "-o", "c.yaml"], "not found|no such"),
         (["simulate", "scene", "out", "--target", "nope"], "unknown built-in target"),
+        (["simulate", "calib", "out", "--board", "9"], "--board"),
+        (["simulate", "calib", "out", "--square", "-3"], "square"),
         (["rectify", "nope.png", "--calib", "nope.yaml", "-o", "out"], "not found"),
     ],
 )
