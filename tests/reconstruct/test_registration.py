@@ -153,6 +153,25 @@ def test_bunny_bun0_to_bun4_matches_pcl_reference(shared_data):
     assert rotation_angle_deg(np.linalg.inv(T_g) @ d.T_target_source) < 1.0
     assert 1000 * np.linalg.norm(d.T_target_source[:3, 3] - T_g[:3, 3]) < 2.0
     assert rotation_angle_deg(np.linalg.inv(BUNNY_REF) @ d.T_target_source) < 8.0
+    # An independent reference: the Stanford repository's own alignment of the
+    # full-resolution scans (bun.conf: bun045 -> bun000, quaternion x y z w
+    # 0.00548449 -0.294635 -0.0038555 0.955586, a 34.3 deg turn about y). The PCD
+    # files are not in the PLY files' frames, so only the rotation is comparable:
+    # ours is within 1 deg of it (measured 0.52), PCL's reference is 6 deg short.
+    from scipy.spatial.transform import Rotation
+
+    R_stanford = Rotation.from_quat([0.00548449, -0.294635, -0.0038555, 0.955586]).as_matrix()
+    assert rotation_angle_deg(R_stanford.T @ d.T_target_source[:3, :3]) < 1.0
+    assert rotation_angle_deg(R_stanford.T @ BUNNY_REF[:3, :3]) > 5.0
+    # ...and ours explains the data better: more of bun0 lands on bun4
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(b)
+
+    def close_fraction(T):
+        return float(np.mean(tree.query(a @ T[:3, :3].T + T[:3, 3])[0] < 0.003))
+
+    assert close_fraction(d.T_target_source) > close_fraction(BUNNY_REF) + 0.1
 
 
 @pytest.mark.realdata
