@@ -58,46 +58,13 @@ def _popcount(typingctx, x):  # pragma: no cover - compiled by numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def census_transform(padded, ry, rx, reverse, out):
-    """Census transform with a ``(2ry+1) x (2rx+1)`` window, every channel.
-
-    padded : (C, H + 2ry, W + 2rx) float32, channel planes with replicated borders;
-    out : (C, H, W) uint32 or uint64, bit set when the neighbour is darker than the
-    centre (at most 64 comparisons, centre excluded). With ``reverse`` every row is
-    stored mirrored (``out[c, y, W - 1 - x]``): the right view's layout in
-    :func:`matching_cost`, where the candidates of one left pixel are then contiguous.
-    """
-    nc, h, w = out.shape
-    one = out.dtype.type(1)
-    zero = out.dtype.type(0)
-    for y in prange(h):
-        bits = np.empty(w, out.dtype)
-        for c in range(nc):
-            centre = padded[c, y + ry, rx:rx + w]
-            bits[:] = zero
-            for dy in range(-ry, ry + 1):
-                for dx in range(-rx, rx + 1):
-                    if dy == 0 and dx == 0:
-                        continue
-                    nb = padded[c, y + ry + dy, rx + dx:rx + dx + w]
-                    for x in range(w):
-                        bits[x] = (bits[x] << one) | (one if nb[x] < centre[x] else zero)
-            if reverse:
-                for x in range(w):
-                    out[c, y, w - 1 - x] = bits[x]
-            else:
-                for x in range(w):
-                    out[c, y, x] = bits[x]
-
-
-@njit(cache=True, nogil=True, parallel=True)
 def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, k_levels,
                   oob_cost, out):
     """Census Hamming distance summed over channels plus a truncated absolute
     difference of per-pixel features.
 
     census_l : (C, H, W) uint32/uint64 left census; census_rr : the right census with
-    mirrored rows (``census_transform(..., reverse=True)``); feat_l, feat_rr : (F, H, W)
+    mirrored rows (``census_hwc(..., reverse=True)``); feat_l, feat_rr : (F, H, W)
     uint8 features, the right one mirrored likewise (F may be 0). The AD term of a
     summed absolute feature difference ``a`` is ``floor(ad_scale * min(a, ad_clip) +
     0.5)``. dlo : (H, W) int32; out : (H, W, K) uint8, ``out[y, x, k]`` = cost of
@@ -259,133 +226,6 @@ def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg):
             mn = _step(costf, (y * w + x) * kl, lp, mn, shift, lc, aggf, kl, p1, p2e)
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def aggregate_vertical(cost, dlo, guide, p1, p2, gamma, dy, block, agg):
-    """Add the vertical SGM path (``dy = +1`` top-down, ``-1`` bottom-up) into ``agg``.
-
-    Columns are processed in blocks of ``block`` adjacent columns that walk the rows
-    together (contiguous memory per step); blocks run in parallel.
-    """
-    h, w, kl = cost.shape
-    costf = cost.reshape(-1)
-    aggf = agg.reshape(-1)
-    nb = (w + block - 1) // block
-    stride = 3 * kl + 2
-    for b in prange(nb):
-        x0 = b * block
-        x1 = min(w, x0 + block)
-        nbx = x1 - x0
-        lp = np.full(nbx * stride, np.uint16(INF16), np.uint16)
-        lc = np.full(nbx * stride, np.uint16(INF16), np.uint16)
-        mins = np.empty(nbx, np.int32)
-        y = 0 if dy > 0 else h - 1
-        for i in range(nbx):
-            mins[i] = _start(costf, (y * w + x0 + i) * kl, lc[i * stride:(i + 1) * stride],
-                             aggf, kl)
-        for _ in range(h - 1):
-            yq = y
-            y += dy
-            lp, lc = lc, lp
-            for i in range(nbx):
-                x = x0 + i
-                p2e = _p2_eff(p1, p2, guide[y, x], guide[yq, x], gamma)
-                shift = dlo[y, x] - dlo[yq, x]
-                o = i * stride
-                mins[i] = _step(costf, (y * w + x) * kl, lp[o:o + stride], mins[i], shift,
-                                lc[o:o + stride], aggf, kl, p1, p2e)
-
-
-# ----------------------------------------------------------------- winner take all
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def select_disparity(agg, dlo, uniqueness, disp, best_cost, conf):
-    """Winner-take-all with equiangular sub-pixel fit and uniqueness test.
-
-    disp : (H, W) float32 out, NaN where the uniqueness test fails;
-    best_cost : (H, W) int32 out; conf : (H, W) float32 out in [0, 1] (relative gap
-    between the best cost and the best cost outside +-1 of the winner).
-    """
-    h, w, kl = agg.shape
-    big = np.uint16(0xFFFF)
-    for y in prange(h):
-        for x in range(w):
-            row = agg[y, x]
-            # vectorised min, then its first index, then the best outside +-1
-            m = big
-            for k in range(kl):
-                m = min(m, row[k])
-            b = 0
-            while row[b] != m:
-                b += 1
-            bc = np.int32(m)
-            s1 = big
-            for k in range(b - 1):
-                s1 = min(s1, row[k])
-            for k in range(b + 2, kl):
-                s1 = min(s1, row[k])
-            second = np.int32(1 << 30) if (b < 2 and b + 2 >= kl) else np.int32(s1)
-            best_cost[y, x] = bc
-            if second >= (1 << 30):
-                g = 1.0
-            else:
-                g = (second - bc) / max(second, 1)
-            conf[y, x] = g
-            if g * 100.0 < uniqueness:
-                disp[y, x] = np.nan
-                continue
-            off = 0.0
-            if 0 < b < kl - 1:
-                cm = np.float64(agg[y, x, b - 1])
-                cp = np.float64(agg[y, x, b + 1])
-                c0 = np.float64(bc)
-                den = max(cm, cp) - c0
-                if den > 0:
-                    off = 0.5 * (cm - cp) / den
-            disp[y, x] = np.float32(dlo[y, x] + b + off)
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def right_disparity(agg, dlo, disp_r):
-    """Winner-take-all of the right view from the same cost volume (integer, float32)."""
-    h, w, kl = agg.shape
-    for y in prange(h):
-        best = np.full(w, np.int32(1 << 30), np.int32)
-        for x in range(w):
-            d0 = dlo[y, x]
-            for k in range(kl):
-                xr = x - d0 - k
-                if 0 <= xr < w:
-                    c = np.int32(agg[y, x, k])
-                    if c < best[xr]:
-                        best[xr] = c
-                        disp_r[y, xr] = d0 + k
-        for xr in range(w):
-            if best[xr] >= (1 << 30):
-                disp_r[y, xr] = np.nan
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def lr_check(disp, disp_r, max_diff):
-    """Invalidate (NaN) left disparities that disagree with the right view."""
-    h, w = disp.shape
-    for y in prange(h):
-        for x in range(w):
-            d = disp[y, x]
-            if np.isnan(d):
-                continue
-            xr = int(np.floor(x - d + 0.5))
-            if xr < 0 or xr >= w:
-                disp[y, x] = np.nan
-                continue
-            dr = disp_r[y, xr]
-            if np.isnan(dr) or abs(dr - d) > max_diff:
-                disp[y, x] = np.nan
-
-
-# ------------------------------------------------------------------------ speckles
-
-
 @njit(cache=True, nogil=True)
 def remove_speckles(disp, max_size, max_diff):
     """Set to NaN 4-connected regions (neighbours differing <= max_diff) smaller than
@@ -462,84 +302,6 @@ def bspline_rows(img, out):
         for k in range(w - 2, -1, -1):
             cm = z * (cm - cp[k])
             out[y, k] = 6.0 * cm
-
-
-@njit(cache=True, nogil=True, parallel=True, fastmath=True, error_model="numpy")
-def refine_lk(left, right_coef, disp, wy, wx, iters, max_step):
-    """Refine valid disparities by 1-D Gauss-Newton (Lucas-Kanade) warping.
-
-    left : (H, W) float32 band-passed grey left view; right_coef : (H, W) float32 cubic
-    B-spline coefficients of the band-passed right view (:func:`bspline_rows`);
-    disp : (H, W) float32 in/out. Minimises ``sum_window (L(y, x) - R(y, x - d))^2``
-    over ``d``; ``R`` and its derivative are sampled with the cubic B-spline, whose
-    near-flat frequency response keeps the estimate free of pixel-locking. The
-    fractional shift is the same for the whole window, so the kernel weights are
-    computed once per iteration. Keeps the input when the solution moves farther
-    than ``max_step`` from it or the window has no horizontal texture.
-    """
-    h, w = disp.shape
-    sixth = np.float32(1.0 / 6.0)
-    one = np.float32(1.0)
-    for y in prange(h):
-        for x in range(w):
-            d_in = disp[y, x]
-            if np.isnan(d_in):
-                continue
-            if y - wy < 0 or y + wy >= h or x - wx < 0 or x + wx >= w:
-                continue
-            d = np.float64(d_in)
-            ok = True
-            for _ in range(iters):
-                xs = x - d
-                x0 = int(np.floor(xs))
-                if x0 - wx - 1 < 0 or x0 + wx + 2 >= w:
-                    ok = False
-                    break
-                t = np.float32(xs - x0)
-                omt = one - t
-                t2 = t * t
-                a0 = omt * omt * omt * sixth
-                a1 = (np.float32(3.0) * t2 * t - np.float32(6.0) * t2 + np.float32(4.0)) * sixth
-                a2 = (np.float32(-3.0) * t2 * t + np.float32(3.0) * t2 + np.float32(3.0) * t
-                      + one) * sixth
-                a3 = t2 * t * sixth
-                g0 = np.float32(-0.5) * omt * omt
-                g1 = np.float32(1.5) * t2 - np.float32(2.0) * t
-                g2 = np.float32(-1.5) * t2 + t + np.float32(0.5)
-                g3 = np.float32(0.5) * t2
-                num = np.float32(0.0)
-                den = np.float32(0.0)
-                for v in range(y - wy, y + wy + 1):
-                    # rolling 4-tap window over the row: one load per sample
-                    q0 = right_coef[v, x0 - wx - 1]
-                    q1 = right_coef[v, x0 - wx]
-                    q2 = right_coef[v, x0 - wx + 1]
-                    for u in range(-wx, wx + 1):
-                        q3 = right_coef[v, x0 + u + 2]
-                        val = a0 * q0 + a1 * q1 + a2 * q2 + a3 * q3
-                        g = g0 * q0 + g1 * q1 + g2 * q2 + g3 * q3
-                        # r(d) = L - R(x - d); dr/dd = +R'(x - d)
-                        r = left[v, x + u] - val
-                        num += r * g
-                        den += g * g
-                        q0 = q1
-                        q1 = q2
-                        q2 = q3
-                if den <= 1e-6:
-                    ok = False
-                    break
-                step = -np.float64(num) / np.float64(den)
-                d += step
-                if abs(d - d_in) > max_step:
-                    ok = False
-                    break
-                if abs(step) < 2e-3:
-                    break
-            if ok:
-                disp[y, x] = np.float32(d)
-
-
-# --------------------------------------------------------------------- hole filling
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -671,3 +433,603 @@ def fine_ranges(coarse, scale, radius, k_levels, dmin, dmax, dlo):
             else:
                 s = int(np.floor(c * scale + 0.5)) - k_levels // 2
             dlo[y, x] = max(min(s, hi_lim), dmin)
+
+
+# =========================================================================== fast path
+#
+# Kernels of the current pipeline (see :func:`.match._match_level`). Compared with the
+# generic kernels above they (a) read the interleaved ``(H, W, C)`` image directly,
+# (b) fuse passes so that a call needs few parallel launches (each costs a thread
+# wake-up with OMP_WAIT_POLICY=passive), (c) keep the per-pixel work of the
+# sequential SGM recursions small (P2 of a pixel pair computed once for both
+# directions, vectorised, outside the recursion), and (d) refine sub-pixel
+# disparities from window sums that do not depend on the fractional shift.
+
+
+@njit(cache=True, nogil=True)
+def channels_equal(img):
+    """True when every channel of the ``(H, W, C)`` image equals the first (early exit)."""
+    h, w, nc = img.shape
+    for y in range(h):
+        for x in range(w):
+            v = img[y, x, 0]
+            for c in range(1, nc):
+                if img[y, x, c] != v:
+                    return False
+    return True
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def census_hwc(img, ry, rx, reverse, out):
+    """Census transform of an interleaved ``(H, W, C)`` image (uint8 or float32).
+
+    Census codes of the channel planes, borders replicated: bit set
+    when the neighbour is darker than the centre, neighbours in row-major order,
+    centre skipped; out : (C, H, W) uint32 or uint64, rows mirrored with ``reverse``.
+    Interior pixels compare in place (vector loops); borders clamp coordinates.
+    """
+    h, w, nc = img.shape
+    one = out.dtype.type(1)
+    zero = out.dtype.type(0)
+    xa = min(rx, w)
+    xb = max(xa, w - rx)
+    planes = np.empty((nc, h, w), img.dtype)
+    for y in prange(h):
+        for x in range(w):
+            for c in range(nc):
+                planes[c, y, x] = img[y, x, c]
+    for y in prange(h):
+        bits = np.empty(w, out.dtype)
+        for c in range(nc):
+            ctr = planes[c, y]
+            for x in range(w):
+                bits[x] = zero
+            for dy in range(-ry, ry + 1):
+                nbr = planes[c, min(max(y + dy, 0), h - 1)]
+                for dx in range(-rx, rx + 1):
+                    if dy == 0 and dx == 0:
+                        continue
+                    for x in range(xa):
+                        xx = min(max(x + dx, 0), w - 1)
+                        bits[x] = (bits[x] << one) | (one if nbr[xx] < ctr[x] else zero)
+                    nb = nbr[xa + dx:xb + dx]
+                    ce = ctr[xa:xb]
+                    bb = bits[xa:xb]
+                    for i in range(xb - xa):
+                        bb[i] = (bb[i] << one) | (one if nb[i] < ce[i] else zero)
+                    for x in range(xb, w):
+                        xx = min(max(x + dx, 0), w - 1)
+                        bits[x] = (bits[x] << one) | (one if nbr[xx] < ctr[x] else zero)
+            if reverse:
+                for x in range(w):
+                    out[c, y, w - 1 - x] = bits[x]
+            else:
+                for x in range(w):
+                    out[c, y, x] = bits[x]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def features_hwc(left, right, gain, offset, reverse, feat_l, feat_r):
+    """uint8 planar features of the AD term from interleaved images.
+
+    ``feat_l[c] = sat(rint(left[..., c]))``; ``feat_r[c] = sat(rint(max(right[..., c]
+    * gain[c] + offset[c], 0)))`` (float32 arithmetic, as ``cv2.convertScaleAbs``);
+    the right rows mirrored with ``reverse``.
+    """
+    h, w, nc = left.shape
+    for y in prange(h):
+        for c in range(nc):
+            g = np.float32(gain[c])
+            o = np.float32(offset[c])
+            for x in range(w):
+                v = np.float32(left[y, x, c])
+                feat_l[c, y, x] = np.uint8(min(max(np.rint(v), np.float32(0.0)), np.float32(255.0)))
+            for x in range(w):
+                v = max(np.float32(right[y, x, c]) * g + o, np.float32(0.0))
+                q = np.uint8(min(np.rint(v), np.float32(255.0)))
+                if reverse:
+                    feat_r[c, y, w - 1 - x] = q
+                else:
+                    feat_r[c, y, x] = q
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def grey_hwc(img, out):
+    """(H, W) float32 channel mean of an ``(H, W, C)`` image."""
+    h, w, nc = img.shape
+    inv = np.float32(1.0 / nc)
+    for y in prange(h):
+        for x in range(w):
+            s = np.float32(0.0)
+            for c in range(nc):
+                s += np.float32(img[y, x, c])
+            out[y, x] = s * inv
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def cost_full(census_l, census_r, feat_l, feat_r, ad_scale, ad_clip, dmin, oob_cost, out):
+    """Matching cost of a full search (the same disparities ``dmin + k`` at every
+    pixel): the values of :func:`matching_cost` with a constant ``dlo``.
+
+    census_l, census_r : (C, H, W) codes, *not* mirrored; feat_l, feat_r : (F, H, W)
+    uint8 (F may be 0); out : (H, W, Kp) uint8. Loops run over ``x`` for one disparity
+    at a time (long contiguous vector loops), then scatter into the volume.
+    """
+    nc, h, w = census_l.shape
+    nf = feat_l.shape[0]
+    kp = out.shape[2]
+    clip = np.float32(ad_clip)
+    scale = np.float32(ad_scale)
+    half = np.float32(0.5)
+    for y in prange(h):
+        acc = np.empty(w, np.int32)
+        tmp = np.empty(w, np.uint8)
+        o = out[y]
+        for kk in range(kp):
+            d = dmin + kk
+            x_lo = min(max(d, 0), w)
+            x_hi = min(max(w + d, 0), w)
+            n = x_hi - x_lo
+            for x in range(x_lo):
+                tmp[x] = oob_cost
+            for x in range(x_hi, w):
+                tmp[x] = oob_cost
+            if n > 0:
+                a = acc[:n]
+                t = tmp[x_lo:x_hi]
+                if nc == 3:
+                    a0 = census_l[0, y, x_lo:x_hi]
+                    a1 = census_l[1, y, x_lo:x_hi]
+                    a2 = census_l[2, y, x_lo:x_hi]
+                    b0 = census_r[0, y, x_lo - d:x_hi - d]
+                    b1 = census_r[1, y, x_lo - d:x_hi - d]
+                    b2 = census_r[2, y, x_lo - d:x_hi - d]
+                    for i in range(n):
+                        a[i] = (np.int32(_popcount(a0[i] ^ b0[i])) + np.int32(_popcount(a1[i] ^ b1[i]))
+                                + np.int32(_popcount(a2[i] ^ b2[i])))
+                else:
+                    for i in range(n):
+                        a[i] = 0
+                    for c in range(nc):
+                        a0 = census_l[c, y, x_lo:x_hi]
+                        b0 = census_r[c, y, x_lo - d:x_hi - d]
+                        for i in range(n):
+                            a[i] += np.int32(_popcount(a0[i] ^ b0[i]))
+                if nf == 3:
+                    p0 = feat_l[0, y, x_lo:x_hi]
+                    p1 = feat_l[1, y, x_lo:x_hi]
+                    p2 = feat_l[2, y, x_lo:x_hi]
+                    q0 = feat_r[0, y, x_lo - d:x_hi - d]
+                    q1 = feat_r[1, y, x_lo - d:x_hi - d]
+                    q2 = feat_r[2, y, x_lo - d:x_hi - d]
+                    for i in range(n):
+                        v = (abs(np.int32(p0[i]) - np.int32(q0[i])) + abs(np.int32(p1[i]) - np.int32(q1[i]))
+                             + abs(np.int32(p2[i]) - np.int32(q2[i])))
+                        s = a[i] + np.int32(min(np.float32(v), clip) * scale + half)
+                        t[i] = np.uint8(min(s, 255))
+                elif nf > 0:
+                    for i in range(n):
+                        v = np.int32(0)
+                        for f in range(nf):
+                            v += abs(np.int32(feat_l[f, y, x_lo + i]) - np.int32(feat_r[f, y, x_lo + i - d]))
+                        s = a[i] + np.int32(min(np.float32(v), clip) * scale + half)
+                        t[i] = np.uint8(min(s, 255))
+                else:
+                    for i in range(n):
+                        t[i] = np.uint8(min(a[i], 255))
+            for x in range(w):
+                o[x, kk] = tmp[x]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _p2_row(p1, p2, gamma, ga, gb, out):
+    """out[i] = adaptive P2 of the pixel pair (ga[i], gb[i]) (vectorised)."""
+    fp1 = np.float64(p1)
+    dp = np.float64(p2 - p1)
+    lo = np.float64(p1 + 1)
+    for i in range(out.shape[0]):
+        v = fp1 + dp / (1.0 + np.float64(abs(ga[i] - gb[i])) / gamma)
+        out[i] = np.uint16(max(v, lo))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sgm_step(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
+    """One SGM recursion (see :func:`_step`) into ``lc[dst:dst+kp]``; levels whose
+    ``pad`` is INF16 are held at INF16 (padding past the searched window). The path
+    cost is assigned to (first path) or added into ``g``. Returns the new min."""
+    a = lp[src - 1:src + kp + 1]
+    o = lc[dst:dst + kp]
+    for k in range(kp):
+        v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
+        o[k] = max(np.uint16(np.uint16(np.uint16(costv[k]) + v) - mp), pad[k])
+    if assign:
+        for k in range(kp):
+            g[k] = o[k]
+    else:
+        for k in range(kp):
+            g[k] = np.uint16(g[k] + o[k])
+    m = np.uint16(INF16)
+    for k in range(kp):
+        m = min(m, o[k])
+    return m
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sgm_start(costv, lc, dst, g, kp, pad, assign):
+    o = lc[dst:dst + kp]
+    for k in range(kp):
+        o[k] = max(np.uint16(costv[k]), pad[k])
+    if assign:
+        for k in range(kp):
+            g[k] = o[k]
+    else:
+        for k in range(kp):
+            g[k] = np.uint16(g[k] + o[k])
+    m = np.uint16(INF16)
+    for k in range(kp):
+        m = min(m, o[k])
+    return m
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clamp_shift(shift, k_levels):
+    """Window offset between neighbours clamped to +-k_levels as in :func:`_step`."""
+    if shift > k_levels:
+        return k_levels
+    if shift < -k_levels:
+        return -k_levels
+    return shift
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg):
+    """Left-to-right plus right-to-left SGM paths, *assigned* to ``agg``.
+
+    cost : (H, W, Kp) uint8 (levels ``>= k_levels`` are padding); agg : (H, W, Kp)
+    uint16 out. Both directions of a row run in the same loop (two independent
+    recursions overlap in the CPU); rows in parallel.
+    """
+    h, w, kp = cost.shape
+    st = 3 * kp + 2
+    dst = kp + 1
+    p1u = np.uint16(p1)
+    for y in prange(h):
+        pad = np.zeros(kp, np.uint16)
+        for k in range(k_levels, kp):
+            pad[k] = np.uint16(INF16)
+        p2r = np.empty(w, np.uint16)  # p2r[x]: pair (x - 1, x)
+        p2r[0] = 0
+        _p2_row(p1, p2, gamma, guide[y, 1:], guide[y, :w - 1], p2r[1:])
+        a_p = np.full(st, np.uint16(INF16), np.uint16)
+        a_c = np.full(st, np.uint16(INF16), np.uint16)
+        b_p = np.full(st, np.uint16(INF16), np.uint16)
+        b_c = np.full(st, np.uint16(INF16), np.uint16)
+        ma = _sgm_start(cost[y, 0], a_c, dst, agg[y, 0], kp, pad, True)
+        mb = _sgm_start(cost[y, w - 1], b_c, dst, agg[y, w - 1], kp, pad, 2 * (w - 1) > w - 1)
+        for s in range(1, w):
+            xa = s
+            xb = w - 1 - s
+            a_p, a_c = a_c, a_p
+            b_p, b_c = b_c, b_p
+            sa = _clamp_shift(dlo[y, xa] - dlo[y, xa - 1], k_levels)
+            ma = _sgm_step(cost[y, xa], a_p, dst + sa, a_c, dst, agg[y, xa], kp, p1u,
+                           np.uint16(ma + p2r[xa]), ma, pad, 2 * xa <= w - 1)
+            sb = _clamp_shift(dlo[y, xb] - dlo[y, xb + 1], k_levels)
+            mb = _sgm_step(cost[y, xb], b_p, dst + sb, b_c, dst, agg[y, xb], kp, p1u,
+                           np.uint16(mb + p2r[xb + 1]), mb, pad, 2 * xb > w - 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _wta(row, k_levels, d0, uniqueness, disp, conf, y, x):
+    """Winner-take-all of one pixel: best level, uniqueness, confidence, equiangular fit."""
+    kl = k_levels
+    big = np.uint16(0xFFFF)
+    m = big
+    for k in range(kl):
+        m = min(m, row[k])
+    b = 0
+    while row[b] != m:
+        b += 1
+    bc = np.int32(m)
+    s1 = big
+    for k in range(b - 1):
+        s1 = min(s1, row[k])
+    for k in range(b + 2, kl):
+        s1 = min(s1, row[k])
+    if b < 2 and b + 2 >= kl:
+        g = 1.0
+    else:
+        second = np.int32(s1)
+        g = (second - bc) / max(second, 1)
+    conf[y, x] = g
+    if g * 100.0 < uniqueness:
+        disp[y, x] = np.nan
+        return
+    off = 0.0
+    if 0 < b < kl - 1:
+        cm = np.float64(row[b - 1])
+        cp = np.float64(row[b + 1])
+        c0 = np.float64(bc)
+        den = max(cm, cp) - c0
+        if den > 0:
+            off = 0.5 * (cm - cp) / den
+    disp[y, x] = np.float32(d0 + b + off)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block, uniqueness, agg,
+                     disp, conf):
+    """Bottom-up then top-down SGM paths added into ``agg``, then winner-take-all.
+
+    Columns in blocks of ``block`` that walk the rows together; once the top-down
+    path has passed row ``y`` the block's aggregated costs there are final, and the
+    winner-take-all (uniqueness, confidence, equiangular
+    fit) runs while they are in cache. disp, conf : (H, W) float32 out.
+    """
+    h, w, kp = cost.shape
+    st = 3 * kp + 2
+    dst = kp + 1
+    p1u = np.uint16(p1)
+    nb = (w + block - 1) // block
+    for bi in prange(nb):
+        x0 = bi * block
+        x1 = min(w, x0 + block)
+        nbx = x1 - x0
+        pad = np.zeros(kp, np.uint16)
+        for k in range(k_levels, kp):
+            pad[k] = np.uint16(INF16)
+        lp = np.full(nbx * st, np.uint16(INF16), np.uint16)
+        lc = np.full(nbx * st, np.uint16(INF16), np.uint16)
+        mins = np.empty(nbx, np.uint16)
+        p2c = np.empty(nbx, np.uint16)
+        for direction in range(2):
+            dy = -1 if direction == 0 else 1
+            y = h - 1 if dy < 0 else 0
+            for i in range(nbx):
+                o = i * st
+                mins[i] = _sgm_start(cost[y, x0 + i], lc[o:o + st], dst, agg[y, x0 + i], kp,
+                                     pad, False)
+            if dy > 0:
+                for i in range(nbx):
+                    _wta(agg[y, x0 + i], k_levels, dlo[y, x0 + i], uniqueness, disp, conf, y, x0 + i)
+            for _ in range(h - 1):
+                yq = y
+                y += dy
+                lp, lc = lc, lp
+                _p2_row(p1, p2, gamma, guide[y, x0:x1], guide[yq, x0:x1], p2c)
+                for i in range(nbx):
+                    x = x0 + i
+                    o = i * st
+                    sh = _clamp_shift(dlo[y, x] - dlo[yq, x], k_levels)
+                    mp = mins[i]
+                    mins[i] = _sgm_step(cost[y, x], lp[o:o + st], dst + sh, lc[o:o + st], dst,
+                                        agg[y, x], kp, p1u, np.uint16(mp + p2c[i]), mp, pad,
+                                        False)
+                if dy > 0:
+                    for i in range(nbx):
+                        _wta(agg[y, x0 + i], k_levels, dlo[y, x0 + i], uniqueness, disp, conf,
+                             y, x0 + i)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def right_lr_check(agg, dlo, k_levels, max_diff, full, disp):
+    """Right-view winner-take-all from the same aggregated volume and the left-right
+    check of ``disp`` in place, one row at a time.
+
+    ``full``: every pixel has the same window (``dlo[0, 0]``); then each right pixel
+    takes the min along its diagonal of the volume (branch-free), else the left
+    pixels scatter their costs. Both keep the smallest disparity among equal costs.
+    """
+    h, w, kp = agg.shape
+    for y in prange(h):
+        best = np.full(w, np.int32(1 << 30), np.int32)
+        dr = np.empty(w, np.float32)
+        if full:
+            d0 = dlo[y, 0]
+            row = agg[y].reshape(-1)
+            for xr in range(w):
+                k_lo = max(0, -d0 - xr)
+                k_hi = min(k_levels, w - xr - d0)
+                if k_hi <= k_lo:
+                    continue
+                base = (xr + d0) * kp
+                m = np.uint16(0xFFFF)
+                for k in range(k_lo, k_hi):
+                    m = min(m, row[base + k * (kp + 1)])
+                k = k_lo
+                while row[base + k * (kp + 1)] != m:
+                    k += 1
+                best[xr] = np.int32(m)
+                dr[xr] = d0 + k
+        else:
+            for x in range(w):
+                d0 = dlo[y, x]
+                k_lo = max(0, x - d0 - (w - 1))
+                k_hi = min(k_levels, x - d0 + 1)
+                row = agg[y, x]
+                for k in range(k_lo, k_hi):
+                    xr = x - d0 - k
+                    c = np.int32(row[k])
+                    if c < best[xr]:
+                        best[xr] = c
+                        dr[xr] = d0 + k
+        for x in range(w):
+            d = disp[y, x]
+            if np.isnan(d):
+                continue
+            xr = int(np.floor(x - d + 0.5))
+            if xr < 0 or xr >= w or best[xr] >= (1 << 30) or abs(dr[xr] - d) > max_diff:
+                disp[y, x] = np.nan
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=True, error_model="numpy")
+def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step):
+    """1-D Lucas-Kanade refinement computed from window sums.
+
+    right_coef_pad : (H, W + 2) float32, the B-spline coefficients of
+    the right view (:func:`bspline_rows`) in columns ``1 .. W`` (one spare column each side). With the
+    B-spline weights ``a_j`` (value) and ``g_j`` (derivative) of the fractional
+    shift and the coefficients ``q`` under the 4-tap footprint, the sums of one
+    Gauss-Newton step are ``sum r g = g.P - a^T M g`` and ``sum g^2 = g^T M g`` with
+    ``P_j = sum L q_j`` and the 4x4 Gram matrix ``M_jk = sum q_j q_k``; both depend
+    only on the integer part ``x0`` of ``x - d``. ``M`` comes from per-row box sums of
+    coefficient products at lags 0..3; ``P`` for ``x0`` and its two neighbours (a step
+    never moves farther: ``max_step <= 1``) from six window sums per pixel, so every
+    iteration costs O(1).
+    """
+    h, w = disp.shape
+    sixth = np.float32(1.0 / 6.0)
+    one = np.float32(1.0)
+    nu = 2 * wx + 1
+    for y in prange(h):
+        if y - wy < 0 or y + wy >= h:
+            continue
+        any_valid = False
+        for x in range(w):
+            if not np.isnan(disp[y, x]):
+                any_valid = True
+                break
+        if not any_valid:
+            continue
+        cs = np.zeros((4, w), np.float32)
+        for v in range(y - wy, y + wy + 1):
+            q = right_coef_pad[v, 1:w + 1]
+            for dl in range(4):
+                c = cs[dl]
+                for p in range(w - dl):
+                    c[p] += q[p] * q[p + dl]
+        sm = np.zeros((4, w), np.float32)
+        for dl in range(4):
+            c = cs[dl]
+            sd = sm[dl]
+            for p in range(wx, w - wx - dl):
+                acc = np.float32(0.0)
+                for u in range(-wx, wx + 1):
+                    acc += c[p + u]
+                sd[p] = acc
+        s0 = sm[0]
+        s1 = sm[1]
+        s2 = sm[2]
+        s3 = sm[3]
+        for x in range(wx, w - wx):
+            d_in = disp[y, x]
+            if np.isnan(d_in):
+                continue
+            d = np.float64(d_in)
+            xb = int(np.floor(x - d))
+            if xb - wx - 1 < 0 or xb + wx + 2 >= w:
+                continue
+            # E_m = sum_window L(v, x + u) q(v, xb - 2 + m + u), m = 0..5
+            e0 = e1 = e2 = e3 = e4 = e5 = np.float32(0.0)
+            for v in range(y - wy, y + wy + 1):
+                # padded column xb - 2 - wx + 1 >= 0 and xb + 3 + wx + 1 <= w + 1
+                qr = right_coef_pad[v, xb - 1 - wx:xb + wx + 5]
+                lv = left[v, x - wx:x + wx + 1]
+                f0 = f1 = f2 = f3 = f4 = f5 = np.float32(0.0)
+                for u in range(nu):
+                    lu = lv[u]
+                    f0 += lu * qr[u]
+                    f1 += lu * qr[u + 1]
+                    f2 += lu * qr[u + 2]
+                    f3 += lu * qr[u + 3]
+                    f4 += lu * qr[u + 4]
+                    f5 += lu * qr[u + 5]
+                e0 += f0
+                e1 += f1
+                e2 += f2
+                e3 += f3
+                e4 += f4
+                e5 += f5
+            ok = True
+            for _ in range(iters):
+                xs = x - d
+                x0 = int(np.floor(xs))
+                if x0 - wx - 1 < 0 or x0 + wx + 2 >= w:
+                    ok = False
+                    break
+                sh = x0 - xb
+                if sh == 0:
+                    pp0, pp1, pp2, pp3 = e1, e2, e3, e4
+                elif sh < 0:
+                    pp0, pp1, pp2, pp3 = e0, e1, e2, e3
+                else:
+                    pp0, pp1, pp2, pp3 = e2, e3, e4, e5
+                m00 = np.float64(s0[x0 - 1])
+                m11 = np.float64(s0[x0])
+                m22 = np.float64(s0[x0 + 1])
+                m33 = np.float64(s0[x0 + 2])
+                m01 = np.float64(s1[x0 - 1])
+                m12 = np.float64(s1[x0])
+                m23 = np.float64(s1[x0 + 1])
+                m02 = np.float64(s2[x0 - 1])
+                m13 = np.float64(s2[x0])
+                m03 = np.float64(s3[x0 - 1])
+                t = np.float32(xs - x0)
+                omt = one - t
+                t2 = t * t
+                a0 = np.float64(omt * omt * omt * sixth)
+                a1 = np.float64((np.float32(3.0) * t2 * t - np.float32(6.0) * t2 + np.float32(4.0)) * sixth)
+                a2 = np.float64((np.float32(-3.0) * t2 * t + np.float32(3.0) * t2 + np.float32(3.0) * t
+                                 + one) * sixth)
+                a3 = np.float64(t2 * t * sixth)
+                g0 = np.float64(np.float32(-0.5) * omt * omt)
+                g1 = np.float64(np.float32(1.5) * t2 - np.float32(2.0) * t)
+                g2 = np.float64(np.float32(-1.5) * t2 + t + np.float32(0.5))
+                g3 = np.float64(np.float32(0.5) * t2)
+                mg0 = m00 * g0 + m01 * g1 + m02 * g2 + m03 * g3
+                mg1 = m01 * g0 + m11 * g1 + m12 * g2 + m13 * g3
+                mg2 = m02 * g0 + m12 * g1 + m22 * g2 + m23 * g3
+                mg3 = m03 * g0 + m13 * g1 + m23 * g2 + m33 * g3
+                den = g0 * mg0 + g1 * mg1 + g2 * mg2 + g3 * mg3
+                num = (g0 * np.float64(pp0) + g1 * np.float64(pp1) + g2 * np.float64(pp2)
+                       + g3 * np.float64(pp3) - (a0 * mg0 + a1 * mg1 + a2 * mg2 + a3 * mg3))
+                if den <= 1e-6:
+                    ok = False
+                    break
+                step = -num / den
+                d += step
+                if abs(d - d_in) > max_step:
+                    ok = False
+                    break
+                if abs(step) < 2e-3:
+                    break
+            if ok:
+                disp[y, x] = np.float32(d)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def median_fill_final(filled, raw, conf, r, out, valid, conf_out):
+    """:func:`median_filled` with the validity taken from ``raw`` (not NaN), plus the
+    result's ``valid`` mask and ``conf_out = clip(conf, 0, 1)`` where valid, else 0."""
+    h, w = filled.shape
+    n = (2 * r + 1) * (2 * r + 1)
+    for y in prange(h):
+        buf = np.empty(n, np.float32)
+        for x in range(w):
+            ok = not np.isnan(raw[y, x])
+            valid[y, x] = ok
+            if ok:
+                conf_out[y, x] = min(max(conf[y, x], np.float32(0.0)), np.float32(1.0))
+                out[y, x] = filled[y, x]
+                continue
+            conf_out[y, x] = 0.0
+            m = 0
+            for dy in range(-r, r + 1):
+                yy = min(max(y + dy, 0), h - 1)
+                for dx in range(-r, r + 1):
+                    xx = min(max(x + dx, 0), w - 1)
+                    v = filled[yy, xx]
+                    if not np.isnan(v):
+                        buf[m] = v
+                        m += 1
+            if m == 0:
+                out[y, x] = filled[y, x]
+            else:
+                for i in range(1, m):
+                    v = buf[i]
+                    j = i - 1
+                    while j >= 0 and buf[j] > v:
+                        buf[j + 1] = buf[j]
+                        j -= 1
+                    buf[j + 1] = v
+                out[y, x] = buf[m // 2]

@@ -54,6 +54,7 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -105,12 +106,17 @@ def _as_int(value: Any, name: str) -> int:
     return int(value)
 
 
-def _prepare(img: Any, name: str) -> NDArray[np.float32]:
+def _prepare(img: Any, name: str) -> NDArray[np.uint8] | NDArray[np.float32]:
+    """(H, W, C) C-contiguous image: uint8 kept as is (no copy when possible), float
+    scaled to [0, 255] float32."""
     arr = check_array(img, name, ndim=(2, 3), dtype_kind="uf", min_size=1)
     if arr.dtype.kind == "u" and arr.dtype != np.uint8:
         raise InputError(f"{name}: expected uint8 or float image, got {arr.dtype}")
     if arr.ndim == 3 and arr.shape[2] not in (1, 3):
         raise InputError(f"{name}: expected (H, W) or (H, W, 3) image, got shape {arr.shape}")
+    if arr.dtype == np.uint8:
+        out8 = np.ascontiguousarray(arr)
+        return out8[:, :, None] if out8.ndim == 2 else out8
     out = arr.astype(np.float32)
     if arr.dtype.kind == "f":
         if not np.all(np.isfinite(out)):
@@ -121,26 +127,22 @@ def _prepare(img: Any, name: str) -> NDArray[np.float32]:
     return np.ascontiguousarray(out)
 
 
-def _census(img: NDArray[np.float32], ry: int, rx: int, reverse: bool) -> NDArray[np.unsignedinteger]:
-    """(C, H, W) census codes (uint32 up to 32 comparisons, else uint64); rows mirrored
-    when ``reverse`` (the right view's layout for :func:`._match_kernels.matching_cost`)."""
+def _census(img: NDArray[Any], ry: int, rx: int, reverse: bool) -> NDArray[np.unsignedinteger]:
+    """(C, H, W) census codes (uint32 up to 32 comparisons, else uint64) of an
+    (H, W, C) image, borders replicated; rows mirrored when ``reverse`` (the right
+    view's layout for :func:`._match_kernels.matching_cost`)."""
     h, w, c = img.shape
-    planes = np.moveaxis(img, 2, 0)
-    padded = np.ascontiguousarray(np.pad(planes, ((0, 0), (ry, ry), (rx, rx)), mode="edge"))
     nbits = (2 * ry + 1) * (2 * rx + 1) - 1
     out = np.empty((c, h, w), np.uint32 if nbits <= 32 else np.uint64)
-    _k.census_transform(padded, ry, rx, reverse, out)
+    _k.census_hwc(np.ascontiguousarray(img), ry, rx, bool(reverse), out)
     return out
 
 
-def _grey(img: NDArray[np.float32]) -> NDArray[np.float32]:
-    """(H, W) channel mean of an (H, W, C) image (cv2.transform: much faster than
-    ``img.mean(axis=2)``)."""
-    c = img.shape[2]
-    if c == 1:
-        return np.ascontiguousarray(img[:, :, 0])
-    m = np.full((1, c), 1.0 / c, np.float32)
-    return np.ascontiguousarray(cv2.transform(img, m).reshape(img.shape[:2]))
+def _grey(img: NDArray[Any]) -> NDArray[np.float32]:
+    """(H, W) float32 channel mean of an (H, W, C) image."""
+    out = np.empty(img.shape[:2], np.float32)
+    _k.grey_hwc(img, out)
+    return out
 
 
 def _bandpass(grey: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -160,30 +162,40 @@ def _to_u8(img: NDArray[np.float32]) -> NDArray[np.uint8]:
     return out
 
 
-def _features(left: NDArray[np.float32], right: NDArray[np.float32], mode: str
+def _features(left: NDArray[Any], right: NDArray[Any], mode: str, reverse: bool
               ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-    """Per-pixel uint8 features of the AD term for both views.
+    """Per-pixel uint8 features of the AD term for both views, planar (C, H, W), the
+    right view's rows mirrored when ``reverse``.
 
     ``"intensity"``: the colour values, the right view's channels first matched in
     mean and standard deviation to the left's (global exposure / gain compensation);
     ``"gradient"``: horizontal central differences, offset by 128.
     """
+    h, w, nc = left.shape
     if mode == "gradient":
         out = []
         for img in (left, right):
-            g = np.full_like(img, 128.0)
-            g[:, 1:-1] += 0.5 * (img[:, 2:] - img[:, :-2])
-            out.append(_to_u8(g))
+            f = img.astype(np.float32)
+            g = np.full_like(f, 128.0)
+            g[:, 1:-1] += 0.5 * (f[:, 2:] - f[:, :-2])
+            out.append(np.ascontiguousarray(np.moveaxis(_to_u8(g), 2, 0)))
+        if reverse:
+            out[1] = np.ascontiguousarray(out[1][:, :, ::-1])
         return out[0], out[1]
-    fr = np.empty(right.shape, np.uint8)
-    for c in range(right.shape[2]):
-        rc = np.ascontiguousarray(right[:, :, c])
-        mi, si = (float(v[0][0]) for v in cv2.meanStdDev(rc))
-        mr, sr = (float(v[0][0]) for v in cv2.meanStdDev(np.ascontiguousarray(left[:, :, c])))
-        g = sr / si if si > 1e-6 else 1.0
-        adj = cv2.max(rc * np.float32(g) + np.float32(mr - mi * g), 0.0)
-        fr[:, :, c] = cv2.convertScaleAbs(adj)
-    return _to_u8(left), fr
+    ml, sl = cv2.meanStdDev(left)
+    mi, si = cv2.meanStdDev(right)
+    gain = np.ones(nc, np.float32)
+    offset = np.zeros(nc, np.float32)
+    for c in range(nc):
+        s_i, s_l = float(si[c][0]), float(sl[c][0])
+        m_i, m_l = float(mi[c][0]), float(ml[c][0])
+        g = s_l / s_i if s_i > 1e-6 else 1.0
+        gain[c] = np.float32(g)
+        offset[c] = np.float32(m_l - m_i * g)
+    fl = np.empty((nc, h, w), np.uint8)
+    fr = np.empty((nc, h, w), np.uint8)
+    _k.features_hwc(left, right, gain, offset, bool(reverse), fl, fr)
+    return fl, fr
 
 
 @dataclass(frozen=True)
@@ -207,61 +219,76 @@ class _Params:
 
 
 def _match_level(
-    left: NDArray[np.float32],
-    right: NDArray[np.float32],
+    left: NDArray[Any],
+    right: NDArray[Any],
     dlo: NDArray[np.int32],
     k_levels: int,
     prm: _Params,
     *,
     subpixel: str,
     speckle_size: int,
+    dmin: int | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """One SGM pass with per-pixel windows; returns (raw disparity NaN=invalid, conf)."""
+    """One SGM pass with per-pixel windows; returns (raw disparity NaN=invalid, conf).
+
+    ``dmin`` set: a full search (``dlo == dmin`` everywhere), whose matching cost is
+    computed one disparity at a time over whole rows.
+    """
     h, w, nc = left.shape
-    cl = _census(left, prm.census_ry, prm.census_rx, False)
-    cr = _census(right, prm.census_ry, prm.census_rx, True)
-    nbits = (2 * prm.census_ry + 1) * (2 * prm.census_rx + 1) - 1
+    full = dmin is not None
+    ry, rx = prm.census_ry, prm.census_rx
+    nbits = (2 * ry + 1) * (2 * rx + 1) - 1
+    ctype = np.uint32 if nbits <= 32 else np.uint64
+    cl = np.empty((nc, h, w), ctype)
+    cr = np.empty((nc, h, w), ctype)
+    _k.census_hwc(left, ry, rx, False, cl)
+    _k.census_hwc(right, ry, rx, not full, cr)
     oob = np.uint8(min(255, (nbits * nc) // 2))
-    cost = np.empty((h, w, k_levels), np.uint8)
+    # full search: levels padded to a multiple of 16 (vector width) in the volumes;
+    # padded levels are held at "infinite" cost by the SGM kernels, never selected
+    kp = -(-k_levels // 16) * 16 if full and prm.paths == 4 else k_levels
     if prm.ad_weight > 0:
-        fl, fr = _features(left, right, prm.ad_mode)
-        fl = np.ascontiguousarray(np.moveaxis(fl, 2, 0))
-        fr = np.ascontiguousarray(np.moveaxis(fr, 2, 0)[:, :, ::-1])
+        fl, fr = _features(left, right, prm.ad_mode, not full)
     else:
         fl = fr = np.zeros((0, h, w), np.uint8)
     nf = max(fl.shape[0], 1)
     # AD cost of a summed |difference| a: weight * nc * min(a / nf, trunc)
-    _k.matching_cost(cl, cr, fl, fr, prm.ad_weight * nc / nf, prm.ad_trunc * nf, dlo, k_levels,
-                     oob, cost)
-    del cl, cr
+    ad_scale = prm.ad_weight * nc / nf
+    ad_clip = prm.ad_trunc * nf
+    cost = np.empty((h, w, kp), np.uint8)
+    if full:
+        _k.cost_full(cl, cr, fl, fr, ad_scale, ad_clip, int(dmin), oob, cost)
+    else:
+        _k.matching_cost(cl, cr, fl, fr, ad_scale, ad_clip, dlo, kp, oob, cost)
+    del cl, cr, fl, fr
     guide = _grey(left)
     p1 = np.int32(prm.p1 * nc)
     p2 = np.int32(prm.p2 * nc)
-    agg = np.zeros((h, w, k_levels), np.uint16)
-    dirs = _DIRS4 if prm.paths == 4 else _DIRS8
-    for dy, dx in dirs:
-        if dx == 0:
-            _k.aggregate_vertical(cost, dlo, guide, p1, p2, prm.p2_gamma, dy, 128, agg)
-        else:
-            _k.aggregate_path(cost, dlo, guide, p1, p2, prm.p2_gamma, dy, dx, agg)
-    del cost
+    gamma = float(prm.p2_gamma)
+    agg = np.empty((h, w, kp), np.uint16)
+    _k.sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg)
+    if prm.paths == 8:
+        for dy, dx in _DIRS8[4:]:
+            _k.aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg)
     disp = np.empty((h, w), np.float32)
-    best = np.empty((h, w), np.int32)
     conf = np.empty((h, w), np.float32)
-    _k.select_disparity(agg, dlo, np.float64(prm.uniqueness), disp, best, conf)
-    disp_r = np.empty((h, w), np.float32)
-    _k.right_disparity(agg, dlo, disp_r)
+    nthreads = max(1, numba.get_num_threads())
+    block = int(min(128, max(16, -(-w // (4 * nthreads)))))
+    _k.sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block,
+                        float(prm.uniqueness), agg, disp, conf)
+    del cost
+    _k.right_lr_check(agg, dlo, k_levels, float(prm.lr_max_diff), full, disp)
     del agg
-    _k.lr_check(disp, disp_r, np.float64(prm.lr_max_diff))
     if speckle_size > 0:
         _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range))
     if subpixel == "lk":
         lg = _bandpass(guide)
         rg = _bandpass(_grey(right))
-        rcoef = np.empty_like(rg)
-        _k.bspline_rows(rg, rcoef)
+        rcoef = np.zeros((h, w + 2), np.float32)  # one spare column each side
+        _k.bspline_rows(rg, rcoef[:, 1:w + 1])
+        del rg
         r = prm.lk_window // 2
-        _k.refine_lk(lg, rcoef, disp, r, r, prm.lk_iters, 1.0)
+        _k.refine_lk_gram(lg, rcoef, disp, r, r, prm.lk_iters, 1.0)
     return disp, conf
 
 
@@ -390,9 +417,7 @@ def match_stereo_full(
     if p2 * 3 * 8 > 40000:
         raise InputError(f"p2: expected at most 1600, got {p2}")
 
-    if lf.shape[2] == 3 and np.array_equal(lf[..., 0], lf[..., 1]) and np.array_equal(
-        lf[..., 0], lf[..., 2]
-    ) and np.array_equal(rf[..., 0], rf[..., 1]) and np.array_equal(rf[..., 0], rf[..., 2]):
+    if lf.shape[2] == 3 and _k.channels_equal(lf) and _k.channels_equal(rf):
         lf = np.ascontiguousarray(lf[..., :1])
         rf = np.ascontiguousarray(rf[..., :1])
 
@@ -429,18 +454,23 @@ def match_stereo_full(
     if not use_c2f:
         dlo = np.full((h, w), min_disp, np.int32)
         raw, conf = _match_level(lf, rf, dlo, num_disp, prm, subpixel=subpixel,
-                                 speckle_size=speckle_size)
+                                 speckle_size=speckle_size, dmin=min_disp)
     else:
         raw, conf = _match_c2f(lf, rf, min_disp, num_disp, scale, prm, fine_window)
-    valid = ~np.isnan(raw)
+    filled = np.empty_like(raw)
+    _k.fill_holes(raw, filled)
+    _k.fill_columns(filled)
+    dense = np.empty_like(raw)
+    valid = np.empty(raw.shape, np.bool_)
+    conf_out = np.empty(raw.shape, np.float32)
+    _k.median_fill_final(filled, raw, conf, 1, dense, valid, conf_out)
+    del filled
     if not valid.any():
         raise ReconstructionError(
             "match_stereo: no pixel passed the consistency checks; check that the pair "
             f"is rectified and that disparities lie in [{min_disp}, {min_disp + num_disp - 1}]"
         )
-    dense = _fill(raw)
-    conf = np.where(valid, np.clip(conf, 0.0, 1.0), 0.0).astype(np.float32)
-    return StereoResult(disparity=dense, valid=valid, confidence=conf, raw=raw,
+    return StereoResult(disparity=dense, valid=valid, confidence=conf_out, raw=raw,
                         coarse_to_fine=use_c2f)
 
 
@@ -457,7 +487,7 @@ def _match_c2f(
     hc, wc = h // scale, w // scale
 
     def down(img: NDArray[np.float32]) -> NDArray[np.float32]:
-        crop = np.ascontiguousarray(img[: hc * scale, : wc * scale])
+        crop = np.ascontiguousarray(img[: hc * scale, : wc * scale], dtype=np.float32)
         small = cv2.resize(crop, (wc, hc), interpolation=cv2.INTER_AREA)
         return np.ascontiguousarray(small.reshape(hc, wc, nc))
 
@@ -467,7 +497,7 @@ def _match_c2f(
     dlo_c = np.full((hc, wc), dmin_c, np.int32)
     sp_c = max(4, prm.speckle_size // (scale * scale))
     raw_c, _ = _match_level(lc, rc, dlo_c, dmax_c - dmin_c + 1, prm, subpixel="equiangular",
-                            speckle_size=sp_c)
+                            speckle_size=sp_c, dmin=dmin_c)
     if not np.any(~np.isnan(raw_c)):
         raise ReconstructionError(
             "match_stereo: the coarse level found no consistent match; check the pair "
