@@ -1,0 +1,214 @@
+"""Slanted-plane sub-pixel refinement of a disparity map.
+
+Window-based sub-pixel methods (the matcher's Lucas-Kanade step included) assume the
+disparity is constant over the window. On the rig's colour grating that assumption
+fails where it matters: each stripe is one flat colour, so a pixel inside a stripe
+has no horizontal texture of its own and its window sees only the stripe's edges;
+on a surface slanted to the rig the disparity changes by ~0.1 px per pixel, and a
+constant-disparity fit makes a staircase -- one step per stripe, a sawtooth of
+about +-0.5 px (+-0.7 mm at 1250 mm) along every slanted surface.
+
+:func:`refine_slanted` fits, around every pixel, a *plane* of disparity
+``d(q) = d0 + a (qx - px) + b (qy - py)`` to the photometric error of the colour
+images over a wide window (default 7 rows x 25 columns, wide enough to hold stripe
+edges on both sides), Gauss-Newton linearised about the current disparity at each
+window pixel, and keeps ``d0``. This is the affine (slanted-window) matching model
+of Bleyer et al. [1]_ and of the first-order windows of [2]_ in a direct least
+squares form: every sum over the window is a box filter, so the cost per pixel does
+not depend on the window size. Each window pixel is weighted by its squared
+horizontal gradient (the information it carries about disparity), summed over the
+colour channels.
+
+Measured on a simulated turntable view of a camouflaged tank at 45 deg (paper rig,
+grating on, noise): disparity error MAD 0.48 -> 0.10 px, within 0.1 px 19 % -> 61 %
+of the pixels; on the flat 30 x 30 cm plate of Table I it does no harm.
+
+References
+----------
+.. [1] M. Bleyer, C. Rhemann, C. Rother, "PatchMatch Stereo - Stereo matching with
+   slanted support windows", BMVC 2011.
+.. [2] B. D. Lucas and T. Kanade, "An iterative image registration technique with an
+   application to stereo vision", IJCAI 1981.
+.. [3] A. Fusiello, V. Roberto, E. Trucco, "Efficient stereo with multiple windowing",
+   CVPR 1997 (shiftable windows).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.checks import check_array, check_same_shape
+from prism3d.errors import InputError
+
+from . import _refine_kernels as _k
+
+__all__ = ["refine_slanted"]
+
+
+def _as_float_channels(img: NDArray, name: str) -> NDArray[np.float32]:
+    arr = check_array(img, name, ndim=(2, 3), dtype_kind="uf", min_size=1)
+    out = arr.astype(np.float32)
+    if arr.dtype.kind == "f" and np.nanmax(np.abs(out)) <= 1.0 + 1e-6:
+        out = out * 255.0
+    if out.ndim == 2:
+        out = out[..., None]
+    return np.ascontiguousarray(out)
+
+
+def refine_slanted(
+    left: NDArray,
+    right: NDArray,
+    disparity: NDArray,
+    valid: NDArray,
+    *,
+    window: tuple[int, int] = (7, 25),
+    iterations: int = 3,
+    max_change: float = 1.5,
+    shiftable: bool = False,
+    extra: NDArray | None = None,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Refine ``disparity`` at ``valid`` pixels with slanted-plane windows.
+
+    Parameters
+    ----------
+    left, right : (H, W) or (H, W, C) uint8 or float
+        The rectified pair the disparity was matched on (``d = x_left - x_right``).
+    disparity : (H, W) float
+        Current disparity (sub-pixel or integer; within ~1 px of the truth).
+    valid : (H, W) bool
+        Pixels to refine; only these take part in the window sums (so holes and
+        the background do not pull on the fit).
+    window : (rows, cols)
+        Odd window size. Wider than tall: the grating's stripes are vertical.
+    iterations : int
+        Gauss-Newton iterations (each re-warps the right view).
+    extra : (H, W) bool, optional
+        Further pixels to estimate (e.g. holes the matcher's checks left inside a
+        surface), starting from ``disparity`` there (e.g. the matcher's dense,
+        filled output). They take no part in the first iteration's window sums;
+        from the second on, those the planes reached do.
+    shiftable : bool
+        Also fit the windows shifted by 2/3 of their half-size left, right, up and
+        down, and take the plane of the one that fits best (its disparity
+        measurements deviate least from a plane): near a crease or a depth edge the
+        centred window straddles two surfaces, a shifted one need not [3]_.
+    max_change : float
+        A pixel whose refined disparity moves by more than this (px) from the input
+        keeps the input value and is reported with residual ``inf``.
+
+    Returns
+    -------
+    disparity : (H, W) float32
+        Refined at ``valid`` pixels, unchanged elsewhere.
+    residual : (H, W) float32
+        Per pixel, the window's mean squared colour error after refinement divided
+        by its mean squared horizontal gradient (small = the plane explains the
+        images; large = occlusion, specular, or a wrong match); NaN where not valid.
+
+    Raises
+    ------
+    InputError
+        Shapes differ, wrong dtypes, even or too small window, bad counts.
+    """
+    L = _as_float_channels(left, "left")
+    R = _as_float_channels(right, "right")
+    check_same_shape(L, R, ("left", "right"))
+    d_in = check_array(disparity, "disparity", ndim=2, dtype_kind="f")
+    m = check_array(valid, "valid", ndim=2)
+    if d_in.shape != L.shape[:2] or m.shape != L.shape[:2]:
+        raise InputError(
+            f"disparity {d_in.shape} and valid {m.shape} must match the images {L.shape[:2]}"
+        )
+    if len(window) != 2 or any(int(w) != w or w < 3 or w % 2 == 0 for w in window):
+        raise InputError(f"window: expected two odd sizes >= 3, got {window!r}")
+    if int(iterations) != iterations or iterations < 1:
+        raise InputError(f"iterations: expected an integer >= 1, got {iterations!r}")
+    if not (np.isfinite(max_change) and max_change > 0):
+        raise InputError(f"max_change: expected a number > 0, got {max_change!r}")
+    ry, rx = int(window[0]) // 2, int(window[1]) // 2
+    m = m.astype(bool) & np.isfinite(d_in)
+    if extra is not None:
+        ex = check_array(extra, "extra", shape=m.shape).astype(bool) & np.isfinite(d_in) & ~m
+    else:
+        ex = np.zeros_like(m)
+    out = d_in.astype(np.float32).copy()
+    resid = np.full(out.shape, np.nan, np.float32)
+    if not m.any():
+        return out, resid
+
+    # work on the rows/columns around the valid pixels only
+    tgt = m | ex
+    rows = np.flatnonzero(tgt.any(axis=1))
+    cols = np.flatnonzero(tgt.any(axis=0))
+    y0, y1 = max(rows[0] - ry, 0), min(rows[-1] + ry + 1, m.shape[0])
+    x0, x1 = max(cols[0] - rx, 0), min(cols[-1] + rx + 1, m.shape[1])
+    Lc = L[y0:y1, x0:x1]
+    Rc = np.ascontiguousarray(R[y0:y1])  # full width: matches may lie left of x0
+    support = np.ascontiguousarray(m[y0:y1, x0:x1])
+    mc = np.ascontiguousarray(tgt[y0:y1, x0:x1])
+    d_ref = float(np.median(out[m])) if m.any() else float(np.median(out[tgt]))
+    d0 = np.ascontiguousarray(out[y0:y1, x0:x1] - np.float32(d_ref))
+    d = np.where(mc, d0, np.float32(0.0)).astype(np.float32)
+    h, w, nc = Lc.shape
+    gx_r = np.stack([cv2.Sobel(Rc[..., c], cv2.CV_32F, 1, 0, ksize=1, scale=0.5) for c in range(nc)], -1)
+    # window moments by separable correlation: sum over q of f(q) (qx-px)^i (qy-py)^j
+    one_x = np.ones(2 * rx + 1, np.float32)
+    one_y = np.ones(2 * ry + 1, np.float32)
+    ramp_x = np.arange(-rx, rx + 1, dtype=np.float32)
+    ramp_y = np.arange(-ry, ry + 1, dtype=np.float32)
+
+    def mom(f: NDArray[np.float64], kx: NDArray, ky: NDArray) -> NDArray[np.float64]:
+        return cv2.sepFilter2D(f, cv2.CV_64F, kx.astype(np.float64), ky.astype(np.float64),
+                               borderType=cv2.BORDER_CONSTANT)
+
+    mapx_base = np.arange(x0, x1, dtype=np.float32)[None, :]
+    mapy = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w)).copy()
+    Lf = np.ascontiguousarray(Lc, dtype=np.float32)
+    g2 = np.empty((h, w), np.float64)
+    ge = np.empty((h, w), np.float64)
+    q = np.empty((h, w), np.float64)
+    dd = d.astype(np.float64)
+    fit = np.full((h, w), np.inf)
+    if shiftable:
+        sx_, sy_ = max(1, (2 * rx) // 3), max(1, (2 * ry) // 3)
+        shifts = np.array([(0, 0), (0, -sx_), (0, sx_), (-sy_, 0), (sy_, 0)], np.int64)
+    for it in range(int(iterations)):
+        if it > 0 and ex.any():
+            support = mc  # the planes reached the extra pixels: they now carry measurements
+        mapx = mapx_base - dd.astype(np.float32) - np.float32(d_ref)
+        Rw = cv2.remap(Rc, mapx, mapy, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).reshape(h, w, nc)
+        G = cv2.remap(gx_r, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(h, w, nc)
+        # linearised about each window pixel's own current disparity d_q:
+        # L - R(x - d_plane) ~ e_q + G_q (d_plane(q) - d_q) = 0
+        # => normal equations  sum G^2 d_plane [1 x y] = sum (G^2 d_q - G e_q) [1 x y]
+        _k.products(Lf, Rw, G, support, dd, g2, ge)
+        moments = (mom(g2, one_x, one_y), mom(g2, ramp_x, one_y), mom(g2, one_x, ramp_y),
+                   mom(g2, ramp_x * ramp_x, one_y), mom(g2, one_x, ramp_y * ramp_y),
+                   mom(g2, ramp_x, ramp_y), mom(ge, one_x, one_y), mom(ge, ramp_x, one_y),
+                   mom(ge, one_x, ramp_y))
+        # one Gauss-Newton step moves a pixel by at most 1 px; a small ridge on the
+        # slopes keeps windows with texture in one column only well posed
+        if shiftable:
+            _k.products_q(g2, ge, mc, q)
+            _k.solve_planes_shiftable(mc, *moments, mom(q, one_x, one_y), shifts, 0.5, 1e-6, 1.0, dd, fit)
+        else:
+            _k.solve_planes(mc, *moments, 1e-6, 1.0, dd)
+    d = dd.astype(np.float32)
+    # residual after the last update
+    idx = np.nonzero(mc)
+    mapx = mapx_base - (d + np.float32(d_ref))
+    Rw = cv2.remap(Rc, mapx, mapy, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).reshape(h, w, nc)
+    wgt = mc.astype(np.float32)
+    e2 = ((Lf - Rw) ** 2).sum(-1) * wgt
+    gl = np.stack([cv2.Sobel(Lf[..., c], cv2.CV_32F, 1, 0, ksize=1, scale=0.5) for c in range(nc)], -1)
+    gl2 = (gl * gl).sum(-1) * wgt
+    ratio = mom(e2, one_x, one_y)[idx].astype(np.float64) / (mom(gl2, one_x, one_y)[idx] + 1e-6)
+    moved = np.abs(d[idx] - d0[idx]) > float(max_change)
+    d[idx] = np.where(moved, d0[idx], d[idx])
+    ratio = np.where(moved, np.inf, ratio)
+    out[y0:y1, x0:x1] = np.where(mc, d + np.float32(d_ref), out[y0:y1, x0:x1])
+    rc = resid[y0:y1, x0:x1]
+    rc[idx] = ratio.astype(np.float32)
+    return out, resid
