@@ -100,8 +100,10 @@ class StitchResult:
     diagnostics : dict
         ``spacing``, ``registration_voxel``, ``edges`` (list of dicts: ``source``,
         ``target``, ``kind`` odometry/loop, ``fitness``, ``inlier_rmse``,
-        ``residual_deg``, ``residual`` (translation residual, input units),
-        ``kept``), ``mesh_closed`` (every mesh edge shared by exactly two faces;
+        ``residual_deg``, ``residual`` (largest displacement of a source point within
+        the cloud radius, input units),
+        ``kept``), ``multiview`` (iterations, rms, max_change_deg,
+        correspondences; empty when off), ``mesh_closed`` (every mesh edge shared by exactly two faces;
         None without a mesh), ``warnings`` (list of str) and ``seconds`` per
         stage.
     """
@@ -151,12 +153,16 @@ def _rigid_inverse(T: NDArray) -> NDArray[np.float64]:
     return out
 
 
-def _residual(T_a: NDArray, T_b: NDArray, radius: float) -> tuple[float, float]:
-    """Rotation angle (deg) and largest point displacement within ``radius`` of
-    the origin between two transforms."""
+def _residual(T_a: NDArray, T_b: NDArray, radius: float, centre: NDArray | None = None) -> tuple[float, float]:
+    """Rotation angle (deg) and largest displacement of a point within ``radius`` of
+    ``centre`` (the source cloud's centroid; default the origin) between two transforms.
+
+    Measured about the cloud, not the sensor: a scan 1.25 m from its camera would
+    otherwise turn a 0.5 deg disagreement into an 11 mm "displacement"."""
     D = _rigid_inverse(T_a) @ T_b
     ang = rotation_angle_deg(D)
-    disp = float(np.linalg.norm(D[:3, 3]) + np.radians(ang) * radius)
+    c = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
+    disp = float(np.linalg.norm(D[:3, :3] @ c + D[:3, 3] - c) + np.radians(ang) * radius)
     return ang, disp
 
 
@@ -219,6 +225,7 @@ def stitch_scans(
     max_residual_deg: float = 1.0,
     max_registration_points: int = 30000,
     loop_max_angle_deg: float = 100.0,
+    multiview: bool = True,
     on_failure: str = "raise",
     seed: int = 0,
     progress: ProgressFn | None = None,
@@ -261,6 +268,11 @@ def stitch_scans(
     loop_max_angle_deg : float
         Non-adjacent views are tried as loop closures when their predicted
         relative rotation is at most this.
+    multiview : bool
+        After the pose graph, refine all poses jointly against all their overlaps
+        (:func:`~prism3d.reconstruct.multiview.refine_multiview`): on stereo scans
+        with view-dependent errors this takes the poses from 0.04-0.47 deg to
+        0.01-0.04 deg of the truth.
     on_failure : {"raise", "warn"}
         Failed checks raise :class:`ReconstructionError` or log warnings (also
         listed in ``diagnostics["warnings"]``).
@@ -323,7 +335,8 @@ def stitch_scans(
         reg_pts.append(p)
         reg_sp.append(v)
     rsp = float(max(reg_sp))
-    radius = float(max(np.percentile(np.linalg.norm(p - p.mean(axis=0), axis=1), 95) for p in reg_pts))
+    centres = [p.mean(axis=0) for p in reg_pts]
+    radius = float(max(np.percentile(np.linalg.norm(p - c, axis=1), 95) for p, c in zip(reg_pts, centres, strict=True)))
     # Every scan is prepared once (voxel levels + normals, FPFH features on demand)
     # and reused by all the edges it takes part in.
     pyramids = [ScanPyramid(p, rsp) for p in reg_pts]
@@ -430,9 +443,10 @@ def stitch_scans(
     T0_inv = _rigid_inverse(np.asarray(graph.nodes[0].pose))
     T_model = [T0_inv @ np.asarray(nd.pose, dtype=np.float64) for nd in graph.nodes]
     kept_pairs = {(e.target_node_id, e.source_node_id) for e in graph.edges}
+    kept_pairs_ij = {(min(i, j), max(i, j)) for i, j in kept_pairs}
     for (i, j), r in sorted(results.items()):
         rel = _rigid_inverse(T_model[i]) @ T_model[j]
-        ang, disp = _residual(rel, r.T_target_source, radius)
+        ang, disp = _residual(rel, r.T_target_source, radius, centres[j])
         kind = "odometry" if j == i + 1 else "loop"
         edges.append(
             {"source": j, "target": i, "kind": kind, "fitness": r.fitness, "inlier_rmse": r.inlier_rmse,
@@ -445,11 +459,26 @@ def stitch_scans(
             )
         elif kind == "loop" and (ang > max_residual_deg or disp > 20.0 * rsp):
             log.warning("loop closure %s-%s inconsistent (%.2f deg); discounted", names[i], names[j], ang)
+    seconds["pose_graph"] = time.perf_counter() - t0
+    tick("pose graph")
+
+    # --- joint multi-view refinement ----------------------------------------
+    mv_info: dict[str, float] = {}
+    if multiview:
+        from prism3d.reconstruct.multiview import refine_multiview
+
+        t0 = time.perf_counter()
+        fine = [pyr._levels[-1] for pyr in pyramids]
+        T_model, mv_info = refine_multiview(
+            [np.asarray(pc.points) for pc in fine], [np.asarray(pc.normals) for pc in fine], T_model,
+            sorted(kept_pairs_ij), spacing=rsp,
+        )
+        seconds["multiview"] = time.perf_counter() - t0
+        log.info("multi-view refinement: %d iterations, rms %.3g, largest change %.3f deg",
+                 mv_info["iterations"], mv_info["rms"], mv_info["max_change_deg"])
     for T in T_model:
         if abs(np.linalg.det(T[:3, :3]) - 1.0) > 1e-6:
             raise ReconstructionError("stitching produced a non-rigid pose")
-    seconds["pose_graph"] = time.perf_counter() - t0
-    tick("pose graph")
 
     # --- fusion -----------------------------------------------------------
     t0 = time.perf_counter()
@@ -478,6 +507,7 @@ def stitch_scans(
         turntable_motion=None if A is None else A.tolist(),
         mesh_closed=mesh_closed,
         edges=edges,
+        multiview=mv_info,
         warnings=warnings_,
         seconds=seconds,
         names=names,
