@@ -43,6 +43,7 @@ __all__ = [
     "global_register",
     "icp_pyramids",
     "match_features",
+    "match_features_candidates",
     "point_spacing",
     "refine_icp",
     "register_pair",
@@ -313,7 +314,8 @@ def match_features(
 
     Hypotheses are 3 matches passing an edge-length test (rigid motions keep
     distances); the one with most matches within ``1.5 * voxel`` wins and is
-    refitted on its inliers. Deterministic for a given ``seed``.
+    refitted on its inliers. Deterministic for a given ``seed``. See
+    :func:`match_features_candidates` for the runners-up.
 
     Returns
     -------
@@ -323,6 +325,31 @@ def match_features(
     References
     ----------
     .. [1] Rusu et al., ICRA 2009. .. [2] Fischler and Bolles, 1981.
+    """
+    return match_features_candidates(source, target, max_hypotheses=max_hypotheses, seed=seed,
+                                      max_candidates=1)[0]
+
+
+def match_features_candidates(
+    source: ScanFeatures,
+    target: ScanFeatures,
+    *,
+    max_hypotheses: int = 40000,
+    seed: int = 0,
+    max_candidates: int = 5,
+) -> list[tuple[NDArray[np.float64], float]]:
+    """The best *distinct* RANSAC alignments, most feature inliers first.
+
+    On objects with repeated or symmetric parts (a box-shaped truck seen end-on),
+    the alignment with the most FPFH inliers can be wrong while the right one is
+    a close runner-up; refining a few distinct candidates by ICP and keeping the
+    best-fitting one (as :func:`~prism3d.reconstruct.stitch.stitch_scans` does)
+    recovers it. Candidates differ by more than 10 deg or 10 feature voxels.
+
+    Returns
+    -------
+    list of (T_target_source (4, 4) float64, inlier_fraction)
+        At least one, at most ``max_candidates``.
     """
     voxel = max(source.voxel, target.voxel)
     ps, pd = source.points, target.points
@@ -341,8 +368,11 @@ def match_features(
     rng = np.random.default_rng(seed)
     thr = 1.5 * voxel
     best_count = -1
-    best_T = np.eye(4)
+    pool_R: list[NDArray] = []
+    pool_t: list[NDArray] = []
+    pool_c: list[NDArray] = []
     batch = 1000
+    keep_per_batch = 4 * max(1, int(max_candidates))
     done = 0
     while done < max_hypotheses:
         idx = rng.integers(0, nc, size=(batch * 3, 3))
@@ -360,12 +390,11 @@ def match_features(
         R, t = _batched_kabsch(A, B)
         moved = np.einsum("bij,nj->bni", R, a) + t[:, None, :]
         counts = (np.sum((moved - b[None]) ** 2, axis=2) < thr * thr).sum(axis=1)
-        k = int(np.argmax(counts))
-        if counts[k] > best_count:
-            best_count = int(counts[k])
-            best_T = np.eye(4)
-            best_T[:3, :3] = R[k]
-            best_T[:3, 3] = t[k]
+        top = np.argsort(-counts, kind="stable")[:keep_per_batch]
+        pool_R.append(R[top])
+        pool_t.append(t[top])
+        pool_c.append(counts[top])
+        best_count = max(best_count, int(counts[top[0]]))
         # Standard RANSAC stopping rule (99.99 % confidence of one clean sample),
         # counted in sampled triples; deterministic because it depends on counts only.
         w = best_count / nc
@@ -375,15 +404,40 @@ def match_features(
                 break
     if best_count < 3:
         raise ReconstructionError("global registration: RANSAC found no consistent feature matches")
-    T = best_T
-    for _ in range(3):
-        r = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1)
-        inl = r < thr
-        if inl.sum() < 3:
+    Rs = np.concatenate(pool_R)
+    ts = np.concatenate(pool_t)
+    cs = np.concatenate(pool_c)
+    order = np.argsort(-cs, kind="stable")
+    out: list[tuple[NDArray[np.float64], float]] = []
+    chosen: list[NDArray] = []
+    for k in order:
+        if cs[k] < 3 or len(out) >= max_candidates:
             break
-        T = rigid_fit(a[inl], b[inl])
-    r = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1)
-    return T, float((r < thr).mean())
+        T = np.eye(4)
+        T[:3, :3] = Rs[k]
+        T[:3, 3] = ts[k]
+        for _ in range(3):
+            r = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1)
+            inl = r < thr
+            if inl.sum() < 3:
+                break
+            T = rigid_fit(a[inl], b[inl])
+        if any(
+            rotation_angle_deg(_rigid_inv(C) @ T) < 10.0 and np.linalg.norm(C[:3, 3] - T[:3, 3]) < 10 * voxel
+            for C in chosen
+        ):
+            continue
+        chosen.append(T)
+        r = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1)
+        out.append((T, float((r < thr).mean())))
+    return out
+
+
+def _rigid_inv(T: NDArray) -> NDArray[np.float64]:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
 
 
 class ScanPyramid:
@@ -450,6 +504,7 @@ def icp_pyramids(
     T_init: NDArray,
     *,
     first_scale: float | None = None,
+    last_scale: float | None = None,
     max_iterations: int | tuple[int, ...] = 30,
     method: str = "point_to_plane",
 ) -> RegistrationResult:
@@ -469,6 +524,9 @@ def icp_pyramids(
     first_scale : float, optional
         Skip the levels coarser than this (a good ``T_init`` needs only the fine
         levels).
+    last_scale : float, optional
+        Stop after the level at this scale (a cheap coarse evaluation, e.g. to
+        rank several initial guesses).
     max_iterations : int or tuple of int
         Per level.
     method : {"point_to_plane", "point_to_point"}
@@ -488,7 +546,8 @@ def icp_pyramids(
         raise InputError("source/target pyramids: built with different scales or spacing")
     T = np.asarray(check_array(T_init, "T_init", shape=(4, 4), dtype_kind="fiu"), dtype=np.float64)
     spacing = source.spacing
-    levels = [i for i, sc in enumerate(source.scales) if first_scale is None or sc <= first_scale]
+    levels = [i for i, sc in enumerate(source.scales)
+              if (first_scale is None or sc <= first_scale) and (last_scale is None or sc >= last_scale)]
     if not levels:
         levels = [len(source.scales) - 1]
     its = (max_iterations,) * len(levels) if isinstance(max_iterations, int) else tuple(max_iterations)
@@ -500,7 +559,7 @@ def icp_pyramids(
     for i, it in zip(levels, its, strict=True):
         sc = source.scales[i]
         s_l, d_l = source._levels[i], target._levels[i]
-        last = i == len(source.scales) - 1
+        last = i == levels[-1]
         if not last and min(len(s_l.points), len(d_l.points)) < min(1500, source.n_points // 4):
             continue  # too coarse for this cloud: a handful of points only misleads ICP
         v = max(sc, 1.0) * spacing
