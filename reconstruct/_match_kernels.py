@@ -73,16 +73,19 @@ def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, 
 
     With mirrored right rows, the right pixel ``x - dlo - k`` of candidate ``k`` sits
     at index ``W - 1 - x + dlo + k``: consecutive candidates are consecutive in
-    memory, so the loops over ``k`` vectorise (SIMD popcount).
+    memory, so the loops over ``k`` vectorise (SIMD popcount). Per-candidate sums are
+    uint16 (narrow vector lanes); a full search is the case of a constant ``dlo``.
     """
     nc, h, w = census_l.shape
     nf = feat_l.shape[0]
     clip = np.float32(ad_clip)
     scale = np.float32(ad_scale)
     half = np.float32(0.5)
+    sat = np.float32(255.0)
+    u255 = np.uint16(255)
     for y in prange(h):
-        acc = np.empty(k_levels, np.int32)
-        adb = np.empty(k_levels, np.int32)
+        acc = np.empty(k_levels, np.uint16)
+        adb = np.empty(k_levels, np.uint16)
         for x in range(w):
             d0 = dlo[y, x]
             o = out[y, x]
@@ -95,32 +98,55 @@ def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, 
             n = k_hi - k_lo
             j0 = w - 1 - x + d0 + k_lo
             a = acc[:n]
-            cl = census_l[0, y, x]
-            cr = census_rr[0, y, j0:j0 + n]
-            for k in range(n):
-                a[k] = np.int32(_popcount(cl ^ cr[k]))
-            for c in range(1, nc):
-                cl = census_l[c, y, x]
-                cr = census_rr[c, y, j0:j0 + n]
+            c0 = census_l[0, y, x]
+            r0 = census_rr[0, y, j0:j0 + n]
+            if nc == 3:
+                c1 = census_l[1, y, x]
+                c2 = census_l[2, y, x]
+                r1 = census_rr[1, y, j0:j0 + n]
+                r2 = census_rr[2, y, j0:j0 + n]
                 for k in range(n):
-                    a[k] += np.int32(_popcount(cl ^ cr[k]))
+                    a[k] = np.uint16(_popcount(c0 ^ r0[k]) + _popcount(c1 ^ r1[k])
+                                     + _popcount(c2 ^ r2[k]))
+            else:
+                for k in range(n):
+                    a[k] = np.uint16(_popcount(c0 ^ r0[k]))
+                for c in range(1, nc):
+                    cc = census_l[c, y, x]
+                    rc = census_rr[c, y, j0:j0 + n]
+                    for k in range(n):
+                        a[k] = np.uint16(a[k] + np.uint16(_popcount(cc ^ rc[k])))
+            ob = o[k_lo:k_hi]
             if nf > 0:
                 v = adb[:n]
-                fl = np.int32(feat_l[0, y, x])
-                fr = feat_rr[0, y, j0:j0 + n]
-                for k in range(n):
-                    v[k] = abs(fl - np.int32(fr[k]))
-                for f in range(1, nf):
-                    fl = np.int32(feat_l[f, y, x])
-                    fr = feat_rr[f, y, j0:j0 + n]
+                if nf == 3:
+                    p0 = feat_l[0, y, x]
+                    p1 = feat_l[1, y, x]
+                    p2 = feat_l[2, y, x]
+                    q0 = feat_rr[0, y, j0:j0 + n]
+                    q1 = feat_rr[1, y, j0:j0 + n]
+                    q2 = feat_rr[2, y, j0:j0 + n]
                     for k in range(n):
-                        v[k] += abs(fl - np.int32(fr[k]))
+                        v[k] = (np.uint16(np.uint8(max(p0, q0[k]) - min(p0, q0[k])))
+                                + np.uint16(np.uint8(max(p1, q1[k]) - min(p1, q1[k])))
+                                + np.uint16(np.uint8(max(p2, q2[k]) - min(p2, q2[k]))))
+                else:
+                    for k in range(n):
+                        v[k] = 0
+                    for f in range(nf):
+                        pf = feat_l[f, y, x]
+                        qf = feat_rr[f, y, j0:j0 + n]
+                        for k in range(n):
+                            v[k] = np.uint16(v[k] + np.uint16(np.uint8(max(pf, qf[k])
+                                                                       - min(pf, qf[k]))))
                 for k in range(n):
-                    a[k] += np.int32(min(np.float32(v[k]), clip) * scale + half)
+                    t = np.uint16(min(min(np.float32(v[k]), clip) * scale + half, sat))
+                    ob[k] = np.uint8(min(np.uint16(a[k] + t), u255))
+            else:
+                for k in range(n):
+                    ob[k] = np.uint8(min(a[k], u255))
             for k in range(k_lo):
                 o[k] = oob_cost
-            for k in range(n):
-                o[k_lo + k] = np.uint8(min(a[k], 255))
             for k in range(k_hi, k_levels):
                 o[k] = oob_cost
 
@@ -546,81 +572,6 @@ def grey_hwc(img, out):
             out[y, x] = s * inv
 
 
-@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def cost_full(census_l, census_r, feat_l, feat_r, ad_scale, ad_clip, dmin, oob_cost, out):
-    """Matching cost of a full search (the same disparities ``dmin + k`` at every
-    pixel): the values of :func:`matching_cost` with a constant ``dlo``.
-
-    census_l, census_r : (C, H, W) codes, *not* mirrored; feat_l, feat_r : (F, H, W)
-    uint8 (F may be 0); out : (H, W, Kp) uint8. Loops run over ``x`` for one disparity
-    at a time (long contiguous vector loops), then scatter into the volume.
-    """
-    nc, h, w = census_l.shape
-    nf = feat_l.shape[0]
-    kp = out.shape[2]
-    clip = np.float32(ad_clip)
-    scale = np.float32(ad_scale)
-    half = np.float32(0.5)
-    for y in prange(h):
-        acc = np.empty(w, np.int32)
-        tmp = np.empty(w, np.uint8)
-        o = out[y]
-        for kk in range(kp):
-            d = dmin + kk
-            x_lo = min(max(d, 0), w)
-            x_hi = min(max(w + d, 0), w)
-            n = x_hi - x_lo
-            for x in range(x_lo):
-                tmp[x] = oob_cost
-            for x in range(x_hi, w):
-                tmp[x] = oob_cost
-            if n > 0:
-                a = acc[:n]
-                t = tmp[x_lo:x_hi]
-                if nc == 3:
-                    a0 = census_l[0, y, x_lo:x_hi]
-                    a1 = census_l[1, y, x_lo:x_hi]
-                    a2 = census_l[2, y, x_lo:x_hi]
-                    b0 = census_r[0, y, x_lo - d:x_hi - d]
-                    b1 = census_r[1, y, x_lo - d:x_hi - d]
-                    b2 = census_r[2, y, x_lo - d:x_hi - d]
-                    for i in range(n):
-                        a[i] = (np.int32(_popcount(a0[i] ^ b0[i])) + np.int32(_popcount(a1[i] ^ b1[i]))
-                                + np.int32(_popcount(a2[i] ^ b2[i])))
-                else:
-                    for i in range(n):
-                        a[i] = 0
-                    for c in range(nc):
-                        a0 = census_l[c, y, x_lo:x_hi]
-                        b0 = census_r[c, y, x_lo - d:x_hi - d]
-                        for i in range(n):
-                            a[i] += np.int32(_popcount(a0[i] ^ b0[i]))
-                if nf == 3:
-                    p0 = feat_l[0, y, x_lo:x_hi]
-                    p1 = feat_l[1, y, x_lo:x_hi]
-                    p2 = feat_l[2, y, x_lo:x_hi]
-                    q0 = feat_r[0, y, x_lo - d:x_hi - d]
-                    q1 = feat_r[1, y, x_lo - d:x_hi - d]
-                    q2 = feat_r[2, y, x_lo - d:x_hi - d]
-                    for i in range(n):
-                        v = (abs(np.int32(p0[i]) - np.int32(q0[i])) + abs(np.int32(p1[i]) - np.int32(q1[i]))
-                             + abs(np.int32(p2[i]) - np.int32(q2[i])))
-                        s = a[i] + np.int32(min(np.float32(v), clip) * scale + half)
-                        t[i] = np.uint8(min(s, 255))
-                elif nf > 0:
-                    for i in range(n):
-                        v = np.int32(0)
-                        for f in range(nf):
-                            v += abs(np.int32(feat_l[f, y, x_lo + i]) - np.int32(feat_r[f, y, x_lo + i - d]))
-                        s = a[i] + np.int32(min(np.float32(v), clip) * scale + half)
-                        t[i] = np.uint8(min(s, 255))
-                else:
-                    for i in range(n):
-                        t[i] = np.uint8(min(a[i], 255))
-            for x in range(w):
-                o[x, kk] = tmp[x]
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _p2_row(p1, p2, gamma, ga, gb, out):
     """out[i] = adaptive P2 of the pixel pair (ga[i], gb[i]) (vectorised)."""
@@ -812,53 +763,50 @@ def sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block, uniquenes
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def right_lr_check(agg, dlo, k_levels, max_diff, full, disp):
+def right_lr_check(agg, dlo, k_levels, max_diff, disp):
     """Right-view winner-take-all from the same aggregated volume and the left-right
     check of ``disp`` in place, one row at a time.
 
-    ``full``: every pixel has the same window (``dlo[0, 0]``); then each right pixel
-    takes the min along its diagonal of the volume (branch-free), else the left
-    pixels scatter their costs. Both keep the smallest disparity among equal costs.
+    Right pixel ``xr`` takes the smallest cost among the left pixels that see it
+    (``x - dlo[y, x] - k == xr``), the smallest disparity among equal costs. The
+    running minima are kept per mirrored right pixel ``W - 1 - xr``, where the
+    candidates of one left pixel are contiguous: a vector min of ``(cost << 32) |
+    (disparity - min dlo)`` keys per left pixel.
     """
     h, w, kp = agg.shape
+    none = np.uint64(0xFFFFFFFFFFFFFFFF)
+    s32 = np.uint64(32)
+    low = np.uint64(0xFFFFFFFF)
     for y in prange(h):
-        best = np.full(w, np.int32(1 << 30), np.int32)
-        dr = np.empty(w, np.float32)
-        if full:
-            d0 = dlo[y, 0]
-            row = agg[y].reshape(-1)
-            for xr in range(w):
-                k_lo = max(0, -d0 - xr)
-                k_hi = min(k_levels, w - xr - d0)
-                if k_hi <= k_lo:
-                    continue
-                base = (xr + d0) * kp
-                m = np.uint16(0xFFFF)
-                for k in range(k_lo, k_hi):
-                    m = min(m, row[base + k * (kp + 1)])
-                k = k_lo
-                while row[base + k * (kp + 1)] != m:
-                    k += 1
-                best[xr] = np.int32(m)
-                dr[xr] = d0 + k
-        else:
-            for x in range(w):
-                d0 = dlo[y, x]
-                k_lo = max(0, x - d0 - (w - 1))
-                k_hi = min(k_levels, x - d0 + 1)
-                row = agg[y, x]
-                for k in range(k_lo, k_hi):
-                    xr = x - d0 - k
-                    c = np.int32(row[k])
-                    if c < best[xr]:
-                        best[xr] = c
-                        dr[xr] = d0 + k
+        dbase = dlo[y, 0]
+        for x in range(1, w):
+            dbase = min(dbase, dlo[y, x])
+        key = np.full(w, none, np.uint64)
+        kk = np.arange(kp).astype(np.uint64)
+        for x in range(w):
+            d0 = dlo[y, x]
+            k_lo = max(0, x - d0 - (w - 1))
+            k_hi = min(k_levels, x - d0 + 1)
+            if k_hi <= k_lo:
+                continue
+            n = k_hi - k_lo
+            j0 = w - 1 - x + d0 + k_lo
+            kb = key[j0:j0 + n]
+            av = agg[y, x, k_lo:k_hi]
+            kv = kk[k_lo:k_hi]
+            off = np.uint64(d0 - dbase)
+            for i in range(n):
+                kb[i] = min(kb[i], (np.uint64(av[i]) << s32) | (kv[i] + off))
         for x in range(w):
             d = disp[y, x]
             if np.isnan(d):
                 continue
             xr = int(np.floor(x - d + 0.5))
-            if xr < 0 or xr >= w or best[xr] >= (1 << 30) or abs(dr[xr] - d) > max_diff:
+            if xr < 0 or xr >= w:
+                disp[y, x] = np.nan
+                continue
+            kr = key[w - 1 - xr]
+            if kr == none or abs(np.float32(dbase + np.int64(kr & low)) - d) > max_diff:
                 disp[y, x] = np.nan
 
 

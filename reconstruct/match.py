@@ -231,8 +231,8 @@ def _match_level(
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """One SGM pass with per-pixel windows; returns (raw disparity NaN=invalid, conf).
 
-    ``dmin`` set: a full search (``dlo == dmin`` everywhere), whose matching cost is
-    computed one disparity at a time over whole rows.
+    ``dmin`` set: a full search (``dlo == dmin`` everywhere), whose levels are padded
+    to a multiple of 16 in the cost volumes.
     """
     h, w, nc = left.shape
     full = dmin is not None
@@ -242,13 +242,13 @@ def _match_level(
     cl = np.empty((nc, h, w), ctype)
     cr = np.empty((nc, h, w), ctype)
     _k.census_hwc(left, ry, rx, False, cl)
-    _k.census_hwc(right, ry, rx, not full, cr)
+    _k.census_hwc(right, ry, rx, True, cr)
     oob = np.uint8(min(255, (nbits * nc) // 2))
     # full search: levels padded to a multiple of 16 (vector width) in the volumes;
     # padded levels are held at "infinite" cost by the SGM kernels, never selected
     kp = -(-k_levels // 16) * 16 if full and prm.paths == 4 else k_levels
     if prm.ad_weight > 0:
-        fl, fr = _features(left, right, prm.ad_mode, not full)
+        fl, fr = _features(left, right, prm.ad_mode, True)
     else:
         fl = fr = np.zeros((0, h, w), np.uint8)
     nf = max(fl.shape[0], 1)
@@ -256,10 +256,7 @@ def _match_level(
     ad_scale = prm.ad_weight * nc / nf
     ad_clip = prm.ad_trunc * nf
     cost = np.empty((h, w, kp), np.uint8)
-    if full:
-        _k.cost_full(cl, cr, fl, fr, ad_scale, ad_clip, int(dmin), oob, cost)
-    else:
-        _k.matching_cost(cl, cr, fl, fr, ad_scale, ad_clip, dlo, kp, oob, cost)
+    _k.matching_cost(cl, cr, fl, fr, ad_scale, ad_clip, dlo, kp, oob, cost)
     del cl, cr, fl, fr
     guide = _grey(left)
     p1 = np.int32(prm.p1 * nc)
@@ -277,7 +274,7 @@ def _match_level(
     _k.sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block,
                         float(prm.uniqueness), agg, disp, conf)
     del cost
-    _k.right_lr_check(agg, dlo, k_levels, float(prm.lr_max_diff), full, disp)
+    _k.right_lr_check(agg, dlo, k_levels, float(prm.lr_max_diff), disp)
     del agg
     if speckle_size > 0:
         _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range))
