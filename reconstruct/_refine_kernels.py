@@ -28,9 +28,11 @@ def products(left, warped, grad, mask, disp, g2, ge):  # pragma: no cover - comp
 
 @njit(cache=True, nogil=True, parallel=True)
 def solve_planes(mask, a00, a01, a02, a11, a22, a12, r0, r1, r2, ridge, max_step,
-                 disp):  # pragma: no cover - compiled
+                 disp, inv00):  # pragma: no cover - compiled
     """Solve each masked pixel's 3x3 normal equations; write the plane's centre value
-    into ``disp`` (moved by at most ``max_step``)."""
+    into ``disp`` (moved by at most ``max_step``) and the (0, 0) element of the
+    inverse normal matrix into ``inv00`` (the centre value's variance per unit
+    residual variance)."""
     h, w = mask.shape
     for y in prange(h):
         for x in range(w):
@@ -55,6 +57,7 @@ def solve_planes(mask, a00, a01, a02, a11, a22, a12, r0, r1, r2, ridge, max_step
                   + np.float64(r2[y, x]) * c02) / det
             if not np.isfinite(dn):
                 continue
+            inv00[y, x] = c00 / det
             cur = disp[y, x]
             if dn > cur + max_step:
                 dn = cur + max_step
@@ -64,81 +67,39 @@ def solve_planes(mask, a00, a01, a02, a11, a22, a12, r0, r1, r2, ridge, max_step
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def solve_planes_shiftable(mask, a00, a01, a02, a11, a22, a12, r0, r1, r2, q, shifts, min_support,
-                           ridge, max_step, disp, resid):  # pragma: no cover - compiled
-    """Shiftable-window variant of :func:`solve_planes`.
+def warp_rows(coef, x0, disp, d_ref, val, grad):  # pragma: no cover - compiled
+    """Cubic B-spline interpolation along rows, and its exact x-derivative.
 
-    For every masked pixel p, the plane is fitted in each window centred at
-    ``p + shift`` (``shifts`` (K, 2) rows, cols; the first is (0, 0)), and the
-    window whose plane explains its disparity measurements best (smallest
-    gradient-weighted mean squared deviation, ``resid``, px^2) gives the value at p.
-    A shifted window must hold at least ``min_support`` times the texture of the
-    centred one. ``q`` is the window sum of ``g2 t^2`` (``t`` the per-pixel
-    disparity measurement), so a window's residual is ``q - sol . rhs``.
+    coef : (C, H, Wf) float32 B-spline coefficients of each channel's rows;
+    val, grad : (H, W, C) float32 out, at ``x = x0 + col - (disp[row, col] + d_ref)``.
+    Indices beyond the row are clamped.
     """
-    h, w = mask.shape
-    ns = shifts.shape[0]
+    nc, h, wf = coef.shape
+    w = disp.shape[1]
     for y in prange(h):
         for x in range(w):
-            if not mask[y, x]:
-                continue
-            s_c = a00[y, x]
-            if s_c <= 0.0:
-                continue
-            best = np.inf
-            best_d = disp[y, x]
-            for k in range(ns):
-                yy = y + shifts[k, 0]
-                xx = x + shifts[k, 1]
-                if yy < 0 or yy >= h or xx < 0 or xx >= w:
-                    continue
-                s0 = a00[yy, xx]
-                if s0 <= 0.0 or s0 < min_support * s_c:
-                    continue
-                sx = a01[yy, xx]
-                sy = a02[yy, xx]
-                lam = ridge * s0 + 1e-9
-                sxx = a11[yy, xx] + lam
-                syy = a22[yy, xx] + lam
-                sxy = a12[yy, xx]
-                c00 = sxx * syy - sxy * sxy
-                c01 = sy * sxy - sx * syy
-                c02 = sx * sxy - sy * sxx
-                c11 = s0 * syy - sy * sy
-                c12 = sx * sy - s0 * sxy
-                c22 = s0 * sxx - sx * sx
-                det = s0 * c00 + sx * c01 + sy * c02
-                if not (abs(det) > 1e-12 * s0 * s0 * s0 + 1e-30):
-                    continue
-                b0 = r0[yy, xx]
-                b1 = r1[yy, xx]
-                b2 = r2[yy, xx]
-                p0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
-                p1 = (c01 * b0 + c11 * b1 + c12 * b2) / det
-                p2 = (c02 * b0 + c12 * b1 + c22 * b2) / det
-                if not (np.isfinite(p0) and np.isfinite(p1) and np.isfinite(p2)):
-                    continue
-                res = (q[yy, xx] - (p0 * b0 + p1 * b1 + p2 * b2)) / s0
-                if res < best:
-                    best = res
-                    # the window's plane evaluated at p (p - centre = -shift)
-                    best_d = p0 - p1 * shifts[k, 1] - p2 * shifts[k, 0]
-            if best == np.inf:
-                continue
-            cur = disp[y, x]
-            if best_d > cur + max_step:
-                best_d = cur + max_step
-            elif best_d < cur - max_step:
-                best_d = cur - max_step
-            disp[y, x] = best_d
-            resid[y, x] = max(best, 0.0)
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def products_q(g2, ge, mask, q):  # pragma: no cover - compiled
-    """``q = ge^2 / g2`` (= g2 t^2 with t = ge / g2), 0 off the mask or without texture."""
-    h, w = g2.shape
-    for y in prange(h):
-        for x in range(w):
-            g = g2[y, x]
-            q[y, x] = ge[y, x] * ge[y, x] / g if (mask[y, x] and g > 0.0) else 0.0
+            xs = x0 + x - (disp[y, x] + d_ref)
+            i = int(np.floor(xs))
+            t = xs - i
+            t2 = t * t
+            t3 = t2 * t
+            u = 1.0 - t
+            w0 = u * u * u / 6.0
+            w1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
+            w2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
+            w3 = t3 / 6.0
+            g0 = -0.5 * u * u
+            g1 = 0.5 * (3.0 * t2 - 4.0 * t)
+            g2 = 0.5 * (-3.0 * t2 + 2.0 * t + 1.0)
+            g3 = 0.5 * t2
+            i0 = min(max(i - 1, 0), wf - 1)
+            i1 = min(max(i, 0), wf - 1)
+            i2 = min(max(i + 1, 0), wf - 1)
+            i3 = min(max(i + 2, 0), wf - 1)
+            for c in range(nc):
+                a0 = coef[c, y, i0]
+                a1 = coef[c, y, i1]
+                a2 = coef[c, y, i2]
+                a3 = coef[c, y, i3]
+                val[y, x, c] = w0 * a0 + w1 * a1 + w2 * a2 + w3 * a3
+                grad[y, x, c] = g0 * a0 + g1 * a1 + g2 * a2 + g3 * a3

@@ -171,6 +171,11 @@ def refine_multiview(
                 "multi-view refinement: a view has no correspondences with its neighbours"
             )
         x = np.r_[np.zeros(6), -np.linalg.solve(Hr + 1e-9 * np.trace(Hr) / len(Hr) * np.eye(len(Hr)), g[6:])]
+        # the initial poses are close (pose graph): a step larger than ~1 deg is a
+        # weakly constrained direction (a smooth, symmetric surface sliding), damp it
+        big = np.max(np.linalg.norm(x.reshape(n, 6)[:, :3], axis=1))
+        if big > np.radians(1.0):
+            x *= np.radians(1.0) / big
         rms = float(np.sqrt(cost / max(wsum, 1e-12)))
         step = 0.0
         for k in range(1, n):

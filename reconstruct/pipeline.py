@@ -120,6 +120,7 @@ def reconstruct_shot(
     refine: bool = True,
     refine_window: tuple[int, int] = (7, 25),
     max_residual: float = 1.0,
+    max_disparity_std: float = float("inf"),
     progress: ProgressFn = null_progress,
     **match_kwargs: Any,
 ) -> Reconstruction:
@@ -220,9 +221,9 @@ def reconstruct_shot(
         # holes the matcher's checks left inside the surface (flat-coloured stripe
         # interiors) are estimated too, from the planes of their windows
         holes = (inside if inside is not None else inside_silhouette(valid, 0)) & textured & in_range & ~valid
-        disparity, resid = refine_slanted(left, right, res.disparity, valid, window=refine_window,
-                                          extra=holes)
-        valid = (valid | holes) & (resid <= max_residual)
+        disparity, resid, dstd = refine_slanted(left, right, res.disparity, valid, window=refine_window,
+                                                extra=holes)
+        valid = (valid | holes) & (resid <= max_residual) & (dstd <= max_disparity_std)
         t["refine"] = time.perf_counter() - t1
     depth = np.where(valid, rect.disparity_to_depth(disparity), np.nan).astype(np.float32)
     if smooth_sigma_px > 0:
