@@ -227,6 +227,7 @@ def stitch_scans(
     loop_max_angle_deg: float = 100.0,
     multiview: bool = True,
     global_candidates: int = 5,
+    fusion_min_views: int = 2,
     on_failure: str = "raise",
     seed: int = 0,
     progress: ProgressFn | None = None,
@@ -272,6 +273,10 @@ def stitch_scans(
     global_candidates : int
         Distinct global-registration alignments tried per pair (each refined
         coarsely by ICP, the best fitting kept).
+    fusion_min_views : {1, 2}
+        2 (default, with 3 or more scans): the fused cloud keeps only points that
+        another scan confirms (:func:`~prism3d.reconstruct.fusion.fuse_clouds`),
+        dropping view-dependent stereo artefacts; 1 keeps every point.
     multiview : bool
         After the pose graph, refine all poses jointly against all their overlaps
         (:func:`~prism3d.reconstruct.multiview.refine_multiview`): on stereo scans
@@ -515,7 +520,8 @@ def stitch_scans(
     # --- fusion -----------------------------------------------------------
     t0 = time.perf_counter()
     pts, col, nrm = fuse_clouds(
-        [s[0] for s in scans], T_model, voxel=spacing, colors=[s[1] for s in scans]
+        [s[0] for s in scans], T_model, voxel=spacing, colors=[s[1] for s in scans],
+        min_views=2 if (fusion_min_views == 2 and n >= 3) else 1,
     )
     seconds["fusion"] = time.perf_counter() - t0
     tick("fusion")

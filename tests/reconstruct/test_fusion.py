@@ -65,3 +65,23 @@ def test_poisson_mesh_is_closed_and_trimming_opens_it():
         poisson_mesh(p[:5], n[:5], spacing=1.0)
     with pytest.raises(InputError, match="trim_quantile"):
         poisson_mesh(p, n, spacing=1.0, trim_quantile=1.5)
+
+
+def test_min_views_keeps_only_points_another_scan_confirms():
+    rng = np.random.default_rng(0)
+    x, y = np.meshgrid(np.arange(0, 50, 0.5), np.arange(0, 20, 0.5))
+    plane = np.c_[x.ravel(), y.ravel(), np.full(x.size, 100.0)]
+    a = plane[plane[:, 0] < 30] + rng.normal(0, 0.02, (int((plane[:, 0] < 30).sum()), 3))
+    b = plane[plane[:, 0] >= 20] + rng.normal(0, 0.02, (int((plane[:, 0] >= 20).sum()), 3))
+    ghost = np.array([[25.0, 10.0, 97.0]])  # an artefact 3 mm off the surface, in scan a only
+    a = np.vstack([a, ghost])
+    I = [np.eye(4), np.eye(4)]
+    p1, _, _ = fuse_clouds([a, b], I, voxel=0.5)
+    p2, _, _ = fuse_clouds([a, b], I, voxel=0.5, min_views=2)
+    assert np.min(np.abs(p1[:, 2] - 97.0)) < 0.1  # kept by default
+    assert np.all(np.abs(p2[:, 2] - 100.0) < 0.2)  # the ghost is gone...
+    # ...and so is what one scan saw alone (beyond the 1 mm support distance)
+    assert 18.5 < p2[:, 0].min() and p2[:, 0].max() < 31.5
+    assert p1[:, 0].min() < 1.0 and p1[:, 0].max() > 49.0
+    with pytest.raises(InputError, match="min_views"):
+        fuse_clouds([a, b], I, voxel=0.5, min_views=3)
