@@ -382,6 +382,32 @@ def fill_columns(out):
                 out[y, x] = out[best, x]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _window_median(filled, y, x, r, buf):  # pragma: no cover - compiled
+    """Median of the non-NaN values of ``filled`` in the (2r+1)^2 window at (y, x)
+    (borders replicated); ``filled[y, x]`` when there is none. ``buf`` is scratch."""
+    h, w = filled.shape
+    m = 0
+    for dy in range(-r, r + 1):
+        yy = min(max(y + dy, 0), h - 1)
+        for dx in range(-r, r + 1):
+            xx = min(max(x + dx, 0), w - 1)
+            v = filled[yy, xx]
+            if not np.isnan(v):
+                buf[m] = v
+                m += 1
+    if m == 0:
+        return filled[y, x]
+    for i in range(1, m):
+        v = buf[i]
+        j = i - 1
+        while j >= 0 and buf[j] > v:
+            buf[j + 1] = buf[j]
+            j -= 1
+        buf[j + 1] = v
+    return buf[m // 2]
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def median_filled(filled, valid, r, out):
     """Median of the ``(2r+1)^2`` neighbourhood of ``filled`` at non-valid pixels."""
@@ -393,26 +419,7 @@ def median_filled(filled, valid, r, out):
             if valid[y, x]:
                 out[y, x] = filled[y, x]
                 continue
-            m = 0
-            for dy in range(-r, r + 1):
-                yy = min(max(y + dy, 0), h - 1)
-                for dx in range(-r, r + 1):
-                    xx = min(max(x + dx, 0), w - 1)
-                    v = filled[yy, xx]
-                    if not np.isnan(v):
-                        buf[m] = v
-                        m += 1
-            if m == 0:
-                out[y, x] = filled[y, x]
-            else:
-                for i in range(1, m):
-                    v = buf[i]
-                    j = i - 1
-                    while j >= 0 and buf[j] > v:
-                        buf[j + 1] = buf[j]
-                        j -= 1
-                    buf[j + 1] = v
-                out[y, x] = buf[m // 2]
+            out[y, x] = _window_median(filled, y, x, r, buf)
 
 
 # --------------------------------------------------------------- coarse-to-fine ranges
@@ -961,23 +968,4 @@ def median_fill_final(filled, raw, conf, r, out, valid, conf_out):
                 out[y, x] = filled[y, x]
                 continue
             conf_out[y, x] = 0.0
-            m = 0
-            for dy in range(-r, r + 1):
-                yy = min(max(y + dy, 0), h - 1)
-                for dx in range(-r, r + 1):
-                    xx = min(max(x + dx, 0), w - 1)
-                    v = filled[yy, xx]
-                    if not np.isnan(v):
-                        buf[m] = v
-                        m += 1
-            if m == 0:
-                out[y, x] = filled[y, x]
-            else:
-                for i in range(1, m):
-                    v = buf[i]
-                    j = i - 1
-                    while j >= 0 and buf[j] > v:
-                        buf[j + 1] = buf[j]
-                        j -= 1
-                    buf[j + 1] = v
-                out[y, x] = buf[m // 2]
+            out[y, x] = _window_median(filled, y, x, r, buf)
