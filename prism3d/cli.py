@@ -134,7 +134,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                                  camouflage=args.camouflage, views=args.views, seed=args.seed,
                                  noise=args.noise, supersample=args.supersample,
                                  progress=_progress(args, f"simulate {args.kind}"), compress=args.compress,
-                                 board=board, square_mm=args.square)
+                                 board=board, square_mm=args.square, blur_sigma=args.blur)
     _say(args, f"wrote {summary['n_shots']} shot(s) and ground truth to {args.out_dir} "
                f"in {summary['seconds']:.1f} s")
     return 0
@@ -168,6 +168,8 @@ def _add_simulate(sub: Any) -> None:
                    help="calib: chessboard inner corners COLSxROWS (default 9x6; 19x13 pins the "
                    "principal point about twice as well)")
     p.add_argument("--square", type=float, default=25.0, help="calib: square size, mm (default 25)")
+    p.add_argument("--blur", type=float, default=0.0, metavar="PX",
+                   help="Gaussian lens blur of each view, pixels (default 0: none)")
     p.set_defaults(func=_cmd_simulate)
 
 

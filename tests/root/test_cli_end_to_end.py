@@ -92,6 +92,20 @@ def test_calibrate_from_simulated_shots(tmp_path, small_rig):
     assert rig.baseline_mm == pytest.approx(197.9, rel=0.01)
 
 
+def test_simulate_blur_option(tmp_path, small_rig):
+    from prism3d.io.images import read_image
+
+    sharp = []
+    for blur in ("0", "1.5"):
+        out = tmp_path / f"b{blur}"
+        r = prism3d("simulate", "plate", out, "--rig", small_rig, "--supersample", "1", "--no-noise",
+                    "--blur", blur)
+        assert r.returncode == 0, r.stderr
+        img = read_image(out / "shot.png").astype(float)
+        sharp.append(np.mean(np.abs(np.diff(img, axis=1))))
+    assert sharp[1] < 0.7 * sharp[0]  # the lens PSF smooths the stripes' edges
+
+
 def test_simulate_calib_board_option(tmp_path, small_rig):
     r = prism3d("simulate", "calib", tmp_path, "--rig", small_rig, "--supersample", "1", "--views", "1",
                 "--board", "12x8", "--square", "15")
@@ -113,6 +127,7 @@ def test_simulate_calib_board_option(tmp_path, small_rig):
         (["simulate", "scene", "out", "--target", "nope"], "unknown built-in target"),
         (["simulate", "calib", "out", "--board", "9"], "--board"),
         (["simulate", "calib", "out", "--square", "-3"], "square"),
+        (["simulate", "plate", "out", "--blur", "-1"], "blur"),
         (["rectify", "nope.png", "--calib", "nope.yaml", "-o", "out"], "not found"),
     ],
 )
