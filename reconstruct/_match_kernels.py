@@ -591,15 +591,9 @@ def _p2_row(p1, p2, gamma, ga, gb, out):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _sgm_step(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
-    """One SGM recursion (see :func:`_step`) into ``lc[dst:dst+kp]``; levels whose
-    ``pad`` is INF16 are held at INF16 (padding past the searched window). The path
-    cost is assigned to (first path) or added into ``g``. Returns the new min."""
-    a = lp[src - 1:src + kp + 1]
-    o = lc[dst:dst + kp]
-    for k in range(kp):
-        v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
-        o[k] = max(np.uint16(np.uint16(np.uint16(costv[k]) + v) - mp), pad[k])
+def _accumulate(o, g, kp, assign):
+    """Store (``assign``) or add one path's costs ``o`` into the sum ``g``; return
+    their minimum (the next step's ``mp``)."""
     if assign:
         for k in range(kp):
             g[k] = o[k]
@@ -613,20 +607,24 @@ def _sgm_step(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _sgm_step(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
+    """One SGM recursion (see :func:`_step`) into ``lc[dst:dst+kp]``; levels whose
+    ``pad`` is INF16 are held at INF16 (padding past the searched window). The path
+    cost is assigned to (first path) or added into ``g``. Returns the new min."""
+    a = lp[src - 1:src + kp + 1]
+    o = lc[dst:dst + kp]
+    for k in range(kp):
+        v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
+        o[k] = max(np.uint16(np.uint16(np.uint16(costv[k]) + v) - mp), pad[k])
+    return _accumulate(o, g, kp, assign)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _sgm_start(costv, lc, dst, g, kp, pad, assign):
     o = lc[dst:dst + kp]
     for k in range(kp):
         o[k] = max(np.uint16(costv[k]), pad[k])
-    if assign:
-        for k in range(kp):
-            g[k] = o[k]
-    else:
-        for k in range(kp):
-            g[k] = np.uint16(g[k] + o[k])
-    m = np.uint16(INF16)
-    for k in range(kp):
-        m = min(m, o[k])
-    return m
+    return _accumulate(o, g, kp, assign)
 
 
 @njit(cache=True, nogil=True, inline="always")
