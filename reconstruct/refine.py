@@ -148,7 +148,6 @@ def refine_slanted(
     mc = np.ascontiguousarray(tgt[y0:y1, x0:x1])
     d_ref = float(np.median(out[m])) if m.any() else float(np.median(out[tgt]))
     d0 = np.ascontiguousarray(out[y0:y1, x0:x1] - np.float32(d_ref))
-    d = np.where(mc, d0, np.float32(0.0)).astype(np.float32)
     h, w, nc = Lc.shape
     # the right view is interpolated with cubic B-splines along its rows, value and
     # derivative from the same spline: bicubic convolution (cv2.INTER_CUBIC) pulls
@@ -159,19 +158,18 @@ def refine_slanted(
     Rw = np.empty((h, w, nc), np.float32)
     G = np.empty((h, w, nc), np.float32)
     # window moments by separable correlation: sum over q of f(q) (qx-px)^i (qy-py)^j
-    one_x = np.ones(2 * rx + 1, np.float32)
-    one_y = np.ones(2 * ry + 1, np.float32)
-    ramp_x = np.arange(-rx, rx + 1, dtype=np.float32)
-    ramp_y = np.arange(-ry, ry + 1, dtype=np.float32)
+    one_x = np.ones(2 * rx + 1)
+    one_y = np.ones(2 * ry + 1)
+    ramp_x = np.arange(-rx, rx + 1, dtype=np.float64)
+    ramp_y = np.arange(-ry, ry + 1, dtype=np.float64)
 
-    def mom(f: NDArray[np.float64], kx: NDArray, ky: NDArray) -> NDArray[np.float64]:
-        return cv2.sepFilter2D(f, cv2.CV_64F, kx.astype(np.float64), ky.astype(np.float64),
-                               borderType=cv2.BORDER_CONSTANT)
+    def mom(f: NDArray, kx: NDArray[np.float64], ky: NDArray[np.float64]) -> NDArray[np.float64]:
+        return cv2.sepFilter2D(f, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT)
 
     Lf = np.ascontiguousarray(Lc, dtype=np.float32)
     g2 = np.empty((h, w), np.float64)
     ge = np.empty((h, w), np.float64)
-    dd = d.astype(np.float64)
+    dd = np.where(mc, d0, np.float32(0.0)).astype(np.float64)
     inv00 = np.full((h, w), np.inf)
     for it in range(int(iterations)):
         if it > 0 and ex.any():
