@@ -610,13 +610,29 @@ def _accumulate(o, g, kp, assign):
 def _sgm_step(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
     """One SGM recursion (see :func:`_step`) into ``lc[dst:dst+kp]``; levels whose
     ``pad`` is INF16 are held at INF16 (padding past the searched window). The path
-    cost is assigned to (first path) or added into ``g``. Returns the new min."""
+    cost is assigned to (first path) or added into ``g``. Returns the new min.
+
+    One fused loop (recursion, store, sum, minimum): the path cost stays in a
+    register, which lets LLVM vectorise it without reloading ``lc``.
+    """
     a = lp[src - 1:src + kp + 1]
     o = lc[dst:dst + kp]
-    for k in range(kp):
-        v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
-        o[k] = max(np.uint16(np.uint16(np.uint16(costv[k]) + v) - mp), pad[k])
-    return _accumulate(o, g, kp, assign)
+    m = np.uint16(INF16)
+    if assign:
+        for k in range(kp):
+            v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
+            c = max(np.uint16(np.uint16(np.uint16(costv[k]) + v) - mp), pad[k])
+            o[k] = c
+            g[k] = c
+            m = min(m, c)
+    else:
+        for k in range(kp):
+            v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
+            c = max(np.uint16(np.uint16(np.uint16(costv[k]) + v) - mp), pad[k])
+            o[k] = c
+            g[k] = np.uint16(g[k] + c)
+            m = min(m, c)
+    return m
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -679,19 +695,18 @@ def sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg):
 def _wta(row, k_levels, d0, uniqueness, disp, conf, y, x):
     """Winner-take-all of one pixel: best level, uniqueness, confidence, equiangular fit."""
     kl = k_levels
-    big = np.uint16(0xFFFF)
-    m = big
+    # minimum and its first level in one vectorisable pass: keys (cost << 16) | level
+    kmin = np.uint32(0xFFFFFFFF)
     for k in range(kl):
-        m = min(m, row[k])
-    b = 0
-    while row[b] != m:
-        b += 1
+        kmin = min(kmin, (np.uint32(row[k]) << np.uint32(16)) | np.uint32(k))
+    m = np.uint16(kmin >> np.uint32(16))
+    b = np.int64(kmin & np.uint32(0xFFFF))
     bc = np.int32(m)
+    # best cost outside +-1 level of the winner (a select, also vectorisable)
+    big = np.uint16(0xFFFF)
     s1 = big
-    for k in range(b - 1):
-        s1 = min(s1, row[k])
-    for k in range(b + 2, kl):
-        s1 = min(s1, row[k])
+    for k in range(kl):
+        s1 = min(s1, row[k] if (k < b - 1 or k > b + 1) else big)
     if b < 2 and b + 2 >= kl:
         g = 1.0
     else:
