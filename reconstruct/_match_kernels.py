@@ -830,8 +830,48 @@ def right_lr_check(agg, dlo, k_levels, max_diff, disp):
                 disp[y, x] = np.nan
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=True, error_model="numpy")
-def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step):
+@njit(cache=True, nogil=True, inline="always")
+def _lk_row_products(lrow, qrow, x, xb, wx, sign, e):
+    """e[m] += sign * sum_u L(x + u) q(xb - 2 + m + u), m = 0..5, u = -wx..wx, for
+    one window row (``lrow`` a left row, ``qrow`` a padded coefficient row: one
+    spare column each side)."""
+    nu = 2 * wx + 1
+    qr = qrow[xb - 1 - wx:xb + wx + 5]
+    lv = lrow[x - wx:x + wx + 1]
+    f0 = f1 = f2 = f3 = f4 = f5 = np.float32(0.0)
+    for u in range(nu):
+        lu = lv[u]
+        f0 += lu * qr[u]
+        f1 += lu * qr[u + 1]
+        f2 += lu * qr[u + 2]
+        f3 += lu * qr[u + 3]
+        f4 += lu * qr[u + 4]
+        f5 += lu * qr[u + 5]
+    e[0] += sign * np.float64(f0)
+    e[1] += sign * np.float64(f1)
+    e[2] += sign * np.float64(f2)
+    e[3] += sign * np.float64(f3)
+    e[4] += sign * np.float64(f4)
+    e[5] += sign * np.float64(f5)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _gram_row(qpad, v, w, sign, cs):
+    """cs[dl, p] += sign * q(v, p) q(v, p + dl), lags dl = 0..3."""
+    q = qpad[v, 1:w + 1]
+    for dl in range(4):
+        c = cs[dl]
+        for p in range(w - dl):
+            c[p] += sign * (np.float64(q[p]) * np.float64(q[p + dl]))
+
+
+# fast-math without "nnan"/"ninf": LLVM may otherwise fold the NaN tests away (measured:
+# every invalid pixel then ran the whole iteration on a NaN disparity)
+_FAST_FINITE = {"nsz", "arcp", "contract", "reassoc"}
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=_FAST_FINITE, error_model="numpy")
+def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripes):
     """1-D Lucas-Kanade refinement computed from window sums.
 
     right_coef_pad : (H, W + 2) float32, the B-spline coefficients of
@@ -844,125 +884,153 @@ def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step):
     coefficient products at lags 0..3; ``P`` for ``x0`` and its two neighbours (a step
     never moves farther: ``max_step <= 1``) from six window sums per pixel, so every
     iteration costs O(1).
+
+    Rows run top to bottom in ``n_stripes`` parallel stripes, with the window sums
+    slid down a column: the Gram sums always (one row in, one out), a pixel's six
+    ``P`` sums when the pixel above had the same integer part ``x - d`` (the usual
+    case on a smooth surface), else summed afresh. Running sums are float64.
     """
     h, w = disp.shape
     sixth = np.float32(1.0 / 6.0)
     one = np.float32(1.0)
     nu = 2 * wx + 1
-    for y in prange(h):
-        if y - wy < 0 or y + wy >= h:
-            continue
-        any_valid = False
-        for x in range(w):
-            if not np.isnan(disp[y, x]):
-                any_valid = True
-                break
-        if not any_valid:
-            continue
-        cs = np.zeros((4, w), np.float32)
-        for v in range(y - wy, y + wy + 1):
-            q = right_coef_pad[v, 1:w + 1]
+    y_lo = wy
+    y_hi = h - wy  # rows y_lo .. y_hi - 1 have a full window
+    n_rows = y_hi - y_lo
+    if n_rows <= 0:
+        return
+    ns = max(1, min(n_stripes, n_rows))
+    for si in prange(ns):
+        ya = y_lo + (si * n_rows) // ns
+        yb = y_lo + ((si + 1) * n_rows) // ns
+        cs = np.zeros((4, w), np.float64)
+        sm = np.zeros((4, w), np.float64)
+        es = np.zeros((w, 6), np.float64)   # running P sums per column
+        xb_run = np.full(w, -(1 << 30), np.int64)  # their integer part, or invalid
+        state = np.zeros(w, np.uint8)
+        dcur = np.zeros(w, np.float64)
+        for v in range(ya - wy, ya + wy + 1):
+            _gram_row(right_coef_pad, v, w, 1.0, cs)
+        for y in range(ya, yb):
+            if y > ya:
+                _gram_row(right_coef_pad, y + wy, w, 1.0, cs)
+                _gram_row(right_coef_pad, y - wy - 1, w, -1.0, cs)
+            any_valid = False
+            for x in range(w):
+                if not np.isnan(disp[y, x]):
+                    any_valid = True
+                    break
+            if not any_valid:
+                for x in range(w):
+                    xb_run[x] = -(1 << 30)
+                continue
             for dl in range(4):
                 c = cs[dl]
-                for p in range(w - dl):
-                    c[p] += q[p] * q[p + dl]
-        sm = np.zeros((4, w), np.float32)
-        for dl in range(4):
-            c = cs[dl]
-            sd = sm[dl]
-            for p in range(wx, w - wx - dl):
-                acc = np.float32(0.0)
-                for u in range(-wx, wx + 1):
-                    acc += c[p + u]
-                sd[p] = acc
-        s0 = sm[0]
-        s1 = sm[1]
-        s2 = sm[2]
-        s3 = sm[3]
-        for x in range(wx, w - wx):
-            d_in = disp[y, x]
-            if np.isnan(d_in):
-                continue
-            d = np.float64(d_in)
-            xb = int(np.floor(x - d))
-            if xb - wx - 1 < 0 or xb + wx + 2 >= w:
-                continue
-            # E_m = sum_window L(v, x + u) q(v, xb - 2 + m + u), m = 0..5
-            e0 = e1 = e2 = e3 = e4 = e5 = np.float32(0.0)
-            for v in range(y - wy, y + wy + 1):
-                # padded column xb - 2 - wx + 1 >= 0 and xb + 3 + wx + 1 <= w + 1
-                qr = right_coef_pad[v, xb - 1 - wx:xb + wx + 5]
-                lv = left[v, x - wx:x + wx + 1]
-                f0 = f1 = f2 = f3 = f4 = f5 = np.float32(0.0)
-                for u in range(nu):
-                    lu = lv[u]
-                    f0 += lu * qr[u]
-                    f1 += lu * qr[u + 1]
-                    f2 += lu * qr[u + 2]
-                    f3 += lu * qr[u + 3]
-                    f4 += lu * qr[u + 4]
-                    f5 += lu * qr[u + 5]
-                e0 += f0
-                e1 += f1
-                e2 += f2
-                e3 += f3
-                e4 += f4
-                e5 += f5
-            ok = True
-            for _ in range(iters):
-                xs = x - d
-                x0 = int(np.floor(xs))
-                if x0 - wx - 1 < 0 or x0 + wx + 2 >= w:
-                    ok = False
-                    break
-                sh = x0 - xb
-                if sh == 0:
-                    pp0, pp1, pp2, pp3 = e1, e2, e3, e4
-                elif sh < 0:
-                    pp0, pp1, pp2, pp3 = e0, e1, e2, e3
+                sd = sm[dl]
+                acc = 0.0
+                for u in range(nu - 1):
+                    acc += c[u]
+                for p in range(wx, w - wx - dl):
+                    acc += c[p + wx]
+                    sd[p] = acc
+                    acc -= c[p - wx]
+            s0 = sm[0]
+            s1 = sm[1]
+            s2 = sm[2]
+            s3 = sm[3]
+            state[:] = 0
+            l_in = left[y + wy]
+            q_in = right_coef_pad[y + wy]
+            l_out = left[max(y - wy - 1, 0)]
+            q_out = right_coef_pad[max(y - wy - 1, 0)]
+            for x in range(w):
+                if x < wx or x >= w - wx:
+                    continue
+                d_in = disp[y, x]
+                if np.isnan(d_in):
+                    xb_run[x] = -(1 << 30)
+                    continue
+                d = np.float64(d_in)
+                xb = int(np.floor(x - d))
+                if xb - wx - 1 < 0 or xb + wx + 2 >= w:
+                    xb_run[x] = -(1 << 30)
+                    continue
+                # E_m = sum_window L(v, x + u) q(v, xb - 2 + m + u), m = 0..5
+                e = es[x]
+                if xb_run[x] == xb:
+                    _lk_row_products(l_in, q_in, x, xb, wx, 1.0, e)
+                    _lk_row_products(l_out, q_out, x, xb, wx, -1.0, e)
                 else:
-                    pp0, pp1, pp2, pp3 = e2, e3, e4, e5
-                m00 = np.float64(s0[x0 - 1])
-                m11 = np.float64(s0[x0])
-                m22 = np.float64(s0[x0 + 1])
-                m33 = np.float64(s0[x0 + 2])
-                m01 = np.float64(s1[x0 - 1])
-                m12 = np.float64(s1[x0])
-                m23 = np.float64(s1[x0 + 1])
-                m02 = np.float64(s2[x0 - 1])
-                m13 = np.float64(s2[x0])
-                m03 = np.float64(s3[x0 - 1])
-                t = np.float32(xs - x0)
-                omt = one - t
-                t2 = t * t
-                a0 = np.float64(omt * omt * omt * sixth)
-                a1 = np.float64((np.float32(3.0) * t2 * t - np.float32(6.0) * t2 + np.float32(4.0)) * sixth)
-                a2 = np.float64((np.float32(-3.0) * t2 * t + np.float32(3.0) * t2 + np.float32(3.0) * t
-                                 + one) * sixth)
-                a3 = np.float64(t2 * t * sixth)
-                g0 = np.float64(np.float32(-0.5) * omt * omt)
-                g1 = np.float64(np.float32(1.5) * t2 - np.float32(2.0) * t)
-                g2 = np.float64(np.float32(-1.5) * t2 + t + np.float32(0.5))
-                g3 = np.float64(np.float32(0.5) * t2)
-                mg0 = m00 * g0 + m01 * g1 + m02 * g2 + m03 * g3
-                mg1 = m01 * g0 + m11 * g1 + m12 * g2 + m13 * g3
-                mg2 = m02 * g0 + m12 * g1 + m22 * g2 + m23 * g3
-                mg3 = m03 * g0 + m13 * g1 + m23 * g2 + m33 * g3
-                den = g0 * mg0 + g1 * mg1 + g2 * mg2 + g3 * mg3
-                num = (g0 * np.float64(pp0) + g1 * np.float64(pp1) + g2 * np.float64(pp2)
-                       + g3 * np.float64(pp3) - (a0 * mg0 + a1 * mg1 + a2 * mg2 + a3 * mg3))
-                if den <= 1e-6:
-                    ok = False
-                    break
-                step = -num / den
-                d += step
-                if abs(d - d_in) > max_step:
-                    ok = False
-                    break
-                if abs(step) < 2e-3:
-                    break
-            if ok:
-                disp[y, x] = np.float32(d)
+                    for m in range(6):
+                        e[m] = 0.0
+                    for v in range(y - wy, y + wy + 1):
+                        _lk_row_products(left[v], right_coef_pad[v], x, xb, wx, 1.0, e)
+                    xb_run[x] = xb
+                state[x] = 1
+                dcur[x] = d
+            # Gauss-Newton steps, one sweep over the row per iteration: the pixels
+            # are independent, so their long dependency chains overlap in the CPU
+            # (state: 0 idle, 1 iterating, 2 converged, 3 failed)
+            for _ in range(iters):
+                for x in range(wx, w - wx):
+                    if state[x] != 1:
+                        continue
+                    d = dcur[x]
+                    xs = x - d
+                    x0 = int(np.floor(xs))
+                    if x0 - wx - 1 < 0 or x0 + wx + 2 >= w:
+                        state[x] = 3
+                        continue
+                    e = es[x]
+                    sh = x0 - xb_run[x]
+                    if sh == 0:
+                        pp0, pp1, pp2, pp3 = e[1], e[2], e[3], e[4]
+                    elif sh < 0:
+                        pp0, pp1, pp2, pp3 = e[0], e[1], e[2], e[3]
+                    else:
+                        pp0, pp1, pp2, pp3 = e[2], e[3], e[4], e[5]
+                    m00 = s0[x0 - 1]
+                    m11 = s0[x0]
+                    m22 = s0[x0 + 1]
+                    m33 = s0[x0 + 2]
+                    m01 = s1[x0 - 1]
+                    m12 = s1[x0]
+                    m23 = s1[x0 + 1]
+                    m02 = s2[x0 - 1]
+                    m13 = s2[x0]
+                    m03 = s3[x0 - 1]
+                    t = np.float32(xs - x0)
+                    omt = one - t
+                    t2 = t * t
+                    a0 = np.float64(omt * omt * omt * sixth)
+                    a1 = np.float64((np.float32(3.0) * t2 * t - np.float32(6.0) * t2 + np.float32(4.0)) * sixth)
+                    a2 = np.float64((np.float32(-3.0) * t2 * t + np.float32(3.0) * t2 + np.float32(3.0) * t
+                                     + one) * sixth)
+                    a3 = np.float64(t2 * t * sixth)
+                    g0 = np.float64(np.float32(-0.5) * omt * omt)
+                    g1 = np.float64(np.float32(1.5) * t2 - np.float32(2.0) * t)
+                    g2 = np.float64(np.float32(-1.5) * t2 + t + np.float32(0.5))
+                    g3 = np.float64(np.float32(0.5) * t2)
+                    mg0 = m00 * g0 + m01 * g1 + m02 * g2 + m03 * g3
+                    mg1 = m01 * g0 + m11 * g1 + m12 * g2 + m13 * g3
+                    mg2 = m02 * g0 + m12 * g1 + m22 * g2 + m23 * g3
+                    mg3 = m03 * g0 + m13 * g1 + m23 * g2 + m33 * g3
+                    den = g0 * mg0 + g1 * mg1 + g2 * mg2 + g3 * mg3
+                    num = (g0 * pp0 + g1 * pp1 + g2 * pp2 + g3 * pp3
+                           - (a0 * mg0 + a1 * mg1 + a2 * mg2 + a3 * mg3))
+                    if den <= 1e-6:
+                        state[x] = 3
+                        continue
+                    step = -num / den
+                    d += step
+                    dcur[x] = d
+                    if abs(d - np.float64(disp[y, x])) > max_step:
+                        state[x] = 3
+                    elif abs(step) < 2e-3:
+                        state[x] = 2
+            for x in range(wx, w - wx):
+                if state[x] == 1 or state[x] == 2:
+                    disp[y, x] = np.float32(dcur[x])
 
 
 @njit(cache=True, nogil=True, parallel=True)

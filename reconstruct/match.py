@@ -285,8 +285,14 @@ def _match_level(
         _k.bspline_rows(rg, rcoef[:, 1:w + 1])
         del rg
         r = prm.lk_window // 2
-        _k.refine_lk_gram(lg, rcoef, disp, r, r, prm.lk_iters, 1.0)
+        _k.refine_lk_gram(lg, rcoef, disp, r, r, prm.lk_iters, 1.0, _lk_stripes(h))
     return disp, conf
+
+
+def _lk_stripes(h: int) -> int:
+    """Row stripes of the Lucas-Kanade pass: 4 per thread (load balance), each at
+    least 32 rows (the window sums slide down a stripe; a stripe start sums afresh)."""
+    return max(1, min(4 * max(1, numba.get_num_threads()), h // 32))
 
 
 def _fill(raw: NDArray[np.float32]) -> NDArray[np.float32]:
