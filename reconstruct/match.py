@@ -18,7 +18,7 @@ Pipeline (numba kernels in :mod:`._match_kernels`):
    from the same aggregated volume, small-segment (speckle) removal;
 4. sub-pixel: equiangular fit on the aggregated costs [4], then 1-D Lucas-Kanade
    warping [5] on band-passed intensities, the right view interpolated with cubic
-   B-splines [7] (no pile-up at integers: RMS ~0.006 px on a textured shift sweep);
+   B-splines [7] (no pile-up at integers: RMS ~0.01 px on a textured shift sweep);
 5. dense fill: background-favouring horizontal fill followed by a median on the
    filled pixels only.
 
@@ -231,8 +231,9 @@ def _match_level(
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """One SGM pass with per-pixel windows; returns (raw disparity NaN=invalid, conf).
 
-    ``dmin`` set: a full search (``dlo == dmin`` everywhere), whose levels are padded
-    to a multiple of 16 in the cost volumes.
+    ``dmin`` set: a full search (``dlo == dmin`` everywhere). With 4 paths the levels
+    are padded to a multiple of 16 in the cost volumes (whole vectors in the SGM
+    kernels; the padded levels are never selected).
     """
     h, w, nc = left.shape
     full = dmin is not None
@@ -244,9 +245,9 @@ def _match_level(
     _k.census_hwc(left, ry, rx, False, cl)
     _k.census_hwc(right, ry, rx, True, cr)
     oob = np.uint8(min(255, (nbits * nc) // 2))
-    # full search: levels padded to a multiple of 16 (vector width) in the volumes;
+    # levels padded to a multiple of 16 (vector width) in the volumes (4 paths);
     # padded levels are held at "infinite" cost by the SGM kernels, never selected
-    kp = -(-k_levels // 16) * 16 if full and prm.paths == 4 else k_levels
+    kp = -(-k_levels // 16) * 16 if prm.paths == 4 else k_levels
     if prm.ad_weight > 0:
         fl, fr = _features(left, right, prm.ad_mode, True)
     else:
@@ -322,7 +323,7 @@ def match_stereo_full(
     speckle_range: float = 2.0,
     subpixel: str = "lk",
     lk_window: int = 5,
-    lk_iters: int = 2,
+    lk_iters: int = 1,
     fine_window: int | None = None,
     ad_weight: float = 1.0,
     ad_trunc: float = 15.0,
@@ -368,7 +369,11 @@ def match_stereo_full(
     lk_window : int
         Odd side of the square Lucas-Kanade window.
     lk_iters : int
-        Maximum Gauss-Newton iterations.
+        Maximum Gauss-Newton iterations. One is the default: the equiangular start
+        is already within ~0.1 px, and on the sub-pixel shift sweep one step gives
+        RMS 0.0105 px with a flatter histogram of fractional parts than two
+        (0.0078 px), for ~15 % less refinement time; bad-1/bad-2 on the real pairs
+        change by < 0.003.
     fine_window : int, optional
         Levels searched per pixel in the coarse-to-fine pass (default depends on the
         pyramid factor).
