@@ -375,8 +375,9 @@ def match_stereo_full(
         (0.0078 px), for ~15 % less refinement time; bad-1/bad-2 on the real pairs
         change by < 0.003.
     fine_window : int, optional
-        Levels searched per pixel in the coarse-to-fine pass (default depends on the
-        pyramid factor).
+        Levels searched per pixel in the coarse-to-fine pass (default: ``2 * (scale
+        + 4) + 1`` for pyramid factor ``scale``, rounded up to a multiple of 16 with
+        4 paths -- 32 at the paper's geometry).
 
     Returns
     -------
@@ -512,7 +513,14 @@ def _match_c2f(
             f"and the range [{min_disp}, {min_disp + num_disp - 1}]"
         )
     coarse = _fill(raw_c)
-    k_levels = fine_window if fine_window is not None else 2 * (scale + 4) + 1
+    if fine_window is not None:
+        k_levels = fine_window
+    else:
+        # cover the coarse neighbourhood's range (+-scale) and +-4 levels; with 4 paths
+        # the volumes are padded to whole 16-level vectors anyway, so search them all
+        k_levels = 2 * (scale + 4) + 1
+        if prm.paths == 4:
+            k_levels = -(-k_levels // 16) * 16
     k_levels = int(min(max(k_levels, 3), num_disp))
     dlo = np.empty((h, w), np.int32)
     _k.fine_ranges(coarse, float(scale), 4, k_levels, min_disp, min_disp + num_disp - 1, dlo)
