@@ -24,6 +24,7 @@ __all__ = [
     "disparity_range",
     "local_contrast",
     "inside_silhouette",
+    "lit_mask",
     "reconstruct_shot",
     "reconstruct_to_files",
 ]
@@ -69,6 +70,30 @@ def inside_silhouette(valid: NDArray, margin_px: int, *, close_px: int = 15) -> 
     closed = cv2.morphologyEx(m, cv2.MORPH_CLOSE, np.ones((close_px, close_px), np.uint8))
     k = 2 * int(margin_px) + 1
     return cv2.erode(closed, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+
+
+def lit_mask(image: NDArray, *, k_sigma: float = 5.0, min_step: float = 6.0) -> NDArray[np.bool_]:
+    """Pixels that show a lit surface: the 3x3 maximum of the brightest channel lies
+    above the image's dark population.
+
+    The dark population is the pixels within 16 grey levels of the 1st percentile
+    (the floor) of the brightest channel; with ``m`` its median and ``s = (m -
+    floor) / 2.33`` its noise (the 1st percentile of a normal distribution lies
+    2.33 sigma below its centre), the threshold is ``max(floor + min_step, m +
+    k_sigma * s)``. On a shot against an unlit background these are the
+    background's black level and read noise: on the simulated paper rig it reads
+    0-3 grey levels (99.9th percentile 3), so the threshold is ``min_step`` = 6. A
+    shot with no dark background loses at most its darkest ~1 % of pixels, as
+    specks that a silhouette's closing fills.
+    """
+    import cv2
+
+    img = np.asarray(image)
+    v = (img.max(axis=2) if img.ndim == 3 else img).astype(np.float32)
+    floor = float(np.percentile(v, 1.0))
+    m = float(np.median(v[v <= floor + 16.0]))
+    thr = max(floor + float(min_step), m + float(k_sigma) * (m - floor) / 2.33)
+    return cv2.dilate(v, np.ones((3, 3), np.uint8)) >= thr
 
 
 def disparity_range(
@@ -117,6 +142,7 @@ def reconstruct_shot(
     smooth_sigma_px: float = 0.0,
     min_texture: float = 2.0,
     silhouette_margin_px: int = 3,
+    lit_outline: bool = True,
     refine: bool = True,
     refine_window: tuple[int, int] = (7, 25),
     max_residual: float = 1.0,
@@ -151,6 +177,13 @@ def reconstruct_shot(
         disparities a pixel or two onto the background there ("edge fattening"):
         points floating beside the object that bias ICP when views are stitched.
         0 keeps them.
+    lit_outline : bool
+        Take that outline from matched pixels that are also lit (:func:`lit_mask`:
+        brighter than the shot's dark floor by 5 sigma of its noise), not from the
+        texture test alone, whose 15x15 window reaches ~7 px into an unlit
+        background (there 1-1.5 mm of points per view lie beside the object). On 8 stitched views of a camouflaged tank this took the
+        model's height error from +2.9 % to +0.2 % and its length error from +0.4 %
+        to +0.2 %, for 3 % fewer points.
     refine : bool
         Slanted-plane sub-pixel refinement of the matched disparity
         (:func:`~prism3d.reconstruct.refine.refine_slanted`, window ``refine_window``
@@ -210,7 +243,11 @@ def reconstruct_shot(
     valid = res.valid & in_range
     textured = local_contrast(left) >= min_texture if min_texture > 0 else np.ones_like(valid)
     valid &= textured
-    inside = inside_silhouette(valid, silhouette_margin_px) if silhouette_margin_px > 0 else None
+    # the outline comes from matched pixels that show the lit surface: the 15x15
+    # texture test passes black background up to ~7 px from the object, where the
+    # matcher and the refinement carry the object's disparity outwards
+    outline = valid & lit_mask(left) if lit_outline else valid
+    inside = inside_silhouette(outline, silhouette_margin_px) if silhouette_margin_px > 0 else None
     if inside is not None:
         valid &= inside
     disparity = res.disparity
