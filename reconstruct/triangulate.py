@@ -83,34 +83,18 @@ def grid_normals(points: NDArray, valid: NDArray) -> NDArray[np.float32]:
     Central differences where both neighbours are valid, one-sided otherwise; NaN
     where no normal can be formed. The camera is at the origin of the points' frame.
     """
-    p = check_array(points, "points", ndim=3).astype(np.float64)
+    from ._mesh_kernels import grid_normals as _grid_normals_kernel
+
+    p = check_array(points, "points", ndim=3)
     m = check_array(valid, "valid", ndim=2).astype(bool)
     check_same_shape(p, m, ("points", "valid"), dims=2)
-    q = np.where(m[..., None], p, np.nan)
-
-    def diff(axis: int) -> NDArray[np.float64]:
-        fwd = np.full_like(q, np.nan)
-        bwd = np.full_like(q, np.nan)
-        if axis == 1:
-            fwd[:, :-1] = q[:, 1:] - q[:, :-1]
-            bwd[:, 1:] = q[:, 1:] - q[:, :-1]
-        else:
-            fwd[:-1] = q[1:] - q[:-1]
-            bwd[1:] = q[1:] - q[:-1]
-        central = 0.5 * (fwd + bwd)
-        return np.where(np.isnan(central), np.where(np.isnan(fwd), bwd, fwd), central)
-
-    du = diff(1)
-    dv = diff(0)
-    n = np.cross(du, dv)
-    norm = np.linalg.norm(n, axis=2, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n = n / norm
-    # face the camera (origin): n . p < 0
-    flip = np.sum(n * q, axis=2) > 0
-    n[flip] *= -1
-    n[~m] = np.nan
-    return n.astype(np.float32)
+    if p.shape[2] != 3:
+        raise InputError(f"points: expected (H, W, 3), got shape {p.shape}")
+    p64 = np.ascontiguousarray(p, dtype=np.float64)
+    m = np.ascontiguousarray(m & np.isfinite(p64).all(axis=2))
+    out = np.empty(p.shape, np.float32)
+    _grid_normals_kernel(p64, m, out)
+    return out
 
 
 @dataclass
