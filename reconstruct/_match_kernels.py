@@ -252,30 +252,100 @@ def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg):
             mn = _step(costf, (y * w + x) * kl, lp, mn, shift, lc, aggf, kl, p1, p2e)
 
 
-@njit(cache=True, nogil=True)
-def remove_speckles(disp, max_size, max_diff):
-    """Set to NaN 4-connected regions (neighbours differing <= max_diff) smaller than
-    ``max_size`` pixels."""
+@njit(cache=True, nogil=True, inline="always")
+def _compatible(disp, d, yy, xx, max_diff):
+    dn = disp[yy, xx]
+    return not np.isnan(dn) and abs(dn - d) <= max_diff
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _speckle_stripes(disp, max_size, max_diff, n_stripes, status):
+    """Phase 1 of :func:`remove_speckles`, row stripes in parallel: 4-connected
+    regions inside each stripe. ``status`` (H, W) uint8 out: 1 small whole region
+    (remove), 2 region of at least ``max_size`` pixels (keep), 3 small but connected
+    across the stripe's edge (decided later), 0 NaN."""
     h, w = disp.shape
-    label = np.zeros((h, w), np.int32)
-    stack = np.empty(h * w, np.int32)
-    members = np.empty(h * w, np.int32)
-    cur = 0
+    for si in prange(n_stripes):
+        ya = (si * h) // n_stripes
+        yb = ((si + 1) * h) // n_stripes
+        n_pix = (yb - ya) * w
+        stack = np.empty(n_pix, np.int32)
+        members = np.empty(n_pix, np.int32)
+        seen = np.zeros((yb - ya, w), np.bool_)
+        for y0 in range(ya, yb):
+            for x0 in range(w):
+                if seen[y0 - ya, x0] or np.isnan(disp[y0, x0]):
+                    continue
+                seen[y0 - ya, x0] = True
+                stack[0] = np.int32(y0 * w + x0)
+                top = 1
+                n = 0
+                touch = False
+                while top > 0:
+                    top -= 1
+                    p = stack[top]
+                    members[n] = p
+                    n += 1
+                    y = p // w
+                    x = p - y * w
+                    d = disp[y, x]
+                    if y == ya and y > 0 and _compatible(disp, d, y - 1, x, max_diff):
+                        touch = True
+                    if y == yb - 1 and y + 1 < h and _compatible(disp, d, y + 1, x, max_diff):
+                        touch = True
+                    for nb in range(4):
+                        yy = y + (1 if nb == 0 else (-1 if nb == 1 else 0))
+                        xx = x + (1 if nb == 2 else (-1 if nb == 3 else 0))
+                        if yy < ya or yy >= yb or xx < 0 or xx >= w:
+                            continue
+                        if seen[yy - ya, xx] or not _compatible(disp, d, yy, xx, max_diff):
+                            continue
+                        seen[yy - ya, xx] = True
+                        stack[top] = np.int32(yy * w + xx)
+                        top += 1
+                code = np.uint8(2) if n >= max_size else (np.uint8(3) if touch else np.uint8(1))
+                for i in range(n):
+                    p = members[i]
+                    status[p // w, p % w] = code
+
+
+@njit(cache=True, nogil=True)
+def remove_speckles(disp, max_size, max_diff, n_stripes=1):
+    """Set to NaN 4-connected regions (neighbours differing <= max_diff) smaller than
+    ``max_size`` pixels.
+
+    Regions are found in ``n_stripes`` row stripes in parallel; the few small ones
+    that continue across a stripe edge are then followed over the whole image,
+    stopping as soon as one reaches ``max_size`` pixels. Same result for any
+    ``n_stripes``.
+    """
+    h, w = disp.shape
+    ns = max(1, min(n_stripes, h))
+    status = np.zeros((h, w), np.uint8)
+    _speckle_stripes(disp, max_size, max_diff, ns, status)
+    # phase 2: small regions connected across stripe edges, over the whole image;
+    # visited: 0 no, 1 part of a big component, 2 part of a small one
+    visited = np.zeros((h, w), np.uint8)
+    stack = np.empty(max_size + 4 * max_size + 4, np.int64)
+    members = np.empty(max_size + 1, np.int64)
+    mark = np.zeros((h, w), np.bool_)
     for y0 in range(h):
         for x0 in range(w):
-            if label[y0, x0] != 0 or np.isnan(disp[y0, x0]):
+            if status[y0, x0] != 3 or visited[y0, x0] != 0:
                 continue
-            cur += 1
-            label[y0, x0] = cur
-            top = 0
-            stack[top] = y0 * w + x0
+            mark[y0, x0] = True
+            stack[0] = y0 * w + x0
             top = 1
             n = 0
-            while top > 0:
+            big = False
+            while top > 0 and not big:
                 top -= 1
                 p = stack[top]
                 members[n] = p
                 n += 1
+                if n >= max_size:
+                    big = True
+                    break
                 y = p // w
                 x = p - y * w
                 d = disp[y, x]
@@ -284,18 +354,26 @@ def remove_speckles(disp, max_size, max_diff):
                     xx = x + (1 if nb == 2 else (-1 if nb == 3 else 0))
                     if yy < 0 or yy >= h or xx < 0 or xx >= w:
                         continue
-                    if label[yy, xx] != 0:
+                    if mark[yy, xx] or not _compatible(disp, d, yy, xx, max_diff):
                         continue
-                    dn = disp[yy, xx]
-                    if np.isnan(dn) or abs(dn - d) > max_diff:
-                        continue
-                    label[yy, xx] = cur
+                    if status[yy, xx] == 2 or visited[yy, xx] == 1:
+                        big = True
+                        break
+                    mark[yy, xx] = True
                     stack[top] = yy * w + xx
                     top += 1
-            if n < max_size:
-                for i in range(n):
-                    p = members[i]
-                    disp[p // w, p % w] = np.nan
+            # clear the marks of everything pushed (members and the rest of the stack)
+            for i in range(n):
+                p = members[i]
+                mark[p // w, p % w] = False
+                visited[p // w, p % w] = 1 if big else 2
+            for i in range(top):
+                p = stack[i]
+                mark[p // w, p % w] = False
+    for y in range(h):
+        for x in range(w):
+            if status[y, x] == 1 or (status[y, x] == 3 and visited[y, x] == 2):
+                disp[y, x] = np.nan
 
 
 # --------------------------------------------------------------- sub-pixel refinement

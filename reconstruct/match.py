@@ -278,7 +278,8 @@ def _match_level(
     _k.right_lr_check(agg, dlo, k_levels, float(prm.lr_max_diff), disp)
     del agg
     if speckle_size > 0:
-        _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range))
+        _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range),
+                           2 * max(1, numba.get_num_threads()))
     if subpixel == "lk":
         lg = _bandpass(guide)
         rg = _bandpass(_grey(right))

@@ -293,3 +293,52 @@ def test_matching_cost_kernel_matches_brute_force() -> None:
                 ham = sum((int(cl[c, y, x]) ^ int(crp[c, y, xr])).bit_count() for c in range(nc))
                 ad = int(np.abs(fl[:, y, x].astype(int) - fr_plain[:, y, xr].astype(int)).sum())
                 assert out[y, x, kk] == min(255, ham + min(ad, 45)), (y, x, kk)
+
+
+def _speckles_reference(disp: np.ndarray, max_size: int, max_diff: float) -> np.ndarray:
+    """Plain Python flood fill: NaN every 4-connected region (neighbours within
+    max_diff) smaller than max_size."""
+    h, w = disp.shape
+    out = disp.copy()
+    seen = np.zeros((h, w), bool)
+    for y0 in range(h):
+        for x0 in range(w):
+            if seen[y0, x0] or np.isnan(disp[y0, x0]):
+                continue
+            seen[y0, x0] = True
+            stack, comp = [(y0, x0)], []
+            while stack:
+                y, x = stack.pop()
+                comp.append((y, x))
+                for yy, xx in ((y + 1, x), (y - 1, x), (y, x + 1), (y, x - 1)):
+                    if 0 <= yy < h and 0 <= xx < w and not seen[yy, xx] and not np.isnan(disp[yy, xx]) \
+                            and abs(disp[yy, xx] - disp[y, x]) <= max_diff:
+                        seen[yy, xx] = True
+                        stack.append((yy, xx))
+            if len(comp) < max_size:
+                for y, x in comp:
+                    out[y, x] = np.nan
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_speckle_removal_same_for_any_number_of_stripes(seed: int) -> None:
+    """Regions are found in parallel row stripes, then the small ones crossing a
+    stripe edge are followed over the whole image: the result must not depend on
+    the stripes (tall thin regions, regions of exactly max_size, NaN gaps)."""
+    from prism3d.reconstruct import _match_kernels as K
+
+    rng = np.random.default_rng(seed)
+    h, w = 61, 47
+    disp = np.round(rng.uniform(0, 6, (h, w)) / 1.5) * 1.5  # plateaus of equal values
+    disp[rng.random((h, w)) < 0.15] = np.nan
+    disp[5:60, 20] = 50.0  # a 1-px wide column crossing every stripe: 55 pixels
+    disp[5:60, 19] = np.nan
+    disp[5:60, 21] = np.nan
+    disp = disp.astype(np.float32)
+    for max_size in (4, 12, 55, 56):
+        ref = _speckles_reference(disp, max_size, 1.0)
+        for n_stripes in (1, 2, 3, 7, 61, 100):
+            got = disp.copy()
+            K.remove_speckles(got, max_size, np.float64(1.0), n_stripes)
+            assert np.array_equal(np.isnan(got), np.isnan(ref)), (max_size, n_stripes)
