@@ -145,6 +145,7 @@ def reconstruct_shot(
     lit_outline: bool = True,
     refine: bool = True,
     refine_window: tuple[int, int] = (7, 25),
+    refine_orientation_weight: bool = True,
     max_residual: float = 1.0,
     max_disparity_std: float = float("inf"),
     progress: ProgressFn = null_progress,
@@ -193,6 +194,9 @@ def reconstruct_shot(
         RMS 0.055 -> 0.026 px). Holes the matcher's checks left inside the
         surface are estimated the same way (26 % more points on that view, as
         accurate as the rest).
+    refine_orientation_weight : bool
+        Down-weight edges nearly parallel to the epipolar lines in the refinement
+        (see :func:`~prism3d.reconstruct.refine.refine_slanted`).
     max_residual : float
         After refinement, drop pixels whose window the fitted plane does not
         explain: mean squared colour residual over mean squared gradient above this
@@ -259,7 +263,8 @@ def reconstruct_shot(
         # interiors) are estimated too, from the planes of their windows
         holes = (inside if inside is not None else inside_silhouette(valid, 0)) & textured & in_range & ~valid
         disparity, resid, dstd = refine_slanted(left, right, res.disparity, valid, window=refine_window,
-                                                extra=holes)
+                                                extra=holes,
+                                                orientation_weight=refine_orientation_weight)
         valid = (valid | holes) & (resid <= max_residual) & (dstd <= max_disparity_std)
         t["refine"] = time.perf_counter() - t1
     depth = np.where(valid, rect.disparity_to_depth(disparity), np.nan).astype(np.float32)

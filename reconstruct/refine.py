@@ -66,6 +66,7 @@ def refine_slanted(
     iterations: int = 3,
     max_change: float = 1.5,
     extra: NDArray | None = None,
+    orientation_weight: bool = True,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
     """Refine ``disparity`` at ``valid`` pixels with slanted-plane windows.
 
@@ -90,6 +91,16 @@ def refine_slanted(
     max_change : float
         A pixel whose refined disparity moves by more than this (px) from the input
         keeps the input value and is reported with residual ``inf``.
+    orientation_weight : bool
+        Weight each pixel's equations by ``gx^2 / (gx^2 + gy^2 + 1)`` of the left
+        view's gradient (summed over channels). An edge nearly parallel to the
+        epipolar lines says little about horizontal disparity but turns any vertical
+        misalignment or noise into a large one (a 0.05 px vertical error reads as
+        0.6 px of disparity on a bare 5-degree edge); camouflage outlines are full
+        of such edges. A 15-degree edge over a weak grating, 0.05 px misaligned:
+        error near the edge 0.061 -> 0.037 px. On 6 targets x 8 stitched views
+        (matcher scans, paper rig): worst view pose 0.100 -> 0.078 deg on average,
+        worst case 0.237 -> 0.145; flat plate RMS 2 % higher.
 
     Returns
     -------
@@ -167,6 +178,16 @@ def refine_slanted(
         return cv2.sepFilter2D(f, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT)
 
     Lf = np.ascontiguousarray(Lc, dtype=np.float32)
+    owt = None
+    if orientation_weight:
+        sx = np.zeros((h, w), np.float32)
+        sy = np.zeros((h, w), np.float32)
+        for c in range(nc):
+            gx = cv2.Sobel(Lf[..., c], cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+            gy = cv2.Sobel(Lf[..., c], cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
+            sx += gx * gx
+            sy += gy * gy
+        owt = (sx / (sx + sy + np.float32(1.0))).astype(np.float64)
     g2 = np.empty((h, w), np.float64)
     ge = np.empty((h, w), np.float64)
     dd = np.where(mc, d0, np.float32(0.0)).astype(np.float64)
@@ -179,6 +200,9 @@ def refine_slanted(
         # L - R(x - d_plane) ~ e_q + G_q (d_plane(q) - d_q) = 0
         # => normal equations  sum G^2 d_plane [1 x y] = sum (G^2 d_q - G e_q) [1 x y]
         _k.products(Lf, Rw, G, support, dd, g2, ge)
+        if owt is not None:
+            g2 *= owt
+            ge *= owt
         moments = (mom(g2, one_x, one_y), mom(g2, ramp_x, one_y), mom(g2, one_x, ramp_y),
                    mom(g2, ramp_x * ramp_x, one_y), mom(g2, one_x, ramp_y * ramp_y),
                    mom(g2, ramp_x, ramp_y), mom(ge, one_x, one_y), mom(ge, ramp_x, one_y),
