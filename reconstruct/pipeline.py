@@ -145,7 +145,7 @@ def reconstruct_shot(
     lit_outline: bool = True,
     refine: bool = True,
     refine_window: tuple[int, int] = (7, 25),
-    refine_orientation_weight: bool = True,
+    refine_orientation_weight: bool = False,
     max_residual: float = 1.0,
     max_disparity_std: float = float("inf"),
     progress: ProgressFn = null_progress,
@@ -196,7 +196,8 @@ def reconstruct_shot(
         accurate as the rest).
     refine_orientation_weight : bool
         Down-weight edges nearly parallel to the epipolar lines in the refinement
-        (see :func:`~prism3d.reconstruct.refine.refine_slanted`).
+        (off by default; see :func:`~prism3d.reconstruct.refine.refine_slanted` for
+        what it gains and costs).
     max_residual : float
         After refinement, drop pixels whose window the fitted plane does not
         explain: mean squared colour residual over mean squared gradient above this
