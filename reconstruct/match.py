@@ -247,7 +247,7 @@ def _match_level(
     oob = np.uint8(min(255, (nbits * nc) // 2))
     # levels padded to a multiple of 16 (vector width) in the volumes (4 paths);
     # padded levels are held at "infinite" cost by the SGM kernels, never selected
-    kp = -(-k_levels // 16) * 16 if prm.paths == 4 else k_levels
+    kp = _padded_levels(k_levels, prm.paths)
     if prm.ad_weight > 0:
         fl, fr = _features(left, right, prm.ad_mode, True)
     else:
@@ -289,6 +289,12 @@ def _match_level(
         r = prm.lk_window // 2
         _k.refine_lk_gram(lg, rcoef, disp, r, r, prm.lk_iters, 1.0, _lk_stripes(h))
     return disp, conf
+
+
+def _padded_levels(k_levels: int, paths: int) -> int:
+    """Levels held in the cost volumes: with 4 paths, ``k_levels`` rounded up to whole
+    16-level vectors (the padding is held at "infinite" cost by the SGM kernels)."""
+    return -(-k_levels // 16) * 16 if paths == 4 else k_levels
 
 
 def _lk_stripes(h: int) -> int:
@@ -519,9 +525,7 @@ def _match_c2f(
     else:
         # cover the coarse neighbourhood's range (+-scale) and +-4 levels; with 4 paths
         # the volumes are padded to whole 16-level vectors anyway, so search them all
-        k_levels = 2 * (scale + 4) + 1
-        if prm.paths == 4:
-            k_levels = -(-k_levels // 16) * 16
+        k_levels = _padded_levels(2 * (scale + 4) + 1, prm.paths)
     k_levels = int(min(max(k_levels, 3), num_disp))
     dlo = np.empty((h, w), np.int32)
     _k.fine_ranges(coarse, float(scale), 4, k_levels, min_disp, min_disp + num_disp - 1, dlo)

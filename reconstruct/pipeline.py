@@ -180,11 +180,11 @@ def reconstruct_shot(
         0 keeps them.
     lit_outline : bool
         Take that outline from matched pixels that are also lit (:func:`lit_mask`:
-        brighter than the shot's dark floor by 5 sigma of its noise), not from the
-        texture test alone, whose 15x15 window reaches ~7 px into an unlit
-        background (there 1-1.5 mm of points per view lie beside the object). On 8 stitched views of a camouflaged tank this took the
-        model's height error from +2.9 % to +0.2 % and its length error from +0.4 %
-        to +0.2 %, for 3 % fewer points.
+        clear of the shot's dark floor by at least 6 grey levels, more on a noisy
+        floor), not from the texture test alone, whose 15x15 window reaches ~7 px
+        into an unlit background (there 1-1.5 mm of points per view lie beside the
+        object). On 8 stitched views of a camouflaged tank this took the model's
+        height error from +3.7 % to +0.4 %, for 3 % fewer points.
     refine : bool
         Slanted-plane sub-pixel refinement of the matched disparity
         (:func:`~prism3d.reconstruct.refine.refine_slanted`, window ``refine_window``

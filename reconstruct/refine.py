@@ -181,14 +181,14 @@ def refine_slanted(
         return cv2.sepFilter2D(f, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT)
 
     Lf = np.ascontiguousarray(Lc, dtype=np.float32)
+    # horizontal gradient of the left view: the residual's scale, and the weights
+    gl = np.stack([cv2.Sobel(Lf[..., c], cv2.CV_32F, 1, 0, ksize=1, scale=0.5) for c in range(nc)], -1)
     owt = None
     if orientation_weight:
-        sx = np.zeros((h, w), np.float32)
+        sx = (gl * gl).sum(-1)
         sy = np.zeros((h, w), np.float32)
         for c in range(nc):
-            gx = cv2.Sobel(Lf[..., c], cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
             gy = cv2.Sobel(Lf[..., c], cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
-            sx += gx * gx
             sy += gy * gy
         owt = (sx / (sx + sy + np.float32(1.0))).astype(np.float64)
     g2 = np.empty((h, w), np.float64)
@@ -219,7 +219,6 @@ def refine_slanted(
     _k.warp_rows(coef, x0, dd, d_ref, Rw, G)
     wgt = mc.astype(np.float32)
     e2 = ((Lf - Rw) ** 2).sum(-1) * wgt
-    gl = np.stack([cv2.Sobel(Lf[..., c], cv2.CV_32F, 1, 0, ksize=1, scale=0.5) for c in range(nc)], -1)
     gl2 = (gl * gl).sum(-1) * wgt
     s_e2 = mom(e2, one_x, one_y)[idx]
     ratio = s_e2 / (mom(gl2, one_x, one_y)[idx] + 1e-6)
