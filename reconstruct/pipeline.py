@@ -47,15 +47,25 @@ def convergence_distance_mm(rig: StereoRig) -> float | None:
 
 
 def local_contrast(image: NDArray, *, size: int = 15) -> NDArray[np.float32]:
-    """Local standard deviation ``(H, W)`` of the grey image (8-bit units) in a
-    ``size x size`` window."""
+    """Local standard deviation ``(H, W)`` of the image (8-bit units) in a
+    ``size x size`` window; for colour, the root mean of the channels' variances.
+
+    Colour counts: the grating's neighbouring stripes can have nearly the same grey
+    level (green ``(35, 130, 22)`` beside red ``(143, 31, 22)``: grey 62 and 65),
+    so a grey-level test calls the inside of such a stripe pair featureless although
+    each channel has a 100-level edge there. For a grey image (or equal channels)
+    this is the grey-level standard deviation.
+    """
     import cv2
 
     img = np.asarray(image, dtype=np.float32)
-    grey = img.mean(axis=2) if img.ndim == 3 else img
-    mean = cv2.blur(grey, (size, size))
-    sq = cv2.blur(grey * grey, (size, size))
-    return np.sqrt(np.maximum(sq - mean * mean, 0.0)).astype(np.float32)
+    chans = [img[..., c] for c in range(img.shape[2])] if img.ndim == 3 else [img]
+    var = np.zeros(img.shape[:2], np.float32)
+    for ch in chans:
+        ch = np.ascontiguousarray(ch)
+        mean = cv2.blur(ch, (size, size))
+        var += np.maximum(cv2.blur(ch * ch, (size, size)) - mean * mean, 0.0)
+    return np.sqrt(var / len(chans)).astype(np.float32)
 
 
 def inside_silhouette(valid: NDArray, margin_px: int, *, close_px: int = 15) -> NDArray[np.bool_]:

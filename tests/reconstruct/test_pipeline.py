@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from prism3d.reconstruct.pipeline import lit_mask
+from prism3d.reconstruct.pipeline import lit_mask, local_contrast
 
 
 def test_lit_mask_dark_floor_and_noise() -> None:
@@ -25,6 +25,31 @@ def test_lit_mask_dark_floor_and_noise() -> None:
     # no dark background: at most the darkest ~1 % are dropped
     bright = rng.integers(60, 250, (120, 160, 3)).astype(np.uint8)
     assert lit_mask(bright).mean() > 0.98
+
+
+def test_local_contrast_sees_isoluminant_colour_edges() -> None:
+    """Two grating colours of nearly equal grey level (62 and 65): the stripe pair is
+    texture in every channel, and the test must say so (a grey-level test read
+    1.2-1.7 there, below the pipeline's threshold of 2, and dropped the points)."""
+    rng = np.random.default_rng(1)
+    img = np.empty((60, 80, 3), np.float32)
+    img[:, :40] = (35, 130, 22)
+    img[:, 40:] = (143, 31, 22)
+    img = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+    grey_std = float(np.std(img[20:35, 33:48].mean(axis=2)))
+    assert grey_std < 2.0  # what a grey-level test sees at the edge
+    c = local_contrast(img)
+    # at the edge: root mean of the channel variances of a 15x15 window half one
+    # colour, half the other = sqrt(mean((diff / 2)^2)) ~ 43 grey levels
+    expect = np.sqrt(np.mean(((np.array([143, 31, 22]) - [35, 130, 22]) / 2.0) ** 2))
+    assert abs(c[27, 40] - expect) < 2.0
+    assert c[27, 5] < 2.0 and c[27, 75] < 2.0  # flat colour, noise only
+    # grey images, and colour images with equal channels, keep the grey-level value
+    g = rng.integers(0, 255, (40, 50)).astype(np.uint8)
+    np.testing.assert_allclose(local_contrast(np.dstack([g, g, g])), local_contrast(g), rtol=1e-5, atol=1e-3)
+    gf = g.astype(np.float64)
+    w = gf[10:25, 10:25]
+    assert abs(local_contrast(g)[17, 17] - w.std()) < 1e-2
 
 
 @pytest.fixture(scope="module")
