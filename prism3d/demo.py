@@ -328,7 +328,10 @@ def _stage_model360(ctx: DemoContext) -> Section:
         f"Target: camouflaged 1:35 tank model ({target.metadata['length_mm']:.0f} mm long). Fused model: "
         f"{len(res.points)} points" + (f", mesh {len(res.mesh_faces)} triangles" if res.mesh_faces is not None else "")
         + ". Stitching: turntable prior (45 deg), multi-scale point-to-plane ICP, pose graph with loop closure, joint "
-        "multi-view refinement; the fused cloud keeps the points two scans agree on."
+        "multi-view refinement"
+        + (", then all views constrained to one turntable axis (axis and angles fitted)"
+           if "turntable" in res.diagnostics.get("multiview", {}) else "")
+        + "; the fused cloud keeps the points two scans agree on."
     )
     ctx.results["model"] = res
     from prism3d.report import point_cloud_viewer

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from prism3d.reconstruct.multiview import refine_multiview
+from prism3d.reconstruct.multiview import fit_turntable, refine_multiview, refine_turntable
 from prism3d.reconstruct.registration import rotation_angle_deg
 
 from prism3d.errors import InputError
@@ -56,6 +56,53 @@ def test_recovers_perturbed_turntable_poses_jointly() -> None:
     assert max(abs(np.linalg.det(t[:3, :3]) - 1) for t in T) < 1e-9
     np.testing.assert_array_equal(T[0], init[0])  # the first view is the frame
     assert info["max_change_deg"] > 0.2 and info["rms"] < 0.3 and info["correspondences"] > 1e4
+
+
+def _turntable(u, p, deg):
+    T = np.eye(4)
+    T[:3, :3] = _rot(u, deg)
+    T[:3, 3] = np.asarray(p, float) - T[:3, :3] @ np.asarray(p, float)
+    return T
+
+
+def test_fit_turntable_recovers_axis_point_and_angles() -> None:
+    """Exact turntable poses, angles up to 180 deg and unequal steps."""
+    u = np.array([0.02, -0.966, -0.258])
+    u /= np.linalg.norm(u)
+    p = np.array([30.0, -5.0, 1250.0])
+    angles = [0.0, 44.0, 91.0, 135.5, 180.0, -134.0, -90.0, -45.0]
+    poses = [_turntable(u, p, a) for a in angles]
+    uu, pp, th = fit_turntable(poses)
+    assert abs(abs(uu @ u) - 1) < 1e-12
+    sign = np.sign(uu @ u)
+    np.testing.assert_allclose(np.degrees(th) * sign, angles, atol=1e-9)
+    # the fitted axis point lies on the true axis
+    d = pp - p
+    assert np.linalg.norm(d - (d @ u) * u) < 1e-6
+
+
+def test_refine_turntable_removes_tilts() -> None:
+    """Views tilted 0.3 deg about horizontal axes and shifted 0.3 mm: the
+    turntable-constrained refinement puts every view back on one axis; the free
+    refinement from the same start is compared beside it."""
+    scans, normals, truth = _views()
+    rng = np.random.default_rng(5)
+    centre = scans[0].mean(axis=0)
+    init = [truth[0]] + [_perturb(T, 0.3, 0.3, rng, centre) for T in truth[1:]]
+    pairs = [(k, (k + 1) % 8) for k in range(8)] + [(k, (k + 2) % 8) for k in range(8)]
+    T, info = refine_turntable(scans, normals, init, pairs, spacing=1.0)
+    err = [rotation_angle_deg(np.linalg.inv(t) @ e) for t, e in zip(truth, T, strict=True)]
+    assert max(err) < 0.02, err
+    # the axis is the true one (the truth's own turntable fit, in view 0's frame)
+    u_true, _, th_true = fit_turntable(truth)
+    assert np.degrees(np.arccos(min(1.0, abs(float(np.array(info["axis"]) @ u_true))))) < 0.01
+    sign = np.sign(float(np.array(info["axis"]) @ u_true))
+    dth = (np.array(info["angles_deg"]) * sign - np.degrees(th_true) + 180.0) % 360.0 - 180.0
+    assert np.abs(dth).max() < 0.02, dth
+    assert info["rms"] <= info["rms_input"] and len(info["angles_deg"]) == 8
+    np.testing.assert_array_equal(T[0], np.eye(4))
+    with pytest.raises(InputError, match="identity"):
+        refine_turntable(scans, normals, [init[1]] + init[1:], pairs, spacing=1.0)
 
 
 def test_bad_input() -> None:

@@ -220,6 +220,34 @@ def test_turntable_motion_accepts_small_overlap(tank_views):
         stitch_scans(three, turntable_step_deg=None, mesh=False, max_registration_points=30000)
 
 
+def test_turntable_constraint_auto_and_rejected(tank_views):
+    """Without a hint the poses are recognised as one turntable's and constrained to
+    it; when the object is tilted 2 deg between shots 3 and 4, the hinted run finds
+    the views off one axis, says so, and keeps the free poses (which are right)."""
+    scans, poses, V = tank_views[0], tank_views[1], tank_views[2]
+    res = stitch_scans(scans, turntable_step_deg=None, mesh=False)
+    assert "turntable" in res.diagnostics["multiview"]
+    assert max(e for e, _ in _pose_errors(res, poses, V)) < 0.05
+    # object tilted about a horizontal axis through it: views 4-7 see M x
+    M = np.eye(4)
+    a = np.radians(2.0)
+    M[:3, :3] = [[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]
+    M[:3, 3] = np.array([0, 0, 20.0]) - M[:3, :3] @ np.array([0, 0, 20.0])
+    moved, truth = [], []
+    for k, (s, T) in enumerate(zip(scans, poses, strict=True)):
+        if k < 4:
+            moved.append(s)
+            truth.append(T)
+            continue
+        S = np.linalg.inv(T) @ M @ T
+        moved.append((s[0] @ S[:3, :3].T + S[:3, 3], s[1], s[2]))
+        truth.append(np.linalg.inv(M) @ T)
+    res = stitch_scans(moved, turntable_step_deg=45.0, mesh=False, on_failure="warn")
+    assert any("turntable axis" in w for w in res.diagnostics["warnings"]), res.diagnostics["warnings"]
+    assert "turntable" not in res.diagnostics["multiview"]
+    assert max(e for e, _ in _pose_errors(res, truth, V)) < 0.05
+
+
 def test_bad_input():
     rng = np.random.default_rng(0)
     p = rng.normal(size=(100, 3))
