@@ -577,9 +577,6 @@ def stitch_scans(
             T_tt, tt_info = refine_turntable(
                 [np.asarray(pc.points) for pc in fine], [np.asarray(pc.normals) for pc in fine], T_model,
                 sorted(kept_pairs_ij), spacing=rsp,
-                # n + 3 unknowns need fewer correspondences than the free 6 (n - 1):
-                # 5000 per view gives the same poses as 10000 (6 targets) in half the time
-                max_query_points=5000,
             )
             seconds["turntable"] = time.perf_counter() - t0
             if tt_info["rms"] <= max_turntable_rms_ratio * tt_info["rms_input"]:
