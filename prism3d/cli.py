@@ -442,7 +442,7 @@ def _cmd_features(args: argparse.Namespace) -> int:
     from prism3d.atr.features import features_to_parquet
 
     _check_out_not_dir(args.output)
-    df = features_to_parquet(args.inputs, args.output, units=args.units, up=args.up,
+    df = features_to_parquet(args.inputs, args.output, units=args.units, up=args.up, box=args.box,
                              progress=_progress(args, "features"))
     _say(args, f"wrote {args.output}: {len(df)} rows x {df.shape[1]} columns")
     return 0
@@ -457,6 +457,9 @@ def _add_features(sub: Any) -> None:
     p.add_argument("-o", "--output", required=True, type=Path, metavar="FEATURES_PARQUET")
     p.add_argument("--units", choices=["mm", "cm", "m", "in"], help="units of files that do not declare them")
     p.add_argument("--up", choices=["y", "z"], help="up axis of files that do not declare it")
+    p.add_argument("--box", choices=["auto", "surface", "points"], default="auto",
+                   help="scans: boxes of the fitted surface near the data (needs normals) or of every point; "
+                   "auto (default): surface when the scan has normals")
     p.set_defaults(func=_cmd_features)
 
 
