@@ -323,8 +323,9 @@ def stitch_scans(
         ``turntable_step_deg`` is given, or when the free poses already share one
         rotation axis (every view's axis within 1 deg of the common one, and each
         view's translation within 5 registration voxels of a pure rotation about
-        it); the step's angle is only a starting value, every view's angle is
-        estimated.
+        it); ``"on"``: always (with 3 or more views); ``"off"``: never. Only with
+        ``multiview``. The step's angle is only a starting value: every view's
+        angle is estimated.
     max_turntable_rms_ratio : float
         The constrained poses are kept only if their point-to-plane RMS is at most
         this times the free poses' RMS; otherwise the views are taken not to share
