@@ -502,7 +502,12 @@ def stitch_scans(
             init = _rigid_inverse(T_model[i]) @ T_model[j]
             if rotation_angle_deg(init) > loop_max_angle_deg:
                 continue
-            r = icp(i, j, init, first_scale=2.0)
+            # the scale-2 level only: the joint refinements below put every pose on
+            # the full clouds. The full-resolution level here cost ~10 s of a 30 s
+            # budget; without it the final worst poses moved by -0.004..+0.007 deg
+            # (6 stereo targets and the demo: noise at that level), truth-depth
+            # scans 0.0069 -> 0.0070 deg
+            r = icp(i, j, init, first_scale=2.0, last_scale=2.0)
             if r.fitness >= min_fitness and r.inlier_rmse <= 1.5 * r.max_distance:
                 results[(i, j)] = r
             else:
