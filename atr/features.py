@@ -388,6 +388,20 @@ def model_features(vertices: NDArray, faces: NDArray, *, up: str = "z") -> dict[
     return _order(out, "model")
 
 
+def _spacing(P: NDArray, tree: Any = None) -> float:
+    """Median nearest-neighbour distance of (up to 20000 of) the points."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(P) if tree is None else tree
+    return float(np.median(tree.query(P[:: max(1, len(P) // 20000)], k=2)[0][:, 1]))
+
+
+#: ``box="auto"`` fits the surface only to clouds at least this many point spacings
+#: across (the surface's cells are ~2 spacings; on a sparse cloud it is no better
+#: than the points and bulges by up to 2 spacings beyond them).
+DENSE_SPACINGS = 200.0
+
+
 def surface_near_data(points: NDArray, normals: NDArray) -> NDArray[np.float64]:
     """Vertices of the least-squares surface of an oriented cloud that lie within two
     point spacings (one octree cell) of the data.
@@ -406,7 +420,7 @@ def surface_near_data(points: NDArray, normals: NDArray) -> NDArray[np.float64]:
     P = np.asarray(points, dtype=np.float64)
     N = np.asarray(normals, dtype=np.float64)
     tree = cKDTree(P)
-    spacing = float(np.median(tree.query(P[:: max(1, len(P) // 20000)], k=2)[0][:, 1]))
+    spacing = _spacing(P, tree)
     if not spacing > 0:
         raise InputError("points: no point spacing (all points coincide?)")
     V, _, _ = poisson_mesh(P, N, spacing=spacing)
@@ -435,8 +449,10 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
         point (min/max; a scan's extreme depth errors enlarge the box).
         ``"surface"``: the least-squares surface of the points near the data
         (:func:`surface_near_data`; needs outward normals, as a fused model or a
-        reconstructed scan has). ``"auto"``: surface when ``normals`` are given,
-        points otherwise. On 8 stitched stereo views of each of the six built-in
+        reconstructed scan has). ``"auto"``: surface when ``normals`` are given and
+        the cloud is dense (at least ``DENSE_SPACINGS`` = 200 point spacings across;
+        a stitched model of the paper rig is ~1000), points otherwise: on PCL's
+        397-point bunny scan the surface bulged 10 % beyond the points. On 8 stitched stereo views of each of the six built-in
         targets (paper rig) the box from the points is up to 2.6 % wide (the trucks),
         from the surface -1.6 ... +1.6 % on every dimension.
 
@@ -472,7 +488,10 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
         sel = np.sort(np.random.default_rng(_SEED).choice(len(P), N_SAMPLES, replace=False))
     else:
         sel = np.arange(len(P))
-    use_surface = box == "surface" or (box == "auto" and normals is not None)
+    use_surface = box == "surface" or (
+        box == "auto" and normals is not None
+        and float(np.ptp(P, axis=0).max()) >= DENSE_SPACINGS * _spacing(P)
+    )
     P_box = surface_near_data(P, N) if use_surface else P
     out, _ = _common(P_box, P[sel], N[sel])
     hull_v = _hull_volume(P)

@@ -459,7 +459,7 @@ def _add_features(sub: Any) -> None:
     p.add_argument("--up", choices=["y", "z"], help="up axis of files that do not declare it")
     p.add_argument("--box", choices=["auto", "surface", "points"], default="auto",
                    help="scans: boxes of the fitted surface near the data (needs normals) or of every point; "
-                   "auto (default): surface when the scan has normals")
+                   "auto (default): surface when the scan has normals and is dense (>= 200 point spacings across)")
     p.set_defaults(func=_cmd_features)
 
 

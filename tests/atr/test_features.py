@@ -159,6 +159,9 @@ def test_scan_box_from_surface_ignores_error_tails() -> None:
     assert scan_features(P, N, up="z")["width_mm"] == fs["width_mm"]  # auto: normals given -> surface
     V = surface_near_data(P, N)
     assert len(V) > 1000 and V[:, 2].min() > -1.5  # nothing invented below the open bottom (2 spacings + noise)
+    # a sparse cloud (fewer than 200 spacings across): auto keeps the points' box
+    Ps, Ns = _open_box_cloud(L, W, H, 5.0, rng)
+    assert scan_features(Ps, Ns, up="z")["width_mm"] == scan_features(Ps, Ns, up="z", box="points")["width_mm"]
     with pytest.raises(InputError, match="normals"):
         scan_features(P, None, up="z", box="surface")
     with pytest.raises(InputError, match="box"):
