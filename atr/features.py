@@ -402,7 +402,7 @@ def _spacing(P: NDArray, tree: Any = None) -> float:
 DENSE_SPACINGS = 200.0
 
 
-def surface_near_data(points: NDArray, normals: NDArray) -> NDArray[np.float64]:
+def surface_near_data(points: NDArray, normals: NDArray, *, spacing: float | None = None) -> NDArray[np.float64]:
     """Vertices of the least-squares surface of an oriented cloud that lie within two
     point spacings (one octree cell) of the data.
 
@@ -411,7 +411,8 @@ def surface_near_data(points: NDArray, normals: NDArray) -> NDArray[np.float64]:
     spacings). Its vertices far from any point (the surface Poisson invents where
     nothing was seen, e.g. an object's underside) are dropped. A scan's depth errors
     have long tails; the extreme points that set a min/max box are those tails,
-    while the fitted surface averages them with their neighbours.
+    while the fitted surface averages them with their neighbours. ``spacing``: the
+    points' median nearest-neighbour distance, when already known.
     """
     from scipy.spatial import cKDTree
 
@@ -420,7 +421,7 @@ def surface_near_data(points: NDArray, normals: NDArray) -> NDArray[np.float64]:
     P = np.asarray(points, dtype=np.float64)
     N = np.asarray(normals, dtype=np.float64)
     tree = cKDTree(P)
-    spacing = _spacing(P, tree)
+    spacing = _spacing(P, tree) if spacing is None else float(spacing)
     if not spacing > 0:
         raise InputError("points: no point spacing (all points coincide?)")
     V, _, _ = poisson_mesh(P, N, spacing=spacing)
@@ -488,11 +489,12 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
         sel = np.sort(np.random.default_rng(_SEED).choice(len(P), N_SAMPLES, replace=False))
     else:
         sel = np.arange(len(P))
+    # "surface" without normals was refused above
+    spacing = _spacing(P) if box != "points" and normals is not None else None
     use_surface = box == "surface" or (
-        box == "auto" and normals is not None
-        and float(np.ptp(P, axis=0).max()) >= DENSE_SPACINGS * _spacing(P)
+        spacing is not None and float(np.ptp(P, axis=0).max()) >= DENSE_SPACINGS * spacing
     )
-    P_box = surface_near_data(P, N) if use_surface else P
+    P_box = surface_near_data(P, N, spacing=spacing) if use_surface else P
     out, _ = _common(P_box, P[sel], N[sel])
     hull_v = _hull_volume(P)
     out.update(volume_mm3=hull_v, volume_is_hull=1.0, hull_volume_mm3=hull_v,

@@ -238,7 +238,10 @@ def refine_multiview(
 
 
 def _rotvec(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vector of ``R`` (any angle up to 180 deg)."""
+    """Rotation vector of ``R`` (any angle up to 180 deg). SciPy's quaternion route
+    stays accurate at both ends, which the arccos-of-trace form in
+    :mod:`~prism3d.reconstruct.registration` does not: here it differentiates 1e-6 rad
+    twists and splits 180-deg turns."""
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(R).as_rotvec()

@@ -220,8 +220,8 @@ def _looks_like_turntable(T_model: list[NDArray], voxel: float) -> bool:
 
     if len(T_model) < 3:
         return False
-    u, p, theta = fit_turntable(T_model)
-    for T, th in zip(T_model[1:], theta[1:], strict=True):
+    u, p, _ = fit_turntable(T_model)
+    for T in T_model[1:]:
         rv = _rotvec(T[:3, :3])
         ang = float(np.linalg.norm(rv))
         if ang > np.radians(10.0) and abs(float(rv @ u)) / ang < np.cos(np.radians(1.0)):
