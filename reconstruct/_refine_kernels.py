@@ -103,3 +103,64 @@ def warp_rows(coef, x0, disp, d_ref, val, grad):  # pragma: no cover - compiled
                 a3 = coef[c, y, i3]
                 val[y, x, c] = w0 * a0 + w1 * a1 + w2 * a2 + w3 * a3
                 grad[y, x, c] = g0 * a0 + g1 * a1 + g2 * a2 + g3 * a3
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def row_curvature(mask, m, md, ridge, curv):  # pragma: no cover - compiled
+    """Per masked pixel, the ``c`` of the least-squares fit ``d(q) = d0 + a qx + b qy +
+    c qx^2`` to a map over a window (coordinates relative to the pixel).
+
+    m : (9, H, W) window sums of the weights times ``1, x, y, x^2, y^2, xy, x^3,
+    x^2 y, x^4``; md : (4, H, W) window sums of the weights times ``d`` and ``d x, d
+    y, d x^2``; ``ridge`` times the weight sum is added to the diagonal of the three
+    shape terms. Cholesky solve of the 4x4 normal equations; ``curv`` (H, W) out,
+    left unchanged where the system is singular.
+    """
+    h, w = mask.shape
+    for y in prange(h):
+        A = np.empty((4, 4))
+        L = np.zeros((4, 4))
+        z = np.empty(4)
+        for x in range(w):
+            if not mask[y, x]:
+                continue
+            s0 = m[0, y, x]
+            if s0 <= 0.0:
+                continue
+            lam = ridge * s0 + 1e-9
+            A[0, 0] = s0
+            A[0, 1] = m[1, y, x]
+            A[0, 2] = m[2, y, x]
+            A[0, 3] = m[3, y, x]
+            A[1, 1] = m[3, y, x] + lam
+            A[1, 2] = m[5, y, x]
+            A[1, 3] = m[6, y, x]
+            A[2, 2] = m[4, y, x] + lam
+            A[2, 3] = m[7, y, x]
+            A[3, 3] = m[8, y, x] + lam
+            ok = True
+            for i in range(4):
+                for j in range(i + 1):
+                    s = A[j, i]
+                    for k in range(j):
+                        s -= L[i, k] * L[j, k]
+                    if i == j:
+                        if not s > 1e-12 * s0:
+                            ok = False
+                            break
+                        L[i, i] = np.sqrt(s)
+                    else:
+                        L[i, j] = s / L[j, j]
+                if not ok:
+                    break
+            if not ok:
+                continue
+            # forward substitution; the last unknown of L^T x = z is z[3] / L[3, 3]
+            for i in range(4):
+                s = md[i, y, x]
+                for k in range(i):
+                    s -= L[i, k] * z[k]
+                z[i] = s / L[i, i]
+            c = z[3] / L[3, 3]
+            if np.isfinite(c):
+                curv[y, x] = c
