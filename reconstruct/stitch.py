@@ -562,14 +562,16 @@ def stitch_scans(
     # --- joint multi-view refinement ----------------------------------------
     mv_info: dict[str, float] = {}
     if multiview:
-        from prism3d.reconstruct.multiview import refine_multiview
+        from prism3d.reconstruct.multiview import overlapping_pairs, refine_multiview
 
         t0 = time.perf_counter()
         fine = [pyr._levels[-1] for pyr in pyramids]
-        T_model, mv_info = refine_multiview(
-            [np.asarray(pc.points) for pc in fine], [np.asarray(pc.normals) for pc in fine], T_model,
-            sorted(kept_pairs_ij), spacing=rsp,
-        )
+        fine_p = [np.asarray(pc.points) for pc in fine]
+        fine_n = [np.asarray(pc.normals) for pc in fine]
+        # every overlapping pair, not only the pose graph's accepted edges
+        mv_pairs = sorted(kept_pairs_ij | set(overlapping_pairs(fine_p, fine_n, T_model, spacing=rsp)))
+        T_model, mv_info = refine_multiview(fine_p, fine_n, T_model, mv_pairs, spacing=rsp)
+        mv_info = {**mv_info, "pairs": float(len(mv_pairs))}
         seconds["multiview"] = time.perf_counter() - t0
         log.info("multi-view refinement: %d iterations, rms %.3g, largest change %.3f deg",
                  mv_info["iterations"], mv_info["rms"], mv_info["max_change_deg"])
@@ -580,10 +582,7 @@ def stitch_scans(
             from prism3d.reconstruct.multiview import refine_turntable
 
             t0 = time.perf_counter()
-            T_tt, tt_info = refine_turntable(
-                [np.asarray(pc.points) for pc in fine], [np.asarray(pc.normals) for pc in fine], T_model,
-                sorted(kept_pairs_ij), spacing=rsp,
-            )
+            T_tt, tt_info = refine_turntable(fine_p, fine_n, T_model, mv_pairs, spacing=rsp)
             seconds["turntable"] = time.perf_counter() - t0
             if tt_info["rms"] <= max_turntable_rms_ratio * tt_info["rms_input"]:
                 T_model = T_tt

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from prism3d.reconstruct.multiview import fit_turntable, refine_multiview, refine_turntable
+from prism3d.reconstruct.multiview import fit_turntable, overlapping_pairs, refine_multiview, refine_turntable
 from prism3d.reconstruct.registration import rotation_angle_deg
 
 from prism3d.errors import InputError
@@ -115,3 +115,26 @@ def test_bad_input() -> None:
         refine_multiview(scans, normals[:2], truth, [(0, 1)], spacing=1.0)
     with pytest.raises(InputError, match="spacing"):
         refine_multiview(scans, normals, truth, [(0, 1)], spacing=0.0)
+
+
+def test_overlapping_pairs_finds_the_views_that_share_surface() -> None:
+    """8 turntable views of a tank: neighbours overlap, and so do views 90 deg apart
+    (the top and the ends); a copy of view 0 moved 1 m away overlaps nothing, and
+    the test is the refinements' own (3 spacings, normals agreeing)."""
+    scans, normals, truth = _views()
+    pairs = overlapping_pairs(scans, normals, truth, spacing=1.0)
+    assert all((k, k + 1) in pairs for k in range(7)) and (0, 7) in pairs
+    assert {(0, 2), (1, 3), (2, 4)} <= set(pairs)
+    assert all(i < j for i, j in pairs)
+    far = np.eye(4)
+    far[:3, 3] = [1000.0, 0.0, 0.0]
+    pairs = overlapping_pairs(scans[:2] + scans[:1], normals[:2] + normals[:1], truth[:2] + [far @ truth[0]],
+                              spacing=1.0)
+    assert pairs == [(0, 1)]
+    # the same surface with its normals flipped (the other side of a thin wall) is no overlap
+    assert overlapping_pairs([scans[0], scans[0]], [normals[0], -normals[0]], [truth[0], truth[0]],
+                             spacing=1.0) == []
+    with pytest.raises(InputError, match="pose for every view"):
+        overlapping_pairs(scans, normals, truth[:3], spacing=1.0)
+    with pytest.raises(InputError, match="spacing"):
+        overlapping_pairs(scans, normals, truth, spacing=0.0)
