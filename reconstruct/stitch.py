@@ -26,7 +26,11 @@ Pipeline (:func:`stitch_scans`):
    inlier RMSE, or a large residual after the optimisation (the loop does not
    close) raises :class:`~prism3d.errors.ReconstructionError` naming the views
    (or logs a warning with ``on_failure="warn"``).
-6. Fusion (:mod:`prism3d.reconstruct.fusion`): voxel-averaged coloured cloud and
+6. Joint refinement of all poses (:mod:`prism3d.reconstruct.multiview`) over every
+   pair of views whose surfaces overlap at the pose graph's poses
+   (:func:`~prism3d.reconstruct.multiview.overlapping_pairs`), then, for a
+   turntable sequence, with all views constrained to one rotation axis.
+7. Fusion (:mod:`prism3d.reconstruct.fusion`): voxel-averaged coloured cloud and
    an optional watertight Poisson mesh.
 
 The model frame is the first scan's frame.
