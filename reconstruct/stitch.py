@@ -107,7 +107,8 @@ class StitchResult:
         ``residual_deg``, ``residual`` (largest displacement of a source point within
         the cloud radius, input units),
         ``kept``), ``multiview`` (iterations, rms, max_change_deg,
-        correspondences; empty when off), ``mesh_closed`` (every mesh edge shared by exactly two faces;
+        correspondences, pairs -- the number of overlapping view pairs refined
+        jointly; empty when off), ``mesh_closed`` (every mesh edge shared by exactly two faces;
         None without a mesh), ``warnings`` (list of str) and ``seconds`` per
         stage.
     """
