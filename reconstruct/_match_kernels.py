@@ -35,6 +35,27 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from ._simd import (
+    v16_add,
+    v16_broadcast,
+    v16_fill_range,
+    v16_keys,
+    v16_load,
+    v16_load_u8,
+    v16_max,
+    v16_min,
+    v16_mul,
+    v16_narrow,
+    v16_popcount,
+    v16_reduce_min,
+    v16_store,
+    v16_store_u8,
+    v16_sub,
+    v16_to_f32,
+    v16_to_u16,
+    v16_xor,
+)
+
 INF16 = 0x3FFF  # "no such disparity" in uint16 path costs; sums of 8 stay < 65535
 
 
@@ -76,13 +97,9 @@ def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, 
     memory, so the loops over ``k`` vectorise (SIMD popcount). Per-candidate sums are
     uint16 (narrow vector lanes); a full search is the case of a constant ``dlo``.
     """
-    nc, h, w = census_l.shape
-    nf = feat_l.shape[0]
+    h, w = census_l.shape[1:]
     clip = np.float32(ad_clip)
     scale = np.float32(ad_scale)
-    half = np.float32(0.5)
-    sat = np.float32(255.0)
-    u255 = np.uint16(255)
     for y in prange(h):
         acc = np.empty(k_levels, np.uint16)
         adb = np.empty(k_levels, np.uint16)
@@ -95,60 +112,92 @@ def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, 
             if k_hi <= k_lo:
                 o[:] = oob_cost
                 continue
-            n = k_hi - k_lo
-            j0 = w - 1 - x + d0 + k_lo
-            a = acc[:n]
-            c0 = census_l[0, y, x]
-            r0 = census_rr[0, y, j0:j0 + n]
-            if nc == 3:
-                c1 = census_l[1, y, x]
-                c2 = census_l[2, y, x]
-                r1 = census_rr[1, y, j0:j0 + n]
-                r2 = census_rr[2, y, j0:j0 + n]
-                for k in range(n):
-                    a[k] = np.uint16(_popcount(c0 ^ r0[k]) + _popcount(c1 ^ r1[k])
-                                     + _popcount(c2 ^ r2[k]))
-            else:
-                for k in range(n):
-                    a[k] = np.uint16(_popcount(c0 ^ r0[k]))
-                for c in range(1, nc):
-                    cc = census_l[c, y, x]
-                    rc = census_rr[c, y, j0:j0 + n]
-                    for k in range(n):
-                        a[k] = np.uint16(a[k] + np.uint16(_popcount(cc ^ rc[k])))
-            ob = o[k_lo:k_hi]
-            if nf > 0:
-                v = adb[:n]
-                if nf == 3:
-                    p0 = feat_l[0, y, x]
-                    p1 = feat_l[1, y, x]
-                    p2 = feat_l[2, y, x]
-                    q0 = feat_rr[0, y, j0:j0 + n]
-                    q1 = feat_rr[1, y, j0:j0 + n]
-                    q2 = feat_rr[2, y, j0:j0 + n]
-                    for k in range(n):
-                        v[k] = (np.uint16(np.uint8(max(p0, q0[k]) - min(p0, q0[k])))
-                                + np.uint16(np.uint8(max(p1, q1[k]) - min(p1, q1[k])))
-                                + np.uint16(np.uint8(max(p2, q2[k]) - min(p2, q2[k]))))
-                else:
-                    for k in range(n):
-                        v[k] = 0
-                    for f in range(nf):
-                        pf = feat_l[f, y, x]
-                        qf = feat_rr[f, y, j0:j0 + n]
-                        for k in range(n):
-                            v[k] = np.uint16(v[k] + np.uint16(np.uint8(max(pf, qf[k])
-                                                                       - min(pf, qf[k]))))
-                for k in range(n):
-                    t = np.uint16(min(min(np.float32(v[k]), clip) * scale + half, sat))
-                    ob[k] = np.uint8(min(np.uint16(a[k] + t), u255))
-            else:
-                for k in range(n):
-                    ob[k] = np.uint8(min(a[k], u255))
+            # whole 16-candidate vectors first, then the scalar remainder
+            k_v = _cost16(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x,
+                          w - 1 - x + d0, k_lo, k_hi, o)
+            if k_v < k_hi:
+                _cost_scalar(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x,
+                             w - 1 - x + d0, k_v, k_hi, acc, adb, o)
             for k in range(k_lo):
                 o[k] = oob_cost
             for k in range(k_hi, k_levels):
                 o[k] = oob_cost
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cost16(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x, jb, k_lo, k_hi, o):
+    """Costs of candidates ``k_lo, k_lo + 16, ...`` in whole 16-lane vectors (see
+    :func:`matching_cost`; the right pixel of candidate ``k`` is ``jb + k`` in the
+    mirrored rows); returns the first candidate left for the scalar loop."""
+    nc = census_l.shape[0]
+    nf = feat_l.shape[0]
+    k = k_lo
+    if k + 16 > k_hi:
+        return k
+    z = v16_load_u8(o, 0)
+    half = v16_broadcast(v16_to_f32(z), 0.5)
+    vsat = v16_broadcast(half, 255.0)
+    vclip = v16_broadcast(half, clip)
+    vscale = v16_broadcast(half, scale)
+    u255 = v16_broadcast(z, 255)
+    while k + 16 <= k_hi:
+        j = jb + k
+        a = v16_broadcast(z, 0)
+        for c in range(nc):
+            r = v16_load(census_rr[c, y], j)
+            d = v16_xor(r, v16_broadcast(r, census_l[c, y, x]))
+            a = v16_add(a, v16_narrow(v16_popcount(d)))
+        if nf > 0:
+            v = v16_broadcast(z, 0)
+            for f in range(nf):
+                q = v16_load_u8(feat_rr[f, y], j)
+                p = v16_broadcast(z, feat_l[f, y, x])
+                v = v16_add(v, v16_sub(v16_max(p, q), v16_min(p, q)))
+            t = v16_to_u16(v16_min(v16_add(v16_mul(v16_min(v16_to_f32(v), vclip), vscale),
+                                           half), vsat))
+            a = v16_add(a, t)
+        v16_store_u8(o, k, v16_min(a, u255))
+        k += 16
+    return k
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cost_scalar(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x, jb, k0, k_hi,
+                 acc, adb, o):
+    """Costs of candidates ``k0 .. k_hi - 1``, one at a time (see :func:`_cost16`)."""
+    nc = census_l.shape[0]
+    nf = feat_l.shape[0]
+    half = np.float32(0.5)
+    sat = np.float32(255.0)
+    u255 = np.uint16(255)
+    n = k_hi - k0
+    j0 = jb + k0
+    a = acc[:n]
+    c0 = census_l[0, y, x]
+    r0 = census_rr[0, y, j0:j0 + n]
+    for k in range(n):
+        a[k] = np.uint16(_popcount(c0 ^ r0[k]))
+    for c in range(1, nc):
+        cc = census_l[c, y, x]
+        rc = census_rr[c, y, j0:j0 + n]
+        for k in range(n):
+            a[k] = np.uint16(a[k] + np.uint16(_popcount(cc ^ rc[k])))
+    ob = o[k0:k_hi]
+    if nf > 0:
+        v = adb[:n]
+        for k in range(n):
+            v[k] = 0
+        for f in range(nf):
+            pf = feat_l[f, y, x]
+            qf = feat_rr[f, y, j0:j0 + n]
+            for k in range(n):
+                v[k] = np.uint16(v[k] + np.uint16(np.uint8(max(pf, qf[k]) - min(pf, qf[k]))))
+        for k in range(n):
+            t = np.uint16(min(min(np.float32(v[k]), clip) * scale + half, sat))
+            ob[k] = np.uint8(min(np.uint16(a[k] + t), u255))
+    else:
+        for k in range(n):
+            ob[k] = np.uint8(min(a[k], u255))
 
 
 # ------------------------------------------------------------------- SGM aggregation
@@ -685,14 +734,41 @@ def _accumulate(o, g, kp, assign):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _sgm_step16(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
+    """:func:`_sgm_step` for ``kp`` a multiple of 16, in explicit 16-lane vectors (the
+    loop vectoriser's 32-64-element trips would leave 16-48 levels scalar)."""
+    z = v16_load(pad, 0)
+    vp1 = v16_broadcast(z, p1u)
+    vbig = v16_broadcast(z, big)
+    vmp = v16_broadcast(z, mp)
+    m = v16_broadcast(z, INF16)
+    for kb in range(0, kp, 16):
+        a0 = v16_load(lp, src - 1 + kb)
+        a1 = v16_load(lp, src + kb)
+        a2 = v16_load(lp, src + 1 + kb)
+        v = v16_min(v16_min(a1, v16_add(a0, vp1)), v16_min(v16_add(a2, vp1), vbig))
+        c = v16_max(v16_sub(v16_add(v16_load_u8(costv, kb), v), vmp), v16_load(pad, kb))
+        v16_store(lc, dst + kb, c)
+        if assign:
+            v16_store(g, kb, c)
+        else:
+            v16_store(g, kb, v16_add(v16_load(g, kb), c))
+        m = v16_min(m, c)
+    return v16_reduce_min(m)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _sgm_step(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
     """One SGM recursion (see :func:`_step`) into ``lc[dst:dst+kp]``; levels whose
     ``pad`` is INF16 are held at INF16 (padding past the searched window). The path
     cost is assigned to (first path) or added into ``g``. Returns the new min.
 
     One fused loop (recursion, store, sum, minimum): the path cost stays in a
-    register, which lets LLVM vectorise it without reloading ``lc``.
+    register, which lets LLVM vectorise it without reloading ``lc``; whole 16-level
+    vectors (``kp % 16 == 0``, always so with 4 paths) take :func:`_sgm_step16`.
     """
+    if kp % 16 == 0:
+        return _sgm_step16(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign)
     a = lp[src - 1:src + kp + 1]
     o = lc[dst:dst + kp]
     m = np.uint16(INF16)
@@ -770,21 +846,54 @@ def sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _wta_best16(row, kp, k_levels):
+    """(best level, its cost, best cost outside +-1 level of it) over the first
+    ``k_levels`` of ``row`` in 16-lane vectors (``kp = len(row)``, a multiple of 16;
+    the second value is 0xFFFF when no level lies outside +-1). The first pass takes
+    the minimum of keys ``cost << 16 | level`` (the first best level, no branches)."""
+    big = np.uint16(0xFFFF)
+    z = v16_load(row, 0)
+    km = v16_keys(v16_fill_range(z, k_levels, 16, big), 0)
+    for kb in range(16, kp, 16):
+        km = v16_min(km, v16_keys(v16_fill_range(v16_load(row, kb), k_levels - kb, 16, big), kb))
+    key = v16_reduce_min(km)
+    m = np.uint16(key >> np.uint32(16))
+    b = np.int64(key & np.uint32(0xFFFF))
+    sv = v16_broadcast(z, big)
+    for kb in range(0, kp, 16):
+        v = v16_fill_range(v16_load(row, kb), k_levels - kb, 16, big)
+        sv = v16_min(sv, v16_fill_range(v, b - 1 - kb, b + 1 - kb, big))
+    return b, m, v16_reduce_min(sv)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _wta(row, k_levels, d0, uniqueness, disp, conf, y, x):
     """Winner-take-all of one pixel: best level, uniqueness, confidence, equiangular fit."""
     kl = k_levels
+    kp = row.shape[0]
+    if kp % 16 == 0:
+        b, m, s1 = _wta_best16(row, kp, kl)
+        _wta_finish(row, kl, b, m, s1, d0, uniqueness, disp, conf, y, x)
+        return
     # minimum and its first level in one vectorisable pass: keys (cost << 16) | level
     kmin = np.uint32(0xFFFFFFFF)
     for k in range(kl):
         kmin = min(kmin, (np.uint32(row[k]) << np.uint32(16)) | np.uint32(k))
     m = np.uint16(kmin >> np.uint32(16))
     b = np.int64(kmin & np.uint32(0xFFFF))
-    bc = np.int32(m)
     # best cost outside +-1 level of the winner (a select, also vectorisable)
     big = np.uint16(0xFFFF)
     s1 = big
     for k in range(kl):
         s1 = min(s1, row[k] if (k < b - 1 or k > b + 1) else big)
+    _wta_finish(row, kl, b, m, s1, d0, uniqueness, disp, conf, y, x)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _wta_finish(row, kl, b, m, s1, d0, uniqueness, disp, conf, y, x):
+    """Uniqueness, confidence and equiangular fit of the winner ``b`` (cost ``m``,
+    best cost outside +-1 level ``s1``)."""
+    bc = np.int32(m)
     if b < 2 and b + 2 >= kl:
         g = 1.0
     else:

@@ -262,26 +262,33 @@ def test_beats_opencv_sgbm(shared_data: Path, scene: str) -> None:
 # ------------------------------------------------------------------ kernel known answers
 
 
-def test_matching_cost_kernel_matches_brute_force() -> None:
+@pytest.mark.parametrize("kl,radius,nc,scale,clip", [
+    (7, 2, 3, 1.0, 45.0), (16, 2, 3, 1.0, 45.0), (37, 2, 3, 0.7, 30.0), (33, 3, 3, 1.0, 45.0),
+    (21, 2, 1, 2.3, 15.0)])
+def test_matching_cost_kernel_matches_brute_force(kl: int, radius: int, nc: int, scale: float,
+                                                  clip: float) -> None:
     """Mirrored-row cost kernel == direct census Hamming + truncated AD, including
-    per-pixel windows (coarse-to-fine layout) and out-of-image candidates."""
+    per-pixel windows (coarse-to-fine layout) and out-of-image candidates; whole
+    16-candidate vectors and the scalar remainder, 32- and 64-bit census codes."""
     from prism3d.reconstruct import _match_kernels as k
     from prism3d.reconstruct.match import _census
 
-    rng = np.random.default_rng(11)
-    h, w, nc, kl = 9, 23, 3, 7
+    rng = np.random.default_rng(11 + kl)
+    h, w = 9, 61
     left = rng.integers(0, 256, (h, w, nc)).astype(np.float32)
     right = rng.integers(0, 256, (h, w, nc)).astype(np.float32)
-    cl = _census(left, 2, 2, False)
-    cr = _census(right, 2, 2, True)
-    assert cl.dtype == np.uint32 and cl.shape == (nc, h, w)
-    np.testing.assert_array_equal(cr[:, :, ::-1], _census(right, 2, 2, False))
+    cl = _census(left, radius, radius, False)
+    cr = _census(right, radius, radius, True)
+    assert cl.dtype == (np.uint32 if radius == 2 else np.uint64) and cl.shape == (nc, h, w)
+    np.testing.assert_array_equal(cr[:, :, ::-1], _census(right, radius, radius, False))
     fl = np.ascontiguousarray(np.moveaxis(left.astype(np.uint8), 2, 0))
     fr_plain = np.moveaxis(right.astype(np.uint8), 2, 0)
     fr = np.ascontiguousarray(fr_plain[:, :, ::-1])
     dlo = rng.integers(-3, 18, (h, w)).astype(np.int32)
     out = np.empty((h, w, kl), np.uint8)
-    k.matching_cost(cl, cr, fl, fr, 1.0, 45.0, dlo, kl, np.uint8(36), out)
+    k.matching_cost(cl, cr, fl, fr, scale, clip, dlo, kl, np.uint8(36), out)
+    in_image = (np.arange(w)[None, :, None] - dlo[:, :, None] - np.arange(kl)) >= 0
+    assert in_image.all(axis=2).sum() > 10  # some pixels with every candidate inside
     crp = cr[:, :, ::-1]
     for y in range(h):
         for x in range(w):
@@ -292,7 +299,9 @@ def test_matching_cost_kernel_matches_brute_force() -> None:
                     continue
                 ham = sum((int(cl[c, y, x]) ^ int(crp[c, y, xr])).bit_count() for c in range(nc))
                 ad = int(np.abs(fl[:, y, x].astype(int) - fr_plain[:, y, xr].astype(int)).sum())
-                assert out[y, x, kk] == min(255, ham + min(ad, 45)), (y, x, kk)
+                t = np.minimum(np.float32(ad), np.float32(clip)) * np.float32(scale)
+                t = int(min(t + np.float32(0.5), np.float32(255.0)))
+                assert out[y, x, kk] == min(255, ham + t), (y, x, kk)
 
 
 def _speckles_reference(disp: np.ndarray, max_size: int, max_diff: float) -> np.ndarray:

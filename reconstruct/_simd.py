@@ -1,0 +1,352 @@
+"""16-lane vectors for numba kernels (private).
+
+LLVM's loop vectoriser picks its vector width from the element type and the CPU
+(on AVX-512 machines 32 uint16 lanes, interleaved twice: 64 elements a trip), so a
+loop over the 16-48 disparity levels of a small search never enters its vector body
+and runs in its scalar remainder. These intrinsics give the kernels explicit
+16-lane vectors instead: ``U16x16``, ``U32x16`` and ``F32x16`` values live in SIMD
+registers (LLVM ``<16 x i16>``, ``<16 x i32>``, ``<16 x float>``), so one step over
+16 disparity levels is a handful of vector instructions on any x86-64 (LLVM splits
+them to the register width the CPU has).
+
+Integer arithmetic wraps like numpy's fixed-width integers; ``v16_min`` /
+``v16_max`` compare unsigned; float operations are plain IEEE (no fast-math), so a
+kernel written with them gives bit-identical results to its scalar loop.
+
+Loads and stores take a C-contiguous 1-D array and an element index; they are
+unaligned and unchecked, like numba's own indexing (callers keep ``i + 16 <=
+len``).
+
+Numba's on-disk cache tracks only the source file of a cached function: after
+editing this module, touch the kernel modules that use it.
+"""
+
+from __future__ import annotations
+
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic, models, register_model
+
+__all__ = [
+    "F32x16",
+    "U16x16",
+    "U32x16",
+    "U64x16",
+    "v16_add",
+    "v16_broadcast",
+    "v16_fill_range",
+    "v16_keys",
+    "v16_load",
+    "v16_load_u8",
+    "v16_max",
+    "v16_min",
+    "v16_mul",
+    "v16_narrow",
+    "v16_popcount",
+    "v16_reduce_min",
+    "v16_store",
+    "v16_store_u8",
+    "v16_sub",
+    "v16_to_f32",
+    "v16_to_u16",
+    "v16_xor",
+]
+
+_LANES = 16
+_I32 = ir.IntType(32)
+
+
+class _VecType(types.Type):
+    """A 16-lane vector of ``kind`` ("u" unsigned integer or "f" float) ``bits``-bit
+    elements."""
+
+    def __init__(self, kind: str, bits: int) -> None:
+        self.kind = kind
+        self.bits = bits
+        super().__init__(name=f"{kind}{bits}x{_LANES}")
+
+    @property
+    def scalar(self) -> types.Type:
+        return types.float32 if self.kind == "f" else getattr(types, f"uint{self.bits}")
+
+
+U16x16 = _VecType("u", 16)
+U32x16 = _VecType("u", 32)
+U64x16 = _VecType("u", 64)
+F32x16 = _VecType("f", 32)
+
+
+def _lane_type(vt: _VecType) -> ir.Type:
+    return ir.FloatType() if vt.kind == "f" else ir.IntType(vt.bits)
+
+
+def _llvm(vt: _VecType) -> ir.VectorType:
+    return ir.VectorType(_lane_type(vt), _LANES)
+
+
+@register_model(_VecType)
+class _VecModel(models.PrimitiveModel):
+    def __init__(self, dmm, fe_type):
+        super().__init__(dmm, fe_type, _llvm(fe_type))
+
+
+def _vec(x: types.Type) -> _VecType | None:
+    return x if isinstance(x, _VecType) else None
+
+
+def _array_vec(arr: types.Type) -> _VecType | None:
+    """The vector type matching a C-contiguous 1-D uint16/32/64 or float32 array."""
+    if not (isinstance(arr, types.Array) and arr.ndim == 1 and arr.layout in "CF"):
+        return None
+    return {types.uint16: U16x16, types.uint32: U32x16, types.uint64: U64x16,
+            types.float32: F32x16}.get(arr.dtype)
+
+
+def _is_u8_array(arr: types.Type) -> bool:
+    return (isinstance(arr, types.Array) and arr.ndim == 1 and arr.layout in "CF"
+            and arr.dtype == types.uint8)
+
+
+def _elem_ptr(context, builder, arrty, arr, idxty, idx):
+    ary = context.make_array(arrty)(context, builder, arr)
+    return builder.gep(ary.data, [context.cast(builder, idx, idxty, types.intp)])
+
+
+def _splat(builder, value, vt: _VecType):
+    """A vector of ``vt`` with every lane the (already lane-typed) ``value``."""
+    undef = ir.Constant(_llvm(vt), ir.Undefined)
+    vec = builder.insert_element(undef, value, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(vec, undef, ir.Constant(ir.VectorType(_I32, _LANES),
+                                                          [0] * _LANES))
+
+
+def _call(builder, name: str, ret: ir.Type, args: list) -> ir.Value:
+    fnty = ir.FunctionType(ret, [a.type for a in args])
+    fn = cgutils.get_or_insert_function(builder.module, fnty, name)
+    return builder.call(fn, args)
+
+
+@intrinsic
+def v16_load(typingctx, arr, idx):  # pragma: no cover - compiled by numba
+    """``arr[idx:idx + 16]`` (uint16/32/64 or float32 array) as a vector."""
+    vt = _array_vec(arr)
+    if vt is None or not isinstance(idx, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
+        return builder.load(builder.bitcast(ptr, _llvm(vt).as_pointer()), align=1)
+
+    return vt(arr, idx), codegen
+
+
+@intrinsic
+def v16_load_u8(typingctx, arr, idx):  # pragma: no cover - compiled by numba
+    """``arr[idx:idx + 16]`` of a uint8 array, zero-extended to a ``U16x16``."""
+    if not _is_u8_array(arr) or not isinstance(idx, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
+        v8 = builder.load(builder.bitcast(ptr, ir.VectorType(ir.IntType(8), _LANES)
+                                          .as_pointer()), align=1)
+        return builder.zext(v8, _llvm(U16x16))
+
+    return U16x16(arr, idx), codegen
+
+
+@intrinsic
+def v16_store(typingctx, arr, idx, v):  # pragma: no cover - compiled by numba
+    """``arr[idx:idx + 16] = v`` (the array's dtype must be ``v``'s lane type)."""
+    vt = _vec(v)
+    if vt is None or _array_vec(arr) is not vt or not isinstance(idx, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
+        builder.store(args[2], builder.bitcast(ptr, _llvm(vt).as_pointer()), align=1)
+        return context.get_dummy_value()
+
+    return types.none(arr, idx, v), codegen
+
+
+@intrinsic
+def v16_store_u8(typingctx, arr, idx, v):  # pragma: no cover - compiled by numba
+    """``arr[idx:idx + 16] = v`` for a ``U16x16`` into a uint8 array (truncating)."""
+    if _vec(v) is not U16x16 or not _is_u8_array(arr) or not isinstance(idx, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
+        v8ty = ir.VectorType(ir.IntType(8), _LANES)
+        builder.store(builder.trunc(args[2], v8ty), builder.bitcast(ptr, v8ty.as_pointer()),
+                      align=1)
+        return context.get_dummy_value()
+
+    return types.none(arr, idx, v), codegen
+
+
+@intrinsic
+def v16_broadcast(typingctx, like, x):  # pragma: no cover - compiled by numba
+    """A vector of ``like``'s type with every lane ``x`` (cast like numpy's
+    ``astype``: integers truncate)."""
+    vt = _vec(like)
+    if vt is None or not isinstance(x, (types.Integer, types.Float)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _splat(builder, context.cast(builder, args[1], sig.args[1], vt.scalar), vt)
+
+    return vt(like, x), codegen
+
+
+_INT_OPS = {"add": "add", "sub": "sub", "mul": "mul", "xor": "xor", "min": "umin",
+            "max": "umax"}
+_FLOAT_OPS = {"add": "fadd", "sub": "fsub", "mul": "fmul", "min": "minnum",
+              "max": "maxnum"}
+
+
+def _binary(op: str):
+    """A lane-wise binary intrinsic on two vectors of one type."""
+
+    def typer(typingctx, a, b):  # pragma: no cover - compiled by numba
+        vt = _vec(a)
+        if vt is None or _vec(b) is not vt or (vt.kind == "f" and op not in _FLOAT_OPS):
+            return None
+
+        def codegen(context, builder, sig, args):
+            x, y = args
+            if vt.kind == "f":
+                if op in ("min", "max"):
+                    return _call(builder, f"llvm.{_FLOAT_OPS[op]}.v{_LANES}f32", x.type, [x, y])
+                return getattr(builder, _FLOAT_OPS[op])(x, y)
+            if op in ("min", "max"):
+                return _call(builder, f"llvm.{_INT_OPS[op]}.v{_LANES}i{vt.bits}", x.type, [x, y])
+            return getattr(builder, _INT_OPS[op])(x, y)
+
+        return vt(a, b), codegen
+
+    typer.__name__ = f"v16_{op}"
+    return intrinsic(typer)
+
+
+v16_add = _binary("add")
+v16_sub = _binary("sub")
+v16_mul = _binary("mul")
+v16_xor = _binary("xor")
+v16_min = _binary("min")
+v16_max = _binary("max")
+
+
+@intrinsic
+def v16_popcount(typingctx, v):  # pragma: no cover - compiled by numba
+    """Set bits of every lane of an unsigned vector."""
+    vt = _vec(v)
+    if vt is None or vt.kind != "u":
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _call(builder, f"llvm.ctpop.v{_LANES}i{vt.bits}", _llvm(vt), [args[0]])
+
+    return vt(v), codegen
+
+
+@intrinsic
+def v16_narrow(typingctx, v):  # pragma: no cover - compiled by numba
+    """``U32x16`` / ``U64x16`` -> ``U16x16``, keeping the low 16 bits of every lane."""
+    if _vec(v) not in (U32x16, U64x16):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.trunc(args[0], _llvm(U16x16))
+
+    return U16x16(v), codegen
+
+
+@intrinsic
+def v16_to_f32(typingctx, v):  # pragma: no cover - compiled by numba
+    """Unsigned integer vector -> ``F32x16`` (exact below 2**24)."""
+    vt = _vec(v)
+    if vt is None or vt.kind != "u":
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.uitofp(args[0], _llvm(F32x16))
+
+    return F32x16(v), codegen
+
+
+@intrinsic
+def v16_to_u16(typingctx, v):  # pragma: no cover - compiled by numba
+    """``F32x16`` -> ``U16x16``, truncating toward zero like ``np.uint16(x)`` (lanes
+    must lie in [0, 65536))."""
+    if _vec(v) is not F32x16:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.fptoui(args[0], _llvm(U16x16))
+
+    return U16x16(v), codegen
+
+
+@intrinsic
+def v16_reduce_min(typingctx, v):  # pragma: no cover - compiled by numba
+    """The smallest lane of an unsigned vector, as its scalar type."""
+    vt = _vec(v)
+    if vt is None or vt.kind != "u":
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _call(builder, f"llvm.vector.reduce.umin.v{_LANES}i{vt.bits}",
+                     _lane_type(vt), [args[0]])
+
+    return vt.scalar(v), codegen
+
+
+@intrinsic
+def v16_fill_range(typingctx, v, lo, hi, x):  # pragma: no cover - compiled by numba
+    """``v`` with the lanes ``lo <= i <= hi`` (lane indices 0..15; the bounds may lie
+    outside that range) replaced by ``x``."""
+    vt = _vec(v)
+    if vt is None or not all(isinstance(t, types.Integer) for t in (lo, hi)) or not (
+            isinstance(x, (types.Integer, types.Float))):
+        return None
+
+    def codegen(context, builder, sig, args):
+        i64 = ir.IntType(64)
+        vi32 = _llvm(_VecType("u", 32))
+
+        def clamped(k):  # bound k as a splat of int32 in [-1, 16]
+            b = context.cast(builder, args[k], sig.args[k], types.int64)
+            b = builder.select(builder.icmp_signed("<", b, ir.Constant(i64, -1)),
+                               ir.Constant(i64, -1), b)
+            b = builder.select(builder.icmp_signed(">", b, ir.Constant(i64, _LANES)),
+                               ir.Constant(i64, _LANES), b)
+            return _splat(builder, builder.trunc(b, _I32), _VecType("u", 32))
+
+        iota = ir.Constant(vi32, list(range(_LANES)))
+        inside = builder.and_(builder.icmp_signed(">=", iota, clamped(1)),
+                              builder.icmp_signed("<=", iota, clamped(2)))
+        fill = _splat(builder, context.cast(builder, args[3], sig.args[3], vt.scalar), vt)
+        return builder.select(inside, fill, args[0])
+
+    return vt(v, lo, hi, x), codegen
+
+
+@intrinsic
+def v16_keys(typingctx, v, base):  # pragma: no cover - compiled by numba
+    """``U32x16`` sort keys ``(v[i] << 16) | (base + i)`` of a ``U16x16``: the
+    unsigned minimum of keys is the smallest value and, among equals, its first lane
+    (``base + i`` must fit 16 bits)."""
+    if _vec(v) is not U16x16 or not isinstance(base, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        wide = builder.shl(builder.zext(args[0], _llvm(U32x16)),
+                           ir.Constant(_llvm(U32x16), [16] * _LANES))
+        b = builder.trunc(context.cast(builder, args[1], sig.args[1], types.int64), _I32)
+        lanes = builder.add(_splat(builder, b, U32x16),
+                            ir.Constant(_llvm(U32x16), list(range(_LANES))))
+        return builder.or_(wide, lanes)
+
+    return U32x16(v, base), codegen

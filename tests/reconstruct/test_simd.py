@@ -1,0 +1,236 @@
+"""Tests of the 16-lane vector intrinsics (prism3d.reconstruct._simd) against numpy,
+and of the SGM kernels' vector paths against a plain-Python SGM."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numba import njit
+from prism3d.reconstruct import _match_kernels as K
+from prism3d.reconstruct._simd import (
+    v16_add,
+    v16_broadcast,
+    v16_fill_range,
+    v16_keys,
+    v16_load,
+    v16_load_u8,
+    v16_max,
+    v16_min,
+    v16_mul,
+    v16_narrow,
+    v16_popcount,
+    v16_reduce_min,
+    v16_store,
+    v16_store_u8,
+    v16_sub,
+    v16_to_f32,
+    v16_to_u16,
+    v16_xor,
+)
+
+
+@njit(cache=False)
+def _integer_ops(a, b, c32, d32, c64, u8, out16, out32, out8, scal):
+    va = v16_load(a, 1)  # unaligned
+    vb = v16_load(b, 0)
+    v16_store(out16, 0, v16_add(va, vb))
+    v16_store(out16, 16, v16_sub(va, vb))
+    v16_store(out16, 32, v16_mul(va, vb))
+    v16_store(out16, 48, v16_xor(va, vb))
+    v16_store(out16, 64, v16_min(va, vb))
+    v16_store(out16, 80, v16_max(va, vb))
+    v16_store(out16, 96, v16_broadcast(va, 70000))  # truncates like astype
+    v16_store(out16, 112, v16_load_u8(u8, 3))
+    v16_store(out16, 128, v16_narrow(v16_popcount(v16_xor(v16_load(c32, 0),
+                                                          v16_load(d32, 0)))))
+    v16_store(out16, 144, v16_narrow(v16_popcount(v16_load(c64, 0))))
+    v16_store(out16, 160, v16_fill_range(va, 3, 5, 7))
+    v16_store(out16, 176, v16_fill_range(va, -4, 1, 9))
+    v16_store(out16, 192, v16_fill_range(va, 14, 40, 9))
+    v16_store(out16, 208, v16_fill_range(va, 9, 2, 9))  # empty range
+    v16_store(out32, 0, v16_keys(va, 100))
+    v16_store(out32, 16, v16_min(v16_load(c32, 0), v16_load(d32, 0)))
+    v16_store_u8(out8, 0, v16_add(va, vb))
+    scal[0] = v16_reduce_min(va)
+    scal[1] = v16_reduce_min(v16_load(c32, 0))
+
+
+@njit(cache=False)
+def _float_ops(x, y, out, out16):
+    vx = v16_load(x, 0)
+    vy = v16_load(y, 0)
+    v16_store(out, 0, v16_add(vx, vy))
+    v16_store(out, 16, v16_sub(vx, vy))
+    v16_store(out, 32, v16_mul(vx, vy))
+    v16_store(out, 48, v16_min(vx, vy))
+    v16_store(out, 64, v16_max(vx, vy))
+    v16_store(out, 80, v16_broadcast(vx, 0.1))  # float64 -> float32 like astype
+    u = v16_load(out16, 0)
+    v16_store(out, 96, v16_to_f32(u))
+    v16_store(out16, 16, v16_to_u16(v16_add(v16_min(vx, v16_broadcast(vx, 300.0)),
+                                            v16_broadcast(vx, 0.5))))
+
+
+def test_integer_intrinsics_match_numpy() -> None:
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 65536, 17).astype(np.uint16)
+    b = rng.integers(0, 65536, 16).astype(np.uint16)
+    c32 = rng.integers(0, 2**32, 16, dtype=np.uint64).astype(np.uint32)
+    d32 = rng.integers(0, 2**32, 16, dtype=np.uint64).astype(np.uint32)
+    c64 = rng.integers(0, 2**63, 16, dtype=np.uint64) * np.uint64(2) + np.uint64(1)
+    u8 = rng.integers(0, 256, 20).astype(np.uint8)
+    out16 = np.zeros(224, np.uint16)
+    out32 = np.zeros(32, np.uint32)
+    out8 = np.zeros(16, np.uint8)
+    scal = np.zeros(2, np.uint64)
+    _integer_ops(a, b, c32, d32, c64, u8, out16, out32, out8, scal)
+    va = a[1:17]
+    with np.errstate(over="ignore"):
+        np.testing.assert_array_equal(out16[0:16], va + b)
+        np.testing.assert_array_equal(out16[16:32], va - b)
+        np.testing.assert_array_equal(out16[32:48], va * b)
+    np.testing.assert_array_equal(out16[48:64], va ^ b)
+    np.testing.assert_array_equal(out16[64:80], np.minimum(va, b))
+    np.testing.assert_array_equal(out16[80:96], np.maximum(va, b))
+    np.testing.assert_array_equal(out16[96:112], np.full(16, 70000 % 65536))
+    np.testing.assert_array_equal(out16[112:128], u8[3:19])
+    pc = [(int(p) ^ int(q)).bit_count() for p, q in zip(c32, d32)]
+    np.testing.assert_array_equal(out16[128:144], pc)
+    np.testing.assert_array_equal(out16[144:160], [int(v).bit_count() for v in c64])
+    lanes = np.arange(16)
+    np.testing.assert_array_equal(out16[160:176], np.where((lanes >= 3) & (lanes <= 5), 7, va))
+    np.testing.assert_array_equal(out16[176:192], np.where(lanes <= 1, 9, va))
+    np.testing.assert_array_equal(out16[192:208], np.where(lanes >= 14, 9, va))
+    np.testing.assert_array_equal(out16[208:224], va)
+    np.testing.assert_array_equal(out32[:16], (va.astype(np.uint32) << 16) | (100 + lanes))
+    np.testing.assert_array_equal(out32[16:], np.minimum(c32, d32))
+    with np.errstate(over="ignore"):
+        np.testing.assert_array_equal(out8, (va + b).astype(np.uint8))
+    assert scal[0] == va.min() and scal[1] == c32.min()
+
+
+def test_float_intrinsics_match_numpy_bit_for_bit() -> None:
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-1000, 1000, 16).astype(np.float32)
+    x[:4] = [0.0, 299.5, 300.0, 1e-7]
+    y = rng.uniform(-1000, 1000, 16).astype(np.float32)
+    out = np.zeros(112, np.float32)
+    out16 = np.zeros(32, np.uint16)
+    out16[:16] = rng.integers(0, 65536, 16)
+    _float_ops(x, y, out, out16)
+    np.testing.assert_array_equal(out[0:16], x + y)
+    np.testing.assert_array_equal(out[16:32], x - y)
+    np.testing.assert_array_equal(out[32:48], x * y)
+    np.testing.assert_array_equal(out[48:64], np.minimum(x, y))
+    np.testing.assert_array_equal(out[64:80], np.maximum(x, y))
+    np.testing.assert_array_equal(out[80:96], np.full(16, np.float32(0.1)))
+    np.testing.assert_array_equal(out[96:112], out16[:16].astype(np.float32))
+    # to_u16 is defined for lanes in [0, 65536): compare there
+    want = np.minimum(x, np.float32(300.0)) + np.float32(0.5)
+    ok = want >= 0
+    assert ok.sum() >= 6
+    np.testing.assert_array_equal(out16[16:][ok], want[ok].astype(np.uint16))
+
+
+# ------------------------------------------------- SGM kernels against plain Python
+
+
+def _p2(p1: int, p2: int, gamma: float, ga: float, gb: float) -> int:
+    v = p1 + (p2 - p1) / (1.0 + abs(float(ga) - float(gb)) / gamma)
+    return int(np.uint16(max(v, p1 + 1)))
+
+
+def _path(cost, dlo, guide, p1, p2, gamma, k_levels, pixels):
+    """One SGM path over ``pixels`` (a list of (y, x)) with uint16 semantics."""
+    kp = cost.shape[2]
+    inf = K.INF16
+    pad = np.array([0 if k < k_levels else inf for k in range(kp)])
+    out = {}
+    prev = None
+    for y, x in pixels:
+        c = cost[y, x].astype(np.int64)
+        if prev is None:
+            cur = np.maximum(c, pad)
+        else:
+            (yq, xq), lq = prev
+            mp = int(lq.min())
+            big = (mp + _p2(p1, p2, gamma, guide[y, x], guide[yq, xq])) % 65536
+            sh = int(np.clip(dlo[y, x] - dlo[yq, xq], -k_levels, k_levels))
+
+            def at(j: int, lq: np.ndarray = lq) -> int:
+                return int(lq[j]) if 0 <= j < kp else inf
+
+            cur = np.empty(kp, np.int64)
+            for k in range(kp):
+                j = k + sh
+                v = min(at(j), (at(j - 1) + p1) % 65536, (at(j + 1) + p1) % 65536, big)
+                cur[k] = max(((c[k] + v) % 65536 - mp) % 65536, pad[k])
+        out[(y, x)] = cur
+        prev = ((y, x), cur)
+    return out
+
+
+def _sgm_reference(cost, dlo, guide, p1, p2, gamma, k_levels):
+    h, w, kp = cost.shape
+    agg = np.zeros((h, w, kp), np.int64)
+    lines = [[(y, x) for x in range(w)] for y in range(h)]
+    lines += [[(y, x) for x in range(w - 1, -1, -1)] for y in range(h)]
+    lines += [[(y, x) for y in range(h)] for x in range(w)]
+    lines += [[(y, x) for y in range(h - 1, -1, -1)] for x in range(w)]
+    for line in lines:
+        for (y, x), lv in _path(cost, dlo, guide, p1, p2, gamma, k_levels, line).items():
+            agg[y, x] += lv
+    return agg % 65536
+
+
+def _wta_reference(agg, dlo, k_levels, uniqueness):
+    h, w, _ = agg.shape
+    disp = np.full((h, w), np.nan, np.float32)
+    conf = np.zeros((h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            row = agg[y, x, :k_levels].astype(np.int64)
+            b = int(np.argmin(row))
+            m = int(row[b])
+            rest = [int(row[k]) for k in range(k_levels) if not b - 1 <= k <= b + 1]
+            g = 1.0 if not rest else (min(rest) - m) / max(min(rest), 1)
+            conf[y, x] = g
+            if g * 100.0 < uniqueness:
+                continue
+            off = 0.0
+            if 0 < b < k_levels - 1:
+                cm, cp = float(row[b - 1]), float(row[b + 1])
+                den = max(cm, cp) - m
+                if den > 0:
+                    off = 0.5 * (cm - cp) / den
+            disp[y, x] = np.float32(dlo[y, x] + b + off)
+    return disp, conf
+
+
+@pytest.mark.parametrize("kp,k_levels", [(16, 16), (16, 13), (32, 21), (17, 15), (48, 40)])
+def test_sgm_kernels_match_plain_python(kp: int, k_levels: int) -> None:
+    """4-path SGM + winner-take-all of the kernels (16-lane vectors when ``kp`` is a
+    multiple of 16, scalar loops otherwise) == a plain-Python SGM, with padded levels
+    and per-pixel windows (coarse-to-fine shifts)."""
+    rng = np.random.default_rng(kp * 100 + k_levels)
+    h, w = 7, 19
+    cost = rng.integers(0, 90, (h, w, kp)).astype(np.uint8)
+    # a smooth valley so that the winners are unique and the fits interior
+    cost[:, :, : k_levels] //= 2
+    cost[:, :, 5] = rng.integers(0, 4, (h, w))
+    dlo = (10 + rng.integers(-2, 3, (h, w))).astype(np.int32)
+    guide = rng.uniform(0, 255, (h, w)).astype(np.float32)
+    p1, p2, gamma = 24, 300, 20.0
+    agg = np.empty((h, w, kp), np.uint16)
+    K.sgm_horizontal(cost, dlo, guide, np.int32(p1), np.int32(p2), gamma, k_levels, agg)
+    disp = np.empty((h, w), np.float32)
+    conf = np.empty((h, w), np.float32)
+    K.sgm_vertical_wta(cost, dlo, guide, np.int32(p1), np.int32(p2), gamma, k_levels, 16, 5.0,
+                       agg, disp, conf)
+    ref = _sgm_reference(cost, dlo, guide, p1, p2, gamma, k_levels)
+    np.testing.assert_array_equal(agg[:, :, :k_levels], ref[:, :, :k_levels])
+    rd, rc = _wta_reference(ref, dlo, k_levels, 5.0)
+    np.testing.assert_allclose(conf, rc, rtol=1e-6)
+    np.testing.assert_array_equal(np.isnan(disp), np.isnan(rd))
+    np.testing.assert_allclose(disp, rd, rtol=0, atol=1e-5)
+    assert np.isfinite(disp).mean() > 0.3
