@@ -718,83 +718,61 @@ def _p2_row(p1, p2, gamma, ga, gb, out):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _accumulate(o, g, kp, assign):
-    """Store (``assign``) or add one path's costs ``o`` into the sum ``g``; return
-    their minimum (the next step's ``mp``)."""
-    if assign:
-        for k in range(kp):
-            g[k] = o[k]
-    else:
-        for k in range(kp):
-            g[k] = np.uint16(g[k] + o[k])
-    m = np.uint16(INF16)
-    for k in range(kp):
-        m = min(m, o[k])
-    return m
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _sgm_step16(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
-    """:func:`_sgm_step` for ``kp`` a multiple of 16, in explicit 16-lane vectors (the
-    loop vectoriser's 32-64-element trips would leave 16-48 levels scalar)."""
-    z = v16_load(pad, 0)
-    vp1 = v16_broadcast(z, p1u)
-    vbig = v16_broadcast(z, big)
-    vmp = v16_broadcast(z, mp)
-    m = v16_broadcast(z, INF16)
-    for kb in range(0, kp, 16):
-        a0 = v16_load(lp, src - 1 + kb)
-        a1 = v16_load(lp, src + kb)
-        a2 = v16_load(lp, src + 1 + kb)
-        v = v16_min(v16_min(a1, v16_add(a0, vp1)), v16_min(v16_add(a2, vp1), vbig))
-        c = v16_max(v16_sub(v16_add(v16_load_u8(costv, kb), v), vmp), v16_load(pad, kb))
-        v16_store(lc, dst + kb, c)
-        if assign:
-            v16_store(g, kb, c)
-        else:
-            v16_store(g, kb, v16_add(v16_load(g, kb), c))
-        m = v16_min(m, c)
-    return v16_reduce_min(m)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _sgm_step(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign):
-    """One SGM recursion (see :func:`_step`) into ``lc[dst:dst+kp]``; levels whose
+def _sgm_step(costf, co, buf, src, dst, aggf, kp, p1u, big, mp, pad, assign):
+    """One SGM recursion (see :func:`_step`) of the pixel whose levels start at flat
+    offset ``co`` of the cost and aggregated volumes: reads the previous pixel's path
+    costs at ``buf[src - 1 .. src + kp]`` (``src`` includes the window shift; entries
+    outside the levels hold INF16), writes ``buf[dst .. dst + kp - 1]``; levels whose
     ``pad`` is INF16 are held at INF16 (padding past the searched window). The path
-    cost is assigned to (first path) or added into ``g``. Returns the new min.
+    cost is assigned to (first path) or added into ``aggf``. Returns the new min.
 
-    One fused loop (recursion, store, sum, minimum): the path cost stays in a
-    register, which lets LLVM vectorise it without reloading ``lc``; whole 16-level
-    vectors (``kp % 16 == 0``, always so with 4 paths) take :func:`_sgm_step16`.
+    Flat arrays and offsets, not per-pixel views (a view costs more than the 16-level
+    step). Whole 16-level vectors (``kp % 16 == 0``, always so with 4 paths) run in
+    explicit 16-lane vectors (the loop vectoriser takes 64 uint16 elements a trip on
+    AVX-512 and would leave 16-48 levels scalar); other ``kp`` in one fused loop.
     """
     if kp % 16 == 0:
-        return _sgm_step16(costv, lp, src, lc, dst, g, kp, p1u, big, mp, pad, assign)
-    a = lp[src - 1:src + kp + 1]
-    o = lc[dst:dst + kp]
+        z = v16_load(pad, 0)
+        vp1 = v16_broadcast(z, p1u)
+        vbig = v16_broadcast(z, big)
+        vmp = v16_broadcast(z, mp)
+        mv = v16_broadcast(z, INF16)
+        for kb in range(0, kp, 16):
+            a0 = v16_load(buf, src - 1 + kb)
+            a1 = v16_load(buf, src + kb)
+            a2 = v16_load(buf, src + 1 + kb)
+            v = v16_min(v16_min(a1, v16_add(a0, vp1)), v16_min(v16_add(a2, vp1), vbig))
+            c = v16_max(v16_sub(v16_add(v16_load_u8(costf, co + kb), v), vmp),
+                        v16_load(pad, kb))
+            v16_store(buf, dst + kb, c)
+            if assign:
+                v16_store(aggf, co + kb, c)
+            else:
+                v16_store(aggf, co + kb, v16_add(v16_load(aggf, co + kb), c))
+            mv = v16_min(mv, c)
+        return v16_reduce_min(mv)
     m = np.uint16(INF16)
-    if assign:
-        for k in range(kp):
-            v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
-            c = max(np.uint16(np.uint16(np.uint16(costv[k]) + v) - mp), pad[k])
-            o[k] = c
-            g[k] = c
-            m = min(m, c)
-    else:
-        for k in range(kp):
-            v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
-            c = max(np.uint16(np.uint16(np.uint16(costv[k]) + v) - mp), pad[k])
-            o[k] = c
-            g[k] = np.uint16(g[k] + c)
-            m = min(m, c)
+    for k in range(kp):
+        v = min(min(buf[src + k], np.uint16(buf[src - 1 + k] + p1u)),
+                min(np.uint16(buf[src + 1 + k] + p1u), big))
+        c = max(np.uint16(np.uint16(np.uint16(costf[co + k]) + v) - mp), pad[k])
+        buf[dst + k] = c
+        aggf[co + k] = c if assign else np.uint16(aggf[co + k] + c)
+        m = min(m, c)
     return m
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _sgm_start(costv, lc, dst, g, kp, pad, assign):
-    o = lc[dst:dst + kp]
+def _sgm_start(costf, co, buf, dst, aggf, kp, pad, assign):
+    """First pixel of a path: ``L = C`` (padding held at INF16), into ``buf[dst..]``
+    and assigned / added to ``aggf[co..]``; returns its minimum."""
+    m = np.uint16(INF16)
     for k in range(kp):
-        o[k] = max(np.uint16(costv[k]), pad[k])
-    return _accumulate(o, g, kp, assign)
+        c = max(np.uint16(costf[co + k]), pad[k])
+        buf[dst + k] = c
+        aggf[co + k] = c if assign else np.uint16(aggf[co + k] + c)
+        m = min(m, c)
+    return m
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -807,92 +785,89 @@ def _clamp_shift(shift, k_levels):
     return shift
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _padding(kp, k_levels):
+    """(kp,) uint16: 0 for searched levels, INF16 for the padding past ``k_levels``."""
+    pad = np.zeros(kp, np.uint16)
+    for k in range(k_levels, kp):
+        pad[k] = np.uint16(INF16)
+    return pad
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg):
     """Left-to-right plus right-to-left SGM paths, *assigned* to ``agg``.
 
     cost : (H, W, Kp) uint8 (levels ``>= k_levels`` are padding); agg : (H, W, Kp)
-    uint16 out. Both directions of a row run in the same loop (two independent
-    recursions overlap in the CPU); rows in parallel.
+    uint16 out, both C-contiguous. Both directions of a row run in the same loop (two
+    independent recursions overlap in the CPU); rows in parallel. Each direction
+    keeps its previous and current path costs in one buffer, alternating halves.
     """
     h, w, kp = cost.shape
+    costf = cost.reshape(-1)
+    aggf = agg.reshape(-1)
     st = 3 * kp + 2
     dst = kp + 1
     p1u = np.uint16(p1)
     for y in prange(h):
-        pad = np.zeros(kp, np.uint16)
-        for k in range(k_levels, kp):
-            pad[k] = np.uint16(INF16)
+        pad = _padding(kp, k_levels)
         p2r = np.empty(w, np.uint16)  # p2r[x]: pair (x - 1, x)
         p2r[0] = 0
         _p2_row(p1, p2, gamma, guide[y, 1:], guide[y, :w - 1], p2r[1:])
-        a_p = np.full(st, np.uint16(INF16), np.uint16)
-        a_c = np.full(st, np.uint16(INF16), np.uint16)
-        b_p = np.full(st, np.uint16(INF16), np.uint16)
-        b_c = np.full(st, np.uint16(INF16), np.uint16)
-        ma = _sgm_start(cost[y, 0], a_c, dst, agg[y, 0], kp, pad, True)
-        mb = _sgm_start(cost[y, w - 1], b_c, dst, agg[y, w - 1], kp, pad, 2 * (w - 1) > w - 1)
-        for s in range(1, w):
-            xa = s
-            xb = w - 1 - s
-            a_p, a_c = a_c, a_p
-            b_p, b_c = b_c, b_p
-            sa = _clamp_shift(dlo[y, xa] - dlo[y, xa - 1], k_levels)
-            ma = _sgm_step(cost[y, xa], a_p, dst + sa, a_c, dst, agg[y, xa], kp, p1u,
+        ba = np.full(2 * st, np.uint16(INF16), np.uint16)
+        bb = np.full(2 * st, np.uint16(INF16), np.uint16)
+        row = y * w * kp
+        dl = dlo[y]
+        ma = _sgm_start(costf, row, ba, dst, aggf, kp, pad, True)
+        mb = _sgm_start(costf, row + (w - 1) * kp, bb, dst, aggf, kp, pad,
+                        2 * (w - 1) > w - 1)
+        cur = 0
+        for xa in range(1, w):
+            xb = w - 1 - xa
+            prev = cur
+            cur = st - cur
+            sa = _clamp_shift(dl[xa] - dl[xa - 1], k_levels)
+            ma = _sgm_step(costf, row + xa * kp, ba, prev + dst + sa, cur + dst, aggf, kp, p1u,
                            np.uint16(ma + p2r[xa]), ma, pad, 2 * xa <= w - 1)
-            sb = _clamp_shift(dlo[y, xb] - dlo[y, xb + 1], k_levels)
-            mb = _sgm_step(cost[y, xb], b_p, dst + sb, b_c, dst, agg[y, xb], kp, p1u,
+            sb = _clamp_shift(dl[xb] - dl[xb + 1], k_levels)
+            mb = _sgm_step(costf, row + xb * kp, bb, prev + dst + sb, cur + dst, aggf, kp, p1u,
                            np.uint16(mb + p2r[xb + 1]), mb, pad, 2 * xb > w - 1)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _wta_best16(row, kp, k_levels):
-    """(best level, its cost, best cost outside +-1 level of it) over the first
-    ``k_levels`` of ``row`` in 16-lane vectors (``kp = len(row)``, a multiple of 16;
-    the second value is 0xFFFF when no level lies outside +-1). The first pass takes
-    the minimum of keys ``cost << 16 | level`` (the first best level, no branches)."""
-    big = np.uint16(0xFFFF)
-    z = v16_load(row, 0)
-    km = v16_keys(v16_fill_range(z, k_levels, 16, big), 0)
-    for kb in range(16, kp, 16):
-        km = v16_min(km, v16_keys(v16_fill_range(v16_load(row, kb), k_levels - kb, 16, big), kb))
-    key = v16_reduce_min(km)
-    m = np.uint16(key >> np.uint32(16))
-    b = np.int64(key & np.uint32(0xFFFF))
-    sv = v16_broadcast(z, big)
-    for kb in range(0, kp, 16):
-        v = v16_fill_range(v16_load(row, kb), k_levels - kb, 16, big)
-        sv = v16_min(sv, v16_fill_range(v, b - 1 - kb, b + 1 - kb, big))
-    return b, m, v16_reduce_min(sv)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _wta(row, k_levels, d0, uniqueness, disp, conf, y, x):
-    """Winner-take-all of one pixel: best level, uniqueness, confidence, equiangular fit."""
+def _wta(aggf, o, kp, k_levels, d0, uniqueness, disp, conf, y, x):
+    """Winner-take-all of one pixel (levels at ``aggf[o .. o + kp - 1]``): best level,
+    uniqueness, confidence, equiangular fit."""
     kl = k_levels
-    kp = row.shape[0]
-    if kp % 16 == 0:
-        b, m, s1 = _wta_best16(row, kp, kl)
-        _wta_finish(row, kl, b, m, s1, d0, uniqueness, disp, conf, y, x)
-        return
-    # minimum and its first level in one vectorisable pass: keys (cost << 16) | level
-    kmin = np.uint32(0xFFFFFFFF)
-    for k in range(kl):
-        kmin = min(kmin, (np.uint32(row[k]) << np.uint32(16)) | np.uint32(k))
-    m = np.uint16(kmin >> np.uint32(16))
-    b = np.int64(kmin & np.uint32(0xFFFF))
-    # best cost outside +-1 level of the winner (a select, also vectorisable)
     big = np.uint16(0xFFFF)
-    s1 = big
-    for k in range(kl):
-        s1 = min(s1, row[k] if (k < b - 1 or k > b + 1) else big)
-    _wta_finish(row, kl, b, m, s1, d0, uniqueness, disp, conf, y, x)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _wta_finish(row, kl, b, m, s1, d0, uniqueness, disp, conf, y, x):
-    """Uniqueness, confidence and equiangular fit of the winner ``b`` (cost ``m``,
-    best cost outside +-1 level ``s1``)."""
+    if kp % 16 == 0:
+        # 16-lane vectors; the first pass takes the minimum of keys cost << 16 |
+        # level (the first best level, no branches), the second the best cost outside
+        # +-1 level of the winner. Padding levels need no mask: each path holds them
+        # at INF16, so their sum (4 * INF16 = 65532) exceeds any real sum (4 paths of
+        # at most 255 + P2 <= 5255 each)
+        z = v16_load(aggf, o)
+        km = v16_keys(z, 0)
+        for kb in range(16, kp, 16):
+            km = v16_min(km, v16_keys(v16_load(aggf, o + kb), kb))
+        key = v16_reduce_min(km)
+        m = np.uint16(key >> np.uint32(16))
+        b = np.int64(key & np.uint32(0xFFFF))
+        sv = v16_fill_range(z, b - 1, b + 1, big)
+        for kb in range(16, kp, 16):
+            sv = v16_min(sv, v16_fill_range(v16_load(aggf, o + kb), b - 1 - kb, b + 1 - kb, big))
+        s1 = v16_reduce_min(sv)
+    else:
+        # minimum and its first level in one vectorisable pass: keys (cost << 16) | level
+        kmin = np.uint32(0xFFFFFFFF)
+        for k in range(kl):
+            kmin = min(kmin, (np.uint32(aggf[o + k]) << np.uint32(16)) | np.uint32(k))
+        m = np.uint16(kmin >> np.uint32(16))
+        b = np.int64(kmin & np.uint32(0xFFFF))
+        # best cost outside +-1 level of the winner (a select, also vectorisable)
+        s1 = big
+        for k in range(kl):
+            s1 = min(s1, aggf[o + k] if (k < b - 1 or k > b + 1) else big)
     bc = np.int32(m)
     if b < 2 and b + 2 >= kl:
         g = 1.0
@@ -905,8 +880,8 @@ def _wta_finish(row, kl, b, m, s1, d0, uniqueness, disp, conf, y, x):
         return
     off = 0.0
     if 0 < b < kl - 1:
-        cm = np.float64(row[b - 1])
-        cp = np.float64(row[b + 1])
+        cm = np.float64(aggf[o + b - 1])
+        cp = np.float64(aggf[o + b + 1])
         c0 = np.float64(bc)
         den = max(cm, cp) - c0
         if den > 0:
@@ -925,6 +900,8 @@ def sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block, uniquenes
     fit) runs while they are in cache. disp, conf : (H, W) float32 out.
     """
     h, w, kp = cost.shape
+    costf = cost.reshape(-1)
+    aggf = agg.reshape(-1)
     st = 3 * kp + 2
     dst = kp + 1
     p1u = np.uint16(p1)
@@ -933,40 +910,42 @@ def sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block, uniquenes
         x0 = bi * block
         x1 = min(w, x0 + block)
         nbx = x1 - x0
-        pad = np.zeros(kp, np.uint16)
-        for k in range(k_levels, kp):
-            pad[k] = np.uint16(INF16)
-        lp = np.full(nbx * st, np.uint16(INF16), np.uint16)
-        lc = np.full(nbx * st, np.uint16(INF16), np.uint16)
+        pad = _padding(kp, k_levels)
+        half = nbx * st  # previous / current path costs alternate between the halves
+        buf = np.full(2 * half, np.uint16(INF16), np.uint16)
         mins = np.empty(nbx, np.uint16)
         p2c = np.empty(nbx, np.uint16)
         for direction in range(2):
             dy = -1 if direction == 0 else 1
             y = h - 1 if dy < 0 else 0
+            cur = 0
             for i in range(nbx):
-                o = i * st
-                mins[i] = _sgm_start(cost[y, x0 + i], lc[o:o + st], dst, agg[y, x0 + i], kp,
+                mins[i] = _sgm_start(costf, (y * w + x0 + i) * kp, buf, i * st + dst, aggf, kp,
                                      pad, False)
             if dy > 0:
                 for i in range(nbx):
-                    _wta(agg[y, x0 + i], k_levels, dlo[y, x0 + i], uniqueness, disp, conf, y, x0 + i)
+                    _wta(aggf, (y * w + x0 + i) * kp, kp, k_levels, dlo[y, x0 + i], uniqueness,
+                         disp, conf, y, x0 + i)
             for _ in range(h - 1):
                 yq = y
                 y += dy
-                lp, lc = lc, lp
+                prev = cur
+                cur = half - cur
                 _p2_row(p1, p2, gamma, guide[y, x0:x1], guide[yq, x0:x1], p2c)
+                dl = dlo[y]
+                dq = dlo[yq]
                 for i in range(nbx):
                     x = x0 + i
                     o = i * st
-                    sh = _clamp_shift(dlo[y, x] - dlo[yq, x], k_levels)
+                    sh = _clamp_shift(dl[x] - dq[x], k_levels)
                     mp = mins[i]
-                    mins[i] = _sgm_step(cost[y, x], lp[o:o + st], dst + sh, lc[o:o + st], dst,
-                                        agg[y, x], kp, p1u, np.uint16(mp + p2c[i]), mp, pad,
-                                        False)
+                    mins[i] = _sgm_step(costf, (y * w + x) * kp, buf, prev + o + dst + sh,
+                                        cur + o + dst, aggf, kp, p1u, np.uint16(mp + p2c[i]),
+                                        mp, pad, False)
                 if dy > 0:
                     for i in range(nbx):
-                        _wta(agg[y, x0 + i], k_levels, dlo[y, x0 + i], uniqueness, disp, conf,
-                             y, x0 + i)
+                        _wta(aggf, (y * w + x0 + i) * kp, kp, k_levels, dlo[y, x0 + i],
+                             uniqueness, disp, conf, y, x0 + i)
 
 
 @njit(cache=True, nogil=True, parallel=True)
