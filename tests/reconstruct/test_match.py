@@ -65,6 +65,41 @@ def test_integer_shift_known_answer() -> None:
     assert np.array_equal(dense, res.disparity)
 
 
+def test_reused_scratch_changes_nothing() -> None:
+    """Scratch volumes are kept between calls (per thread): results must not depend
+    on what ran before -- other sizes, other ranges, colour vs grey, coarse-to-fine --
+    nor on another thread matching at the same time; returned arrays are never the
+    scratch."""
+    import threading
+
+    a_l, a_r = _pair(48, 128, 7.0, seed=1)
+    b_l, b_r = _pair(40, 96, 3.0, seed=2)
+    first = match_stereo_full(a_l, a_r, min_disp=0, num_disp=16)
+    keep = {k: getattr(first, k).copy() for k in ("disparity", "valid", "confidence", "raw")}
+    match_stereo_full(b_l, b_r, min_disp=-4, num_disp=40)
+    match_stereo_full(np.dstack([a_l, a_r, a_l]), np.dstack([a_r, a_l, a_r]), min_disp=0,
+                      num_disp=16)
+    match_stereo_full(a_l, a_r, min_disp=0, num_disp=16, coarse_to_fine=True)
+    again = match_stereo_full(a_l, a_r, min_disp=0, num_disp=16)
+    for k, v in keep.items():
+        assert np.array_equal(getattr(first, k), v, equal_nan=True), k  # not overwritten
+        assert np.array_equal(getattr(again, k), v, equal_nan=True), k
+    results: list = []
+
+    def work() -> None:
+        for _ in range(3):
+            results.append(match_stereo_full(a_l, a_r, min_disp=0, num_disp=16).raw)
+
+    threads = [threading.Thread(target=work) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(results) == 6
+    for r in results:
+        assert np.array_equal(r, keep["raw"], equal_nan=True)
+
+
 def test_negative_disparity_and_float_input() -> None:
     left, right = _pair(40, 96, -3.0, seed=3)
     d = match_stereo(left.astype(np.float32) / 255, right.astype(np.float32) / 255,
