@@ -41,19 +41,23 @@ from ._simd import (
     v16_fill_range,
     v16_keys,
     v16_load,
+    v16_load_num,
     v16_load_u8,
+    v16_lt,
     v16_max,
     v16_min,
     v16_mul,
     v16_narrow,
     v16_popcount,
     v16_reduce_min,
+    v16_reverse,
     v16_store,
     v16_store_u8,
     v16_sub,
     v16_to_f32,
     v16_to_u16,
     v16_xor,
+    v16_zero,
 )
 
 INF16 = 0x3FFF  # "no such disparity" in uint16 path costs; sums of 8 stay < 65535
@@ -626,46 +630,53 @@ def census_hwc(img, ry, rx, reverse, out):
     Census codes of the channel planes, borders replicated: bit set
     when the neighbour is darker than the centre, neighbours in row-major order,
     centre skipped; out : (C, H, W) uint32 or uint64, rows mirrored with ``reverse``.
-    Interior pixels compare in place (vector loops); borders clamp coordinates.
+    Interior pixels go 16 at a time in vector registers; borders clamp coordinates.
     """
     h, w, nc = img.shape
     one = out.dtype.type(1)
     zero = out.dtype.type(0)
-    xa = min(rx, w)
-    xb = max(xa, w - rx)
     planes = np.empty((nc, h, w), img.dtype)
     for y in prange(h):
-        for x in range(w):
-            for c in range(nc):
-                planes[c, y, x] = img[y, x, c]
-    for y in prange(h):
-        bits = np.empty(w, out.dtype)
-        for c in range(nc):
-            ctr = planes[c, y]
+        for c in range(nc):  # channel outermost: contiguous (vectorised) stores
             for x in range(w):
-                bits[x] = zero
-            for dy in range(-ry, ry + 1):
-                nbr = planes[c, min(max(y + dy, 0), h - 1)]
-                for dx in range(-rx, rx + 1):
-                    if dy == 0 and dx == 0:
-                        continue
-                    for x in range(xa):
-                        xx = min(max(x + dx, 0), w - 1)
-                        bits[x] = (bits[x] << one) | (one if nbr[xx] < ctr[x] else zero)
-                    nb = nbr[xa + dx:xb + dx]
-                    ce = ctr[xa:xb]
-                    bb = bits[xa:xb]
-                    for i in range(xb - xa):
-                        bb[i] = (bb[i] << one) | (one if nb[i] < ce[i] else zero)
-                    for x in range(xb, w):
-                        xx = min(max(x + dx, 0), w - 1)
-                        bits[x] = (bits[x] << one) | (one if nbr[xx] < ctr[x] else zero)
-            if reverse:
-                for x in range(w):
-                    out[c, y, w - 1 - x] = bits[x]
-            else:
-                for x in range(w):
-                    out[c, y, x] = bits[x]
+                planes[c, y, x] = img[y, x, c]
+    pf = planes.reshape(-1)
+    of = out.reshape(-1)
+    for y in prange(h):
+        for c in range(nc):
+            crow = (c * h + y) * w
+            # interior: 16 pixels at a time, their codes kept in one vector register
+            # (one shift-add per neighbour); flat indices, no per-row views
+            x = rx
+            while x + 16 <= w - rx:
+                cv = v16_load_num(pf, crow + x)
+                acc = v16_zero(of)
+                for dy in range(-ry, ry + 1):
+                    nrow = (c * h + min(max(y + dy, 0), h - 1)) * w
+                    for dx in range(-rx, rx + 1):
+                        if dy == 0 and dx == 0:
+                            continue
+                        acc = v16_add(v16_add(acc, acc),
+                                      v16_lt(v16_load_num(pf, nrow + x + dx), cv, acc))
+                if reverse:
+                    v16_store(of, crow + w - 16 - x, v16_reverse(acc))
+                else:
+                    v16_store(of, crow + x, acc)
+                x += 16
+            # borders (coordinates clamped) and the interior remainder, pixel by pixel
+            for xs in range(w):
+                if rx <= xs < x:
+                    continue
+                cval = pf[crow + xs]
+                b = zero
+                for dy in range(-ry, ry + 1):
+                    nrow = (c * h + min(max(y + dy, 0), h - 1)) * w
+                    for dx in range(-rx, rx + 1):
+                        if dy == 0 and dx == 0:
+                            continue
+                        xx = min(max(xs + dx, 0), w - 1)
+                        b = (b << one) | (one if pf[nrow + xx] < cval else zero)
+                of[crow + (w - 1 - xs if reverse else xs)] = b
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -684,13 +695,15 @@ def features_hwc(left, right, gain, offset, reverse, feat_l, feat_r):
             for x in range(w):
                 v = np.float32(left[y, x, c])
                 feat_l[c, y, x] = np.uint8(min(max(np.rint(v), np.float32(0.0)), np.float32(255.0)))
-            for x in range(w):
-                v = max(np.float32(right[y, x, c]) * g + o, np.float32(0.0))
-                q = np.uint8(min(np.rint(v), np.float32(255.0)))
-                if reverse:
-                    feat_r[c, y, w - 1 - x] = q
-                else:
-                    feat_r[c, y, x] = q
+            # the reversed store is its own loop: a branch inside kept it scalar
+            if reverse:
+                for x in range(w):
+                    v = max(np.float32(right[y, x, c]) * g + o, np.float32(0.0))
+                    feat_r[c, y, w - 1 - x] = np.uint8(min(np.rint(v), np.float32(255.0)))
+            else:
+                for x in range(w):
+                    v = max(np.float32(right[y, x, c]) * g + o, np.float32(0.0))
+                    feat_r[c, y, x] = np.uint8(min(np.rint(v), np.float32(255.0)))
 
 
 @njit(cache=True, nogil=True, parallel=True)

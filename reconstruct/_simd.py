@@ -37,19 +37,23 @@ __all__ = [
     "v16_fill_range",
     "v16_keys",
     "v16_load",
+    "v16_load_num",
     "v16_load_u8",
+    "v16_lt",
     "v16_max",
     "v16_min",
     "v16_mul",
     "v16_narrow",
     "v16_popcount",
     "v16_reduce_min",
+    "v16_reverse",
     "v16_store",
     "v16_store_u8",
     "v16_sub",
     "v16_to_f32",
     "v16_to_u16",
     "v16_xor",
+    "v16_zero",
 ]
 
 _LANES = 16
@@ -350,3 +354,72 @@ def v16_keys(typingctx, v, base):  # pragma: no cover - compiled by numba
         return builder.or_(wide, lanes)
 
     return U32x16(v, base), codegen
+
+
+@intrinsic
+def v16_load_num(typingctx, arr, idx):  # pragma: no cover - compiled by numba
+    """``arr[idx:idx + 16]`` of a uint8 (zero-extended to ``U16x16``), uint16/32/64 or
+    float32 array: pixel values of either image type."""
+    if _is_u8_array(arr):
+        vt = U16x16
+    else:
+        vt = _array_vec(arr)
+    if vt is None or not isinstance(idx, types.Integer):
+        return None
+    u8 = _is_u8_array(arr)
+
+    def codegen(context, builder, sig, args):
+        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
+        if u8:
+            v8 = builder.load(builder.bitcast(ptr, ir.VectorType(ir.IntType(8), _LANES)
+                                              .as_pointer()), align=1)
+            return builder.zext(v8, _llvm(U16x16))
+        return builder.load(builder.bitcast(ptr, _llvm(vt).as_pointer()), align=1)
+
+    return vt(arr, idx), codegen
+
+
+@intrinsic
+def v16_zero(typingctx, arr):  # pragma: no cover - compiled by numba
+    """A zero vector of the element type of ``arr`` (a uint16/32/64 or float32 array)."""
+    vt = _array_vec(arr)
+    if vt is None:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return ir.Constant(_llvm(vt), None)
+
+    return vt(arr), codegen
+
+
+@intrinsic
+def v16_lt(typingctx, a, b, like):  # pragma: no cover - compiled by numba
+    """1 in the lanes where ``a < b`` (unsigned or ordered float compare), else 0, as a
+    vector of ``like``'s (unsigned) type."""
+    vt = _vec(a)
+    lt = _vec(like)
+    if vt is None or _vec(b) is not vt or lt is None or lt.kind != "u":
+        return None
+
+    def codegen(context, builder, sig, args):
+        if vt.kind == "f":
+            m = builder.fcmp_ordered("<", args[0], args[1])
+        else:
+            m = builder.icmp_unsigned("<", args[0], args[1])
+        return builder.zext(m, _llvm(lt))
+
+    return lt(a, b, like), codegen
+
+
+@intrinsic
+def v16_reverse(typingctx, v):  # pragma: no cover - compiled by numba
+    """The lanes of ``v`` in reverse order."""
+    vt = _vec(v)
+    if vt is None:
+        return None
+
+    def codegen(context, builder, sig, args):
+        mask = ir.Constant(ir.VectorType(_I32, _LANES), list(range(_LANES - 1, -1, -1)))
+        return builder.shuffle_vector(args[0], ir.Constant(_llvm(vt), ir.Undefined), mask)
+
+    return vt(v), codegen

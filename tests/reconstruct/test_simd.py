@@ -13,19 +13,23 @@ from prism3d.reconstruct._simd import (
     v16_fill_range,
     v16_keys,
     v16_load,
+    v16_load_num,
     v16_load_u8,
+    v16_lt,
     v16_max,
     v16_min,
     v16_mul,
     v16_narrow,
     v16_popcount,
     v16_reduce_min,
+    v16_reverse,
     v16_store,
     v16_store_u8,
     v16_sub,
     v16_to_f32,
     v16_to_u16,
     v16_xor,
+    v16_zero,
 )
 
 
@@ -130,6 +134,73 @@ def test_float_intrinsics_match_numpy_bit_for_bit() -> None:
     ok = want >= 0
     assert ok.sum() >= 6
     np.testing.assert_array_equal(out16[16:][ok], want[ok].astype(np.uint16))
+
+
+@njit(cache=False)
+def _compare_ops(u8, f32, out32, out64):
+    a = v16_load_num(u8, 0)  # uint8 -> 16-bit lanes
+    b = v16_load_num(u8, 16)
+    z32 = v16_zero(out32)
+    v16_store(out32, 0, v16_lt(a, b, z32))
+    v16_store(out32, 16, v16_reverse(v16_load(out32, 0)))
+    v16_store(out32, 32, v16_add(z32, v16_broadcast(z32, 0)))
+    fa = v16_load_num(f32, 0)
+    fb = v16_load_num(f32, 16)
+    v16_store(out64, 0, v16_lt(fa, fb, v16_zero(out64)))
+
+
+def test_compare_reverse_zero_intrinsics() -> None:
+    rng = np.random.default_rng(5)
+    u8 = rng.integers(0, 256, 32).astype(np.uint8)
+    u8[16:20] = u8[0:4]  # equal lanes compare False
+    f32 = rng.uniform(-5, 5, 32).astype(np.float32)
+    f32[16] = np.nan  # NaN compares False (ordered), like the scalar "<"
+    f32[17] = f32[1]
+    out32 = np.ones(48, np.uint32)
+    out64 = np.ones(16, np.uint64)
+    _compare_ops(u8, f32, out32, out64)
+    want = (u8[:16] < u8[16:]).astype(np.uint32)
+    np.testing.assert_array_equal(out32[:16], want)
+    np.testing.assert_array_equal(out32[16:32], want[::-1])
+    np.testing.assert_array_equal(out32[32:], 0)
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(out64, (f32[:16] < f32[16:]).astype(np.uint64))
+
+
+def _census_reference(img: np.ndarray, ry: int, rx: int) -> np.ndarray:
+    """Plain census: bit set when the neighbour (borders replicated) is darker than
+    the centre, neighbours in row-major order, the first in the highest bit."""
+    h, w, nc = img.shape
+    out = np.zeros((nc, h, w), np.uint64)
+    for dy in range(-ry, ry + 1):
+        for dx in range(-rx, rx + 1):
+            if dy == 0 and dx == 0:
+                continue
+            ys = np.clip(np.arange(h) + dy, 0, h - 1)
+            xs = np.clip(np.arange(w) + dx, 0, w - 1)
+            nbr = img[ys][:, xs]
+            bit = (nbr < img).astype(np.uint64)
+            out = (out << np.uint64(1)) | np.moveaxis(bit, 2, 0)
+    return out
+
+
+@pytest.mark.parametrize("dtype,ry,rx,w", [(np.uint8, 2, 2, 45), (np.float32, 2, 2, 37),
+                                           (np.uint8, 3, 3, 40), (np.uint8, 1, 4, 16),
+                                           (np.float32, 2, 1, 3)])
+def test_census_kernel_matches_reference(dtype, ry: int, rx: int, w: int) -> None:
+    """16-pixel vector chunks, the remainder and the clamped borders, mirrored rows,
+    32- and 64-bit codes, uint8 and float images (equal values set no bit)."""
+    rng = np.random.default_rng(w)
+    h, nc = 7, 3
+    img = rng.integers(0, 6, (h, w, nc)).astype(dtype)  # many equal neighbours
+    nbits = (2 * ry + 1) * (2 * rx + 1) - 1
+    ctype = np.uint32 if nbits <= 32 else np.uint64
+    ref = _census_reference(img, ry, rx)
+    for reverse in (False, True):
+        out = np.empty((nc, h, w), ctype)
+        K.census_hwc(img, ry, rx, reverse, out)
+        got = out[:, :, ::-1] if reverse else out
+        np.testing.assert_array_equal(got.astype(np.uint64), ref)
 
 
 # ------------------------------------------------- SGM kernels against plain Python
