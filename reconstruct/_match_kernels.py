@@ -36,6 +36,11 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from ._simd import (
+    v8f_acc64,
+    v8f_broadcast,
+    v8f_fma,
+    v8f_load,
+    v8f_zero,
     v16_add,
     v16_broadcast,
     v16_fill_range,
@@ -1015,28 +1020,17 @@ def right_lr_check(agg, dlo, k_levels, max_diff, disp):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _lk_row_products(lrow, qrow, x, xb, wx, sign, e):
-    """e[m] += sign * sum_u L(x + u) q(xb - 2 + m + u), m = 0..5, u = -wx..wx, for
-    one window row (``lrow`` a left row, ``qrow`` a padded coefficient row: one
-    spare column each side)."""
-    nu = 2 * wx + 1
-    qr = qrow[xb - 1 - wx:xb + wx + 5]
-    lv = lrow[x - wx:x + wx + 1]
-    f0 = f1 = f2 = f3 = f4 = f5 = np.float32(0.0)
-    for u in range(nu):
-        lu = lv[u]
-        f0 += lu * qr[u]
-        f1 += lu * qr[u + 1]
-        f2 += lu * qr[u + 2]
-        f3 += lu * qr[u + 3]
-        f4 += lu * qr[u + 4]
-        f5 += lu * qr[u + 5]
-    e[0] += sign * np.float64(f0)
-    e[1] += sign * np.float64(f1)
-    e[2] += sign * np.float64(f2)
-    e[3] += sign * np.float64(f3)
-    e[4] += sign * np.float64(f4)
-    e[5] += sign * np.float64(f5)
+def _lk_row_products(lrow, qrow, x, xb, wx, sign, esf):
+    """esf[8x + m] += sign * sum_u L(x + u) q(xb - 2 + m + u), m = 0..5, u = -wx..wx,
+    for one window row (``lrow`` a left row, ``qrow`` a padded coefficient row: one
+    spare column on the left, three on the right). The six sums run as lanes of one
+    8-float vector (fused multiply-adds over u; lanes 6 and 7 are unused)."""
+    q0 = xb - 1 - wx
+    l0 = x - wx
+    f = v8f_zero()
+    for u in range(2 * wx + 1):
+        f = v8f_fma(v8f_broadcast(lrow[l0 + u]), v8f_load(qrow, q0 + u), f)
+    v8f_acc64(esf, 8 * x, f, sign)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1058,8 +1052,9 @@ _FAST_FINITE = {"nsz", "arcp", "contract", "reassoc"}
 def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripes):
     """1-D Lucas-Kanade refinement computed from window sums.
 
-    right_coef_pad : (H, W + 2) float32, the B-spline coefficients of
-    the right view (:func:`bspline_rows`) in columns ``1 .. W`` (one spare column each side). With the
+    right_coef_pad : (H, W + 4) float32, the B-spline coefficients of the right view
+    (:func:`bspline_rows`) in columns ``1 .. W``, the spare columns (one on the left,
+    three on the right, read by the 8-lane products) zero. With the
     B-spline weights ``a_j`` (value) and ``g_j`` (derivative) of the fractional
     shift and the coefficients ``q`` under the 4-tap footprint, the sums of one
     Gauss-Newton step are ``sum r g = g.P - a^T M g`` and ``sum g^2 = g^T M g`` with
@@ -1089,7 +1084,7 @@ def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripe
         yb = y_lo + ((si + 1) * n_rows) // ns
         cs = np.zeros((4, w), np.float64)
         sm = np.zeros((4, w), np.float64)
-        es = np.zeros((w, 6), np.float64)   # running P sums per column
+        esf = np.zeros(8 * w, np.float64)  # running P sums per column (6 of 8 used)
         xb_run = np.full(w, -(1 << 30), np.int64)  # their integer part, or invalid
         state = np.zeros(w, np.uint8)
         dcur = np.zeros(w, np.float64)
@@ -1140,15 +1135,14 @@ def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripe
                     xb_run[x] = -(1 << 30)
                     continue
                 # E_m = sum_window L(v, x + u) q(v, xb - 2 + m + u), m = 0..5
-                e = es[x]
                 if xb_run[x] == xb:
-                    _lk_row_products(l_in, q_in, x, xb, wx, 1.0, e)
-                    _lk_row_products(l_out, q_out, x, xb, wx, -1.0, e)
+                    _lk_row_products(l_in, q_in, x, xb, wx, 1.0, esf)
+                    _lk_row_products(l_out, q_out, x, xb, wx, -1.0, esf)
                 else:
-                    for m in range(6):
-                        e[m] = 0.0
+                    for m in range(8):
+                        esf[8 * x + m] = 0.0
                     for v in range(y - wy, y + wy + 1):
-                        _lk_row_products(left[v], right_coef_pad[v], x, xb, wx, 1.0, e)
+                        _lk_row_products(left[v], right_coef_pad[v], x, xb, wx, 1.0, esf)
                     xb_run[x] = xb
                 state[x] = 1
                 dcur[x] = d
@@ -1165,14 +1159,11 @@ def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripe
                     if x0 - wx - 1 < 0 or x0 + wx + 2 >= w:
                         state[x] = 3
                         continue
-                    e = es[x]
-                    sh = x0 - xb_run[x]
-                    if sh == 0:
-                        pp0, pp1, pp2, pp3 = e[1], e[2], e[3], e[4]
-                    elif sh < 0:
-                        pp0, pp1, pp2, pp3 = e[0], e[1], e[2], e[3]
-                    else:
-                        pp0, pp1, pp2, pp3 = e[2], e[3], e[4], e[5]
+                    e0 = 8 * x + 1 + (0 if x0 == xb_run[x] else (-1 if x0 < xb_run[x] else 1))
+                    pp0 = esf[e0]
+                    pp1 = esf[e0 + 1]
+                    pp2 = esf[e0 + 2]
+                    pp3 = esf[e0 + 3]
                     m00 = s0[x0 - 1]
                     m11 = s0[x0]
                     m22 = s0[x0 + 1]

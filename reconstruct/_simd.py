@@ -28,10 +28,16 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic, models, register_model
 
 __all__ = [
+    "F32x8",
     "F32x16",
     "U16x16",
     "U32x16",
     "U64x16",
+    "v8f_acc64",
+    "v8f_broadcast",
+    "v8f_fma",
+    "v8f_load",
+    "v8f_zero",
     "v16_add",
     "v16_broadcast",
     "v16_fill_range",
@@ -61,13 +67,14 @@ _I32 = ir.IntType(32)
 
 
 class _VecType(types.Type):
-    """A 16-lane vector of ``kind`` ("u" unsigned integer or "f" float) ``bits``-bit
-    elements."""
+    """A vector of ``lanes`` (16 unless said) ``kind`` ("u" unsigned integer or "f"
+    float) ``bits``-bit elements."""
 
-    def __init__(self, kind: str, bits: int) -> None:
+    def __init__(self, kind: str, bits: int, lanes: int = _LANES) -> None:
         self.kind = kind
         self.bits = bits
-        super().__init__(name=f"{kind}{bits}x{_LANES}")
+        self.lanes = lanes
+        super().__init__(name=f"{kind}{bits}x{lanes}")
 
     @property
     def scalar(self) -> types.Type:
@@ -78,6 +85,7 @@ U16x16 = _VecType("u", 16)
 U32x16 = _VecType("u", 32)
 U64x16 = _VecType("u", 64)
 F32x16 = _VecType("f", 32)
+F32x8 = _VecType("f", 32, 8)  # the 8-lane float ops at the end of the module
 
 
 def _lane_type(vt: _VecType) -> ir.Type:
@@ -85,7 +93,7 @@ def _lane_type(vt: _VecType) -> ir.Type:
 
 
 def _llvm(vt: _VecType) -> ir.VectorType:
-    return ir.VectorType(_lane_type(vt), _LANES)
+    return ir.VectorType(_lane_type(vt), vt.lanes)
 
 
 @register_model(_VecType)
@@ -120,8 +128,8 @@ def _splat(builder, value, vt: _VecType):
     """A vector of ``vt`` with every lane the (already lane-typed) ``value``."""
     undef = ir.Constant(_llvm(vt), ir.Undefined)
     vec = builder.insert_element(undef, value, ir.Constant(_I32, 0))
-    return builder.shuffle_vector(vec, undef, ir.Constant(ir.VectorType(_I32, _LANES),
-                                                          [0] * _LANES))
+    return builder.shuffle_vector(vec, undef, ir.Constant(ir.VectorType(_I32, vt.lanes),
+                                                          [0] * vt.lanes))
 
 
 def _call(builder, name: str, ret: ir.Type, args: list) -> ir.Value:
@@ -423,3 +431,84 @@ def v16_reverse(typingctx, v):  # pragma: no cover - compiled by numba
         return builder.shuffle_vector(args[0], ir.Constant(_llvm(vt), ir.Undefined), mask)
 
     return vt(v), codegen
+
+
+# ------------------------------------------------------------- 8-lane float32 ops
+# For small fixed-size sums (the six Lucas-Kanade window products of one pixel).
+
+
+def _is_f32_array(arr: types.Type) -> bool:
+    return (isinstance(arr, types.Array) and arr.ndim == 1 and arr.layout in "CF"
+            and arr.dtype == types.float32)
+
+
+@intrinsic
+def v8f_load(typingctx, arr, idx):  # pragma: no cover - compiled by numba
+    """``arr[idx:idx + 8]`` of a float32 array as an ``F32x8``."""
+    if not _is_f32_array(arr) or not isinstance(idx, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
+        return builder.load(builder.bitcast(ptr, _llvm(F32x8).as_pointer()), align=1)
+
+    return F32x8(arr, idx), codegen
+
+
+@intrinsic
+def v8f_zero(typingctx):  # pragma: no cover - compiled by numba
+    """An ``F32x8`` of zeros."""
+
+    def codegen(context, builder, sig, args):
+        return ir.Constant(_llvm(F32x8), None)
+
+    return F32x8(), codegen
+
+
+@intrinsic
+def v8f_broadcast(typingctx, x):  # pragma: no cover - compiled by numba
+    """An ``F32x8`` with every lane ``x`` (cast to float32)."""
+    if not isinstance(x, (types.Integer, types.Float)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _splat(builder, context.cast(builder, args[0], sig.args[0], types.float32),
+                      F32x8)
+
+    return F32x8(x), codegen
+
+
+@intrinsic
+def v8f_fma(typingctx, a, b, c):  # pragma: no cover - compiled by numba
+    """``a * b + c`` lane-wise, fused (one rounding)."""
+    if not (_vec(a) is F32x8 and _vec(b) is F32x8 and _vec(c) is F32x8):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _call(builder, "llvm.fma.v8f32", _llvm(F32x8), list(args))
+
+    return F32x8(a, b, c), codegen
+
+
+@intrinsic
+def v8f_acc64(typingctx, arr, idx, v, sign):  # pragma: no cover - compiled by numba
+    """``arr[idx:idx + 8] += sign * float64(v)`` for a float64 array (the products are
+    rounded to float64 lane by lane, then added, as the scalar loop does)."""
+    if not (isinstance(arr, types.Array) and arr.ndim == 1 and arr.layout in "CF"
+            and arr.dtype == types.float64 and isinstance(idx, types.Integer)
+            and _vec(v) is F32x8 and isinstance(sign, (types.Float, types.Integer))):
+        return None
+
+    def codegen(context, builder, sig, args):
+        f64x8 = ir.VectorType(ir.DoubleType(), 8)
+        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
+        vptr = builder.bitcast(ptr, f64x8.as_pointer())
+        s = context.cast(builder, args[3], sig.args[3], types.float64)
+        undef = ir.Constant(f64x8, ir.Undefined)
+        sv = builder.shuffle_vector(builder.insert_element(undef, s, ir.Constant(_I32, 0)),
+                                    undef, ir.Constant(ir.VectorType(_I32, 8), [0] * 8))
+        prod = builder.fmul(sv, builder.fpext(args[2], f64x8))
+        builder.store(builder.fadd(builder.load(vptr, align=1), prod), vptr, align=1)
+        return context.get_dummy_value()
+
+    return types.none(arr, idx, v, sign), codegen

@@ -325,9 +325,10 @@ def _match_level(
         lg = _bandpass(guide, _WS.take("band_l", (h, w), np.float32), tmp)
         rg = _bandpass(_grey(right, _WS.take("grey_r", (h, w), np.float32)),
                        _WS.take("band_r", (h, w), np.float32), tmp)
-        rcoef = _WS.take("rcoef", (h, w + 2), np.float32)  # one spare column each side
+        # one spare (zero) column on the left, three on the right (8-lane products)
+        rcoef = _WS.take("rcoef", (h, w + 4), np.float32)
         rcoef[:, 0] = 0.0
-        rcoef[:, w + 1] = 0.0
+        rcoef[:, w + 1:] = 0.0
         _k.bspline_rows(rg, rcoef[:, 1:w + 1])
         del rg
         r = prm.lk_window // 2

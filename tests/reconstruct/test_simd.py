@@ -8,6 +8,11 @@ import pytest
 from numba import njit
 from prism3d.reconstruct import _match_kernels as K
 from prism3d.reconstruct._simd import (
+    v8f_acc64,
+    v8f_broadcast,
+    v8f_fma,
+    v8f_load,
+    v8f_zero,
     v16_add,
     v16_broadcast,
     v16_fill_range,
@@ -165,6 +170,45 @@ def test_compare_reverse_zero_intrinsics() -> None:
     np.testing.assert_array_equal(out32[32:], 0)
     with np.errstate(invalid="ignore"):
         np.testing.assert_array_equal(out64, (f32[:16] < f32[16:]).astype(np.uint64))
+
+
+@njit(cache=False)
+def _float8_ops(q, lrow, acc):
+    f = v8f_zero()
+    for u in range(5):
+        f = v8f_fma(v8f_broadcast(lrow[u]), v8f_load(q, 1 + u), f)
+    v8f_acc64(acc, 0, f, 1.0)
+    v8f_acc64(acc, 8, f, -1.0)
+
+
+def test_float8_intrinsics_match_fused_scalar_sums() -> None:
+    """Eight sums of products as vector lanes == the same fused multiply-add chains
+    done one lane at a time (exact rational arithmetic, one rounding to float32),
+    accumulated in float64."""
+    from fractions import Fraction
+
+    def fma32(a: np.float32, b: np.float32, c: np.float32) -> np.float32:
+        exact = Fraction(float(a)) * Fraction(float(b)) + Fraction(float(c))
+        near = np.float32(float(exact))
+        cands = [np.nextafter(near, np.float32(-np.inf)), near,
+                 np.nextafter(near, np.float32(np.inf))]
+        errs = [abs(Fraction(float(v)) - exact) for v in cands]
+        best = min(errs)
+        ties = [v for v, e in zip(cands, errs) if e == best]
+        return min(ties, key=lambda v: int(v.view(np.uint32)) & 1)  # ties to even
+
+    rng = np.random.default_rng(6)
+    q = rng.uniform(-3, 3, 16).astype(np.float32)
+    lrow = rng.uniform(-3, 3, 5).astype(np.float32)
+    acc = rng.uniform(-1, 1, 16)
+    start = acc.copy()
+    _float8_ops(q, lrow, acc)
+    for m in range(8):
+        f = np.float32(0.0)
+        for u in range(5):
+            f = fma32(lrow[u], q[1 + u + m], f)
+        assert acc[m] == start[m] + float(f)
+        assert acc[8 + m] == start[8 + m] - float(f)
 
 
 def _census_reference(img: np.ndarray, ry: int, rx: int) -> np.ndarray:
