@@ -519,10 +519,51 @@ def fill_columns(out):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _median9(a0, a1, a2, a3, a4, a5, a6, a7, a8):  # pragma: no cover - compiled
+    """Median of nine values by a branch-free selection network of 19
+    compare-exchanges (the classic 3x3 median network; unused halves are dropped by
+    the compiler)."""
+    a1, a2 = min(a1, a2), max(a1, a2)
+    a4, a5 = min(a4, a5), max(a4, a5)
+    a7, a8 = min(a7, a8), max(a7, a8)
+    a0, a1 = min(a0, a1), max(a0, a1)
+    a3, a4 = min(a3, a4), max(a3, a4)
+    a6, a7 = min(a6, a7), max(a6, a7)
+    a1, a2 = min(a1, a2), max(a1, a2)
+    a4, a5 = min(a4, a5), max(a4, a5)
+    a7, a8 = min(a7, a8), max(a7, a8)
+    a0, a3 = min(a0, a3), max(a0, a3)
+    a5, a8 = min(a5, a8), max(a5, a8)
+    a4, a7 = min(a4, a7), max(a4, a7)
+    a3, a6 = min(a3, a6), max(a3, a6)
+    a1, a4 = min(a1, a4), max(a1, a4)
+    a2, a5 = min(a2, a5), max(a2, a5)
+    a4, a7 = min(a4, a7), max(a4, a7)
+    a4, a2 = min(a4, a2), max(a4, a2)
+    a6, a4 = min(a6, a4), max(a6, a4)
+    a4, a2 = min(a4, a2), max(a4, a2)
+    return a4
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _window_median(filled, y, x, r, buf):  # pragma: no cover - compiled
     """Median of the non-NaN values of ``filled`` in the (2r+1)^2 window at (y, x)
-    (borders replicated); ``filled[y, x]`` when there is none. ``buf`` is scratch."""
+    (borders replicated); ``filled[y, x]`` when there is none. ``buf`` is scratch.
+    A full 3x3 window inside the image (the usual case) takes :func:`_median9`."""
     h, w = filled.shape
+    if r == 1 and 0 < y < h - 1 and 0 < x < w - 1:
+        a0 = filled[y - 1, x - 1]
+        a1 = filled[y - 1, x]
+        a2 = filled[y - 1, x + 1]
+        a3 = filled[y, x - 1]
+        a4 = filled[y, x]
+        a5 = filled[y, x + 1]
+        a6 = filled[y + 1, x - 1]
+        a7 = filled[y + 1, x]
+        a8 = filled[y + 1, x + 1]
+        s = a0 + a1 + a2 + a3 + a4 + a5 + a6 + a7 + a8
+        if not np.isnan(s) and not np.isinf(s):
+            return _median9(a0, a1, a2, a3, a4, a5, a6, a7, a8)
     m = 0
     for dy in range(-r, r + 1):
         yy = min(max(y + dy, 0), h - 1)

@@ -386,3 +386,33 @@ def test_speckle_removal_same_for_any_number_of_stripes(seed: int) -> None:
             got = disp.copy()
             K.remove_speckles(got, max_size, np.float64(1.0), n_stripes)
             assert np.array_equal(np.isnan(got), np.isnan(ref)), (max_size, n_stripes)
+
+
+def test_median_network_and_window_median() -> None:
+    """The 3x3 median network selects the median of every 0/1 input (0-1 principle:
+    then of any input) and of random values; the window median with NaN neighbours
+    (slow path) and at the border matches numpy."""
+    import itertools
+
+    from prism3d.reconstruct import _match_kernels as K
+
+    for bits in itertools.product([0.0, 1.0], repeat=9):
+        assert K._median9(*bits) == sorted(bits)[4], bits
+    rng = np.random.default_rng(9)
+    for _ in range(500):
+        a = rng.integers(0, 4, 9).astype(np.float32)
+        assert K._median9(*a) == np.median(a)
+    filled = rng.uniform(0, 20, (6, 7)).astype(np.float32)
+    filled[2, 3] = np.nan
+    raw = np.full_like(filled, np.nan)  # every pixel invalid: every output a median
+    out = np.empty_like(filled)
+    valid = np.empty(filled.shape, bool)
+    conf = np.empty_like(filled)
+    K.median_fill_final(filled, raw, np.zeros_like(filled), 1, out, valid, conf)
+    pad = np.pad(filled, 1, mode="edge")
+    for y in range(6):
+        for x in range(7):
+            win = pad[y:y + 3, x:x + 3]
+            win = win[~np.isnan(win)]
+            assert out[y, x] == np.sort(win)[len(win) // 2], (y, x)
+    assert not valid.any() and (conf == 0).all()
