@@ -45,6 +45,7 @@ from ._simd import (
     v16_broadcast,
     v16_fill_range,
     v16_keys,
+    v16_lane,
     v16_load,
     v16_load_num,
     v16_load_u8,
@@ -56,6 +57,7 @@ from ._simd import (
     v16_popcount,
     v16_reduce_min,
     v16_reverse,
+    v16_slide,
     v16_store,
     v16_store_u8,
     v16_sub,
@@ -1012,41 +1014,103 @@ def sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block, uniquenes
                              uniqueness, disp, conf, y, x0 + i)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _lr_row_sliding(aggf, y, w, kp, d0, dbase, k_levels, key):
+    """Right-view keys of row ``y`` when every pixel of the row searches from ``d0``
+    (a full search) and ``kp`` is 16..64 in whole vectors: the window of right pixels
+    that the current left pixel sees, ``key[jb .. jb + kp - 1]`` with ``jb = W - 1 - x
+    + d0``, moves down by one pixel per step, so it stays in (up to four) vector
+    registers; a right pixel's key is final, and stored, when it leaves the window.
+    (Reading the window back from memory instead stalled on the store of the step
+    before.)"""
+    none = np.uint32(0xFFFFFFFF)
+    nonev = v16_broadcast(v16_zero(key), none)
+    nv = kp // 16
+    r0 = nonev
+    r1 = nonev
+    r2 = nonev
+    r3 = nonev
+    off = d0 - dbase
+    for x in range(w):
+        jb = w - 1 - x + d0
+        if x > 0:
+            top = r0 if nv == 1 else (r1 if nv == 2 else (r2 if nv == 3 else r3))
+            j = jb + kp  # the right pixel leaving the window
+            if 0 <= j < w:
+                key[j] = v16_lane(top, 15)
+            r3 = v16_slide(r3, r2)
+            r2 = v16_slide(r2, r1)
+            r1 = v16_slide(r1, r0)
+            r0 = v16_slide(r0, nonev)
+        k_lo = max(0, x - d0 - (w - 1))
+        k_hi = min(k_levels, x - d0 + 1)
+        if k_hi <= k_lo:
+            continue
+        base = (y * w + x) * kp
+        for vi in range(nv):
+            kb = 16 * vi
+            kv = v16_keys(v16_load(aggf, base + kb), off + kb)
+            kv = v16_fill_range(v16_fill_range(kv, -1, k_lo - kb - 1, none), k_hi - kb, 16, none)
+            if vi == 0:
+                r0 = v16_min(r0, kv)
+            elif vi == 1:
+                r1 = v16_min(r1, kv)
+            elif vi == 2:
+                r2 = v16_min(r2, kv)
+            else:
+                r3 = v16_min(r3, kv)
+    for vi in range(nv):
+        r = r0 if vi == 0 else (r1 if vi == 1 else (r2 if vi == 2 else r3))
+        for i in range(16):
+            j = d0 + 16 * vi + i  # the window of the last pixel starts at d0
+            if 0 <= j < w:
+                key[j] = v16_lane(r, i)
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def right_lr_check(agg, dlo, k_levels, max_diff, disp):
     """Right-view winner-take-all from the same aggregated volume and the left-right
     check of ``disp`` in place, one row at a time.
 
     Right pixel ``xr`` takes the smallest cost among the left pixels that see it
-    (``x - dlo[y, x] - k == xr``), the smallest disparity among equal costs. The
-    running minima are kept per mirrored right pixel ``W - 1 - xr``, where the
-    candidates of one left pixel are contiguous: a vector min of ``(cost << 32) |
-    (disparity - min dlo)`` keys per left pixel.
+    (``x - dlo[y, x] - k == xr``), the smallest disparity among equal costs: the
+    minimum of uint32 keys ``(cost << 16) | (disparity - min dlo)``, kept per mirrored
+    right pixel ``W - 1 - xr``, where the candidates of one left pixel are contiguous.
+    Rows with one window start and 16..64 levels in whole vectors slide the window
+    through registers (:func:`_lr_row_sliding`); others (coarse-to-fine windows) take
+    a vector min per left pixel.
     """
     h, w, kp = agg.shape
-    none = np.uint64(0xFFFFFFFFFFFFFFFF)
-    s32 = np.uint64(32)
-    low = np.uint64(0xFFFFFFFF)
+    aggf = agg.reshape(-1)
+    none = np.uint32(0xFFFFFFFF)
+    low = np.uint32(0xFFFF)
+    if np.int64(dlo.max()) - np.int64(dlo.min()) + k_levels > 0xFFFF:
+        raise ValueError("right_lr_check: the disparity range exceeds 65535 levels")
     for y in prange(h):
         dbase = dlo[y, 0]
+        dtop = dlo[y, 0]
         for x in range(1, w):
             dbase = min(dbase, dlo[y, x])
-        key = np.full(w, none, np.uint64)
-        kk = np.arange(kp).astype(np.uint64)
-        for x in range(w):
-            d0 = dlo[y, x]
-            k_lo = max(0, x - d0 - (w - 1))
-            k_hi = min(k_levels, x - d0 + 1)
-            if k_hi <= k_lo:
-                continue
-            n = k_hi - k_lo
-            j0 = w - 1 - x + d0 + k_lo
-            kb = key[j0:j0 + n]
-            av = agg[y, x, k_lo:k_hi]
-            kv = kk[k_lo:k_hi]
-            off = np.uint64(d0 - dbase)
-            for i in range(n):
-                kb[i] = min(kb[i], (np.uint64(av[i]) << s32) | (kv[i] + off))
+            dtop = max(dtop, dlo[y, x])
+        key = np.full(w, none, np.uint32)
+        if dtop == dbase and kp % 16 == 0 and kp <= 64:
+            _lr_row_sliding(aggf, y, w, kp, dbase, dbase, k_levels, key)
+        else:
+            kk = np.arange(kp).astype(np.uint32)
+            for x in range(w):
+                d0 = dlo[y, x]
+                k_lo = max(0, x - d0 - (w - 1))
+                k_hi = min(k_levels, x - d0 + 1)
+                if k_hi <= k_lo:
+                    continue
+                n = k_hi - k_lo
+                j0 = w - 1 - x + d0 + k_lo
+                kb = key[j0:j0 + n]
+                av = agg[y, x, k_lo:k_hi]
+                kv = kk[k_lo:k_hi]
+                off = np.uint32(d0 - dbase)
+                for i in range(n):
+                    kb[i] = min(kb[i], (np.uint32(av[i]) << np.uint32(16)) | (kv[i] + off))
         for x in range(w):
             d = disp[y, x]
             if np.isnan(d):
@@ -1058,7 +1122,6 @@ def right_lr_check(agg, dlo, k_levels, max_diff, disp):
             kr = key[w - 1 - xr]
             if kr == none or abs(np.float32(dbase + np.int64(kr & low)) - d) > max_diff:
                 disp[y, x] = np.nan
-
 
 @njit(cache=True, nogil=True, inline="always")
 def _lk_row_products(lrow, qrow, x, xb, wx, sign, esf):

@@ -42,6 +42,7 @@ __all__ = [
     "v16_broadcast",
     "v16_fill_range",
     "v16_keys",
+    "v16_lane",
     "v16_load",
     "v16_load_num",
     "v16_load_u8",
@@ -53,6 +54,7 @@ __all__ = [
     "v16_popcount",
     "v16_reduce_min",
     "v16_reverse",
+    "v16_slide",
     "v16_store",
     "v16_store_u8",
     "v16_sub",
@@ -512,3 +514,32 @@ def v8f_acc64(typingctx, arr, idx, v, sign):  # pragma: no cover - compiled by n
         return context.get_dummy_value()
 
     return types.none(arr, idx, v, sign), codegen
+
+
+@intrinsic
+def v16_slide(typingctx, v, prev):  # pragma: no cover - compiled by numba
+    """``[prev[15], v[0], ..., v[14]]``: the lanes of ``v`` moved up by one, the top
+    lane of ``prev`` coming in at the bottom (a sliding window over several vectors)."""
+    vt = _vec(v)
+    if vt is None or _vec(prev) is not vt:
+        return None
+
+    def codegen(context, builder, sig, args):
+        mask = ir.Constant(ir.VectorType(_I32, _LANES), [_LANES - 1 + i for i in range(_LANES)])
+        return builder.shuffle_vector(args[1], args[0], mask)
+
+    return vt(v, prev), codegen
+
+
+@intrinsic
+def v16_lane(typingctx, v, i):  # pragma: no cover - compiled by numba
+    """Lane ``i`` (0..15, unchecked) of ``v`` as its scalar type."""
+    vt = _vec(v)
+    if vt is None or not isinstance(i, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        idx = builder.trunc(context.cast(builder, args[1], sig.args[1], types.int64), _I32)
+        return builder.extract_element(args[0], idx)
+
+    return vt.scalar(v, i), codegen

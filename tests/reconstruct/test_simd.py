@@ -349,3 +349,57 @@ def test_sgm_kernels_match_plain_python(kp: int, k_levels: int) -> None:
     np.testing.assert_array_equal(np.isnan(disp), np.isnan(rd))
     np.testing.assert_allclose(disp, rd, rtol=0, atol=1e-5)
     assert np.isfinite(disp).mean() > 0.3
+
+
+def _lr_reference(agg, dlo, k_levels, max_diff, disp):
+    """Right-view winner-take-all (smallest cost, then smallest disparity) and the
+    left-right check, plainly."""
+    h, w, _ = agg.shape
+    out = disp.copy()
+    for y in range(h):
+        best = {}
+        for x in range(w):
+            for k in range(k_levels):
+                xr = x - int(dlo[y, x]) - k
+                if 0 <= xr < w:
+                    cand = (int(agg[y, x, k]), int(dlo[y, x]) + k)
+                    best[xr] = min(best.get(xr, cand), cand)
+        for x in range(w):
+            d = out[y, x]
+            if np.isnan(d):
+                continue
+            xr = int(np.floor(x - d + 0.5))
+            if xr not in best or abs(np.float32(best[xr][1]) - d) > max_diff:
+                out[y, x] = np.nan
+    return out
+
+
+@pytest.mark.parametrize("kp,k_levels,varying", [(16, 16, False), (32, 21, False),
+                                                  (64, 64, False), (48, 40, False),
+                                                  (80, 67, False), (32, 32, True),
+                                                  (17, 15, False)])
+def test_left_right_check_matches_plain_python(kp: int, k_levels: int, varying: bool) -> None:
+    """The right-view keys slid through registers (one window start per row, 16..64
+    levels in whole vectors) or kept per pixel (other widths, per-pixel windows) ==
+    a plain right-view winner-take-all; ties go to the smaller disparity."""
+    rng = np.random.default_rng(kp + k_levels + varying)
+    h, w = 5, 90
+    if varying:
+        dlo = rng.integers(-3, 6, (h, w)).astype(np.int32)
+    else:
+        dlo = np.full((h, w), 7, np.int32)
+        dlo[1] = -5  # rows with other starts, negative too
+    # a per-row true disparity: mostly consistent views, with ties (coarse costs)
+    dt = (dlo.min(axis=1) + rng.integers(2, k_levels - 2, h))[:, None, None]
+    lev = dlo[:, :, None] + np.arange(kp)
+    agg = (np.abs(lev - dt) // 2 + rng.integers(0, 3, (h, w, kp))).astype(np.uint16)
+    agg[:, :, k_levels:] = 4 * K.INF16
+    disp = (dt[:, :, 0] + rng.uniform(-0.6, 0.6, (h, w))).astype(np.float32)
+    wrong = rng.random((h, w)) < 0.2
+    disp[wrong] += rng.integers(-8, 9, wrong.sum()).astype(np.float32)
+    disp[rng.random((h, w)) < 0.1] = np.nan
+    ref = _lr_reference(agg, dlo, k_levels, 1.0, disp)
+    got = disp.copy()
+    K.right_lr_check(agg, dlo, k_levels, 1.0, got)
+    np.testing.assert_array_equal(got, ref)
+    assert 0.05 < np.isnan(got).mean() < 0.95
