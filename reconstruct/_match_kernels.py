@@ -319,121 +319,91 @@ def _compatible(disp, d, yy, xx, max_diff):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _speckle_stripes(disp, max_size, max_diff, n_stripes, status):
-    """Phase 1 of :func:`remove_speckles`, row stripes in parallel: 4-connected
-    regions inside each stripe. ``status`` (H, W) uint8 out: 1 small whole region
-    (remove), 2 region of at least ``max_size`` pixels (keep), 3 small but connected
-    across the stripe's edge (decided later), 0 NaN."""
+def _speckle_runs(disp, max_diff, run, parent, size):
+    """Rows in parallel: ``run[y, x]`` = flat index of the first pixel of the run of
+    horizontally connected pixels that holds (y, x), -1 for NaN; every run start gets
+    ``parent[r] = r`` and ``size[r]`` = its length."""
     h, w = disp.shape
-    for si in prange(n_stripes):
-        ya = (si * h) // n_stripes
-        yb = ((si + 1) * h) // n_stripes
-        n_pix = (yb - ya) * w
-        stack = np.empty(n_pix, np.int32)
-        members = np.empty(n_pix, np.int32)
-        seen = np.zeros((yb - ya, w), np.bool_)
-        for y0 in range(ya, yb):
-            for x0 in range(w):
-                if seen[y0 - ya, x0] or np.isnan(disp[y0, x0]):
-                    continue
-                seen[y0 - ya, x0] = True
-                stack[0] = np.int32(y0 * w + x0)
-                top = 1
-                n = 0
-                touch = False
-                while top > 0:
-                    top -= 1
-                    p = stack[top]
-                    members[n] = p
-                    n += 1
-                    y = p // w
-                    x = p - y * w
-                    d = disp[y, x]
-                    if y == ya and y > 0 and _compatible(disp, d, y - 1, x, max_diff):
-                        touch = True
-                    if y == yb - 1 and y + 1 < h and _compatible(disp, d, y + 1, x, max_diff):
-                        touch = True
-                    for nb in range(4):
-                        yy = y + (1 if nb == 0 else (-1 if nb == 1 else 0))
-                        xx = x + (1 if nb == 2 else (-1 if nb == 3 else 0))
-                        if yy < ya or yy >= yb or xx < 0 or xx >= w:
-                            continue
-                        if seen[yy - ya, xx] or not _compatible(disp, d, yy, xx, max_diff):
-                            continue
-                        seen[yy - ya, xx] = True
-                        stack[top] = np.int32(yy * w + xx)
-                        top += 1
-                code = np.uint8(2) if n >= max_size else (np.uint8(3) if touch else np.uint8(1))
-                for i in range(n):
-                    p = members[i]
-                    status[p // w, p % w] = code
+    for y in prange(h):
+        start = -1
+        prev = np.float32(0.0)
+        for x in range(w):
+            d = disp[y, x]
+            if np.isnan(d):
+                run[y, x] = -1
+                start = -1
+                continue
+            if start < 0 or abs(d - prev) > max_diff:
+                start = y * w + x
+                parent[start] = start
+                size[start] = 0
+            run[y, x] = start
+            size[start] += 1
+            prev = d
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _uf_root(parent, a):
+    """Union-find root of ``a`` (path halving)."""
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _speckle_mark(disp, run, parent, size, max_size):
+    """Rows in parallel: NaN every pixel whose region (``parent`` of its run, already
+    the root) has fewer than ``max_size`` pixels."""
+    h, w = disp.shape
+    for y in prange(h):
+        for x in range(w):
+            r = run[y, x]
+            if r >= 0 and size[parent[r]] < max_size:
+                disp[y, x] = np.nan
 
 
 @njit(cache=True, nogil=True)
-def remove_speckles(disp, max_size, max_diff, n_stripes=1):
+def remove_speckles(disp, max_size, max_diff):
     """Set to NaN 4-connected regions (neighbours differing <= max_diff) smaller than
     ``max_size`` pixels.
 
-    Regions are found in ``n_stripes`` row stripes in parallel; the few small ones
-    that continue across a stripe edge are then followed over the whole image,
-    stopping as soon as one reaches ``max_size`` pixels. Same result for any
-    ``n_stripes``.
+    Union-find over row runs: the runs of horizontally connected pixels are found row
+    by row in parallel; a vertical pair of connected pixels joins their runs' sets
+    (once per pair of runs met side by side), region sizes are summed at the roots,
+    and the pixels of small regions are cleared in parallel.
     """
     h, w = disp.shape
-    ns = max(1, min(n_stripes, h))
-    status = np.zeros((h, w), np.uint8)
-    _speckle_stripes(disp, max_size, max_diff, ns, status)
-    # phase 2: small regions connected across stripe edges, over the whole image;
-    # visited: 0 no, 1 part of a big component, 2 part of a small one
-    visited = np.zeros((h, w), np.uint8)
-    stack = np.empty(max_size + 4 * max_size + 4, np.int64)
-    members = np.empty(max_size + 1, np.int64)
-    mark = np.zeros((h, w), np.bool_)
-    for y0 in range(h):
-        for x0 in range(w):
-            if status[y0, x0] != 3 or visited[y0, x0] != 0:
+    run = np.empty((h, w), np.int32)
+    parent = np.empty(h * w, np.int32)
+    size = np.empty(h * w, np.int32)
+    _speckle_runs(disp, max_diff, run, parent, size)
+    for y in range(1, h):
+        la = -1
+        lb = -1
+        for x in range(w):
+            a = run[y, x]
+            b = run[y - 1, x]
+            if a < 0 or b < 0 or (a == la and b == lb):
                 continue
-            mark[y0, x0] = True
-            stack[0] = y0 * w + x0
-            top = 1
-            n = 0
-            big = False
-            while top > 0 and not big:
-                top -= 1
-                p = stack[top]
-                members[n] = p
-                n += 1
-                if n >= max_size:
-                    big = True
-                    break
-                y = p // w
-                x = p - y * w
-                d = disp[y, x]
-                for nb in range(4):
-                    yy = y + (1 if nb == 0 else (-1 if nb == 1 else 0))
-                    xx = x + (1 if nb == 2 else (-1 if nb == 3 else 0))
-                    if yy < 0 or yy >= h or xx < 0 or xx >= w:
-                        continue
-                    if mark[yy, xx] or not _compatible(disp, d, yy, xx, max_diff):
-                        continue
-                    if status[yy, xx] == 2 or visited[yy, xx] == 1:
-                        big = True
-                        break
-                    mark[yy, xx] = True
-                    stack[top] = yy * w + xx
-                    top += 1
-            # clear the marks of everything pushed (members and the rest of the stack)
-            for i in range(n):
-                p = members[i]
-                mark[p // w, p % w] = False
-                visited[p // w, p % w] = 1 if big else 2
-            for i in range(top):
-                p = stack[i]
-                mark[p // w, p % w] = False
+            if abs(disp[y, x] - disp[y - 1, x]) > max_diff:
+                continue
+            la = a
+            lb = b
+            ra = _uf_root(parent, a)
+            rb = _uf_root(parent, b)
+            if ra == rb:
+                continue
+            if size[ra] < size[rb]:
+                ra, rb = rb, ra
+            parent[rb] = ra  # union by size
+            size[ra] += size[rb]
     for y in range(h):
         for x in range(w):
-            if status[y, x] == 1 or (status[y, x] == 3 and visited[y, x] == 2):
-                disp[y, x] = np.nan
+            r = y * w + x
+            if run[y, x] == r:
+                parent[r] = _uf_root(parent, r)
+    _speckle_mark(disp, run, parent, size, max_size)
 
 
 # --------------------------------------------------------------- sub-pixel refinement

@@ -318,8 +318,7 @@ def _match_level(
     _k.right_lr_check(agg, dlo, k_levels, float(prm.lr_max_diff), disp)
     del agg
     if speckle_size > 0:
-        _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range),
-                           2 * max(1, numba.get_num_threads()))
+        _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range))
     if subpixel == "lk":
         tmp = _WS.take("box", (h, w), np.float32)
         lg = _bandpass(guide, _WS.take("band_l", (h, w), np.float32), tmp)
