@@ -119,18 +119,29 @@ class _Workspace(threading.local):
     def __init__(self) -> None:
         self.arrays: dict[str, np.ndarray] = {}
 
-    def take(self, name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    def take(self, name: str, shape: tuple[int, ...], dtype: Any, keep: bool = True
+             ) -> np.ndarray:
         """An uninitialised C-contiguous array for ``name`` (the previous one when its
-        shape and dtype match; the caller must not keep it past its call)."""
+        shape and dtype match; the caller must not keep it past its call). With
+        ``keep`` False (a large problem) the array is neither reused nor kept, so
+        that it is freed as soon as the caller drops it (peak memory as without the
+        workspace)."""
         dtype = np.dtype(dtype)
         old = self.arrays.pop(name, None)
-        if old is not None and old.shape == tuple(shape) and old.dtype == dtype:
+        if keep and old is not None and old.shape == tuple(shape) and old.dtype == dtype:
             self.arrays[name] = old
             return old
+        del old
         out = np.empty(shape, dtype)
-        if out.nbytes + sum(a.nbytes for a in self.arrays.values()) <= self.CAP:
+        if keep and out.nbytes + sum(a.nbytes for a in self.arrays.values()) <= self.CAP:
             self.arrays[name] = out
         return out
+
+    @classmethod
+    def small(cls, h: int, w: int, levels: int) -> bool:
+        """True when a match of ``levels`` levels at ``h x w`` is small enough to keep
+        its scratch (cost and path-sum volumes, 3 bytes a cell, within ``CAP``)."""
+        return 3 * h * w * levels <= cls.CAP
 
 
 _WS = _Workspace()
@@ -202,8 +213,8 @@ def _to_u8(img: NDArray[np.float32]) -> NDArray[np.uint8]:
     return out
 
 
-def _features(left: NDArray[Any], right: NDArray[Any], mode: str, reverse: bool
-              ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+def _features(left: NDArray[Any], right: NDArray[Any], mode: str, reverse: bool,
+              keep: bool = False) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
     """Per-pixel uint8 features of the AD term for both views, planar (C, H, W), the
     right view's rows mirrored when ``reverse``.
 
@@ -232,8 +243,8 @@ def _features(left: NDArray[Any], right: NDArray[Any], mode: str, reverse: bool
         g = s_l / s_i if s_i > 1e-6 else 1.0
         gain[c] = np.float32(g)
         offset[c] = np.float32(m_l - m_i * g)
-    fl = _WS.take("feat_l", (nc, h, w), np.uint8)
-    fr = _WS.take("feat_r", (nc, h, w), np.uint8)
+    fl = _WS.take("feat_l", (nc, h, w), np.uint8, keep)
+    fr = _WS.take("feat_r", (nc, h, w), np.uint8, keep)
     _k.features_hwc(left, right, gain, offset, bool(reverse), fl, fr)
     return fl, fr
 
@@ -280,8 +291,9 @@ def _match_level(
     ry, rx = prm.census_ry, prm.census_rx
     nbits = (2 * ry + 1) * (2 * rx + 1) - 1
     ctype = np.uint32 if nbits <= 32 else np.uint64
-    cl = _WS.take("census_l", (nc, h, w), ctype)
-    cr = _WS.take("census_r", (nc, h, w), ctype)
+    keep = _Workspace.small(h, w, _padded_levels(k_levels, prm.paths))
+    cl = _WS.take("census_l", (nc, h, w), ctype, keep)
+    cr = _WS.take("census_r", (nc, h, w), ctype, keep)
     _k.census_hwc(left, ry, rx, False, cl)
     _k.census_hwc(right, ry, rx, True, cr)
     oob = np.uint8(min(255, (nbits * nc) // 2))
@@ -289,27 +301,27 @@ def _match_level(
     # padded levels are held at "infinite" cost by the SGM kernels, never selected
     kp = _padded_levels(k_levels, prm.paths)
     if prm.ad_weight > 0:
-        fl, fr = _features(left, right, prm.ad_mode, True)
+        fl, fr = _features(left, right, prm.ad_mode, True, keep)
     else:
         fl = fr = np.zeros((0, h, w), np.uint8)
     nf = max(fl.shape[0], 1)
     # AD cost of a summed |difference| a: weight * nc * min(a / nf, trunc)
     ad_scale = prm.ad_weight * nc / nf
     ad_clip = prm.ad_trunc * nf
-    cost = _WS.take("cost", (h, w, kp), np.uint8)
+    cost = _WS.take("cost", (h, w, kp), np.uint8, keep)
     _k.matching_cost(cl, cr, fl, fr, ad_scale, ad_clip, dlo, kp, oob, cost)
     del cl, cr, fl, fr
-    guide = _grey(left, _WS.take("guide", (h, w), np.float32))
+    guide = _grey(left, _WS.take("guide", (h, w), np.float32, keep))
     p1 = np.int32(prm.p1 * nc)
     p2 = np.int32(prm.p2 * nc)
     gamma = float(prm.p2_gamma)
-    agg = _WS.take("agg", (h, w, kp), np.uint16)
+    agg = _WS.take("agg", (h, w, kp), np.uint16, keep)
     _k.sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg)
     if prm.paths == 8:
         for dy, dx in _DIRS8[4:]:
             _k.aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg)
     disp = np.empty((h, w), np.float32)
-    conf = _WS.take("conf", (h, w), np.float32)  # internal: the final one is a copy
+    conf = _WS.take("conf", (h, w), np.float32, keep)  # internal: the final one is a copy
     nthreads = max(1, numba.get_num_threads())
     block = int(min(128, max(16, -(-w // (4 * nthreads)))))
     _k.sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block,
@@ -320,12 +332,12 @@ def _match_level(
     if speckle_size > 0:
         _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range))
     if subpixel == "lk":
-        tmp = _WS.take("box", (h, w), np.float32)
-        lg = _bandpass(guide, _WS.take("band_l", (h, w), np.float32), tmp)
-        rg = _bandpass(_grey(right, _WS.take("grey_r", (h, w), np.float32)),
-                       _WS.take("band_r", (h, w), np.float32), tmp)
+        tmp = _WS.take("box", (h, w), np.float32, keep)
+        lg = _bandpass(guide, _WS.take("band_l", (h, w), np.float32, keep), tmp)
+        rg = _bandpass(_grey(right, _WS.take("grey_r", (h, w), np.float32, keep)),
+                       _WS.take("band_r", (h, w), np.float32, keep), tmp)
         # one spare (zero) column on the left, three on the right (8-lane products)
-        rcoef = _WS.take("rcoef", (h, w + 4), np.float32)
+        rcoef = _WS.take("rcoef", (h, w + 4), np.float32, keep)
         rcoef[:, 0] = 0.0
         rcoef[:, w + 1:] = 0.0
         _k.bspline_rows(rg, rcoef[:, 1:w + 1])
@@ -504,6 +516,7 @@ def match_stereo_full(
         ad_mode=ad_mode,
     )
     cells = h * w * num_disp
+    keep = _Workspace.small(h, w, num_disp)  # scratch kept between calls (small problems)
     use_c2f = cells > C2F_AUTO_CELLS if coarse_to_fine is None else bool(coarse_to_fine)
     if use_c2f:
         scale = 2
@@ -512,13 +525,13 @@ def match_stereo_full(
         if h // scale < 8 or w // scale < 8:
             use_c2f = False
     if not use_c2f:
-        dlo = _WS.take("dlo", (h, w), np.int32)
+        dlo = _WS.take("dlo", (h, w), np.int32, keep)
         dlo.fill(min_disp)
         raw, conf = _match_level(lf, rf, dlo, num_disp, prm, subpixel=subpixel,
                                  speckle_size=speckle_size, dmin=min_disp)
     else:
         raw, conf = _match_c2f(lf, rf, min_disp, num_disp, scale, prm, fine_window)
-    filled = _WS.take("filled", raw.shape, np.float32)
+    filled = _WS.take("filled", raw.shape, np.float32, keep)
     _k.fill_holes(raw, filled)
     _k.fill_columns(filled)
     dense = np.empty_like(raw)
