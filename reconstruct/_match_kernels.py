@@ -1177,16 +1177,40 @@ def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripe
                 for x in range(w):
                     xb_run[x] = -(1 << 30)
                 continue
-            for dl in range(4):
-                c = cs[dl]
-                sd = sm[dl]
-                acc = 0.0
-                for u in range(nu - 1):
-                    acc += c[u]
-                for p in range(wx, w - wx - dl):
-                    acc += c[p + wx]
-                    sd[p] = acc
-                    acc -= c[p - wx]
+            # box sums of the four lags along the row: four independent running sums
+            # in one loop (each is a chain of dependent adds; side by side they overlap)
+            a0 = a1 = a2 = a3 = 0.0
+            for u in range(nu - 1):
+                a0 += cs[0, u]
+                a1 += cs[1, u]
+                a2 += cs[2, u]
+                a3 += cs[3, u]
+            p_end = w - wx - 3  # every lag has p < w - wx - dl
+            for p in range(wx, p_end):
+                a0 += cs[0, p + wx]
+                a1 += cs[1, p + wx]
+                a2 += cs[2, p + wx]
+                a3 += cs[3, p + wx]
+                sm[0, p] = a0
+                sm[1, p] = a1
+                sm[2, p] = a2
+                sm[3, p] = a3
+                a0 -= cs[0, p - wx]
+                a1 -= cs[1, p - wx]
+                a2 -= cs[2, p - wx]
+                a3 -= cs[3, p - wx]
+            for p in range(max(wx, p_end), w - wx):  # the lags' last few columns
+                a0 += cs[0, p + wx]
+                sm[0, p] = a0
+                a0 -= cs[0, p - wx]
+                if p < w - wx - 1:
+                    a1 += cs[1, p + wx]
+                    sm[1, p] = a1
+                    a1 -= cs[1, p - wx]
+                if p < w - wx - 2:
+                    a2 += cs[2, p + wx]
+                    sm[2, p] = a2
+                    a2 -= cs[2, p - wx]
             s0 = sm[0]
             s1 = sm[1]
             s2 = sm[2]
