@@ -666,7 +666,9 @@ def census_hwc(img, ry, rx, reverse, out):
             # interior: 16 pixels at a time, their codes kept in one vector register
             # (one shift-add per neighbour); flat indices, no per-row views
             x = rx
-            while x + 16 <= w - rx:
+            while x + 16 <= w - rx or (rx < x < w - rx and w - 2 * rx >= 16):
+                if x + 16 > w - rx:
+                    x = w - rx - 16  # the last block overlaps the one before
                 cv = v16_load_num(pf, crow + x)
                 acc = v16_zero(of)
                 for dy in range(-ry, ry + 1):
@@ -682,9 +684,9 @@ def census_hwc(img, ry, rx, reverse, out):
                     v16_store(of, crow + x, acc)
                 x += 16
             # borders (coordinates clamped) and the interior remainder, pixel by pixel
-            for xs in range(w):
-                if rx <= xs < x:
-                    continue
+            x_done = min(x, w)
+            for i in range(min(rx, w) + (w - x_done)):
+                xs = i if i < min(rx, w) else x_done + i - min(rx, w)
                 cval = pf[crow + xs]
                 b = zero
                 for dy in range(-ry, ry + 1):

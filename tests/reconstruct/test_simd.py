@@ -230,7 +230,8 @@ def _census_reference(img: np.ndarray, ry: int, rx: int) -> np.ndarray:
 
 @pytest.mark.parametrize("dtype,ry,rx,w", [(np.uint8, 2, 2, 45), (np.float32, 2, 2, 37),
                                            (np.uint8, 3, 3, 40), (np.uint8, 1, 4, 16),
-                                           (np.float32, 2, 1, 3)])
+                                           (np.float32, 2, 1, 3), (np.uint8, 2, 2, 1),
+                                           (np.uint8, 2, 2, 20), (np.uint8, 2, 2, 36)])
 def test_census_kernel_matches_reference(dtype, ry: int, rx: int, w: int) -> None:
     """16-pixel vector chunks, the remainder and the clamped borders, mirrored rows,
     32- and 64-bit codes, uint8 and float images (equal values set no bit)."""
