@@ -222,49 +222,48 @@ def _p2_eff(p1, p2, ia, ib, gamma):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _step(costf, coff, lp, minprev, shift, lc, aggf, k_levels, p1, p2):
+def _step(costf, coff, lp, minprev, shift, lc, aggf, kl, p1, p2, pad, k_levels):
     """One SGM recursion on flat arrays, summed into the aggregated costs.
 
     ``L[k] = C[k] + min(Lq[j], Lq[j-1] + P1, Lq[j+1] + P1, min Lq + P2) - min Lq`` with
-    ``j = k + shift`` (shift = dlo_p - dlo_q, clamped to +-k_levels). Path buffers
+    ``j = k + shift`` (shift = dlo_p - dlo_q, clamped to +-k_levels, the searched
+    levels; ``kl >= k_levels`` includes the padding). Path buffers
     ``lp`` (previous pixel) and ``lc`` (current pixel, distinct uint16 arrays so the
-    loop vectorises; values stay below ``INF16 + P1``) hold ``3 * k_levels + 2`` values: level ``k`` sits at
-    ``k_levels + 1 + k`` and every other entry stays ``INF16``, so the shifted read
-    needs no branch. ``costf[coff + k]`` is the matching cost and
-    ``aggf[coff + k]`` the sum over paths. Returns min_k L[k].
+    loop vectorises; values stay below ``INF16 + P1``) hold ``3 * kl + 2`` values:
+    level ``k`` sits at ``kl + 1 + k`` and every other entry stays ``INF16``, so the
+    shifted read needs no branch. ``costf[coff + k]`` is the matching cost and
+    ``aggf[coff + k]`` the sum over paths; levels whose ``pad`` is INF16 (padding past
+    the searched window) are held at INF16. Returns min_k L[k].
     """
-    if shift > k_levels:
-        shift = k_levels
-    elif shift < -k_levels:
-        shift = -k_levels
-    src = k_levels + 1 + shift
-    dst = k_levels + 1
+    shift = _clamp_shift(shift, k_levels)
+    src = kl + 1 + shift
+    dst = kl + 1
     # slices + simple uint16 loops: LLVM vectorises these (32 lanes with AVX-512)
-    a = lp[src - 1:src + k_levels + 1]
-    c = costf[coff:coff + k_levels]
-    o = lc[dst:dst + k_levels]
-    g = aggf[coff:coff + k_levels]
+    a = lp[src - 1:src + kl + 1]
+    c = costf[coff:coff + kl]
+    o = lc[dst:dst + kl]
+    g = aggf[coff:coff + kl]
     big = np.uint16(minprev + p2)
     p1u = np.uint16(p1)
     mp = np.uint16(minprev)
-    for k in range(k_levels):
+    for k in range(kl):
         v = min(min(a[k + 1], np.uint16(a[k] + p1u)), min(np.uint16(a[k + 2] + p1u), big))
-        r = np.uint16(np.uint16(np.uint16(c[k]) + v) - mp)
+        r = max(np.uint16(np.uint16(np.uint16(c[k]) + v) - mp), pad[k])
         o[k] = r
         g[k] = np.uint16(g[k] + r)
     mn = np.uint16(INF16)
-    for k in range(k_levels):
+    for k in range(kl):
         mn = min(mn, o[k])
     return np.int32(mn)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _start(costf, coff, lc, aggf, k_levels):
-    """First pixel of a scanline: L = C."""
-    dst = k_levels + 1
+def _start(costf, coff, lc, aggf, kl, pad):
+    """First pixel of a scanline: L = C (padding held at INF16)."""
+    dst = kl + 1
     mn = np.int32(INF16)
-    for k in range(k_levels):
-        c = np.int32(costf[coff + k])
+    for k in range(kl):
+        c = np.int32(max(np.uint16(costf[coff + k]), pad[k]))
         lc[dst + k] = np.uint16(c)
         aggf[coff + k] += np.uint16(c)
         mn = min(mn, c)
@@ -272,13 +271,14 @@ def _start(costf, coff, lc, aggf, k_levels):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg):
+def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, k_levels, agg):
     """Add one horizontal or diagonal SGM path direction ``(dy, dx)`` into ``agg``.
 
-    cost : (H, W, K) uint8; agg : (H, W, K) uint16 (C-contiguous). The image is cut
-    into independent scanlines that start where the previous pixel ``p - (dy, dx)``
-    would leave the image; scanlines run in parallel (no two of one direction share a
-    pixel, so the in-place sum is race free).
+    cost : (H, W, Kp) uint8 (levels ``>= k_levels`` are padding); agg : (H, W, Kp)
+    uint16 (C-contiguous). The image is cut into independent scanlines that start
+    where the previous pixel ``p - (dy, dx)`` would leave the image; scanlines run in
+    parallel (no two of one direction share a pixel, so the in-place sum is race
+    free).
     """
     h, w, kl = cost.shape
     costf = cost.reshape(-1)
@@ -290,6 +290,7 @@ def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg):
     y_first = 1 if dy > 0 else 0
     stride = 3 * kl + 2
     for s in prange(n_row + n_col):
+        pad = _padding(kl, k_levels)
         if s < n_row:
             y = np.int64(y_row)
             x = np.int64(s)
@@ -298,7 +299,7 @@ def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg):
             y = np.int64(s - n_row + y_first)
         lp = np.full(stride, np.uint16(INF16), np.uint16)
         lc = np.full(stride, np.uint16(INF16), np.uint16)
-        mn = _start(costf, (y * w + x) * kl, lc, aggf, kl)
+        mn = _start(costf, (y * w + x) * kl, lc, aggf, kl, pad)
         while True:
             yq = y
             xq = x
@@ -309,7 +310,8 @@ def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg):
             p2e = _p2_eff(p1, p2, guide[y, x], guide[yq, xq], gamma)
             shift = dlo[y, x] - dlo[yq, xq]
             lp, lc = lc, lp
-            mn = _step(costf, (y * w + x) * kl, lp, mn, shift, lc, aggf, kl, p1, p2e)
+            mn = _step(costf, (y * w + x) * kl, lp, mn, shift, lc, aggf, kl, p1, p2e, pad,
+                       k_levels)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -769,13 +771,15 @@ def _sgm_step(costf, co, buf, src, dst, aggf, kp, p1u, big, mp, pad, assign):
     explicit 16-lane vectors (the loop vectoriser takes 64 uint16 elements a trip on
     AVX-512 and would leave 16-48 levels scalar); other ``kp`` in one fused loop.
     """
-    if kp % 16 == 0:
+    kv = kp - kp % 16
+    m = np.uint16(INF16)
+    if kv > 0:
         z = v16_load(pad, 0)
         vp1 = v16_broadcast(z, p1u)
         vbig = v16_broadcast(z, big)
         vmp = v16_broadcast(z, mp)
         mv = v16_broadcast(z, INF16)
-        for kb in range(0, kp, 16):
+        for kb in range(0, kv, 16):
             a0 = v16_load(buf, src - 1 + kb)
             a1 = v16_load(buf, src + kb)
             a2 = v16_load(buf, src + 1 + kb)
@@ -788,9 +792,8 @@ def _sgm_step(costf, co, buf, src, dst, aggf, kp, p1u, big, mp, pad, assign):
             else:
                 v16_store(aggf, co + kb, v16_add(v16_load(aggf, co + kb), c))
             mv = v16_min(mv, c)
-        return v16_reduce_min(mv)
-    m = np.uint16(INF16)
-    for k in range(kp):
+        m = v16_reduce_min(mv)
+    for k in range(kv, kp):  # levels past the whole vectors (8 paths: unpadded)
         v = min(min(buf[src + k], np.uint16(buf[src - 1 + k] + p1u)),
                 min(np.uint16(buf[src + 1 + k] + p1u), big))
         c = max(np.uint16(np.uint16(np.uint16(costf[co + k]) + v) - mp), pad[k])
@@ -882,8 +885,8 @@ def _wta(aggf, o, kp, k_levels, d0, uniqueness, disp, conf, y, x):
         # 16-lane vectors; the first pass takes the minimum of keys cost << 16 |
         # level (the first best level, no branches), the second the best cost outside
         # +-1 level of the winner. Padding levels need no mask: each path holds them
-        # at INF16, so their sum (4 * INF16 = 65532) exceeds any real sum (4 paths of
-        # at most 255 + P2 <= 5255 each)
+        # at INF16, so their sum (4 or 8 * INF16: 65532, or 65528 after the uint16
+        # wrap) exceeds any real sum (at most 8 paths of 255 + P2 <= 5255 each)
         z = v16_load(aggf, o)
         km = v16_keys(z, 0)
         for kb in range(16, kp, 16):
@@ -897,15 +900,17 @@ def _wta(aggf, o, kp, k_levels, d0, uniqueness, disp, conf, y, x):
         s1 = v16_reduce_min(sv)
     else:
         # minimum and its first level in one vectorisable pass: keys (cost << 16) | level
+        # (over a view of the row: with flat indices LLVM left these loops scalar)
+        row = aggf[o:o + kp]
         kmin = np.uint32(0xFFFFFFFF)
         for k in range(kl):
-            kmin = min(kmin, (np.uint32(aggf[o + k]) << np.uint32(16)) | np.uint32(k))
+            kmin = min(kmin, (np.uint32(row[k]) << np.uint32(16)) | np.uint32(k))
         m = np.uint16(kmin >> np.uint32(16))
         b = np.int64(kmin & np.uint32(0xFFFF))
         # best cost outside +-1 level of the winner (a select, also vectorisable)
         s1 = big
         for k in range(kl):
-            s1 = min(s1, aggf[o + k] if (k < b - 1 or k > b + 1) else big)
+            s1 = min(s1, row[k] if (k < b - 1 or k > b + 1) else big)
     bc = np.int32(m)
     if b < 2 and b + 2 >= kl:
         g = 1.0

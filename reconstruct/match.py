@@ -291,15 +291,15 @@ def _match_level(
     ry, rx = prm.census_ry, prm.census_rx
     nbits = (2 * ry + 1) * (2 * rx + 1) - 1
     ctype = np.uint32 if nbits <= 32 else np.uint64
-    keep = _Workspace.small(h, w, _padded_levels(k_levels, prm.paths))
+    keep = _Workspace.small(h, w, _volume_levels(k_levels))
     cl = _WS.take("census_l", (nc, h, w), ctype, keep)
     cr = _WS.take("census_r", (nc, h, w), ctype, keep)
     _k.census_hwc(left, ry, rx, False, cl)
     _k.census_hwc(right, ry, rx, True, cr)
     oob = np.uint8(min(255, (nbits * nc) // 2))
-    # levels padded to a multiple of 16 (vector width) in the volumes (4 paths);
-    # padded levels are held at "infinite" cost by the SGM kernels, never selected
-    kp = _padded_levels(k_levels, prm.paths)
+    # levels padded to a multiple of 16 (vector width) in the volumes; padded levels
+    # are held at "infinite" cost by the SGM kernels, never selected
+    kp = _volume_levels(k_levels)
     if prm.ad_weight > 0:
         fl, fr = _features(left, right, prm.ad_mode, True, keep)
     else:
@@ -319,7 +319,7 @@ def _match_level(
     _k.sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg)
     if prm.paths == 8:
         for dy, dx in _DIRS8[4:]:
-            _k.aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, agg)
+            _k.aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, k_levels, agg)
     disp = np.empty((h, w), np.float32)
     conf = _WS.take("conf", (h, w), np.float32, keep)  # internal: the final one is a copy
     nthreads = max(1, numba.get_num_threads())
@@ -347,10 +347,10 @@ def _match_level(
     return disp, conf
 
 
-def _padded_levels(k_levels: int, paths: int) -> int:
-    """Levels held in the cost volumes: with 4 paths, ``k_levels`` rounded up to whole
-    16-level vectors (the padding is held at "infinite" cost by the SGM kernels)."""
-    return -(-k_levels // 16) * 16 if paths == 4 else k_levels
+def _volume_levels(k_levels: int) -> int:
+    """Levels held in the cost volumes: ``k_levels`` rounded up to whole 16-level
+    vectors (the padding is held at "infinite" cost by the SGM kernels)."""
+    return -(-k_levels // 16) * 16
 
 
 def _lk_stripes(h: int) -> int:
@@ -583,7 +583,9 @@ def _match_c2f(
     else:
         # cover the coarse neighbourhood's range (+-scale) and +-4 levels; with 4 paths
         # the volumes are padded to whole 16-level vectors anyway, so search them all
-        k_levels = _padded_levels(2 * (scale + 4) + 1, prm.paths)
+        k_levels = 2 * (scale + 4) + 1
+        if prm.paths == 4:
+            k_levels = _volume_levels(k_levels)
     k_levels = int(min(max(k_levels, 3), num_disp))
     dlo = np.empty((h, w), np.int32)
     _k.fine_ranges(coarse, float(scale), 4, k_levels, min_disp, min_disp + num_disp - 1, dlo)

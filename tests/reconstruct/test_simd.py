@@ -286,13 +286,23 @@ def _path(cost, dlo, guide, p1, p2, gamma, k_levels, pixels):
     return out
 
 
-def _sgm_reference(cost, dlo, guide, p1, p2, gamma, k_levels):
+def _sgm_reference(cost, dlo, guide, p1, p2, gamma, k_levels, paths=4):
     h, w, kp = cost.shape
     agg = np.zeros((h, w, kp), np.int64)
-    lines = [[(y, x) for x in range(w)] for y in range(h)]
-    lines += [[(y, x) for x in range(w - 1, -1, -1)] for y in range(h)]
-    lines += [[(y, x) for y in range(h)] for x in range(w)]
-    lines += [[(y, x) for y in range(h - 1, -1, -1)] for x in range(w)]
+    dirs = [(0, 1), (0, -1), (1, 0), (-1, 0)]
+    if paths == 8:
+        dirs += [(1, 1), (1, -1), (-1, 1), (-1, -1)]
+    lines = []
+    for dy, dx in dirs:  # every scanline starts where its predecessor leaves the image
+        for y0 in range(h):
+            for x0 in range(w):
+                if 0 <= y0 - dy < h and 0 <= x0 - dx < w:
+                    continue
+                line, y, x = [], y0, x0
+                while 0 <= y < h and 0 <= x < w:
+                    line.append((y, x))
+                    y, x = y + dy, x + dx
+                lines.append(line)
     for line in lines:
         for (y, x), lv in _path(cost, dlo, guide, p1, p2, gamma, k_levels, line).items():
             agg[y, x] += lv
@@ -323,27 +333,33 @@ def _wta_reference(agg, dlo, k_levels, uniqueness):
     return disp, conf
 
 
-@pytest.mark.parametrize("kp,k_levels", [(16, 16), (16, 13), (32, 21), (17, 15), (48, 40)])
-def test_sgm_kernels_match_plain_python(kp: int, k_levels: int) -> None:
-    """4-path SGM + winner-take-all of the kernels (16-lane vectors when ``kp`` is a
-    multiple of 16, scalar loops otherwise) == a plain-Python SGM, with padded levels
-    and per-pixel windows (coarse-to-fine shifts)."""
-    rng = np.random.default_rng(kp * 100 + k_levels)
+@pytest.mark.parametrize("kp,k_levels,paths,jump", [
+    (16, 16, 4, 2), (16, 13, 4, 2), (32, 21, 4, 2), (17, 15, 4, 2), (48, 40, 4, 2),
+    (16, 13, 4, 20), (16, 13, 8, 20), (32, 32, 8, 2), (13, 13, 8, 15)])
+def test_sgm_kernels_match_plain_python(kp: int, k_levels: int, paths: int, jump: int) -> None:
+    """4- and 8-path SGM + winner-take-all of the kernels (16-lane vectors when ``kp``
+    is a multiple of 16, scalar loops otherwise) == a plain-Python SGM, with padded
+    levels and per-pixel windows (coarse-to-fine shifts, also beyond the window)."""
+    rng = np.random.default_rng(kp * 100 + k_levels + paths + jump)
     h, w = 7, 19
     cost = rng.integers(0, 90, (h, w, kp)).astype(np.uint8)
     # a smooth valley so that the winners are unique and the fits interior
     cost[:, :, : k_levels] //= 2
     cost[:, :, 5] = rng.integers(0, 4, (h, w))
-    dlo = (10 + rng.integers(-2, 3, (h, w))).astype(np.int32)
+    dlo = (30 + rng.integers(-jump, jump + 1, (h, w))).astype(np.int32)
     guide = rng.uniform(0, 255, (h, w)).astype(np.float32)
     p1, p2, gamma = 24, 300, 20.0
     agg = np.empty((h, w, kp), np.uint16)
     K.sgm_horizontal(cost, dlo, guide, np.int32(p1), np.int32(p2), gamma, k_levels, agg)
+    if paths == 8:
+        for dy, dx in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            K.aggregate_path(cost, dlo, guide, np.int32(p1), np.int32(p2), gamma, dy, dx,
+                             k_levels, agg)
     disp = np.empty((h, w), np.float32)
     conf = np.empty((h, w), np.float32)
     K.sgm_vertical_wta(cost, dlo, guide, np.int32(p1), np.int32(p2), gamma, k_levels, 16, 5.0,
                        agg, disp, conf)
-    ref = _sgm_reference(cost, dlo, guide, p1, p2, gamma, k_levels)
+    ref = _sgm_reference(cost, dlo, guide, p1, p2, gamma, k_levels, paths)
     np.testing.assert_array_equal(agg[:, :, :k_levels], ref[:, :, :k_levels])
     rd, rc = _wta_reference(ref, dlo, k_levels, 5.0)
     np.testing.assert_allclose(conf, rc, rtol=1e-6)
