@@ -100,6 +100,18 @@ def test_reused_scratch_changes_nothing() -> None:
         assert np.array_equal(r, keep["raw"], equal_nan=True)
 
 
+def test_census_only_and_gradient_features() -> None:
+    """Without the AD term (ad_weight=0: no feature planes) and with gradient
+    features the matcher still finds a known shift, on colour and grey pairs."""
+    pairs = [_pair(48, 128, 7.0, seed=s) for s in (4, 5, 6)]  # one texture per channel
+    colour = (np.dstack([p[0] for p in pairs]), np.dstack([p[1] for p in pairs]))
+    for lv, rv in (pairs[0], colour):
+        for kw in ({"ad_weight": 0.0}, {"ad_mode": "gradient"}):
+            res = match_stereo_full(lv, rv, min_disp=0, num_disp=20, **kw)
+            inner = res.disparity[6:-6, 24:-6]
+            assert np.abs(inner - 7.0).max() < 0.1, kw
+
+
 def test_negative_disparity_and_float_input() -> None:
     left, right = _pair(40, 96, -3.0, seed=3)
     d = match_stereo(left.astype(np.float32) / 255, right.astype(np.float32) / 255,
