@@ -482,12 +482,14 @@ def v8f_broadcast(typingctx, x):  # pragma: no cover - compiled by numba
 
 @intrinsic
 def v8f_fma(typingctx, a, b, c):  # pragma: no cover - compiled by numba
-    """``a * b + c`` lane-wise, fused (one rounding)."""
+    """``a * b + c`` lane-wise: fused (one rounding) where the CPU has FMA, else a
+    multiply and an add -- what a scalar loop compiled with fast-math "contract"
+    does (LLVM ``fmuladd``)."""
     if not (_vec(a) is F32x8 and _vec(b) is F32x8 and _vec(c) is F32x8):
         return None
 
     def codegen(context, builder, sig, args):
-        return _call(builder, "llvm.fma.v8f32", _llvm(F32x8), list(args))
+        return _call(builder, "llvm.fmuladd.v8f32", _llvm(F32x8), list(args))
 
     return F32x8(a, b, c), codegen
 

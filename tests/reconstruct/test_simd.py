@@ -181,34 +181,34 @@ def _float8_ops(q, lrow, acc):
     v8f_acc64(acc, 8, f, -1.0)
 
 
-def test_float8_intrinsics_match_fused_scalar_sums() -> None:
-    """Eight sums of products as vector lanes == the same fused multiply-add chains
-    done one lane at a time (exact rational arithmetic, one rounding to float32),
-    accumulated in float64."""
-    from fractions import Fraction
-
-    def fma32(a: np.float32, b: np.float32, c: np.float32) -> np.float32:
-        exact = Fraction(float(a)) * Fraction(float(b)) + Fraction(float(c))
-        near = np.float32(float(exact))
-        cands = [np.nextafter(near, np.float32(-np.inf)), near,
-                 np.nextafter(near, np.float32(np.inf))]
-        errs = [abs(Fraction(float(v)) - exact) for v in cands]
-        best = min(errs)
-        ties = [v for v, e in zip(cands, errs) if e == best]
-        return min(ties, key=lambda v: int(v.view(np.uint32)) & 1)  # ties to even
-
-    rng = np.random.default_rng(6)
-    q = rng.uniform(-3, 3, 16).astype(np.float32)
-    lrow = rng.uniform(-3, 3, 5).astype(np.float32)
-    acc = rng.uniform(-1, 1, 16)
-    start = acc.copy()
-    _float8_ops(q, lrow, acc)
+@njit(cache=False, fastmath={"contract"})
+def _float8_scalar(q, lrow, acc):
+    """The same sums one lane at a time, as the scalar kernel computed them (fused
+    multiply-adds where the CPU has them)."""
     for m in range(8):
         f = np.float32(0.0)
         for u in range(5):
-            f = fma32(lrow[u], q[1 + u + m], f)
-        assert acc[m] == start[m] + float(f)
-        assert acc[8 + m] == start[8 + m] - float(f)
+            f += lrow[u] * q[1 + u + m]
+        acc[m] += 1.0 * np.float64(f)
+        acc[8 + m] += -1.0 * np.float64(f)
+
+
+def test_float8_intrinsics_match_scalar_sums() -> None:
+    """Eight sums of products as vector lanes == the scalar loop they replaced, bit
+    for bit, accumulated in float64."""
+    rng = np.random.default_rng(6)
+    q = rng.uniform(-3, 3, 16).astype(np.float32)
+    lrow = rng.uniform(-3, 3, 5).astype(np.float32)
+    start = rng.uniform(-1, 1, 16)
+    acc = start.copy()
+    ref = start.copy()
+    _float8_ops(q, lrow, acc)
+    _float8_scalar(q, lrow, ref)
+    np.testing.assert_array_equal(acc, ref)
+    exact = np.array([sum(float(lrow[u]) * float(q[1 + u + m]) for u in range(5))
+                      for m in range(8)])
+    np.testing.assert_allclose(acc[:8] - start[:8], exact, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(acc[8:] - start[8:], -exact, rtol=0, atol=1e-5)
 
 
 def _census_reference(img: np.ndarray, ry: int, rx: int) -> np.ndarray:
