@@ -140,6 +140,12 @@ def _call(builder, name: str, ret: ir.Type, args: list) -> ir.Value:
     return builder.call(fn, args)
 
 
+def _load(context, builder, sig, args, ty: ir.VectorType):
+    """Unaligned load of an LLVM vector ``ty`` from ``arr[idx]`` (the first two args)."""
+    ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
+    return builder.load(builder.bitcast(ptr, ty.as_pointer()), align=1)
+
+
 @intrinsic
 def v16_load(typingctx, arr, idx):  # pragma: no cover - compiled by numba
     """``arr[idx:idx + 16]`` (uint16/32/64 or float32 array) as a vector."""
@@ -148,8 +154,7 @@ def v16_load(typingctx, arr, idx):  # pragma: no cover - compiled by numba
         return None
 
     def codegen(context, builder, sig, args):
-        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
-        return builder.load(builder.bitcast(ptr, _llvm(vt).as_pointer()), align=1)
+        return _load(context, builder, sig, args, _llvm(vt))
 
     return vt(arr, idx), codegen
 
@@ -161,9 +166,7 @@ def v16_load_u8(typingctx, arr, idx):  # pragma: no cover - compiled by numba
         return None
 
     def codegen(context, builder, sig, args):
-        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
-        v8 = builder.load(builder.bitcast(ptr, ir.VectorType(ir.IntType(8), _LANES)
-                                          .as_pointer()), align=1)
+        v8 = _load(context, builder, sig, args, ir.VectorType(ir.IntType(8), _LANES))
         return builder.zext(v8, _llvm(U16x16))
 
     return U16x16(arr, idx), codegen
@@ -265,42 +268,35 @@ def v16_popcount(typingctx, v):  # pragma: no cover - compiled by numba
     return vt(v), codegen
 
 
-@intrinsic
-def v16_narrow(typingctx, v):  # pragma: no cover - compiled by numba
-    """``U32x16`` / ``U64x16`` -> ``U16x16``, keeping the low 16 bits of every lane."""
-    if _vec(v) not in (U32x16, U64x16):
-        return None
+def _conversion(name: str, accepts, result: _VecType, op: str, doc: str):
+    """A lane-wise conversion intrinsic: vectors for which ``accepts(vt)`` holds become
+    ``result`` by the LLVM cast ``op`` (``trunc``, ``uitofp``, ``fptoui``)."""
 
-    def codegen(context, builder, sig, args):
-        return builder.trunc(args[0], _llvm(U16x16))
+    def typer(typingctx, v):  # pragma: no cover - compiled by numba
+        vt = _vec(v)
+        if vt is None or not accepts(vt):
+            return None
 
-    return U16x16(v), codegen
+        def codegen(context, builder, sig, args):
+            return getattr(builder, op)(args[0], _llvm(result))
 
+        return result(v), codegen
 
-@intrinsic
-def v16_to_f32(typingctx, v):  # pragma: no cover - compiled by numba
-    """Unsigned integer vector -> ``F32x16`` (exact below 2**24)."""
-    vt = _vec(v)
-    if vt is None or vt.kind != "u":
-        return None
-
-    def codegen(context, builder, sig, args):
-        return builder.uitofp(args[0], _llvm(F32x16))
-
-    return F32x16(v), codegen
+    typer.__name__ = name
+    typer.__doc__ = doc
+    return intrinsic(typer)
 
 
-@intrinsic
-def v16_to_u16(typingctx, v):  # pragma: no cover - compiled by numba
-    """``F32x16`` -> ``U16x16``, truncating toward zero like ``np.uint16(x)`` (lanes
-    must lie in [0, 65536))."""
-    if _vec(v) is not F32x16:
-        return None
-
-    def codegen(context, builder, sig, args):
-        return builder.fptoui(args[0], _llvm(U16x16))
-
-    return U16x16(v), codegen
+v16_narrow = _conversion(
+    "v16_narrow", lambda vt: vt in (U32x16, U64x16), U16x16, "trunc",
+    "``U32x16`` / ``U64x16`` -> ``U16x16``, keeping the low 16 bits of every lane.")
+v16_to_f32 = _conversion(
+    "v16_to_f32", lambda vt: vt.kind == "u", F32x16, "uitofp",
+    "Unsigned integer vector -> ``F32x16`` (exact below 2**24).")
+v16_to_u16 = _conversion(
+    "v16_to_u16", lambda vt: vt is F32x16, U16x16, "fptoui",
+    "``F32x16`` -> ``U16x16``, truncating toward zero like ``np.uint16(x)`` (lanes must "
+    "lie in [0, 65536)).")
 
 
 @intrinsic
@@ -379,12 +375,10 @@ def v16_load_num(typingctx, arr, idx):  # pragma: no cover - compiled by numba
     u8 = _is_u8_array(arr)
 
     def codegen(context, builder, sig, args):
-        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
         if u8:
-            v8 = builder.load(builder.bitcast(ptr, ir.VectorType(ir.IntType(8), _LANES)
-                                              .as_pointer()), align=1)
+            v8 = _load(context, builder, sig, args, ir.VectorType(ir.IntType(8), _LANES))
             return builder.zext(v8, _llvm(U16x16))
-        return builder.load(builder.bitcast(ptr, _llvm(vt).as_pointer()), align=1)
+        return _load(context, builder, sig, args, _llvm(vt))
 
     return vt(arr, idx), codegen
 
@@ -451,8 +445,7 @@ def v8f_load(typingctx, arr, idx):  # pragma: no cover - compiled by numba
         return None
 
     def codegen(context, builder, sig, args):
-        ptr = _elem_ptr(context, builder, sig.args[0], args[0], sig.args[1], args[1])
-        return builder.load(builder.bitcast(ptr, _llvm(F32x8).as_pointer()), align=1)
+        return _load(context, builder, sig, args, _llvm(F32x8))
 
     return F32x8(arr, idx), codegen
 
