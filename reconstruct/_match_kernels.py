@@ -72,6 +72,11 @@ from ._simd import (
 
 INF16 = 0x3FFF  # "no such disparity" in uint16 path costs; sums of 8 stay < 65535
 
+# numba's on-disk cache is keyed by the hash of *this* file only, yet the kernels inline
+# the intrinsics of _simd.py: its hash is recorded here, so that editing _simd.py (and
+# updating this line, which a test demands) recompiles the kernels
+_SIMD_SHA256 = "9e4a1b8fc867d5d363b01c708675091147a1991ce41e10a817d34391babd4ce9"
+
 
 @intrinsic
 def _popcount(typingctx, x):  # pragma: no cover - compiled by numba

@@ -17,8 +17,10 @@ Loads and stores take a C-contiguous 1-D array and an element index; they are
 unaligned and unchecked, like numba's own indexing (callers keep ``i + 16 <=
 len``).
 
-Numba's on-disk cache tracks only the source file of a cached function: after
-editing this module, touch the kernel modules that use it.
+Numba's on-disk cache is keyed by the hash of a cached function's own source file:
+after editing this module, update _SIMD_SHA256 in _match_kernels.py (a test
+fails until then), which makes numba recompile the kernels that inline these
+intrinsics.
 """
 
 from __future__ import annotations

@@ -420,3 +420,17 @@ def test_left_right_check_matches_plain_python(kp: int, k_levels: int, varying: 
     K.right_lr_check(agg, dlo, k_levels, 1.0, got)
     np.testing.assert_array_equal(got, ref)
     assert 0.05 < np.isnan(got).mean() < 0.95
+
+
+def test_kernels_record_the_intrinsics_they_were_compiled_with() -> None:
+    """numba caches the kernels by the hash of _match_kernels.py alone; the hash of
+    _simd.py recorded there must be current, or cached kernels could be stale."""
+    import hashlib
+    from pathlib import Path
+
+    from prism3d.reconstruct import _simd
+
+    digest = hashlib.sha256(Path(_simd.__file__).read_bytes()).hexdigest()
+    assert digest == K._SIMD_SHA256, (
+        "reconstruct/_simd.py changed: set _SIMD_SHA256 in reconstruct/_match_kernels.py "
+        f"to {digest!r} (so that numba recompiles the kernels)")
