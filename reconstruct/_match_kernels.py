@@ -46,6 +46,7 @@ from ._simd import (
     v8f_zero,
     v16_add,
     v16_broadcast,
+    v16_fill_bits,
     v16_fill_range,
     v16_keys,
     v16_lane,
@@ -75,7 +76,7 @@ INF16 = 0x3FFF  # "no such disparity" in uint16 path costs; sums of 8 stay < 655
 # numba's on-disk cache is keyed by the hash of *this* file only, yet the kernels inline
 # the intrinsics of _simd.py: its hash is recorded here, so that editing _simd.py (and
 # updating this line, which a test demands) recompiles the kernels
-_SIMD_SHA256 = "9e4a1b8fc867d5d363b01c708675091147a1991ce41e10a817d34391babd4ce9"
+_SIMD_SHA256 = "8df23886d3f2e27a2d46cdb58f4e29dd57dabaf7f3fc5e4e298c2c2cf64c54ac"
 
 
 @intrinsic
@@ -931,6 +932,14 @@ def sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _three_lanes(s):
+    """Bit mask of the lanes ``s, s + 1, s + 2`` that lie in 0..15 (``s`` any int)."""
+    if s >= 16 or s <= -3:
+        return 0
+    return (7 << s) & 0xFFFF if s >= 0 else 7 >> -s
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _wta(aggf, o, kp, k_levels, d0, uniqueness, disp, conf, y, x):
     """Winner-take-all of one pixel (levels at ``aggf[o .. o + kp - 1]``): best level,
     uniqueness, confidence, equiangular fit."""
@@ -949,9 +958,9 @@ def _wta(aggf, o, kp, k_levels, d0, uniqueness, disp, conf, y, x):
         key = v16_reduce_min(km)
         m = np.uint16(key >> np.uint32(16))
         b = np.int64(key & np.uint32(0xFFFF))
-        sv = v16_fill_range(z, b - 1, b + 1, big)
+        sv = v16_fill_bits(z, _three_lanes(b - 1), big)
         for kb in range(16, kp, 16):
-            sv = v16_min(sv, v16_fill_range(v16_load(aggf, o + kb), b - 1 - kb, b + 1 - kb, big))
+            sv = v16_min(sv, v16_fill_bits(v16_load(aggf, o + kb), _three_lanes(b - 1 - kb), big))
         s1 = v16_reduce_min(sv)
     else:
         # minimum and its first level in one vectorisable pass: keys (cost << 16) | level

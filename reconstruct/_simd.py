@@ -42,6 +42,7 @@ __all__ = [
     "v8f_zero",
     "v16_add",
     "v16_broadcast",
+    "v16_fill_bits",
     "v16_fill_range",
     "v16_keys",
     "v16_lane",
@@ -540,3 +541,22 @@ def v16_lane(typingctx, v, i):  # pragma: no cover - compiled by numba
         return builder.extract_element(args[0], idx)
 
     return vt.scalar(v, i), codegen
+
+
+@intrinsic
+def v16_fill_bits(typingctx, v, bits, x):  # pragma: no cover - compiled by numba
+    """``v`` with the lanes ``i`` whose bit ``i`` of ``bits`` is set replaced by ``x``
+    (a blend under a mask register on AVX-512)."""
+    vt = _vec(v)
+    if vt is None or not isinstance(bits, types.Integer) or not isinstance(
+            x, (types.Integer, types.Float)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        b16 = builder.trunc(context.cast(builder, args[1], sig.args[1], types.int64),
+                            ir.IntType(_LANES))
+        mask = builder.bitcast(b16, ir.VectorType(ir.IntType(1), _LANES))
+        fill = _splat(builder, context.cast(builder, args[2], sig.args[2], vt.scalar), vt)
+        return builder.select(mask, fill, args[0])
+
+    return vt(v, bits, x), codegen

@@ -15,6 +15,7 @@ from prism3d.reconstruct._simd import (
     v8f_zero,
     v16_add,
     v16_broadcast,
+    v16_fill_bits,
     v16_fill_range,
     v16_keys,
     v16_load,
@@ -57,6 +58,7 @@ def _integer_ops(a, b, c32, d32, c64, u8, out16, out32, out8, scal):
     v16_store(out16, 176, v16_fill_range(va, -4, 1, 9))
     v16_store(out16, 192, v16_fill_range(va, 14, 40, 9))
     v16_store(out16, 208, v16_fill_range(va, 9, 2, 9))  # empty range
+    v16_store(out16, 224, v16_fill_bits(va, 0b1000000000000101, 3))
     v16_store(out32, 0, v16_keys(va, 100))
     v16_store(out32, 16, v16_min(v16_load(c32, 0), v16_load(d32, 0)))
     v16_store_u8(out8, 0, v16_add(va, vb))
@@ -88,7 +90,7 @@ def test_integer_intrinsics_match_numpy() -> None:
     d32 = rng.integers(0, 2**32, 16, dtype=np.uint64).astype(np.uint32)
     c64 = rng.integers(0, 2**63, 16, dtype=np.uint64) * np.uint64(2) + np.uint64(1)
     u8 = rng.integers(0, 256, 20).astype(np.uint8)
-    out16 = np.zeros(224, np.uint16)
+    out16 = np.zeros(240, np.uint16)
     out32 = np.zeros(32, np.uint32)
     out8 = np.zeros(16, np.uint8)
     scal = np.zeros(2, np.uint64)
@@ -111,6 +113,7 @@ def test_integer_intrinsics_match_numpy() -> None:
     np.testing.assert_array_equal(out16[176:192], np.where(lanes <= 1, 9, va))
     np.testing.assert_array_equal(out16[192:208], np.where(lanes >= 14, 9, va))
     np.testing.assert_array_equal(out16[208:224], va)
+    np.testing.assert_array_equal(out16[224:240], np.where(np.isin(lanes, [0, 2, 15]), 3, va))
     np.testing.assert_array_equal(out32[:16], (va.astype(np.uint32) << 16) | (100 + lanes))
     np.testing.assert_array_equal(out32[16:], np.minimum(c32, d32))
     with np.errstate(over="ignore"):
@@ -209,6 +212,13 @@ def test_float8_intrinsics_match_scalar_sums() -> None:
                       for m in range(8)])
     np.testing.assert_allclose(acc[:8] - start[:8], exact, rtol=0, atol=1e-5)
     np.testing.assert_allclose(acc[8:] - start[8:], -exact, rtol=0, atol=1e-5)
+
+
+def test_three_lane_masks() -> None:
+    """_three_lanes(s): bits of the lanes s, s+1, s+2 inside 0..15, for any s."""
+    for s0 in range(-6, 22):
+        want = sum(1 << i for i in (s0, s0 + 1, s0 + 2) if 0 <= i < 16)
+        assert K._three_lanes(s0) == want, s0
 
 
 def _census_reference(img: np.ndarray, ry: int, rx: int) -> np.ndarray:
