@@ -183,8 +183,8 @@ def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, 
                 k_v = _cost16(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x, jb,
                               k_lo, k_hi, o)
             if k_v < k_hi:
-                _cost_scalar(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x,
-                             w - 1 - x + d0, k_v, k_hi, acc, adb, o)
+                _cost_scalar(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x, jb,
+                             k_v, k_hi, acc, adb, o)
             for k in range(k_lo):
                 o[k] = oob_cost
             for k in range(k_hi, k_levels):
@@ -1163,6 +1163,7 @@ def right_lr_check(agg, dlo, k_levels, max_diff, disp):
             kr = key[w - 1 - xr]
             if kr == none or abs(np.float32(dbase + np.int64(kr & low)) - d) > max_diff:
                 disp[y, x] = np.nan
+
 
 @njit(cache=True, nogil=True, inline="always")
 def _lk_row_products(lrow, qrow, x, xb, wx, sign, esf):
