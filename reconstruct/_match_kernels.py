@@ -370,12 +370,6 @@ def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, k_levels, agg):
                        k_levels)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _compatible(disp, d, yy, xx, max_diff):
-    dn = disp[yy, xx]
-    return not np.isnan(dn) and abs(dn - d) <= max_diff
-
-
 @njit(cache=True, nogil=True, parallel=True)
 def _speckle_runs(disp, max_diff, run, parent, size):
     """Rows in parallel: ``run[y, x]`` = flat index of the first pixel of the run of
