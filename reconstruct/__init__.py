@@ -28,7 +28,7 @@ _LAZY = {
     "flatness_test": "flatness",
 }
 
-__all__ = sorted(_LAZY)
+__all__ = sorted(_LAZY)  # noqa: PLE0605 - the lazily imported names, kept in one place
 
 
 def __getattr__(name: str) -> Any:

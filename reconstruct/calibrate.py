@@ -31,7 +31,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
 from prism3d.capture.rig import CameraModel, PrismSplit, StereoRig, compute_rectification
+from prism3d.checks import check_array, check_positive
+from prism3d.errors import CalibrationError, InputError
 from prism3d.reconstruct._bundle import (
     CAM_PARAM_NAMES,
     N_CAM,
@@ -47,9 +50,6 @@ from prism3d.reconstruct.corners import (
     detect_views,
     grid_symmetries,
 )
-
-from prism3d.checks import check_array, check_positive
-from prism3d.errors import CalibrationError, InputError
 
 __all__ = [
     "Calibration",

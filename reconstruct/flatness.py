@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array, check_in_range
 from prism3d.errors import InputError, ReconstructionError
 
-__all__ = ["PlaneFit", "FlatnessReport", "fit_plane", "flatness_test", "flatness_of_ply", "REGIONS"]
+__all__ = ["REGIONS", "FlatnessReport", "PlaneFit", "fit_plane", "flatness_of_ply", "flatness_test"]
 
 #: Region names and centres as fractions of the plate's extent (x right, y down).
 REGIONS: dict[str, tuple[float, float]] = {
@@ -65,7 +65,7 @@ def fit_plane(points: NDArray) -> PlaneFit:
     res = q[:, 2] - A @ sol
     rms = float(np.sqrt(np.mean(res**2)))
     return PlaneFit(float(a), float(b), float(c), rms, rms / float(np.sqrt(1 + a * a + b * b)),
-                    float(np.max(np.abs(res))), int(len(p)))
+                    float(np.max(np.abs(res))), len(p))
 
 
 @dataclass(frozen=True)

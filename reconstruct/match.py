@@ -287,7 +287,6 @@ def _match_level(
     kernels; the padded levels are never selected).
     """
     h, w, nc = left.shape
-    full = dmin is not None
     ry, rx = prm.census_ry, prm.census_rx
     nbits = (2 * ry + 1) * (2 * rx + 1) - 1
     ctype = np.uint32 if nbits <= 32 else np.uint64

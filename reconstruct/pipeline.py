@@ -22,9 +22,9 @@ __all__ = [
     "Reconstruction",
     "convergence_distance_mm",
     "disparity_range",
-    "local_contrast",
     "inside_silhouette",
     "lit_mask",
+    "local_contrast",
     "reconstruct_shot",
     "reconstruct_to_files",
 ]
@@ -114,8 +114,8 @@ def disparity_range(
     if not (0 < z0 < z1):
         raise InputError(f"depth range: expected 0 < near < far, got {z0}:{z1}")
     fb = rect.focal_px * rect.baseline_mm
-    d_min = int(math.floor(fb / z1))
-    d_max = int(math.ceil(fb / z0))
+    d_min = math.floor(fb / z1)
+    d_max = math.ceil(fb / z0)
     num = int(math.ceil((d_max - d_min + 1) / 16.0) * 16)
     return d_min, num
 

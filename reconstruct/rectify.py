@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from prism3d.capture.rig import CameraModel, Rectification, StereoRig, compute_rectification
 
+from prism3d.capture.rig import CameraModel, Rectification, StereoRig, compute_rectification
 from prism3d.checks import check_array
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path

@@ -56,6 +56,11 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from prism3d.checks import check_array, check_choice, check_positive
+from prism3d.errors import InputError, ReconstructionError
+from prism3d.io.atomic import atomic_path, atomic_write_text
+from prism3d.progress import ProgressFn
 from prism3d.reconstruct.fusion import fuse_clouds, mesh_is_closed, poisson_mesh
 from prism3d.reconstruct.registration import (
     ScanFeatures,
@@ -67,11 +72,6 @@ from prism3d.reconstruct.registration import (
     rotation_angle_deg,
     turntable_motion,
 )
-
-from prism3d.checks import check_array, check_choice, check_positive
-from prism3d.errors import InputError, ReconstructionError
-from prism3d.io.atomic import atomic_path, atomic_write_text
-from prism3d.progress import ProgressFn
 
 __all__ = ["StitchResult", "load_cloud", "stitch_scans", "stitch_to_files"]
 

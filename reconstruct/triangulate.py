@@ -27,12 +27,12 @@ from prism3d.errors import InputError, ReconstructionError
 
 __all__ = [
     "Scan",
-    "disparity_to_depth",
-    "depth_to_points",
-    "grid_normals",
-    "triangulate",
-    "scan_from_depth",
     "depth_resolution_mm",
+    "depth_to_points",
+    "disparity_to_depth",
+    "grid_normals",
+    "scan_from_depth",
+    "triangulate",
 ]
 
 
