@@ -41,6 +41,20 @@ curvature: the flat plate of Table I goes from 0.027-0.033 to 0.031-0.037 mm RMS
 On a synthetic cylinder pair the correction removes 77-84 % of the bias (the plane
 map's curvature is itself slightly disturbed by the stripes).
 
+Its side effect on flat faces (measured on 8 views of a truck, no sensor noise):
+the curvature fit also sees the map rounded over a crease, out to ~24 px from
+it, twice the reach of the plane fit's own bias. Between 4 and 24 px from the
+creases the mean error goes from -0.013..+0.004 px to +0.006..+0.010 px. On the
+planar faces beside a crease this adds a tilt in proportion to the face's
+disparity gradient: over 37 faces, the relief is stretched by 0.14-0.18 %
+(0.00 % without the correction), about 0.07 deg on a face seen at 45 deg.
+Applying the window's own plane-fit operator ``S`` instead (one Van Cittert
+step, ``d + (d - S d)`` with the last iteration's weights) removes the stretch
+and took the truck's worst stitched view pose from 0.068 to 0.041 deg. But it
+under-corrects strongly convex surfaces: mean error at a jet's most curved
+pixels -0.10 px, against -0.046 with ``c * kappa`` and -0.16 without either.
+The jet's worst pose went from 0.032 to 0.067 deg, so it was not adopted.
+
 References
 ----------
 .. [1] M. Bleyer, C. Rhemann, C. Rother, "PatchMatch Stereo - Stereo matching with
