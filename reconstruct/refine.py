@@ -54,6 +54,9 @@ and took the truck's worst stitched view pose from 0.068 to 0.041 deg. But it
 under-corrects strongly convex surfaces: mean error at a jet's most curved
 pixels -0.10 px, against -0.046 with ``c * kappa`` and -0.16 without either.
 The jet's worst pose went from 0.032 to 0.067 deg, so it was not adopted.
+A minmod curvature was also rejected: the two half-windows' fits, the smaller
+when they agree in sign, else 0. The truck went 0.068 -> 0.016 deg and the jet
+0.032 -> 0.065 deg.
 
 References
 ----------
