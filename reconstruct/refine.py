@@ -58,6 +58,21 @@ A minmod curvature was also rejected: the two half-windows' fits, the smaller
 when they agree in sign, else 0. The truck went 0.068 -> 0.016 deg and the jet
 0.032 -> 0.065 deg.
 
+Three more alternatives were measured (worst stitched view pose, 8 views):
+
+- The curvature fitted over a narrower window than the plane (13 columns):
+  truck 0.068 -> 0.050 deg, but a ship 0.044 -> 0.088 deg.
+- One Van Cittert step where the window lies wholly inside the valid pixels,
+  and ``c * kappa`` near the outline, where the step under-corrects:
+  ship 0.044 -> 0.023 deg, truck 0.047 deg, but jet_j2 0.052 -> 0.072 deg.
+- A narrower *plane* window: it shrinks the crease rounding and the curvature
+  fit's spill together, and the bias ``c * kappa`` with the square of the width.
+  This one improved the worst case over 10 targets at two renderings
+  (0.068 -> 0.047 deg) and is what
+  :func:`~prism3d.reconstruct.pipeline.reconstruct_shot` uses (7 x 19; see its
+  ``refine_window``). This function keeps 7 x 25, the lower-noise choice for a
+  single view.
+
 References
 ----------
 .. [1] M. Bleyer, C. Rhemann, C. Rother, "PatchMatch Stereo - Stereo matching with
