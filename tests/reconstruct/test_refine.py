@@ -34,6 +34,12 @@ def _render(xsrc: np.ndarray, colours: np.ndarray, ss: int = 8) -> np.ndarray:
     return out / ss
 
 
+def _noisy(left: np.ndarray, right: np.ndarray, seed: int, sigma: float = 1.0):
+    """Both views with Gaussian sensor noise, as 8-bit images."""
+    rng = np.random.default_rng(seed)
+    return tuple(np.clip(v + rng.normal(0, sigma, v.shape), 0, 255).astype(np.uint8) for v in (left, right))
+
+
 def _pair(slope: float, seed: int = 0, noise: float = 1.0):
     """Left/right views of a slanted plane d(x, y) = d0 + slope x + 0.02 y."""
     d0 = 40.0
@@ -45,9 +51,7 @@ def _pair(slope: float, seed: int = 0, noise: float = 1.0):
     left = cv2.GaussianBlur(_render(lambda x, y: x + 0.0 * y, cols), (0, 0), PSF)
     # right pixel xr sees the point of left pixel x with x - d(x, y) = xr
     right = cv2.GaussianBlur(_render(lambda xr, y: (xr + d0 + 0.02 * y) / (1.0 - slope), cols), (0, 0), PSF)
-    rng = np.random.default_rng(seed + 1)
-    left = np.clip(left + rng.normal(0, noise, left.shape), 0, 255).astype(np.uint8)
-    right = np.clip(right + rng.normal(0, noise, right.shape), 0, 255).astype(np.uint8)
+    left, right = _noisy(left, right, seed + 1, noise)
     xx, yy = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
     return left, right, disparity(xx, yy).astype(np.float32)
 
@@ -184,9 +188,7 @@ def test_curvature_correction_removes_the_plane_fits_bias(c: float) -> None:
         return xc + (1.0 - np.sqrt(np.maximum(1.0 - 4.0 * c * q, 0.0))) / (2.0 * c) + 0.0 * y
 
     right = cv2.GaussianBlur(_render(left_x, cols), (0, 0), PSF)
-    rng = np.random.default_rng(8)
-    left = np.clip(left + rng.normal(0, 1.0, left.shape), 0, 255).astype(np.uint8)
-    right = np.clip(right + rng.normal(0, 1.0, right.shape), 0, 255).astype(np.uint8)
+    left, right = _noisy(left, right, 8)
     xx = np.broadcast_to(np.arange(W, dtype=float)[None, :], (H, W))
     truth = (d0 + c * (xx - xc) ** 2).astype(np.float32)
     valid = np.zeros((H, W), bool)
@@ -224,9 +226,7 @@ def test_narrow_window_keeps_a_crease_from_tilting_its_faces(s: float) -> None:
         return np.where(xr >= xc - d0, beyond, before) + 0.0 * y
 
     right = cv2.GaussianBlur(_render(left_x, cols), (0, 0), PSF)
-    rng = np.random.default_rng(4)
-    left = np.clip(left + rng.normal(0, 1.0, left.shape), 0, 255).astype(np.uint8)
-    right = np.clip(right + rng.normal(0, 1.0, right.shape), 0, 255).astype(np.uint8)
+    left, right = _noisy(left, right, 4)
     xx = np.broadcast_to(np.arange(W, dtype=float)[None, :], (H, W))
     truth = (d0 + s * np.abs(xx - xc)).astype(np.float32)
     valid = np.zeros((H, W), bool)
