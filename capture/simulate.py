@@ -482,8 +482,21 @@ def _write_png(path: Path, rgb: NDArray[np.uint8]) -> None:
 
 
 def _write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> None:
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        (np.savez_compressed if compress else np.savez)(fh, **arrays)
+    """Write arrays as ``.npz`` (readable by ``np.load``), atomically.
+
+    ``compress``: deflate at level 1. A 5 MP scene shot's truth is ~94 % NaN
+    background: 281 MB plain, 4.8 MB at level 1 (0.6 s in memory, against 0.3 s
+    plain), 3.8 MB at ``np.savez_compressed``'s level 6 (1.2 s)."""
+    import zipfile
+
+    if not compress:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+        return
+    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for name, a in arrays.items():
+            with zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(a), allow_pickle=False)
 
 
 def write_ply(path: str | Path, mesh: SceneMesh) -> None:
@@ -529,7 +542,7 @@ def simulate_to_folder(
     noise: bool = True,
     supersample: int = 2,
     progress: ProgressFn | None = None,
-    compress: bool = False,
+    compress: bool = True,
     board: tuple[int, int] = (9, 6),
     square_mm: float = 25.0,
     blur_sigma: float = 0.0,
@@ -578,7 +591,9 @@ def simulate_to_folder(
     progress : callable(done, total, label), optional
         Called after each shot.
     compress : bool
-        Write compressed ``.npz`` (smaller, slower).
+        Write the truth ``.npz`` deflated (default; ~60x smaller, a 5 MP shot's
+        truth 4.8 MB instead of 281 MB, for ~0.3 s more per shot). False writes
+        it plain.
     board : (cols, rows)
         ``calib``: inner corners of the chessboard. A denser board pins the
         principal point better: with 5 poses at the paper rig's focal length its

@@ -163,7 +163,9 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--no-noise", dest="noise", action="store_false")
     p.add_argument("--supersample", type=int, default=2, help="anti-aliasing factor (default 2)")
     p.add_argument("--rig", type=Path, help="rig/calibration YAML to simulate (default: the paper's rig)")
-    p.add_argument("--compress", action="store_true", help="compress truth .npz files (smaller, slower)")
+    p.add_argument("--compress", action=argparse.BooleanOptionalAction, default=True,
+                   help="deflate the truth .npz files (default; --no-compress writes them plain, "
+                   "~60x larger)")
     p.add_argument("--board", default="9x6",
                    help="calib: chessboard inner corners COLSxROWS (default 9x6; 19x13 pins the "
                    "principal point about twice as well)")
