@@ -197,6 +197,41 @@ def test_stitch_to_files_writes_model_mesh_and_poses(tank_views, tmp_path):
     assert not (tmp_path / "o2").exists() or not any((tmp_path / "o2").iterdir())
 
 
+def test_cli_bad_input_exits_2_and_writes_nothing(tank_views, tmp_path, capsys):
+    """`prism3d stitch`: fewer than 2 scans, a missing, unreadable or empty file and
+    two scans that do not overlap each end with one line on stderr and exit 2, and
+    leave the output folder empty (no model, no poses.json, no temporary files)."""
+    from prism3d.cli import main
+    from prism3d.io.ply import write_ply
+
+    scans = tank_views[0]
+    good = tmp_path / "a.ply"
+    write_ply(good, scans[0][0])
+    far = tmp_path / "far.ply"
+    write_ply(far, scans[4][0] + [5000.0, 0, 0])
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(b"this is not a point cloud\n")
+    empty = tmp_path / "empty.ply"
+    empty.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                     "property float z\nend_header\n")
+    cases = [
+        ([good], "at least 2 scans"),
+        ([good, tmp_path / "missing.ply"], "missing.ply"),
+        ([good, garbage], "garbage.ply"),
+        ([good, empty], "empty.ply"),
+        ([good, far], "do not overlap"),
+    ]
+    for k, (inputs, message) in enumerate(cases):
+        out = tmp_path / f"out{k}"
+        out.mkdir()
+        capsys.readouterr()
+        code = main(["stitch", *map(str, inputs), "-o", str(out / "model.ply"), "--mesh", str(out / "mesh.ply")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2, (inputs, err)
+        assert len(err) == 1 and message in err[0], err
+        assert list(out.iterdir()) == [], list(out.iterdir())
+
+
 def test_non_overlapping_scans_raise_naming_views(tank_views):
     scans = tank_views[0]
     far = (scans[4][0] + [5000.0, 0, 0], None, None)  # a different place entirely
