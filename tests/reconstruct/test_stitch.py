@@ -124,6 +124,24 @@ def test_eight_views_without_hint(tank_views):
     assert res.mesh_vertices is None and res.diagnostics["turntable_motion"] is None
 
 
+def test_eight_views_in_metres_without_hint(tank_views):
+    """The same scans in metres: every scale (voxels, ICP distances, thresholds)
+    follows the point spacing, so the targets hold at 1/1000 of the size."""
+    scans, poses, V, F = tank_views
+    metres = [(p / 1000.0, c, n) for p, c, n in scans]
+    res = stitch_scans(metres, mesh=False, max_registration_points=20000)
+    poses_m = []
+    for T in poses:
+        T = T.copy()
+        T[:3, 3] /= 1000.0
+        poses_m.append(T)
+    errs = _pose_errors(res, poses_m, V / 1000.0)
+    assert max(a for a, _ in errs) <= 0.05, errs
+    assert max(b for _, b in errs) <= 0.1e-3, errs
+    assert _fused_rms(res, poses_m, V / 1000.0, F) <= 0.3e-3
+    assert res.diagnostics["warnings"] == []
+
+
 def _rig_set():
     """8 views at 45 deg of tank_t1 rendered once by the scene simulator (slow;
     cached in $PRISM3D_STITCH_SET or /tmp/prism3d_stitch_tank8)."""
