@@ -303,9 +303,9 @@ def stitch_scans(
         motion, or (without a hint) whose motion agrees with a neighbouring pair's
         motion that fits at ``min_fitness`` or better: with the motion known or
         corroborated, a small overlap is not a sign of a wrong match. On
-        reconstructed scans of the ten built-in targets (8 views, 45 deg)
-        consecutive views overlap down to 0.18 (a truck end-on, then oblique; a
-        thin jet side-on, then tail-on).
+        reconstructed scans of the twelve built-in targets (8 views, 45 deg)
+        consecutive views overlap down to 0.165 (a ship or a truck end-on, then
+        oblique).
     max_residual_deg : float
         Largest rotation residual of an edge after the pose-graph optimisation.
     max_registration_points : int
