@@ -67,6 +67,12 @@ def tank_views():
     return _raycast_views()
 
 
+def _rotation_errors(res, poses):
+    """Per view: rotation error (deg) of the recovered pose against the truth."""
+    T0_inv = np.linalg.inv(poses[0])
+    return [rotation_angle_deg(np.linalg.inv(T0_inv @ P) @ T) for P, T in zip(poses, res.T_model_scan, strict=True)]
+
+
 def _pose_errors(res, poses, V):
     """Per view: rotation error (deg) and RMS motion (mm) of the true surface."""
     T0_inv = np.linalg.inv(poses[0])
@@ -267,7 +273,6 @@ def test_turntable_motion_accepts_small_overlap(tank_views):
     p2 = scans[2][0]
     padded = np.concatenate([p2] + [p2 + [8000.0 * (i + 1), 0, 0] for i in range(5)])
     three = [scans[0], scans[1], (padded, None, None)]
-    T0 = np.linalg.inv(poses[0])
     for hint in (45.0, None):
         # without a hint the pair 1-2 moves like the well-fitting pair 0-1, which
         # corroborates its small overlap as a known motion would
@@ -275,8 +280,7 @@ def test_turntable_motion_accepts_small_overlap(tank_views):
         fit = {(e["source"], e["target"]): e["fitness"] for e in res.diagnostics["edges"]}
         assert 0.1 <= fit[(2, 1)] < 0.2, fit
         assert res.diagnostics["warnings"] == []
-        err = [rotation_angle_deg(np.linalg.inv(T0 @ P) @ T)
-               for P, T in zip(poses[:3], res.T_model_scan, strict=True)]
+        err = _rotation_errors(res, poses[:3])
         assert max(err) < 0.05, (hint, err)
     # the pair alone: nothing corroborates the small overlap
     with pytest.raises(ReconstructionError, match="scan 0 and scan 1"):
@@ -342,8 +346,7 @@ def test_small_overlap_without_hint_is_corroborated_by_neighbours():
     res = stitch_scans(scans, turntable_step_deg=None, mesh=False)
     odometry = [e["fitness"] for e in res.diagnostics["edges"] if e["kind"] == "odometry"]
     assert min(odometry) < 0.2, odometry  # the case the corroboration is for
-    T0 = np.linalg.inv(poses[0])
-    err = [rotation_angle_deg(np.linalg.inv(T0 @ P) @ T) for P, T in zip(poses, res.T_model_scan, strict=True)]
+    err = _rotation_errors(res, poses)
     assert max(err) < 0.05, err
     assert res.diagnostics["warnings"] == []
 
@@ -355,7 +358,6 @@ def test_other_targets_without_hint(target):
     neighbours' motion finds every pose (measured 0.018 and 0.007 deg)."""
     scans, poses, _, _ = _raycast_views(target=target)
     res = stitch_scans(scans, turntable_step_deg=None, mesh=False)
-    T0 = np.linalg.inv(poses[0])
-    err = [rotation_angle_deg(np.linalg.inv(T0 @ P) @ T) for P, T in zip(poses, res.T_model_scan, strict=True)]
+    err = _rotation_errors(res, poses)
     assert max(err) < 0.05, err
     assert res.diagnostics["warnings"] == []
