@@ -198,6 +198,44 @@ def test_virtual_rig_eight_views_full_density(hint):
     _check(res, poses, V, F)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("hint", [45.0, None])
+def test_ship_stereo_coverage_with_true_depth(tmp_path, hint):
+    """ship_s3's end-on view stitches 0.1-0.2 deg off from stereo scans (README,
+    "Known gap"). Keep the stereo scans' pixels -- the coverage the matcher gives,
+    a third of the end-on view missing -- but give each the true depth plus 0.1 mm
+    noise along the ray: the issue's targets hold (measured 0.018 deg, 0.023 mm
+    surface motion), so the stitching copes with that coverage and the gap is the
+    stereo depth."""
+    from prism3d.capture.rig import StereoRig
+    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.datasets.targets import builtin_target
+    from prism3d.io.images import read_image
+    from prism3d.io.ply import read_ply
+    from prism3d.reconstruct.pipeline import reconstruct_shot
+
+    folder = tmp_path / "ship"
+    simulate_to_folder("scene", folder, target=builtin_target("ship_s3", seed=0), views=8, seed=0, supersample=1)
+    rig = StereoRig.load(folder / "rig.yaml")
+    views = json.loads((folder / "poses.json").read_text())["views"]
+    rng = np.random.default_rng(0)
+    scans, poses = [], []
+    for v in views:
+        scan = reconstruct_shot(read_image(folder / v["image"]), rig).scan
+        t = np.load(folder / v["truth"], allow_pickle=False)
+        z_true = t["depth_rect_mm"][scan.pixels[:, 0], scan.pixels[:, 1]].astype(np.float64)
+        ok = np.isfinite(z_true)
+        q = scan.points[ok].astype(np.float64) @ t["R1"].T  # rectified-left frame
+        q *= (z_true[ok] / q[:, 2])[:, None]
+        q += q / np.linalg.norm(q, axis=1, keepdims=True) * rng.normal(0, 0.1, ok.sum())[:, None]
+        scans.append((q @ t["R1"], None, None))
+        poses.append(np.array(v["T_world_cam"]))
+    res = stitch_scans(scans, turntable_step_deg=hint, mesh=False)
+    target = read_ply(folder / "target.ply")
+    _check(res, poses, target.points, target.faces)
+    assert res.diagnostics["warnings"] == []
+
+
 def test_stitch_to_files_writes_model_mesh_and_poses(tank_views, tmp_path):
     from prism3d.io.ply import read_ply, write_ply
 
