@@ -481,6 +481,12 @@ def stitch_scans(
         results[(k, k + 1)] = r
         tick(f"odometry {k}-{k + 1}")
     if A is None and n > 2:
+
+        def same_motion(T_a: NDArray, T_b: NDArray, k: int) -> bool:
+            """Do two pairs' motions agree on scan k+1's points (within
+            _MOTION_AGREEMENT of the object's radius)?"""
+            return _residual(T_a, T_b, radius, centres[k + 1])[1] <= _MOTION_AGREEMENT * radius
+
         # Constant-motion check (no turntable hint): views taken in a sequence
         # usually move alike, so each pair is also tried from its neighbours'
         # motions. A clearly better fit (+0.05) replaces a global match that went
@@ -507,10 +513,9 @@ def stitch_scans(
         for k in range(n - 1):
             T_k = results[(k, k + 1)].T_target_source
             for m in (k - 1, k + 1):
-                if 0 <= m < n - 1 and results[(m, m + 1)].fitness >= min_fitness:
-                    _, moved = _residual(results[(m, m + 1)].T_target_source, T_k, radius, centres[k + 1])
-                    if moved <= _MOTION_AGREEMENT * radius:
-                        corroborated.add(k)
+                if (0 <= m < n - 1 and results[(m, m + 1)].fitness >= min_fitness
+                        and same_motion(results[(m, m + 1)].T_target_source, T_k, k)):
+                    corroborated.add(k)
         # A pair whose match agrees with neither neighbour, while the two neighbours
         # (each fitting at min_fitness or better) agree with each other, is
         # registered again from their common motion. If that fit reaches
@@ -524,12 +529,10 @@ def stitch_scans(
             before, after = results[(k - 1, k)], results[(k + 1, k + 2)]
             if min(before.fitness, after.fitness) < min_fitness:
                 continue
-            _, apart = _residual(before.T_target_source, after.T_target_source, radius, centres[k + 1])
-            if apart > _MOTION_AGREEMENT * radius:
+            if not same_motion(before.T_target_source, after.T_target_source, k):
                 continue
             r = icp(k, k + 1, before.T_target_source, first_scale=4.0)
-            _, moved = _residual(before.T_target_source, r.T_target_source, radius, centres[k + 1])
-            if r.fitness >= min_turntable_fitness and moved <= _MOTION_AGREEMENT * radius:
+            if r.fitness >= min_turntable_fitness and same_motion(before.T_target_source, r.T_target_source, k):
                 log.info("views %s-%s: their match (fitness %.3f) disagrees with both neighbours, which move "
                          "alike; using that common motion (fitness %.3f)",
                          names[k], names[k + 1], results[(k, k + 1)].fitness, r.fitness)
