@@ -1,4 +1,5 @@
-"""reconstruct_shot's outline: no points on background pixels beside the object."""
+"""reconstruct_shot: no points on background pixels beside the object; the refinement's
+rectification."""
 
 from __future__ import annotations
 
@@ -97,3 +98,44 @@ def test_no_points_on_background_pixels(tank_scene, view: int) -> None:
     assert n > 0.9 * n0  # the outline costs few points (measured ~7 %)
     assert bad0 > 0.015 * n0, (bad0, n0)  # the scene does show the fattening...
     assert bad < 0.003 * n, (bad, n)  # ...and the lit outline removes it (measured 0-11)
+
+
+@pytest.mark.parametrize("view", [1, 3])
+def test_bspline_rectification_lowers_the_refinements_local_bias(tank_scene, view: int) -> None:
+    """The refinement on B-spline-rectified views against the true disparity: the
+    error averaged over 31x31 pixels (the bias a stitched view inherits; noise
+    averages out) is lower than on the matcher's bilinear uint8 views (measured,
+    views 1 / 3: 0.049 -> 0.043 and 0.056 -> 0.049 px RMS)."""
+    import cv2
+
+    from prism3d.io.images import read_image
+    from prism3d.reconstruct.pipeline import reconstruct_shot
+
+    out, rig, _ = tank_scene
+    truth = np.load(out / f"truth_{view:02d}.npz")["disparity_rect"]
+    shot = read_image(out / f"shot_{view:02d}.png")
+
+    def local_bias(interp: str) -> float:
+        rec = reconstruct_shot(shot, rig, refine_interpolation=interp)
+        e = rec.disparity - truth
+        ok = rec.valid & np.isfinite(e) & (np.abs(e) < 1.0)
+        w = ok.astype(np.float32)
+        s = cv2.boxFilter(np.where(ok, e, 0).astype(np.float32), -1, (31, 31), normalize=False)
+        n = cv2.boxFilter(w, -1, (31, 31), normalize=False)
+        full = ok & (n > 0.5 * 31 * 31)
+        assert full.sum() > 10000
+        return float(np.sqrt(np.mean((s[full] / n[full]) ** 2)))
+
+    bspline, linear = local_bias("bspline"), local_bias("linear")
+    assert bspline < 0.05, bspline
+    assert bspline < 0.92 * linear, (bspline, linear)
+
+
+def test_refine_interpolation_is_checked() -> None:
+    from prism3d.capture.rig import paper_rig
+    from prism3d.errors import InputError
+    from prism3d.reconstruct.pipeline import reconstruct_shot
+
+    rig = paper_rig(sensor_size=(320, 120), focal_px=5107.0 / 10.8)
+    with pytest.raises(InputError, match="refine_interpolation: expected one of bspline, linear"):
+        reconstruct_shot(np.zeros((120, 320, 3), np.uint8), rig, refine_interpolation="cubic")
