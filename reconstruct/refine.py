@@ -125,6 +125,12 @@ def refine_slanted(
     ----------
     left, right : (H, W) or (H, W, C) uint8 or float
         The rectified pair the disparity was matched on (``d = x_left - x_right``).
+        How they were resampled matters at this precision: views rectified with
+        bilinear interpolation differ at every edge even at the true disparity,
+        and the fit reads that as a bias of a few hundredths of a pixel;
+        :func:`~prism3d.reconstruct.pipeline.reconstruct_shot` passes views
+        rectified with exact B-splines (``RectifyMaps.remap(...,
+        interpolation="bspline")``).
     disparity : (H, W) float
         Current disparity (sub-pixel or integer; within ~1 px of the truth).
     valid : (H, W) bool
