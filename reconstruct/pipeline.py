@@ -6,17 +6,20 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.capture.rig import Rectification, StereoRig
+from prism3d.capture.rig import Rectification, StereoRig, compute_rectification
 from prism3d.checks import check_array, check_choice
 from prism3d.errors import InputError
 from prism3d.progress import ProgressFn, null_progress
 from prism3d.reconstruct.meshing import mesh_from_grid, smooth_depth
 from prism3d.reconstruct.triangulate import Scan, scan_from_depth
+
+if TYPE_CHECKING:
+    from prism3d.reconstruct.rectify import RectifyMaps
 
 __all__ = [
     "Reconstruction",
@@ -106,19 +109,17 @@ def lit_mask(image: NDArray, *, k_sigma: float = 5.0, min_step: float = 6.0) -> 
     return cv2.dilate(v, np.ones((3, 3), np.uint8)) >= thr
 
 
-def _bspline_views(img: NDArray, rig: StereoRig, rect: Rectification, r0: int, r1: int) -> tuple[NDArray, NDArray]:
+def _bspline_views(views: tuple[NDArray, NDArray], maps: RectifyMaps, r0: int, r1: int) -> tuple[NDArray, NDArray]:
     """Both views rectified with cubic B-splines (float32 in [0, 1]), computed on rows
     ``r0..r1`` only (the refinement's windows) and 0 elsewhere."""
-    from prism3d.reconstruct.rectify import RectifyMaps, rectify_maps
+    from prism3d.reconstruct.rectify import RectifyMaps
 
-    scale = np.float32(1.0 / 255.0) if img.dtype == np.uint8 else np.float32(1.0)
-    views = [np.asarray(v, np.float32) * scale for v in rig.split.split(img)]
-    m = rectify_maps(rig, rect)
-    r0, r1 = max(int(r0), 0), min(int(r1) + 1, m.left_x.shape[0])
-    band = RectifyMaps(rect, m.left_x[r0:r1], m.left_y[r0:r1], m.right_x[r0:r1], m.right_y[r0:r1])
+    scale = np.float32(1.0 / 255.0) if views[0].dtype == np.uint8 else np.float32(1.0)
+    r0, r1 = max(int(r0), 0), min(int(r1) + 1, maps.left_x.shape[0])
+    band = RectifyMaps(maps.rect, maps.left_x[r0:r1], maps.left_y[r0:r1], maps.right_x[r0:r1], maps.right_y[r0:r1])
     out = []
-    for part in band.remap(*views, interpolation="bspline"):
-        full = np.zeros(m.left_x.shape + part.shape[2:], np.float32)
+    for part in band.remap(*(np.asarray(v, np.float32) * scale for v in views), interpolation="bspline"):
+        full = np.zeros(maps.left_x.shape + part.shape[2:], np.float32)
         full[r0:r1] = part
         out.append(full)
     return out[0], out[1]
@@ -272,7 +273,7 @@ def reconstruct_shot(
         resolution at depth edges.
     """
     from prism3d.reconstruct.match import match_stereo_full
-    from prism3d.reconstruct.rectify import rectify_shot
+    from prism3d.reconstruct.rectify import rectify_maps
 
     img = check_array(shot, "shot", ndim=(2, 3))
     sw, sh = rig.split.sensor_size
@@ -284,7 +285,12 @@ def reconstruct_shot(
     t = {}
     t0 = time.perf_counter()
     progress(0, 4, "rectify")
-    left, right, rect = rectify_shot(img, rig, alpha=alpha)
+    # rectify_shot's steps, keeping the maps and views for the refinement's B-spline
+    # views (the rig guarantees each view's size; the shot's was checked above)
+    rect = compute_rectification(rig, alpha=alpha)
+    maps = rectify_maps(rig, rect)
+    views = rig.split.split(img)
+    left, right = maps.remap(*views)
     t["rectify"] = time.perf_counter() - t0
     if (min_disp is None) != (num_disp is None):
         raise InputError("give both min_disp and num_disp, or neither (then depth_range_mm is used)")
@@ -328,7 +334,7 @@ def reconstruct_shot(
         holes = (inside if inside is not None else inside_silhouette(valid, 0)) & textured & in_range & ~valid
         if refine_interpolation == "bspline":
             rows = np.flatnonzero((valid | holes).any(axis=1))
-            left_r, right_r = _bspline_views(img, rig, rect, rows[0] - refine_window[0], rows[-1] + refine_window[0])
+            left_r, right_r = _bspline_views(views, maps, rows[0] - refine_window[0], rows[-1] + refine_window[0])
         else:
             left_r, right_r = left, right
         disparity, resid, dstd = refine_slanted(left_r, right_r, res.disparity, valid, window=refine_window,
