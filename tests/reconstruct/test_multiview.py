@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from prism3d.reconstruct.multiview import fit_turntable, overlapping_pairs, refine_multiview, refine_turntable
+from prism3d.reconstruct.multiview import (
+    fit_turntable,
+    overlapping_pairs,
+    refine_multiview,
+    refine_turntable,
+    rotation_levers,
+)
 from prism3d.reconstruct.registration import rotation_angle_deg
 
 from prism3d.errors import InputError
@@ -138,3 +144,49 @@ def test_overlapping_pairs_finds_the_views_that_share_surface() -> None:
         overlapping_pairs(scans, normals, truth[:3], spacing=1.0)
     with pytest.raises(InputError, match="spacing"):
         overlapping_pairs(scans, normals, truth, spacing=0.0)
+
+
+def _plane_patch(rng, centre, normal, e1, e2, w, h, n=20000):
+    a = rng.uniform(-w / 2, w / 2, n)
+    b = rng.uniform(-h / 2, h / 2, n)
+    P = np.asarray(centre, float) + a[:, None] * np.asarray(e1, float) + b[:, None] * np.asarray(e2, float)
+    return P, np.tile(np.asarray(normal, float), (n, 1))
+
+
+def test_rotation_levers_match_the_geometry() -> None:
+    """A face of width W turned about a line through it (perpendicular to the width)
+    has lever W / sqrt(12); a deck whose normals lie along the axis adds no
+    information, only points; free poses report the weakest rotation."""
+    rng = np.random.default_rng(3)
+    W = 35.0
+    z = np.array([0.0, 0.0, 1.0])
+    # a transom (normal -x) 125 mm in front of a vertical axis through the origin
+    face, fn = _plane_patch(rng, [-125.0, 0.0, 20.0], [-1.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], W, 30.0)
+    lever = rotation_levers([face], [fn], [z], [np.zeros(3)])[0]
+    assert lever == pytest.approx(W / np.sqrt(12), rel=0.02)
+    # the same face plus an equally large deck (normal +z): half the points carry the information
+    deck, dn = _plane_patch(rng, [-60.0, 0.0, 35.0], [0.0, 0.0, 1.0], [1, 0, 0], [0, 1, 0], 130.0, W)
+    both = rotation_levers([np.vstack([face, deck])], [np.vstack([fn, dn])], [z], [np.zeros(3)])[0]
+    assert both == pytest.approx(lever / np.sqrt(2), rel=0.02)
+    # a side wall (normal +y) 125 mm long: its points sit at lever arms up to 125 mm
+    side, sn = _plane_patch(rng, [-62.5, W / 2, 20.0], [0.0, 1.0, 0.0], [1, 0, 0], [0, 0, 1], 125.0, 30.0)
+    assert rotation_levers([side], [sn], [z], [np.zeros(3)])[0] == pytest.approx(
+        np.sqrt(np.mean(side[:, 0] ** 2)), rel=0.02)
+    # free poses: one plane can spin about its normal (0); a box's three faces cannot
+    assert rotation_levers([face], [fn])[0] == pytest.approx(0.0, abs=1e-6)
+    top, tn = _plane_patch(rng, [0.0, 0.0, 15.0], [0, 0, 1], [1, 0, 0], [0, 1, 0], 30.0, 30.0)
+    front, frn = _plane_patch(rng, [0.0, -15.0, 0.0], [0, -1, 0], [1, 0, 0], [0, 0, 1], 30.0, 30.0)
+    right, rn = _plane_patch(rng, [15.0, 0.0, 0.0], [1, 0, 0], [0, 1, 0], [0, 0, 1], 30.0, 30.0)
+    box = rotation_levers([np.vstack([top, front, right])], [np.vstack([tn, frn, rn])])[0]
+    assert 3.0 < box < 30.0
+    assert rotation_levers([face[:5]], [fn[:5]])[0] == 0.0
+
+
+def test_rotation_levers_bad_input() -> None:
+    P = np.zeros((10, 3))
+    with pytest.raises(InputError):
+        rotation_levers([P], [P, P])
+    with pytest.raises(InputError):
+        rotation_levers([P], [P], axes=[np.array([0, 0, 1.0])])
+    with pytest.raises(InputError):
+        rotation_levers([P], [np.zeros((9, 3))])
