@@ -9,8 +9,8 @@ from prism3d.reconstruct.multiview import (
     overlapping_pairs,
     refine_multiview,
     refine_turntable,
-    rotation_levers,
 )
+from prism3d.reconstruct.multiview import _view_levers
 from prism3d.reconstruct.registration import rotation_angle_deg
 
 from prism3d.errors import InputError
@@ -146,47 +146,59 @@ def test_overlapping_pairs_finds_the_views_that_share_surface() -> None:
         overlapping_pairs(scans, normals, truth, spacing=0.0)
 
 
-def _plane_patch(rng, centre, normal, e1, e2, w, h, n=20000):
+
+def _face(rng, centre, normal, e1, e2, w, h, n=20000):
     a = rng.uniform(-w / 2, w / 2, n)
     b = rng.uniform(-h / 2, h / 2, n)
     P = np.asarray(centre, float) + a[:, None] * np.asarray(e1, float) + b[:, None] * np.asarray(e2, float)
     return P, np.tile(np.asarray(normal, float), (n, 1))
 
 
-def test_rotation_levers_match_the_geometry() -> None:
-    """A face of width W turned about a line through it (perpendicular to the width)
-    has lever W / sqrt(12); a deck whose normals lie along the axis adds no
-    information, only points; free poses report the weakest rotation."""
+def _block(P, N, c):
+    J = np.hstack([np.cross(P - c, N), N])
+    H = np.zeros((12, 12))
+    H[6:, 6:] = J.T @ J  # view 1's block; view 0 sees nothing
+    return H
+
+
+def test_view_levers_match_the_geometry() -> None:
+    """A face of width w facing a turntable axis squarely holds the angle with lever
+    w / sqrt(12), at any distance from the axis; a deck (normals along the axis) as
+    large again halves the information per weight; a side wall holds it by its
+    points' distances along the axis' normal plane; free poses report the weakest
+    rotation (a lone face can spin about its normal: 0)."""
     rng = np.random.default_rng(3)
-    W = 35.0
-    z = np.array([0.0, 0.0, 1.0])
-    # a transom (normal -x) 125 mm in front of a vertical axis through the origin
-    face, fn = _plane_patch(rng, [-125.0, 0.0, 20.0], [-1.0, 0.0, 0.0], [0, 1, 0], [0, 0, 1], W, 30.0)
-    lever = rotation_levers([face], [fn], [z], [np.zeros(3)])[0]
-    assert lever == pytest.approx(W / np.sqrt(12), rel=0.02)
-    # the same face plus an equally large deck (normal +z): half the points carry the information
-    deck, dn = _plane_patch(rng, [-60.0, 0.0, 35.0], [0.0, 0.0, 1.0], [1, 0, 0], [0, 1, 0], 130.0, W)
-    both = rotation_levers([np.vstack([face, deck])], [np.vstack([fn, dn])], [z], [np.zeros(3)])[0]
-    assert both == pytest.approx(lever / np.sqrt(2), rel=0.02)
-    # a side wall (normal +y) 125 mm long: its points sit at lever arms up to 125 mm
-    side, sn = _plane_patch(rng, [-62.5, W / 2, 20.0], [0.0, 1.0, 0.0], [1, 0, 0], [0, 0, 1], 125.0, 30.0)
-    assert rotation_levers([side], [sn], [z], [np.zeros(3)])[0] == pytest.approx(
-        np.sqrt(np.mean(side[:, 0] ** 2)), rel=0.02)
-    # free poses: one plane can spin about its normal (0); a box's three faces cannot
-    assert rotation_levers([face], [fn])[0] == pytest.approx(0.0, abs=1e-6)
-    top, tn = _plane_patch(rng, [0.0, 0.0, 15.0], [0, 0, 1], [1, 0, 0], [0, 1, 0], 30.0, 30.0)
-    front, frn = _plane_patch(rng, [0.0, -15.0, 0.0], [0, -1, 0], [1, 0, 0], [0, 0, 1], 30.0, 30.0)
-    right, rn = _plane_patch(rng, [15.0, 0.0, 0.0], [1, 0, 0], [0, 1, 0], [0, 0, 1], 30.0, 30.0)
-    box = rotation_levers([np.vstack([top, front, right])], [np.vstack([tn, frn, rn])])[0]
-    assert 3.0 < box < 30.0
-    assert rotation_levers([face[:5]], [fn[:5]])[0] == 0.0
+    w, u, a = 35.0, np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    face, fn = _face(rng, [-125.0, 0.0, 20.0], [-1, 0, 0], [0, 1, 0], [0, 0, 1], w, 30.0)
+    deck, dn = _face(rng, [-60.0, 0.0, 35.0], [0, 0, 1], [1, 0, 0], [0, 1, 0], 130.0, w)
+    side, sn = _face(rng, [-62.5, w / 2, 20.0], [0, 1, 0], [1, 0, 0], [0, 0, 1], 125.0, 30.0)
+    c = np.array([-40.0, 5.0, 10.0])  # the refinement's centroid: anywhere
+
+    def lever(P, N, free=False):
+        twist = None if free else np.r_[u, np.cross(u, c - a)]
+        lv = _view_levers(_block(P, N, c), 2, twist)
+        assert lv[0] == 0.0
+        return lv[1]
+
+    assert lever(face, fn) == pytest.approx(w / np.sqrt(12), rel=0.02)
+    assert lever(np.vstack([face, deck]), np.vstack([fn, dn])) == pytest.approx(w / np.sqrt(24), rel=0.02)
+    assert lever(side, sn) == pytest.approx(np.sqrt(np.mean(side[:, 0] ** 2)), rel=0.02)
+    assert lever(face, fn, free=True) == pytest.approx(0.0, abs=1e-6)
+    top, tn = _face(rng, [0.0, 0.0, 15.0], [0, 0, 1], [1, 0, 0], [0, 1, 0], 30.0, 30.0)
+    front, frn = _face(rng, [0.0, -15.0, 0.0], [0, -1, 0], [1, 0, 0], [0, 0, 1], 30.0, 30.0)
+    right, rn = _face(rng, [15.0, 0.0, 0.0], [1, 0, 0], [0, 1, 0], [0, 0, 1], 30.0, 30.0)
+    assert 3.0 < lever(np.vstack([top, front, right]), np.vstack([tn, frn, rn]), free=True) < 30.0
 
 
-def test_rotation_levers_bad_input() -> None:
-    P = np.zeros((10, 3))
-    with pytest.raises(InputError):
-        rotation_levers([P], [P, P])
-    with pytest.raises(InputError):
-        rotation_levers([P], [P], axes=[np.array([0, 0, 1.0])])
-    with pytest.raises(InputError):
-        rotation_levers([P], [np.zeros((9, 3))])
+def test_refinements_report_levers() -> None:
+    """On the tank's 8 views the end-on views (2 and 6: front and back plates, the
+    hull's width) hold their angle about the axis least firmly, the side views most."""
+    scans, normals, truth = _views()
+    pairs = [(k, (k + 1) % 8) for k in range(8)] + [(k, (k + 2) % 8) for k in range(8)]
+    _, info = refine_turntable(scans, normals, truth, pairs, spacing=1.0)
+    lev = np.asarray(info["levers"])
+    assert lev.shape == (8,) and np.all(lev > 0)
+    assert set(np.argsort(lev)[:2]) == {2, 6}, lev
+    assert lev[[2, 6]].max() < 0.6 * np.median(lev)
+    _, info = refine_multiview(scans, normals, truth, pairs, spacing=1.0)
+    assert len(info["levers"]) == 8 and min(info["levers"]) > 0

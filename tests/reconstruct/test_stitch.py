@@ -233,9 +233,10 @@ def test_ship_stereo_coverage_with_true_depth(tmp_path, hint):
     res = stitch_scans(scans, turntable_step_deg=hint, mesh=False)
     target = read_ply(folder / "target.ply")
     _check(res, poses, target.points, target.faces)
-    # the end-on view is flagged as weakly held (its lever, 0.14 of the median, is
-    # geometry: with true depth its pose is right all the same)
+    # with the stereo scans' coverage the end-on view is held by its transom alone
+    # and is named as weakly held; with true depth its pose is right all the same
     assert _lever_warnings(res) == ["scan 6"], res.diagnostics["warnings"]
+    assert len(res.diagnostics["warnings"]) == 1, res.diagnostics["warnings"]
 
 
 @pytest.mark.slow
@@ -428,12 +429,7 @@ def test_other_targets_without_hint(target):
     res = stitch_scans(scans, turntable_step_deg=None, mesh=False)
     err = _rotation_errors(res, poses)
     assert max(err) < 0.05, err
-    flagged = _lever_warnings(res)
-    assert len(res.diagnostics["warnings"]) == len(flagged), res.diagnostics["warnings"]
-    # views 2 and 6 look along the length: only the ship's narrow stern holds their turn
-    assert set(flagged) <= ({"scan 2", "scan 6"} if target == "ship_s2" else set()), flagged
-    if target == "ship_s2":
-        assert flagged
+    assert res.diagnostics["warnings"] == []
 
 
 def _lever_warnings(res) -> list[str]:
@@ -443,9 +439,9 @@ def _lever_warnings(res) -> list[str]:
 
 def test_rotation_lever_check(tank_views):
     """Every view's lever is reported; the tank's views hold their turn well (its
-    end-on views have 0.33-0.41 of the median on stereo scans), so nothing is
-    flagged; a threshold above them flags exactly the views below it, 0 turns the
-    check off, and a ratio outside [0, 1) is refused."""
+    end-on views have 0.32-0.43 of the median on stereo scans, 0.42-0.50 here), so
+    nothing is flagged; a threshold above the three weakest flags exactly those, 0
+    turns the check off, and a ratio outside [0, 1) is refused."""
     scans, _, _, _ = tank_views
     res = stitch_scans(scans, turntable_step_deg=45.0, mesh=False)
     lev = np.asarray(res.diagnostics["rotation_levers"])
