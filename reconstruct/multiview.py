@@ -498,4 +498,3 @@ def refine_turntable(
     return T, {"iterations": float(it), "rms": rms, "rms_input": float(np.sqrt(cost0 / max(wsum0, 1e-12))),
                "max_change_deg": change, "correspondences": float(n_corr), "axis": u.tolist(), "axis_point": p.tolist(), "angles_deg": np.degrees(theta).tolist(),
                "levers": _view_levers(H, n, np.r_[u, np.cross(u, c - p)])}
-

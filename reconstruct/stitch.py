@@ -112,7 +112,11 @@ class StitchResult:
         the cloud radius, input units),
         ``kept``), ``multiview`` (iterations, rms, max_change_deg,
         correspondences, pairs -- the number of overlapping view pairs refined
-        jointly; empty when off), ``mesh_closed`` (every mesh edge shared by exactly two faces;
+        jointly; empty when off), ``rotation_levers`` (per view, how firmly its
+        correspondences in the last joint refinement fix its angle about the
+        turntable axis, or its weakest rotation, as a length in input units; see
+        ``min_rotation_lever_ratio``; empty without ``multiview``),
+        ``mesh_closed`` (every mesh edge shared by exactly two faces;
         None without a mesh), ``warnings`` (list of str) and ``seconds`` per
         stage.
     """
