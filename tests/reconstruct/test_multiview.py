@@ -9,8 +9,8 @@ from prism3d.reconstruct.multiview import (
     overlapping_pairs,
     refine_multiview,
     refine_turntable,
+    _view_levers,
 )
-from prism3d.reconstruct.multiview import _view_levers
 from prism3d.reconstruct.registration import rotation_angle_deg
 
 from prism3d.errors import InputError
@@ -146,7 +146,6 @@ def test_overlapping_pairs_finds_the_views_that_share_surface() -> None:
         overlapping_pairs(scans, normals, truth, spacing=0.0)
 
 
-
 def _face(rng, centre, normal, e1, e2, w, h, n=20000):
     a = rng.uniform(-w / 2, w / 2, n)
     b = rng.uniform(-h / 2, h / 2, n)
@@ -164,9 +163,9 @@ def _block(P, N, c):
 def test_view_levers_match_the_geometry() -> None:
     """A face of width w facing a turntable axis squarely holds the angle with lever
     w / sqrt(12), at any distance from the axis; a deck (normals along the axis) as
-    large again halves the information per weight; a side wall holds it by its
-    points' distances along the axis' normal plane; free poses report the weakest
-    rotation (a lone face can spin about its normal: 0)."""
+    large again halves the information per weight; a side wall (normal across the
+    axis) holds it by its points' distances from the axis along the wall; free
+    poses report the weakest rotation (a lone face can spin about its normal: 0)."""
     rng = np.random.default_rng(3)
     w, u, a = 35.0, np.array([0.0, 0.0, 1.0]), np.zeros(3)
     face, fn = _face(rng, [-125.0, 0.0, 20.0], [-1, 0, 0], [0, 1, 0], [0, 0, 1], w, 30.0)
