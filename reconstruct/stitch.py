@@ -693,9 +693,10 @@ def stitch_scans(
         about = "its angle about the turntable axis" if "turntable" in mv_info else "its rotation"
         for k in range(n):
             if med > 0 and levers[k] < min_rotation_lever_ratio * med:
+                factor = f"~{med / levers[k]:.0f}x" if levers[k] * 100.0 >= med else "over 100x"
                 msg = (f"view {names[k]}: {about} rests on little of what it sees (rotation lever "
                        f"{levers[k]:.3g}, {levers[k] / med:.2f} of the median view's {med:.3g}): depth errors "
-                       f"across those surfaces turn it ~{med / max(levers[k], 1e-300):.0f}x more than a typical "
+                       f"across those surfaces turn it {factor} more than a typical "
                        "view, so its pose is the least certain (a narrow object seen end-on? turn the object "
                        "so that no view is end-on)")
                 log.warning(msg)

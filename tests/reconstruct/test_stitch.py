@@ -458,6 +458,27 @@ def test_rotation_lever_check(tank_views):
             stitch_scans(scans, turntable_step_deg=45.0, mesh=False, min_rotation_lever_ratio=bad)
 
 
+def test_rotation_lever_warning_for_an_unheld_view(tank_views, monkeypatch):
+    """A view whose correspondences do not hold its turn at all (lever 0) is named,
+    and the warning gives a bounded factor, not a division by zero."""
+    import prism3d.reconstruct.multiview as mv
+
+    scans, _, _, _ = tank_views
+    real = mv.refine_turntable
+
+    def zero_lever(*args, **kwargs):
+        T, info = real(*args, **kwargs)
+        info["levers"] = np.array(info["levers"], dtype=np.float64)
+        info["levers"][3] = 0.0
+        return T, info
+
+    monkeypatch.setattr(mv, "refine_turntable", zero_lever)
+    res = stitch_scans(scans, turntable_step_deg=45.0, mesh=False)
+    assert _lever_warnings(res) == ["scan 3"]
+    (msg,) = [w for w in res.diagnostics["warnings"] if "rotation lever" in w]
+    assert "rotation lever 0," in msg and "over 100x more" in msg, msg
+
+
 def test_match_against_both_agreeing_neighbours_yields_to_their_motion(tank_views, monkeypatch, caplog):
     """Without a hint, a pair's match that fits better but moves unlike both of its
     neighbours (which move alike) gives way to their common motion when that still
