@@ -462,7 +462,13 @@ def stitch_scans(
         # fitting one is refined fully. (The alignment with the most feature matches
         # can be wrong on symmetric, boxy objects: a truck seen end-on matched 90
         # deg off at fitness 0.36 when the right alignment fits 0.70.)
-        cands = match_features_candidates(feats(j), feats(i), seed=seed, max_candidates=global_candidates)
+        try:
+            cands = match_features_candidates(feats(j), feats(i), seed=seed, max_candidates=global_candidates)
+        except ReconstructionError as exc:
+            raise ReconstructionError(
+                f"views {names[i]} and {names[j]} do not overlap: {exc} (are they consecutive views of one "
+                "object?)"
+            ) from exc
         if len(cands) == 1:
             return icp(i, j, cands[0][0])
         coarse = [icp(i, j, T, last_scale=4.0) for T, _ in cands]

@@ -305,12 +305,21 @@ def test_cli_bad_input_exits_2_and_writes_nothing(tank_views, tmp_path, capsys):
     empty = tmp_path / "empty.ply"
     empty.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
                      "property float z\nend_header\n")
+    # two unrelated shapes: RANSAC finds no consistent feature matches at all
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(20000, 3))
+    sphere = tmp_path / "sphere.ply"
+    write_ply(sphere, 50.0 * u / np.linalg.norm(u, axis=1, keepdims=True))
+    g = rng.uniform(-50.0, 50.0, size=(20000, 2))
+    plane = tmp_path / "plane.ply"
+    write_ply(plane, np.c_[g, 0.2 * np.sin(g[:, 0] / 5.0)])
     cases = [
         ([good], "at least 2 scans"),
         ([good, tmp_path / "missing.ply"], "missing.ply"),
         ([good, garbage], "garbage.ply"),
         ([good, empty], "empty.ply"),
         ([good, far], "do not overlap"),
+        ([sphere, plane], "plane.ply do not overlap"),
     ]
     for k, (inputs, message) in enumerate(cases):
         out = tmp_path / f"out{k}"
