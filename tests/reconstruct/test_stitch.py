@@ -288,6 +288,33 @@ def test_stitch_to_files_writes_model_mesh_and_poses(tank_views, tmp_path):
     assert not (tmp_path / "o2").exists() or not any((tmp_path / "o2").iterdir())
 
 
+def test_pcd_and_ply_inputs_mixed(tank_views, tmp_path):
+    """Scans given as PCD (ASCII and binary, written by Open3D) and PLY files, mixed,
+    stitch to the same targets, and poses.json maps each input path."""
+    import open3d as o3d
+
+    from prism3d.io.ply import write_ply
+
+    scans, poses, V, F = tank_views
+    paths = []
+    for k, (pts, col, _) in enumerate(scans):
+        if k % 3 == 2:
+            p = tmp_path / f"scan_{k}.ply"
+            write_ply(p, pts, colors=col)
+        else:
+            p = tmp_path / f"scan_{k}.pcd"
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+            pc.colors = o3d.utility.Vector3dVector(col / 255.0)
+            assert o3d.io.write_point_cloud(str(p), pc, write_ascii=(k % 3 == 0))
+        paths.append(p)
+    res = stitch_to_files(paths, tmp_path / "out" / "model.ply", turntable_step_deg=45.0,
+                          max_registration_points=20000)
+    _check(res, poses, V, F)
+    doc = json.loads((tmp_path / "out" / "poses.json").read_text())
+    assert [s["path"] for s in doc["scans"]] == [str(p) for p in paths]
+    np.testing.assert_allclose(np.array(doc["scans"][4]["T_model_scan"]), res.T_model_scan[4])
+
+
 def test_cli_bad_input_exits_2_and_writes_nothing(tank_views, tmp_path, capsys):
     """`prism3d stitch`: fewer than 2 scans, a missing, unreadable or empty file and
     two scans that do not overlap each end with one line on stderr and exit 2, and
