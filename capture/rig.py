@@ -710,8 +710,10 @@ def compute_rectification(
         cx = (w_out - 1) / 2.0 - f * (x0 + x1) / 2.0
         cy = (h_out - 1) / 2.0 - f * (y0 + y1) / 2.0
     else:
-        w_out = int(math.ceil(f * (x1 - x0))) + 1
-        h_out = int(math.ceil(f * (y1 - y0))) + 1
+        # the footprint's extent in pixels, less a hair of rounding noise (an exact
+        # identity rig must keep its own size, not grow by one)
+        w_out = int(math.ceil(f * (x1 - x0) - 1e-6)) + 1
+        h_out = int(math.ceil(f * (y1 - y0) - 1e-6)) + 1
         cx = -f * x0
         cy = -f * y0
     B = rig.baseline_mm
