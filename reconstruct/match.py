@@ -63,6 +63,7 @@ from prism3d.checks import check_array, check_choice, check_same_shape
 from prism3d.errors import InputError, ReconstructionError
 
 from . import _match_kernels as _k
+from .photometric import GainField, fit_gain_field
 
 __all__ = ["C2F_AUTO_CELLS", "StereoResult", "match_files", "match_stereo", "match_stereo_full"]
 
@@ -92,6 +93,9 @@ class StereoResult:
         The unfilled disparity: ``disparity`` where ``valid``, NaN elsewhere.
     coarse_to_fine : bool
         Whether the coarse-to-fine path was used.
+    right_gain : GainField or None
+        The gain applied to the right view before matching (``equalize``); ``None``
+        when off.
     """
 
     disparity: NDArray[np.float32]
@@ -99,6 +103,7 @@ class StereoResult:
     confidence: NDArray[np.float32]
     raw: NDArray[np.float32]
     coarse_to_fine: bool
+    right_gain: GainField | None = None
 
 
 class _Workspace(threading.local):
@@ -390,6 +395,7 @@ def match_stereo_full(
     ad_weight: float = 1.0,
     ad_trunc: float = 15.0,
     ad_mode: str = "intensity",
+    equalize: bool = True,
 ) -> StereoResult:
     """Match a rectified pair; return dense disparity plus validity and confidence.
 
@@ -440,6 +446,18 @@ def match_stereo_full(
         Levels searched per pixel in the coarse-to-fine pass (default: ``2 * (scale
         + 4) + 1`` for pyramid factor ``scale``, rounded up to a multiple of 16 with
         4 paths -- 32 at the paper's geometry).
+    ad_weight, ad_trunc : float
+        Weight and truncation (grey levels per channel) of the colour-difference term
+        added to the census cost.
+    ad_mode : {"intensity", "gradient"}
+        What the colour-difference term compares: the colour values (after
+        ``equalize`` and a global mean/spread match) or horizontal gradients.
+    equalize : bool
+        Before matching, bring the right view's exposure, colour balance and
+        vignetting to the left's: a census-only pass on a coarse level, then a smooth
+        per-channel gain fitted to the matched pixels
+        (:func:`~prism3d.reconstruct.photometric.fit_gain_field`). Views that already
+        agree get a gain of ~1.
 
     Returns
     -------
@@ -517,12 +535,15 @@ def match_stereo_full(
     cells = h * w * num_disp
     keep = _Workspace.small(h, w, num_disp)  # scratch kept between calls (small problems)
     use_c2f = cells > C2F_AUTO_CELLS if coarse_to_fine is None else bool(coarse_to_fine)
-    if use_c2f:
-        scale = 2
-        while (h // scale) * (w // scale) * (num_disp / scale) > _COARSE_CELLS and scale < 16:
-            scale *= 2
-        if h // scale < 8 or w // scale < 8:
-            use_c2f = False
+    scale = 2
+    while (h // scale) * (w // scale) * (num_disp / scale) > _COARSE_CELLS and scale < 16:
+        scale *= 2
+    if use_c2f and (h // scale < 8 or w // scale < 8):
+        use_c2f = False
+    gain = None
+    if equalize and h // scale >= 8 and w // scale >= 8:
+        gain = _right_gain(lf, rf, min_disp, num_disp, scale, prm)
+        rf = np.ascontiguousarray(gain.apply(rf))
     if not use_c2f:
         dlo = _WS.take("dlo", (h, w), np.int32, keep)
         dlo.fill(min_disp)
@@ -544,7 +565,36 @@ def match_stereo_full(
             f"is rectified and that disparities lie in [{min_disp}, {min_disp + num_disp - 1}]"
         )
     return StereoResult(disparity=dense, valid=valid, confidence=conf_out, raw=raw,
-                        coarse_to_fine=use_c2f)
+                        coarse_to_fine=use_c2f, right_gain=gain)
+
+
+def _downsample(img: NDArray[Any], scale: int) -> NDArray[Any]:
+    """Area-averaged ``1/scale`` level of an (H, W, C) image (same dtype; uint8 rounded)."""
+    h, w, nc = img.shape
+    hc, wc = h // scale, w // scale
+    crop = np.ascontiguousarray(img[: hc * scale, : wc * scale])
+    small = cv2.resize(crop, (wc, hc), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(small.reshape(hc, wc, nc))
+
+
+def _right_gain(lf: NDArray[Any], rf: NDArray[Any], min_disp: int, num_disp: int, scale: int,
+                prm: _Params) -> GainField:
+    """The right view's gain field, fitted at pixels a census-only (gain-blind) match
+    finds on the ``1/scale`` level."""
+    import dataclasses
+
+    h, w, nc = lf.shape
+    lc, rc = _downsample(lf, scale), _downsample(rf, scale)
+    dmin_c = math.floor(min_disp / scale) - 1
+    dmax_c = math.ceil((min_disp + num_disp - 1) / scale) + 1
+    dlo_c = np.full(lc.shape[:2], dmin_c, np.int32)
+    blind = dataclasses.replace(prm, ad_weight=0.0)
+    raw_c, _ = _match_level(lc, rc, dlo_c, dmax_c - dmin_c + 1, blind, subpixel="equiangular",
+                            speckle_size=max(4, prm.speckle_size // (scale * scale)), dmin=dmin_c)
+    ok = np.isfinite(raw_c)
+    if not ok.any():
+        return GainField.identity(nc, (w, h))
+    return fit_gain_field(lc, rc, raw_c, ok, scale=float(scale), size=(w, h))
 
 
 def _match_c2f(
