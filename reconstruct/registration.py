@@ -40,6 +40,7 @@ __all__ = [
     "RegistrationResult",
     "ScanFeatures",
     "ScanPyramid",
+    "evaluate_pyramids",
     "global_register",
     "icp_pyramids",
     "match_features",
@@ -49,6 +50,7 @@ __all__ = [
     "register_pair",
     "rigid_fit",
     "rotation_angle_deg",
+    "surface_noise",
     "turntable_motion",
 ]
 
@@ -492,10 +494,24 @@ class ScanPyramid:
                 pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3.0 * max(v, spacing), max_nn=20))
                 pc.orient_normals_towards_camera_location(vp)
             self._levels.append(pc)
+        self._trees: dict[int, cKDTree] = {}
 
     def level_sizes(self) -> list[int]:
         """Number of points per level, coarse to fine."""
         return [len(pc.points) for pc in self._levels]
+
+    def _level(self, scale: float) -> int:
+        """Index of the level at ``scale`` (levels at or below 1 are the same)."""
+        found = [i for i, sc in enumerate(self.scales) if max(sc, 1.0) == max(float(scale), 1.0)]
+        if not found:
+            raise InputError(f"scale: expected one of the pyramid's scales {self.scales}, got {scale}")
+        return found[-1]
+
+    def _level_arrays(self, i: int) -> tuple[NDArray[np.float64], NDArray[np.float64], cKDTree]:
+        """Points, normals and a KD-tree (built once) of level ``i``."""
+        if i not in self._trees:
+            self._trees[i] = cKDTree(np.asarray(self._levels[i].points))
+        return np.asarray(self._levels[i].points), np.asarray(self._levels[i].normals), self._trees[i]
 
 
 def icp_pyramids(
@@ -583,6 +599,107 @@ def icp_pyramids(
     corr = np.asarray(res.correspondence_set)
     info = _information(np.asarray(d_l.points)[corr[:, 1]] if len(corr) else np.zeros((0, 3)))
     return RegistrationResult(T, float(res.fitness), float(res.inlier_rmse), info, float(dist))
+
+
+def surface_noise(pyramid: ScanPyramid, *, scale: float = 1.0, sample: int = 3000, seed: int = 0) -> float:
+    """Noise of a prepared cloud's surface along its normals.
+
+    Two independent samples of one surface with noise ``sigma`` along the normal lie
+    ``sqrt(2) * sigma`` apart along it; within one scan, a point and its nearest
+    neighbour are such a pair. So ``sigma`` is the spread (``1.4826 * median(|d|)``, like
+    ``plane_sigma`` of :func:`evaluate_pyramids`) of (a seeded sample of) the level's
+    points' distances from the tangent plane at their nearest neighbour within the
+    level's correspondence distance, over ``sqrt(2)``. Two correctly aligned scans with
+    noises ``s1`` and ``s2`` have a ``plane_sigma`` of about ``hypot(s1, s2)``.
+
+    Parameters
+    ----------
+    pyramid : ScanPyramid
+    scale : float
+        Level, one of the pyramid's ``scales`` (1: the finest).
+    sample : int
+        Number of query points (all when the level is smaller).
+    seed : int
+
+    Returns
+    -------
+    float
+        Cloud units; 0 when no point has a neighbour within reach.
+    """
+    x, n, tree = pyramid._level_arrays(pyramid._level(scale))
+    q = np.random.default_rng(seed).choice(len(x), min(int(sample), len(x)), replace=False)
+    d, idx = tree.query(x[q], k=2, distance_upper_bound=2.0 * max(float(scale), 1.0) * pyramid.spacing)
+    ok = np.isfinite(d[:, 1])
+    if not ok.any():
+        return 0.0
+    nb = idx[ok, 1]
+    r = np.einsum("ij,ij->i", x[q[ok]] - x[nb], n[nb])
+    return float(1.4826 * np.median(np.abs(r)) / np.sqrt(2.0))
+
+
+def evaluate_pyramids(
+    source: ScanPyramid,
+    target: ScanPyramid,
+    T_target_source: NDArray,
+    *,
+    max_distance: float,
+    scale: float = 1.0,
+    sample: int | None = None,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """Overlap and residuals of two prepared clouds at a given alignment (no ICP step).
+
+    Measures what :func:`icp_pyramids` reports for its result at any transform, e.g.
+    a pair at the poses of a global optimisation. The point-to-point RMSE of correctly
+    aligned scans is dominated by their sampling (the nearest target point lies up to
+    half a voxel away sideways) and is bounded by ``max_distance``, so it barely grows
+    with a misalignment; the spread along the target's normals is the surfaces'
+    separation: their noise when aligned (:func:`surface_noise`), more when not.
+
+    Parameters
+    ----------
+    source, target : ScanPyramid
+        Built with the same ``scales`` and ``spacing``.
+    T_target_source : (4, 4) float
+    max_distance : float
+        Correspondence distance (cloud units).
+    scale : float
+        Level to measure on, one of the pyramids' ``scales`` (1: the finest, where
+        :func:`icp_pyramids` ends unless given ``last_scale``).
+    sample : int, optional
+        Measure on this many of the source level's points (a seeded random subset,
+        the same for every call with the same source and ``seed``); default all.
+    seed : int
+
+    Returns
+    -------
+    fitness : float
+        Fraction of the source level's points with a target point within
+        ``max_distance`` (Open3D's ``fitness``; as :func:`icp_pyramids` reports).
+    inlier_rmse : float
+        RMS distance of those correspondences (cloud units; Open3D's ``inlier_rmse``,
+        0 when there are none).
+    plane_sigma : float
+        ``1.4826 * median(|d|)`` of the same source points' distances ``d`` from their
+        target points' tangent planes (cloud units; 0 when there are none).
+    """
+    if source.scales != target.scales or source.spacing != target.spacing:
+        raise InputError("source/target pyramids: built with different scales or spacing")
+    T = np.asarray(check_array(T_target_source, "T_target_source", shape=(4, 4), dtype_kind="fiu"),
+                   dtype=np.float64)
+    check_positive(max_distance, "max_distance")
+    level = source._level(scale)
+    x = np.asarray(source._levels[level].points)
+    if sample is not None and check_positive(sample, "sample") < len(x):
+        x = x[np.sort(np.random.default_rng(seed).choice(len(x), int(sample), replace=False))]
+    y = x @ T[:3, :3].T + T[:3, 3]
+    q, n, tree = target._level_arrays(level)
+    d, j = tree.query(y, distance_upper_bound=float(max_distance))
+    ok = np.isfinite(d)
+    if not ok.any():
+        return 0.0, 0.0, 0.0
+    r = np.einsum("ij,ij->i", y[ok] - q[j[ok]], n[j[ok]])
+    return float(ok.mean()), float(np.sqrt(np.mean(d[ok] ** 2))), float(1.4826 * np.median(np.abs(r)))
 
 
 def _information(q: NDArray) -> NDArray[np.float64]:
