@@ -129,12 +129,19 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         target = builtin_target(args.target, camouflage=args.camouflage, seed=args.seed)
     from prism3d.reconstruct.calibrate import parse_board
 
+    import dataclasses
+
+    from prism3d.capture.camera_effects import CameraEffects
+
+    effects = CameraEffects.ideal() if args.ideal_camera else CameraEffects()
+    if args.jpeg_quality is not None:
+        effects = dataclasses.replace(effects, jpeg_quality=args.jpeg_quality or None)
     board = parse_board(args.board)
     summary = simulate_to_folder(args.kind, args.out_dir, rig=rig, target=target, pattern=args.pattern,
                                  camouflage=args.camouflage, views=args.views, seed=args.seed,
                                  noise=args.noise, supersample=args.supersample,
                                  progress=_progress(args, f"simulate {args.kind}"), compress=args.compress,
-                                 board=board, square_mm=args.square, blur_sigma=args.blur)
+                                 board=board, square_mm=args.square, blur_sigma=args.blur, effects=effects)
     _say(args, f"wrote {summary['n_shots']} shot(s) and ground truth to {args.out_dir} "
                f"in {summary['seconds']:.1f} s")
     return 0
@@ -171,7 +178,12 @@ def _add_simulate(sub: Any) -> None:
                    "principal point about twice as well)")
     p.add_argument("--square", type=float, default=25.0, help="calib: square size, mm (default 25)")
     p.add_argument("--blur", type=float, default=0.0, metavar="PX",
-                   help="Gaussian lens blur of each view, pixels (default 0: none)")
+                   help="extra Gaussian blur of each view, pixels (default 0: the camera's own PSF only)")
+    p.add_argument("--ideal-camera", action="store_true",
+                   help="the ideal camera: no exposure or colour difference between the views, no "
+                   "vignetting, lens PSF, gloss or JPEG (default: real-camera effects on)")
+    p.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
+                   help="JPEG quality of the simulated camera, 1-100 (default 92; 0 = none)")
     p.set_defaults(func=_cmd_simulate)
 
 
@@ -217,11 +229,23 @@ def _add_capture(sub: Any) -> None:
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from prism3d.reconstruct.calibrate import calibrate_to_file
 
-    cal = calibrate_to_file(args.images, args.output, board=args.board, square_mm=args.square,
-                            pairs=args.pairs, skew=args.skew, tangential=not args.no_tangential,
-                            progress=_progress(args, "calibrate"))
+    # The calibration's warnings are printed below, even with --quiet (they say the file may
+    # be unfit for use, which a script must hear too); logging must not print them twice.
+    def not_printed_below(record: logging.LogRecord) -> bool:
+        return not getattr(record, "prism3d_calibration_warning", False)
+
+    lib_log = logging.getLogger("prism3d.reconstruct.calibrate")
+    lib_log.addFilter(not_printed_below)
+    try:
+        cal = calibrate_to_file(args.images, args.output, board=args.board, square_mm=args.square,
+                                pairs=args.pairs, skew=args.skew, tangential=not args.no_tangential,
+                                progress=_progress(args, "calibrate"))
+    finally:
+        lib_log.removeFilter(not_printed_below)
     _say(args, cal.summary())
     _say(args, f"wrote {args.output}")
+    for w in cal.warnings:
+        print(f"warning: {w}", file=sys.stderr)
     return 0
 
 
@@ -245,19 +269,24 @@ def _add_calibrate(sub: Any) -> None:
 def _cmd_rectify(args: argparse.Namespace) -> int:
     from prism3d.reconstruct.rectify import rectify_to_folder
 
-    files = rectify_to_folder(args.shot, args.calib, args.output, alpha=args.alpha)
+    _check_views(args)
+    files = rectify_to_folder(args.shot, list(args.calib), args.output, left_path=args.left,
+                              right_path=args.right, alpha=args.alpha,
+                              image_size=_parse_size(args.image_size))
     for f in files.values():
         _say(args, f"wrote {f}")
     return 0
 
 
 def _add_rectify(sub: Any) -> None:
-    p = sub.add_parser("rectify", help="split a prism shot and rectify the two views",
-                       description="Split a side-by-side shot into its two views, undistort and rectify "
-                       "them (equal principal points: disparity = f*B/z), write left.png, right.png "
-                       "and rectification.yaml (R1 R2 P1 P2 Q).")
-    p.add_argument("shot", type=Path, metavar="SHOT")
-    p.add_argument("--calib", required=True, type=Path, metavar="CALIB_YAML")
+    p = sub.add_parser("rectify", help="rectify the two views of a prism shot (or a stereo pair)",
+                       description="Split a side-by-side shot into its two views (or take --left/--right "
+                       "files), undistort and rectify them (equal principal points: disparity = f*B/z), "
+                       "write left.png, right.png and rectification.yaml (R1 R2 P1 P2 Q).")
+    p.add_argument("shot", type=Path, nargs="?", metavar="SHOT", help="side-by-side sensor image")
+    p.add_argument("--left", type=Path, metavar="LEFT", help="left view file (ordinary stereo rig)")
+    p.add_argument("--right", type=Path, metavar="RIGHT", help="right view file")
+    _calib_options(p)
     p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT_DIR")
     p.add_argument("--alpha", type=float, default=1.0,
                    help="0 = crop to valid pixels, 1 = keep every source pixel (default)")
@@ -312,37 +341,138 @@ def _add_match(sub: Any) -> None:
     p.set_defaults(func=_cmd_match)
 
 
+def _calib_options(p: argparse.ArgumentParser, *, required: bool = True) -> None:
+    p.add_argument("--calib", required=required, type=Path, nargs="+", metavar="CALIB",
+                   help="calibration: prism3d/OpenCV YAML, Middlebury/ETH3D calib.txt, KITTI "
+                   "calib_cam_to_cam.txt, or two files (ROS left + right camera_info; OpenCV "
+                   "intrinsics + extrinsics)")
+    p.add_argument("--image-size", metavar="WxH", help="each view's size, for calibration files that "
+                   "do not state it")
+
+
+def _parse_size(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--image-size: expected WIDTHxHEIGHT, e.g. 1242x375, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise InputError(f"--image-size: width and height must be > 0, got {text!r}")
+    return w, h
+
+
+def _check_views(args: argparse.Namespace) -> None:
+    if args.shot is not None and (args.left is not None or args.right is not None):
+        raise InputError("give a side-by-side SHOT or --left/--right view files, not both")
+    if args.shot is None and (args.left is None or args.right is None):
+        raise InputError("give a side-by-side SHOT, or both --left and --right view files")
+
+
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from prism3d.reconstruct.pipeline import reconstruct_to_files
 
-    rec = reconstruct_to_files(args.shot, args.calib, args.output, disparity_out=args.disparity_out,
-                               depth_out=args.depth_out, mesh_out=args.mesh, min_disp=args.min_disp,
-                               num_disp=args.num_disp, depth_range_mm=_parse_range(args.depth_range, "--depth-range"),
-                               smooth_sigma_px=args.smooth, progress=_progress(args, "reconstruct"))
+    _check_views(args)
+    if args.smooth < 0:
+        raise InputError(f"--smooth: expected a sigma >= 0 px, got {args.smooth}")
+    rec = reconstruct_to_files(args.shot, list(args.calib), args.output, left_path=args.left,
+                               right_path=args.right, disparity_out=args.disparity_out,
+                               depth_out=args.depth_out, mesh_out=args.mesh,
+                               image_size=_parse_size(args.image_size), min_disp=args.min_disp,
+                               num_disp=args.num_disp,
+                               depth_range_mm=_parse_range(args.depth_range, "--depth-range"),
+                               smooth_sigma_px=args.smooth, min_confidence=args.min_confidence,
+                               progress=_progress(args, "reconstruct"))
+    if args.json:
+        _print_json({"output": str(args.output), "points": len(rec.scan), "min_disp": rec.min_disp,
+                     "num_disp": rec.num_disp, "noise": rec.noise, "coverage": rec.coverage.as_dict(),
+                     "shares": rec.coverage.shares(), "timings_s": rec.timings_s})
+        return 0
     t = rec.timings_s
     _say(args, f"wrote {args.output}: {len(rec.scan)} points (disparity {rec.min_disp}..{rec.min_disp + rec.num_disp - 1}; "
                + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()) + ")")
+    _say(args, rec.coverage.summary())
     return 0
 
 
 def _add_reconstruct(sub: Any) -> None:
-    p = sub.add_parser("reconstruct", help="one prism shot -> metric scan PLY (split, rectify, match, triangulate)",
-                       description="Split the side-by-side shot, rectify with the calibration, match, and "
-                       "triangulate the confident pixels into a coloured point cloud with normals "
-                       "(millimetres, left camera frame).")
-    p.add_argument("shot", type=Path, metavar="SHOT")
-    p.add_argument("--calib", required=True, type=Path, metavar="CALIB_YAML")
+    from prism3d.reconstruct.defaults import DEFAULT_MIN_CONFIDENCE
+
+    p = sub.add_parser("reconstruct", help="one prism shot (or a stereo pair) -> metric scan PLY",
+                       description="Rectify the two views of a side-by-side shot (or of --left/--right "
+                       "files), match them, refine, and triangulate into a coloured point cloud with "
+                       "normals (millimetres, left camera frame). Each point carries its confidence "
+                       "(the chance its disparity is within 1 px of the truth), disparity_std (px) "
+                       "and depth_std (mm). Prints the share of pixels kept and why the rest were "
+                       "dropped.")
+    p.add_argument("shot", type=Path, nargs="?", metavar="SHOT", help="side-by-side sensor image")
+    p.add_argument("--left", type=Path, metavar="LEFT", help="left view file (ordinary stereo rig)")
+    p.add_argument("--right", type=Path, metavar="RIGHT", help="right view file")
+    _calib_options(p)
     p.add_argument("-o", "--output", required=True, type=Path, metavar="SCAN_PLY")
-    p.add_argument("--disparity-out", type=Path, metavar="PFM", help="dense disparity (rectified-left grid)")
+    p.add_argument("--disparity-out", type=Path, metavar="PFM",
+                   help="disparity of the kept pixels (rectified-left grid, inf elsewhere)")
     p.add_argument("--depth-out", type=Path, metavar="TIFF|NPY|NPZ", help="depth in mm (rectified-left grid)")
     p.add_argument("--mesh", type=Path, metavar="PLY", help="also write a mesh of the organised scan")
-    p.add_argument("--depth-range", metavar="NEAR:FAR", help="depth search range, mm "
-                   "(default 0.85x..1.2x the rig's convergence distance)")
+    p.add_argument("--depth-range", metavar="NEAR:FAR", help="depth search range, mm (default: 0.85x..1.2x "
+                   "the rig's convergence distance; parallel cameras: from the images)")
     p.add_argument("--min-disp", type=int, help="smallest disparity (instead of --depth-range)")
     p.add_argument("--num-disp", type=int, help="disparity levels (instead of --depth-range)")
+    p.add_argument("--min-confidence", type=float, default=DEFAULT_MIN_CONFIDENCE, metavar="C",
+                   help="keep points whose disparity is within 1 px of the truth with at least this "
+                   f"chance (default {DEFAULT_MIN_CONFIDENCE}: keeps the surface; 0.5 or 0.9 trade "
+                   "density for precision)")
     p.add_argument("--smooth", type=float, default=0.0, metavar="SIGMA_PX",
                    help="edge-preserving depth smoothing, Gaussian sigma in pixels (default off)")
+    p.add_argument("--json", action="store_true", help="print the result (coverage, timings) as JSON")
     p.set_defaults(func=_cmd_reconstruct)
+
+
+def _cmd_triangulate(args: argparse.Namespace) -> int:
+    from prism3d.reconstruct.triangulate import triangulate_to_file
+
+    scan = triangulate_to_file(args.disparity, list(args.calib), args.left, args.output,
+                               image_size=_parse_size(args.image_size), max_depth_mm=args.max_depth)
+    _say(args, f"wrote {args.output}: {len(scan)} points")
+    return 0
+
+
+def _add_triangulate(sub: Any) -> None:
+    p = sub.add_parser("triangulate", help="disparity map -> coloured point cloud (like reprojectImageTo3D)",
+                       description="Turn a disparity map (PFM; NaN, inf or <= 0 = no value) into a coloured "
+                       "point cloud with normals, millimetres, left camera frame. The disparity is on the "
+                       "calibration's rectified-left grid (as prism3d rectify/match write it), or on the "
+                       "left image as given for an already-rectified pair (Middlebury/ETH3D calib.txt).")
+    p.add_argument("disparity", type=Path, metavar="DISP_PFM")
+    _calib_options(p)
+    p.add_argument("--left", required=True, type=Path, metavar="LEFT",
+                   help="colours: the rectified left view, or the left view as shot")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="CLOUD_PLY")
+    p.add_argument("--max-depth", type=float, metavar="MM", help="drop points further than this")
+    p.set_defaults(func=_cmd_triangulate)
+
+
+def _cmd_convert_calib(args: argparse.Namespace) -> int:
+    from prism3d.capture.calib_formats import convert_calibration
+
+    cal = convert_calibration(list(args.calib), args.output, image_size=_parse_size(args.image_size))
+    _say(args, f"wrote {args.output} (from {cal.source_format}: baseline {cal.rig.baseline_mm:.3f} mm, "
+               f"views {cal.rig.left.size[0]}x{cal.rig.left.size[1]})")
+    for note in cal.notes:
+        _say(args, f"note: {note}")
+    return 0
+
+
+def _add_convert_calib(sub: Any) -> None:
+    p = sub.add_parser("convert-calib", help="another tool's stereo calibration -> prism3d calibration YAML",
+                       description="Read a stereo calibration in any format prism3d understands "
+                       "(Middlebury/ETH3D calib.txt, KITTI calib_cam_to_cam.txt, ROS camera_info "
+                       "left + right, OpenCV stereo YAML) and write prism3d's OpenCV FileStorage YAML.")
+    p.add_argument("calib", type=Path, nargs="+", metavar="CALIB", help="one file, or two (ROS left right; "
+                   "OpenCV intrinsics extrinsics)")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="CALIB_YAML")
+    p.add_argument("--image-size", metavar="WxH", help="each view's size, when the file does not state it")
+    p.set_defaults(func=_cmd_convert_calib)
 
 
 def _cmd_flatness(args: argparse.Namespace) -> int:
@@ -389,6 +519,18 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
                           progress=_progress(args, "stitch"), **opts)
     _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
                + (f", mesh {args.mesh}" if args.mesh else ""))
+    pairs = res.diagnostics.get("pairs", [])
+    if pairs:
+        _say(args, "registered pairs (pairwise -> in the model; off the surface: spread along the normals, "
+                   "vs the scans' own noise):")
+    for p in pairs:
+        kind = "" if p["kind"] == "odometry" else " (loop" + ("" if p["kept"] else ", discounted") + ")"
+        _say(args, f"pair {p['i']}-{p['j']}{kind}: overlap {p['fitness']:.2f} -> {p['final_fitness']:.2f}, "
+                   f"inlier RMSE {p['inlier_rmse']:.3g} -> {p['final_inlier_rmse']:.3g} mm "
+                   f"(max dist {p['max_correspondence_distance']:.3g} mm), off the surface "
+                   f"{p['plane_sigma']:.3g} -> {p['final_plane_sigma']:.3g} mm "
+                   f"(noise {p['noise_sigma']:.3g} mm)"
+                   + (f"  <- check: {'; '.join(p['check'])}" if p["check"] else ""))
     return 0
 
 
@@ -688,9 +830,11 @@ _COMMANDS: list[Callable[[Any], None]] = [
     _add_demo,
     _add_simulate,
     _add_calibrate,
+    _add_convert_calib,
     _add_rectify,
     _add_match,
     _add_reconstruct,
+    _add_triangulate,
     _add_flatness,
     _add_stitch,
     _add_decamo,
@@ -729,8 +873,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    from prism3d.progress import compile_notice
+
     try:
-        rc = args.func(args)
+        with compile_notice(quiet=args.quiet):  # one stderr line if kernels must compile
+            rc = args.func(args)
     except Prism3dError as exc:
         msg = " ".join(str(exc).split())  # one line
         print(f"prism3d {args.command}: error: {msg}", file=sys.stderr)

@@ -1,4 +1,12 @@
-"""One shot to one scan: split, rectify, match, triangulate (``prism3d reconstruct``)."""
+"""One shot (or one ordinary stereo pair) to one scan: rectify, match, refine, select,
+triangulate (``prism3d reconstruct``).
+
+Which pixels become points is decided in :mod:`prism3d.reconstruct.selection`, by
+rules stated against the shot itself (its noise, its black level, the matcher's
+consistency), and every point carries its predicted disparity standard deviation;
+``min_confidence`` trades density for precision. docs/reconstruction.md tells how
+the rules were chosen and what they were measured to do on real pairs.
+"""
 
 from __future__ import annotations
 
@@ -13,21 +21,24 @@ from numpy.typing import NDArray
 
 from prism3d.capture.rig import Rectification, StereoRig, compute_rectification
 from prism3d.checks import check_array, check_choice
-from prism3d.errors import InputError
+from prism3d.errors import InputError, ReconstructionError
+from prism3d.io.atomic import atomic_path
 from prism3d.progress import ProgressFn, null_progress
+from prism3d.reconstruct.defaults import DEFAULT_MIN_CONFIDENCE
 from prism3d.reconstruct.meshing import mesh_from_grid, smooth_depth
 from prism3d.reconstruct.triangulate import Scan, scan_from_depth
 
 if TYPE_CHECKING:
     from prism3d.reconstruct.rectify import RectifyMaps
+    from prism3d.reconstruct.selection import Coverage
 
 __all__ = [
+    "DEFAULT_MIN_CONFIDENCE",
     "Reconstruction",
     "convergence_distance_mm",
     "disparity_range",
-    "inside_silhouette",
-    "lit_mask",
-    "local_contrast",
+    "estimate_disparity_range",
+    "reconstruct_pair",
     "reconstruct_shot",
     "reconstruct_to_files",
 ]
@@ -49,72 +60,12 @@ def convergence_distance_mm(rig: StereoRig) -> float | None:
     return float(s) if s > 0 else None
 
 
-def local_contrast(image: NDArray, *, size: int = 15) -> NDArray[np.float32]:
-    """Local standard deviation ``(H, W)`` of the image (8-bit units) in a
-    ``size x size`` window; for colour, the root mean of the channels' variances.
-
-    Colour counts: the grating's neighbouring stripes can have nearly the same grey
-    level (green ``(35, 130, 22)`` beside red ``(143, 31, 22)``: grey 62 and 65),
-    so a grey-level test calls the inside of such a stripe pair featureless although
-    each channel has a 100-level edge there. For a grey image (or equal channels)
-    this is the grey-level standard deviation.
-    """
-    import cv2
-
-    img = np.asarray(image, dtype=np.float32)
-    chans = [img[..., c] for c in range(img.shape[2])] if img.ndim == 3 else [img]
-    var = np.zeros(img.shape[:2], np.float32)
-    for ch in chans:
-        ch = np.ascontiguousarray(ch)
-        mean = cv2.blur(ch, (size, size))
-        var += np.maximum(cv2.blur(ch * ch, (size, size)) - mean * mean, 0.0)
-    return np.sqrt(var / len(chans)).astype(np.float32)
-
-
-def inside_silhouette(valid: NDArray, margin_px: int, *, close_px: int = 15) -> NDArray[np.bool_]:
-    """Pixels at least ``margin_px`` inside the outline of the matched region.
-
-    The region is ``valid`` with gaps up to ``close_px`` closed (a striped or
-    camouflaged surface leaves holes that are not the outline).
-    """
-    import cv2
-
-    m = np.asarray(valid, dtype=np.uint8)
-    closed = cv2.morphologyEx(m, cv2.MORPH_CLOSE, np.ones((close_px, close_px), np.uint8))
-    k = 2 * int(margin_px) + 1
-    return cv2.erode(closed, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
-
-
-def lit_mask(image: NDArray, *, k_sigma: float = 5.0, min_step: float = 6.0) -> NDArray[np.bool_]:
-    """Pixels that show a lit surface: the 3x3 maximum of the brightest channel lies
-    above the image's dark population.
-
-    The dark population is the pixels within 16 grey levels of the 1st percentile
-    (the floor) of the brightest channel; with ``m`` its median and ``s = (m -
-    floor) / 2.33`` its noise (the 1st percentile of a normal distribution lies
-    2.33 sigma below its centre), the threshold is ``max(floor + min_step, m +
-    k_sigma * s)``. On a shot against an unlit background these are the
-    background's black level and read noise: on the simulated paper rig it reads
-    0-3 grey levels (99.9th percentile 3), so the threshold is ``min_step`` = 6. A
-    shot with no dark background loses at most its darkest ~1 % of pixels, as
-    specks that a silhouette's closing fills.
-    """
-    import cv2
-
-    img = np.asarray(image)
-    v = (img.max(axis=2) if img.ndim == 3 else img).astype(np.float32)
-    floor = float(np.percentile(v, 1.0))
-    m = float(np.median(v[v <= floor + 16.0]))
-    thr = max(floor + float(min_step), m + float(k_sigma) * (m - floor) / 2.33)
-    return cv2.dilate(v, np.ones((3, 3), np.uint8)) >= thr
-
-
 def _bspline_views(views: tuple[NDArray, NDArray], maps: RectifyMaps, r0: int, r1: int) -> tuple[NDArray, NDArray]:
-    """Both views rectified with cubic B-splines (float32 in [0, 1]), computed on rows
-    ``r0..r1`` only (the refinement's windows) and 0 elsewhere."""
+    """Both views rectified with cubic B-splines (float32 in 8-bit units, 0..255),
+    computed on rows ``r0..r1`` only (the refinement's windows) and 0 elsewhere."""
     from prism3d.reconstruct.rectify import RectifyMaps
 
-    scale = np.float32(1.0 / 255.0) if views[0].dtype == np.uint8 else np.float32(1.0)
+    scale = np.float32(1.0) if views[0].dtype == np.uint8 else np.float32(255.0)
     r0, r1 = max(int(r0), 0), min(int(r1) + 1, maps.left_x.shape[0])
     band = RectifyMaps(maps.rect, maps.left_x[r0:r1], maps.left_y[r0:r1], maps.right_x[r0:r1], maps.right_y[r0:r1])
     out = []
@@ -139,50 +90,303 @@ def disparity_range(
     return d_min, num
 
 
+
+#: A refined disparity that moved further than this (px) from the matcher's is not
+#: a refinement of that match: the pixel is inconsistent.
+_MAX_REFINE_CHANGE_PX = 1.5
+#: Sparse matches needed before their disparities are trusted to set a search range.
+_MIN_RANGE_MATCHES = 20
+
+
+def estimate_disparity_range(left: NDArray, right: NDArray) -> tuple[int, int]:
+    """``(min_disp, num_disp)`` for a rectified pair from sparse feature matches.
+
+    ORB features matched across the views (mutual nearest neighbours, Lowe's ratio
+    test) on the same row (within 1.5 px): the 0.5th to 99.5th percentile of their
+    disparities, widened by a quarter of that span and 8 px each way. Used when
+    the cameras are parallel and the user gives no range.
+
+    Raises
+    ------
+    ReconstructionError
+        Fewer than 20 matches: the range cannot be told from the images.
+    """
+    import cv2
+
+    def grey(img: NDArray) -> NDArray[np.uint8]:
+        a = np.asarray(img)
+        if a.dtype != np.uint8:
+            a = np.clip(np.rint(a * (255.0 if a.dtype.kind == "f" and a.max() <= 1.0 else 1.0)), 0, 255).astype(np.uint8)
+        return cv2.cvtColor(a, cv2.COLOR_RGB2GRAY) if a.ndim == 3 else a
+
+    gl, gr = grey(left), grey(right)
+    orb = cv2.ORB_create(nfeatures=4000, fastThreshold=7)
+    kl, dl = orb.detectAndCompute(gl, None)
+    kr, dr = orb.detectAndCompute(gr, None)
+    disp: list[float] = []
+    if dl is not None and dr is not None and len(kl) >= 2 and len(kr) >= 2:
+        bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+        for pair in bf.knnMatch(dl, dr, k=2):
+            if len(pair) < 2 or pair[0].distance >= 0.8 * pair[1].distance:
+                continue
+            pl, pr = kl[pair[0].queryIdx].pt, kr[pair[0].trainIdx].pt
+            if abs(pl[1] - pr[1]) <= 1.5:
+                disp.append(pl[0] - pr[0])
+    if len(disp) < _MIN_RANGE_MATCHES:
+        raise ReconstructionError(
+            f"cannot tell the disparity range from the images ({len(disp)} feature matches on the "
+            "same rows): give --min-disp/--num-disp or --depth-range NEAR:FAR")
+    lo, hi = np.percentile(np.asarray(disp), [0.5, 99.5])
+    margin = 0.25 * (hi - lo) + 8.0
+    d0 = int(math.floor(lo - margin))
+    num = int(math.ceil((hi + margin - d0 + 1) / 16.0) * 16)
+    return d0, num
+
+
 @dataclass
 class Reconstruction:
-    """Everything one shot produced."""
+    """Everything one shot produced.
+
+    Attributes
+    ----------
+    scan : Scan
+        The points (left camera frame, mm) with colours, normals, confidence and
+        disparity std.
+    rect : Rectification
+    left_rect : (H, W, 3) uint8
+        The rectified left view (the points' colours).
+    disparity : (H, W) float32
+        Disparity of the kept pixels on the rectified-left grid (NaN elsewhere).
+    disparity_std : (H, W) float32
+        Its predicted standard deviation (px; NaN where no point).
+    measured : (H, W) bool
+        Kept pixels matched and refined (the rest of the kept were estimated from
+        their neighbours).
+    coverage : Coverage
+        The share kept and why the rest was dropped.
+    """
 
     scan: Scan
     rect: Rectification
     left_rect: NDArray[np.uint8]
     disparity: NDArray[np.float32]
-    """Dense (filled) disparity on the rectified-left grid."""
-    valid: NDArray[np.bool_]
-    """Pixels that passed the matcher's checks and gave a point."""
+    disparity_std: NDArray[np.float32]
+    measured: NDArray[np.bool_]
+    coverage: Coverage
     min_disp: int
     num_disp: int
+    noise: float
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property
+    def valid(self) -> NDArray[np.bool_]:
+        """Pixels that gave a point."""
+        return np.isfinite(self.disparity)
+
+    @property
     def depth_mm(self) -> NDArray[np.float32]:
-        """Rectified-left depth of the valid points (NaN elsewhere)."""
+        """Rectified-left depth of the points (NaN elsewhere)."""
         return self.scan.depth_mm
 
 
-def reconstruct_shot(
-    shot: NDArray,
+def _search_range(rig: StereoRig, rect: Rectification, left: NDArray, right: NDArray,
+                  min_disp: int | None, num_disp: int | None,
+                  depth_range_mm: tuple[float, float] | None,
+                  max_disparity: float | None = None) -> tuple[int, int]:
+    """The disparity search range: as given, from a depth range, from the rig's
+    convergence distance (converging views), or from the images (parallel views;
+    ``max_disparity`` bounds it, and serves alone when the images cannot tell)."""
+    if (min_disp is None) != (num_disp is None):
+        raise InputError("give both min_disp and num_disp, or neither (then the depth range is used)")
+    if min_disp is not None:
+        return int(min_disp), int(num_disp)  # type: ignore[arg-type]
+    if depth_range_mm is not None:
+        return disparity_range(rect, depth_range_mm)
+    wd = convergence_distance_mm(rig)
+    if wd is not None:
+        return disparity_range(rect, (0.85 * wd, 1.2 * wd))
+    try:
+        d0, n = estimate_disparity_range(left, right)
+    except ReconstructionError:
+        if max_disparity is None:
+            raise
+        return 0, int(math.ceil((math.floor(max_disparity) + 2) / 16.0) * 16)
+    if max_disparity is not None:
+        d1 = min(d0 + n - 1, int(math.floor(max_disparity)) + 1)
+        d0 = max(d0, 0)
+        n = int(math.ceil((d1 - d0 + 1) / 16.0) * 16)
+    return d0, n
+
+
+def _coverage_mask(maps: RectifyMaps, size: tuple[int, int]) -> NDArray[np.bool_]:
+    """Rectified-left pixels whose source lies inside the left view."""
+    w, h = size
+    return (maps.left_x >= 0) & (maps.left_x <= w - 1) & (maps.left_y >= 0) & (maps.left_y <= h - 1)
+
+
+def _reconstruct_views(
+    views: tuple[NDArray, NDArray],
     rig: StereoRig,
     *,
-    min_disp: int | None = None,
-    num_disp: int | None = None,
-    depth_range_mm: tuple[float, float] | None = None,
-    alpha: float = 1.0,
-    smooth_sigma_px: float = 0.0,
-    min_texture: float = 2.0,
-    silhouette_margin_px: int = 3,
-    lit_outline: bool = True,
-    refine: bool = True,
-    refine_window: tuple[int, int] = (7, 19),
-    refine_orientation_weight: bool = False,
-    refine_curvature: bool = True,
-    refine_interpolation: str = "bspline",
-    max_residual: float = 1.0,
-    max_disparity_std: float = float("inf"),
-    progress: ProgressFn = null_progress,
-    **match_kwargs: Any,
+    min_disp: int | None,
+    num_disp: int | None,
+    depth_range_mm: tuple[float, float] | None,
+    max_disparity: float | None,
+    alpha: float,
+    smooth_sigma_px: float,
+    min_confidence: float,
+    fill: bool,
+    refine_window: tuple[int, int],
+    refine_orientation_weight: bool,
+    refine_curvature: bool,
+    refine_interpolation: str,
+    progress: ProgressFn,
+    match_kwargs: dict[str, Any],
 ) -> Reconstruction:
-    """Split a side-by-side shot, rectify, match and triangulate it.
+    """The pipeline on the two (un-flipped) views of a calibrated rig."""
+    from prism3d.reconstruct.match import match_stereo_full
+    from prism3d.reconstruct.rectify import rectify_maps
+    from prism3d.reconstruct.refine import refine_slanted
+    from prism3d.reconstruct.selection import (
+        REASONS, Coverage, enclosed, estimate_noise, fill_from_planes, near, occlusions, std_from_confidence,
+        textured, unlit)
+
+    check_choice(refine_interpolation, "refine_interpolation", ("bspline", "linear"))
+    if not (0.0 <= float(min_confidence) < 1.0):
+        raise InputError(f"min_confidence: expected a value in [0, 1), got {min_confidence!r}")
+    max_std = std_from_confidence(min_confidence) if min_confidence > 0 else np.inf
+    t: dict[str, float] = {}
+    t0 = time.perf_counter()
+    progress(0, 5, "rectify")
+    rect = compute_rectification(rig, alpha=alpha)
+    maps = rectify_maps(rig, rect)
+    left, right = maps.remap(*views)
+    covered = _coverage_mask(maps, rig.left.size)
+    t["rectify"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    progress(1, 5, "match")
+    min_disp, num_disp = _search_range(rig, rect, left, right, min_disp, num_disp, depth_range_mm,
+                                       max_disparity)
+    match_kwargs.setdefault("lk_window", 9)  # 9 px halves the LK noise on 5 MP views (docs/reconstruction.md)
+    res = match_stereo_full(left, right, min_disp=int(min_disp), num_disp=int(num_disp), **match_kwargs)
+    t["match"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    progress(2, 5, "select")
+    noise = estimate_noise(left, covered)
+    dense = res.disparity
+    # a winner on the first or last level may have its minimum beyond the range
+    in_range = covered & (dense > min_disp + 0.5) & (dense < min_disp + num_disp - 1.5)
+    tex = textured(left, noise, window=refine_window)
+    dark = unlit(left, noise, tex) & covered
+    # a match whose census window reaches unlit background is the edge's, not the pixel's
+    census_r = max(match_kwargs.get("census_window", (5, 5))) // 2
+    rim = near(dark, census_r)
+    occluded, outside = occlusions(dense)
+    hidden = (occluded | outside) & ~res.valid
+    usable = in_range & ~dark & ~rim
+    measured = res.valid & usable & tex
+    holes = ~res.valid & usable & tex & ~hidden
+    t["select"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    progress(3, 5, "refine")
+    refined = np.full(dense.shape, np.nan, np.float32)
+    own_std = np.full(dense.shape, np.nan, np.float32)
+    if measured.any() or holes.any():
+        if refine_interpolation == "bspline":
+            rows = np.flatnonzero((measured | holes).any(axis=1))
+            r0, r1 = rows[0] - refine_window[0], rows[-1] + refine_window[0]
+            left_r, right_r = _bspline_views(views, maps, r0, r1)
+        else:
+            left_r, right_r = left, right
+        if res.right_gain is not None:
+            right_r = res.right_gain.apply(right_r)
+        d_ref, _, d_std = refine_slanted(left_r, right_r, dense, measured, window=refine_window,
+                                         extra=holes, orientation_weight=refine_orientation_weight,
+                                         curvature=refine_curvature, max_change=_MAX_REFINE_CHANGE_PX)
+        ok = (measured | holes) & np.isfinite(d_std)
+        refined[ok] = d_ref[ok]
+        own_std[ok] = d_std[ok]
+    measured_ok = measured & np.isfinite(own_std)
+    inconsistent = measured & ~measured_ok
+    disparity = np.where(measured_ok, refined, np.nan).astype(np.float32)
+    std = np.where(measured_ok, own_std, np.nan).astype(np.float32)
+    t["refine"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    estimated = np.zeros_like(measured)
+    if fill:
+        # pixels the matcher could not measure keep its estimate (a refined hole, else
+        # the matcher's background-favouring fill); their std is the local surface's
+        # prediction std, widened by how far the estimate strays from that surface
+        # untextured pixels are filled only where measured surface encloses them
+        blank = usable & ~tex & ~measured_ok
+        targets = usable & ~measured_ok & (tex | enclosed(blank, dark | rim | ~covered))
+        est = np.where(np.isfinite(refined), refined, dense).astype(np.float32)
+        e_own = np.where(np.isfinite(own_std), own_std, 0.0).astype(np.float32)
+        plane = np.full(dense.shape, np.nan, np.float32)
+        p_std = np.full(dense.shape, np.nan, np.float32)
+        for sides, m in ((("centre",), targets & ~hidden), (("left", "right"), targets & hidden & outside),
+                         (("left",), targets & hidden & ~outside)):
+            if m.any():
+                pe, ps = fill_from_planes(disparity, measured_ok, m, sides=sides, radii=(8, 24, 64))
+                plane[m], p_std[m] = pe[m], ps[m]
+        e_std = np.sqrt(e_own ** 2 + p_std ** 2 + (est - plane) ** 2)
+        estimated = targets & np.isfinite(e_std)
+        disparity[estimated] = est[estimated]
+        std[estimated] = e_std[estimated]
+    kept = (measured_ok | estimated) & (std <= max_std)
+    low_conf = (measured_ok | estimated) & ~kept
+    disparity[~kept] = np.nan
+    std[~kept] = np.nan
+    t["fill"] = time.perf_counter() - t0
+
+    not_kept = covered & ~kept
+    reason_masks = {
+        "outside depth range": not_kept & ~in_range,
+        "no texture": not_kept & (dark | ~tex) & ~hidden & ~low_conf,
+        "silhouette": not_kept & rim & ~low_conf,
+        "occluded": not_kept & hidden & ~low_conf,
+        "inconsistent": not_kept & inconsistent & ~low_conf,
+        "low confidence": not_kept & low_conf,
+    }
+    dropped, taken = {}, np.zeros_like(kept)
+    for name in REASONS:
+        m = reason_masks[name] & ~taken
+        dropped[name] = int(m.sum())
+        taken |= m
+    dropped["no texture"] += int((not_kept & ~taken).sum())  # holes nothing around could serve
+    cov = Coverage(int(covered.sum()), int((kept & measured_ok).sum()), int((kept & ~measured_ok).sum()),
+                   dropped)
+
+    t0 = time.perf_counter()
+    progress(4, 5, "triangulate")
+    depth = rect.disparity_to_depth(disparity)
+    if smooth_sigma_px > 0:
+        depth = smooth_depth(depth, sigma_px=smooth_sigma_px, focal_px=rect.focal_px,
+                             baseline_mm=rect.baseline_mm)
+    scan = scan_from_depth(depth, rect, left, std)
+    scan.meta.update(focal_px=rect.focal_px, baseline_mm=rect.baseline_mm, min_disp=int(min_disp),
+                     num_disp=int(num_disp), smooth_sigma_px=float(smooth_sigma_px),
+                     min_confidence=float(min_confidence))
+    t["triangulate"] = time.perf_counter() - t0
+    progress(5, 5, "done")
+    return Reconstruction(scan, rect, left, disparity, std, kept & measured_ok, cov, int(min_disp),
+                          int(num_disp), float(noise), t)
+
+
+_DEFAULTS: dict[str, Any] = dict(
+    min_disp=None, num_disp=None, depth_range_mm=None, max_disparity=None, alpha=1.0, smooth_sigma_px=0.0,
+    min_confidence=DEFAULT_MIN_CONFIDENCE, fill=True, refine_window=(7, 19),
+    refine_orientation_weight=False, refine_curvature=True, refine_interpolation="bspline",
+)
+
+
+def reconstruct_shot(shot: NDArray, rig: StereoRig, *, progress: ProgressFn = null_progress,
+                     **options: Any) -> Reconstruction:
+    """Split a side-by-side shot with ``rig.split``, then :func:`reconstruct_pair`.
 
     Parameters
     ----------
@@ -190,226 +394,176 @@ def reconstruct_shot(
         The sensor image (``rig.split.sensor_size``).
     rig : StereoRig
         The calibration.
-    min_disp, num_disp : int, optional
-        Disparity search range. By default it covers ``depth_range_mm``.
-    depth_range_mm : (near, far), optional
-        Default: 0.85x to 1.2x the rig's convergence distance.
-    smooth_sigma_px : float
-        Edge-preserving depth smoothing (0 = none); see
-        :func:`~prism3d.reconstruct.meshing.smooth_depth`.
-    min_texture : float
-        Pixels whose local grey-level standard deviation (15x15, 8-bit units) is below
-        this are not triangulated: on a featureless (e.g. unlit, black) background any
-        match the checks let through is noise (on a striped, camouflaged target at the
-        paper's geometry this keeps 91% of the matched target pixels and drops 98% of
-        the background ones). 0 disables the test.
-    silhouette_margin_px : int
-        Drop points within this many pixels of the object's outline (the outline
-        of the matched region, gaps closed). Semi-global matching smears foreground
-        disparities a pixel or two onto the background there ("edge fattening"):
-        points floating beside the object that bias ICP when views are stitched.
-        0 keeps them.
-    lit_outline : bool
-        Take that outline from matched pixels that are also lit (:func:`lit_mask`:
-        clear of the shot's dark floor by at least 6 grey levels, more on a noisy
-        floor), not from the texture test alone, whose 15x15 window reaches ~7 px
-        into an unlit background (there 1-1.5 mm of points per view lie beside the
-        object). On 8 stitched views of a camouflaged tank this took the model's
-        height error from +3.7 % to +0.4 %, for 3 % fewer points.
-    refine : bool
-        Slanted-plane sub-pixel refinement of the matched disparity
-        (:func:`~prism3d.reconstruct.refine.refine_slanted`, window ``refine_window``
-        rows x cols). The grating's stripes are flat colours, so constant-disparity
-        windows make a staircase on slanted surfaces; the plane fit removes it
-        (45-degree view of a target: disparity MAD 0.48 -> 0.10 px; flat plate:
-        RMS 0.055 -> 0.026 px). Holes the matcher's checks left inside the
-        surface are estimated the same way (26 % more points on that view, as
-        accurate as the rest).
-    refine_window : (rows, cols)
-        Default 7 x 19, narrower than :func:`refine_slanted`'s own 7 x 25: a
-        plane fitted over a window rounds every crease over half its width, and
-        the curvature correction spreads that over half a window more; both
-        tilt the flat faces beside a crease, differently in every view, and
-        stitched turntable views inherit it as pose errors. Worst stitched
-        view pose, 10 built-in targets x 8 views, rendered at 1 and 2x2 rays
-        per pixel: 0.010-0.068 deg (mean 0.033, 3 of 20 above 0.05) with 25
-        columns, 0.010-0.047 deg (mean 0.026) with 19. The price is noise: the
-        flat plate of Table I goes from 0.034-0.035 to 0.050-0.053 mm RMS with
-        the grating (0.032-0.033 -> 0.040-0.042 mm smoothed; 0.047 -> 0.054
-        mm without the grating). 17 columns doubles it (0.073-0.077 mm).
-    refine_orientation_weight : bool
-        Down-weight edges nearly parallel to the epipolar lines in the refinement
-        (off by default; see :func:`~prism3d.reconstruct.refine.refine_slanted` for
-        what it gains and costs).
-    refine_interpolation : {"bspline", "linear"}
-        How the refinement's images are rectified. ``"bspline"`` (default)
-        resamples the views a second time with exact cubic B-splines, in float
-        (see :meth:`~prism3d.reconstruct.rectify.RectifyMaps.remap`); ``"linear"``
-        refines on the matcher's images (OpenCV bilinear, uint8). Bilinear
-        resampling blurs each view by an amount that depends on the sub-pixel
-        offset of its map, which differs between the views and drifts across the
-        image: at the true disparity the two rectified views of an edge differ,
-        and the plane fit reads that as a disparity bias that follows the colour
-        and camouflage edges, the same with and without sensor noise. On a ship's
-        end-on view (whose turn rests on a 47 mm wide stern) the bias turned the
-        scan 0.17 deg; with B-splines 0.10 deg. Worst stitched view pose over 12
-        built-in targets rendered with 1 and 2x2 rays per pixel: 23 of 24 within
-        0.05 deg (before: 20), ship_s2 0.109 / 0.078 -> 0.026 / 0.032 deg; the
-        flat plate of Table I 0.047-0.054 -> 0.026-0.036 mm RMS. Adds ~0.15 s to a
-        5 MP shot (the refinement stage 0.05-0.07 -> 0.22 s).
-    refine_curvature : bool
-        Correct the plane fit for the surface's curvature along the rows, which
-        otherwise flattens convex surfaces by up to ~0.1 mm, differently in every
-        view (see :func:`~prism3d.reconstruct.refine.refine_slanted`).
-    max_residual : float
-        After refinement, drop pixels whose window the fitted plane does not
-        explain: mean squared colour residual over mean squared gradient above this
-        (occlusions, wrong matches). ``inf`` keeps all.
-    match_kwargs
-        Passed to :func:`~prism3d.reconstruct.match.match_stereo_full`. The
-        sub-pixel refinement window defaults to 9 px here (5 in the matcher): on the
-        paper's 5 MP views this halves the disparity noise on a patterned plate
-        (0.094 -> 0.054 px RMS; 13 px gives 0.042) at the cost of lateral
-        resolution at depth edges.
+    **options
+        As :func:`reconstruct_pair`.
     """
-    from prism3d.reconstruct.match import match_stereo_full
-    from prism3d.reconstruct.rectify import rectify_maps
-
     img = check_array(shot, "shot", ndim=(2, 3))
     sw, sh = rig.split.sensor_size
     if img.shape[1] != sw or img.shape[0] != sh:
         raise InputError(
             f"shot is {img.shape[1]}x{img.shape[0]} but the calibration expects a {sw}x{sh} sensor image"
         )
-    check_choice(refine_interpolation, "refine_interpolation", ("bspline", "linear"))
-    t = {}
-    t0 = time.perf_counter()
-    progress(0, 4, "rectify")
-    # rectify_shot's steps, keeping the maps and views for the refinement's B-spline
-    # views (the rig guarantees each view's size; the shot's was checked above)
-    rect = compute_rectification(rig, alpha=alpha)
-    maps = rectify_maps(rig, rect)
-    views = rig.split.split(img)
-    left, right = maps.remap(*views)
-    t["rectify"] = time.perf_counter() - t0
-    if (min_disp is None) != (num_disp is None):
-        raise InputError("give both min_disp and num_disp, or neither (then depth_range_mm is used)")
-    if min_disp is None:
-        if depth_range_mm is None:
-            wd = convergence_distance_mm(rig)
-            if wd is None:
-                raise InputError(
-                    "the cameras are parallel: give the disparity range (--min-disp/--num-disp) "
-                    "or the depth range (--depth-range NEAR:FAR mm)"
-                )
-            depth_range_mm = (0.85 * wd, 1.2 * wd)
-        min_disp, num_disp = disparity_range(rect, depth_range_mm)
-    t0 = time.perf_counter()
-    progress(1, 4, "match")
-    match_kwargs.setdefault("lk_window", 9)
-    res = match_stereo_full(left, right, min_disp=int(min_disp), num_disp=int(num_disp), **match_kwargs)
-    t["match"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    progress(2, 4, "triangulate")
-    in_range = np.isfinite(res.disparity) & (res.disparity > 0)
-    # matches pinned to either end of the search range are not measurements
-    in_range &= (res.disparity > min_disp + 1.0) & (res.disparity < min_disp + num_disp - 2.0)
-    valid = res.valid & in_range
-    textured = local_contrast(left) >= min_texture if min_texture > 0 else np.ones_like(valid)
-    valid &= textured
-    # the outline comes from matched pixels that show the lit surface: the 15x15
-    # texture test passes black background up to ~7 px from the object, where the
-    # matcher and the refinement carry the object's disparity outwards
-    outline = valid & lit_mask(left) if lit_outline else valid
-    inside = inside_silhouette(outline, silhouette_margin_px) if silhouette_margin_px > 0 else None
-    if inside is not None:
-        valid &= inside
-    disparity = res.disparity
-    if refine and valid.any():
-        from prism3d.reconstruct.refine import refine_slanted
+    return reconstruct_pair(*rig.split.split(img), rig, progress=progress, **options)
 
-        t1 = time.perf_counter()
-        # holes the matcher's checks left inside the surface (flat-coloured stripe
-        # interiors) are estimated too, from the planes of their windows
-        holes = (inside if inside is not None else inside_silhouette(valid, 0)) & textured & in_range & ~valid
-        if refine_interpolation == "bspline":
-            rows = np.flatnonzero((valid | holes).any(axis=1))
-            left_r, right_r = _bspline_views(views, maps, rows[0] - refine_window[0], rows[-1] + refine_window[0])
-        else:
-            left_r, right_r = left, right
-        disparity, resid, dstd = refine_slanted(left_r, right_r, res.disparity, valid, window=refine_window,
-                                                extra=holes,
-                                                orientation_weight=refine_orientation_weight,
-                                                curvature=refine_curvature)
-        valid = (valid | holes) & (resid <= max_residual) & (dstd <= max_disparity_std)
-        t["refine"] = time.perf_counter() - t1
-    depth = np.where(valid, rect.disparity_to_depth(disparity), np.nan).astype(np.float32)
-    if smooth_sigma_px > 0:
-        depth = smooth_depth(depth, sigma_px=smooth_sigma_px, focal_px=rect.focal_px,
-                             baseline_mm=rect.baseline_mm)
-    scan = scan_from_depth(depth, rect, left, res.confidence)
-    scan.meta.update(focal_px=rect.focal_px, baseline_mm=rect.baseline_mm, min_disp=int(min_disp),
-                     num_disp=int(num_disp), smooth_sigma_px=float(smooth_sigma_px))
-    t["triangulate"] = time.perf_counter() - t0 - t.get("refine", 0.0)
-    progress(4, 4, "done")
-    return Reconstruction(scan, rect, left, disparity, np.isfinite(scan.depth_mm), int(min_disp),
-                          int(num_disp), t)
+
+def reconstruct_pair(left: NDArray, right: NDArray, rig: StereoRig, *,
+                     progress: ProgressFn = null_progress, **options: Any) -> Reconstruction:
+    """Rectify, match, refine, select and triangulate the two views of a rig.
+
+    Parameters
+    ----------
+    left, right : (h, w, 3) uint8
+        The views, each ``rig.left.size`` (un-flipped; e.g. two camera files).
+    rig : StereoRig
+    min_disp, num_disp : int, optional
+        Disparity search range; by default from ``depth_range_mm``, else 0.85x-1.2x
+        the rig's convergence distance, else (parallel cameras) from sparse feature
+        matches (:func:`estimate_disparity_range`).
+    depth_range_mm : (near, far), optional
+    max_disparity : float, optional
+        A bound on the estimated range (e.g. a calibration's stated ``ndisp``).
+    alpha : float
+        See :func:`~prism3d.capture.rig.compute_rectification`.
+    smooth_sigma_px : float
+        Edge-preserving depth smoothing (0 = none); see
+        :func:`~prism3d.reconstruct.meshing.smooth_depth`.
+    min_confidence : float in [0, 1)
+        Keep a pixel when the chance that its disparity is within 1 px of the truth,
+        judged from its predicted std, reaches this
+        (:func:`~prism3d.reconstruct.selection.confidence_from_std`); 0 keeps every
+        pixel with an estimate. Default :data:`DEFAULT_MIN_CONFIDENCE`.
+    fill : bool
+        Estimate pixels the matcher could not measure (holes, occlusions, the
+        left view's edge band) from local planes through the measured ones
+        (:func:`~prism3d.reconstruct.selection.fill_from_planes`), each with its own
+        predicted std.
+    refine_window : (rows, cols)
+        Window of the slanted-plane refinement
+        (:func:`~prism3d.reconstruct.refine.refine_slanted`); 7 x 19 holds creases
+        better than its own default (docs/reconstruction.md).
+    refine_orientation_weight, refine_curvature : bool
+        See :func:`~prism3d.reconstruct.refine.refine_slanted`.
+    refine_interpolation : {"bspline", "linear"}
+        Views for the refinement: rectified again with exact cubic B-splines (default;
+        bilinear resampling biases the fit along colour edges) or the matcher's.
+    **match_kwargs
+        Passed to :func:`~prism3d.reconstruct.match.match_stereo_full`
+        (``lk_window`` defaults to 9 here).
+    """
+    la = check_array(left, "left", ndim=(2, 3))
+    ra = check_array(right, "right", ndim=(2, 3))
+    for name, a, cam in (("left", la, rig.left), ("right", ra, rig.right)):
+        if (a.shape[1], a.shape[0]) != cam.size:
+            raise InputError(f"{name} view is {a.shape[1]}x{a.shape[0]} but the calibration expects "
+                             f"{cam.size[0]}x{cam.size[1]}")
+    opts = dict(_DEFAULTS)
+    match_kwargs = {k: v for k, v in options.items() if k not in _DEFAULTS}
+    opts.update({k: v for k, v in options.items() if k in _DEFAULTS})
+    return _reconstruct_views((la, ra), rig, progress=progress, match_kwargs=match_kwargs, **opts)
 
 
 def reconstruct_to_files(
-    shot_path: str | Path,
-    calib_path: str | Path,
+    shot_path: str | Path | None,
+    calib_paths: str | Path | list[str | Path],
     out_ply: str | Path,
     *,
+    left_path: str | Path | None = None,
+    right_path: str | Path | None = None,
     disparity_out: str | Path | None = None,
     depth_out: str | Path | None = None,
     mesh_out: str | Path | None = None,
-    min_disp: int | None = None,
-    num_disp: int | None = None,
-    depth_range_mm: tuple[float, float] | None = None,
-    smooth_sigma_px: float = 0.0,
+    image_size: tuple[int, int] | None = None,
     progress: ProgressFn = null_progress,
+    **options: Any,
 ) -> Reconstruction:
-    """What ``prism3d reconstruct SHOT --calib calib.yaml -o scan.ply`` calls.
+    """What ``prism3d reconstruct`` calls: a side-by-side shot (``shot_path``) or two
+    view files (``left_path``, ``right_path``) and a calibration in any format
+    :func:`~prism3d.capture.calib_formats.load_stereo_calibration` reads.
 
-    Writes the scan PLY (valid points only, left camera frame, mm, with colours,
-    normals and confidence), and optionally the dense disparity (PFM, rectified-left
-    grid), the depth map (float32 mm, rectified-left grid, NaN = no point) and a
-    mesh of the organised grid that does not bridge depth jumps. Outputs are written
-    only after everything has been computed, each atomically.
+    Writes the scan PLY (the kept points, left camera frame, mm, with colours, normals
+    and the per-point ``confidence``, ``disparity_std`` and ``depth_std``), and
+    optionally the disparity (PFM, rectified-left grid, ``inf`` where no point, as
+    Middlebury writes unknowns), the depth (float32 mm, NaN where no point) and a mesh
+    of the organised grid. Everything is computed first; then all files are written
+    to temporary names and moved into place together.
+
+    When the range is not given, a range the calibration states (Middlebury ``ndisp``)
+    bounds the one estimated from the images.
     """
+    import contextlib
+
+    from prism3d.capture.calib_formats import load_stereo_calibration
     from prism3d.io.images import read_image, write_depth
     from prism3d.io.pfm import write_pfm
+    from prism3d.io.ply import write_ply
 
     out_ply = Path(out_ply)
-    for p in (out_ply, disparity_out, depth_out, mesh_out):
-        if p is not None and Path(p).is_dir():
+    outs = [Path(p) for p in (out_ply, disparity_out, depth_out, mesh_out) if p is not None]
+    for p in outs:
+        if p.is_dir():
             raise InputError(f"{p}: is a directory; give an output file name")
+    if len({p.resolve() for p in outs}) != len(outs):
+        raise InputError("two outputs name the same file; give each output its own path")
     if out_ply.suffix.lower() != ".ply":
         raise InputError(f"{out_ply}: the scan must be written as .ply")
-    rig = StereoRig.load(calib_path)
-    shot = read_image(shot_path)
-    sw, sh = rig.split.sensor_size
-    if shot.shape[1] != sw or shot.shape[0] != sh:
-        raise InputError(f"{shot_path}: image is {shot.shape[1]}x{shot.shape[0]} but {calib_path} "
-                         f"describes a {sw}x{sh} sensor")
-    rec = reconstruct_shot(shot, rig, min_disp=min_disp, num_disp=num_disp, depth_range_mm=depth_range_mm,
-                           smooth_sigma_px=smooth_sigma_px, progress=progress)
-    faces = None
+    if mesh_out is not None and Path(mesh_out).suffix.lower() != ".ply":
+        raise InputError(f"{mesh_out}: the mesh must be written as .ply")
+    if disparity_out is not None and Path(disparity_out).suffix.lower() != ".pfm":
+        raise InputError(f"{disparity_out}: the disparity is written as PFM; name it .pfm")
+    if depth_out is not None and Path(depth_out).suffix.lower() not in (".tif", ".tiff", ".npy", ".npz"):
+        raise InputError(f"{depth_out}: the depth is written as .tiff, .npy or .npz")
+    two_files = left_path is not None or right_path is not None
+    if two_files == (shot_path is not None) or (two_files and (left_path is None or right_path is None)):
+        raise InputError("give either a side-by-side SHOT or both --left and --right view files")
+    cal = load_stereo_calibration(calib_paths if isinstance(calib_paths, list) else [calib_paths],
+                                  image_size=image_size)
+    rig = cal.rig
+    if two_files:
+        left, right = read_image(left_path), read_image(right_path)  # type: ignore[arg-type]
+        if left.shape != right.shape:
+            raise InputError(f"{left_path} is {left.shape[1]}x{left.shape[0]} but {right_path} is "
+                             f"{right.shape[1]}x{right.shape[0]}: the two views must have the same size")
+        views = (left, right)
+        source = f"{left_path}, {right_path}"
+    else:
+        shot = read_image(shot_path)  # type: ignore[arg-type]
+        sw, sh = rig.split.sensor_size
+        if shot.shape[1] != sw or shot.shape[0] != sh:
+            raise InputError(f"{shot_path}: image is {shot.shape[1]}x{shot.shape[0]} but the calibration "
+                             f"describes a {sw}x{sh} sensor (two {sw // 2}x{sh} views side by side)")
+        views = rig.split.split(shot)
+        source = str(shot_path)
+    if options.get("min_disp") is None and options.get("depth_range_mm") is None and \
+            cal.disparity_range is not None and convergence_distance_mm(rig) is None:
+        options["max_disparity"] = _stated_max_disparity(cal)
+    try:
+        rec = reconstruct_pair(*views, rig, progress=progress, **options)
+    except InputError as exc:
+        raise InputError(f"{source}: {exc}") from exc
+    faces = verts = None
     if mesh_out is not None:
         grid, m = rec.scan.grid()
         verts, faces = mesh_from_grid(grid, m, focal_px=rec.rect.focal_px)
-    comments = [f"{k} {v}" for k, v in rec.scan.meta.items()]
-    from prism3d.io.ply import write_ply
-
-    write_ply(out_ply, rec.scan.points, colors=rec.scan.colors, normals=rec.scan.normals,
-              extra={"confidence": rec.scan.confidence},
-              comments=["prism3d scan", "units mm", "frame left camera (OpenCV axes)", *comments])
-    if mesh_out is not None:
-        write_ply(mesh_out, verts, faces=faces, colors=rec.scan.colors, normals=rec.scan.normals,
-                  comments=["prism3d scan mesh", "units mm", *comments])
-    if disparity_out is not None:
-        write_pfm(disparity_out, rec.disparity)
-    if depth_out is not None:
-        write_depth(depth_out, rec.scan.depth_mm)
+    meta = [f"{k} {v}" for k, v in rec.scan.meta.items()]
+    cov = rec.coverage
+    meta.append("coverage " + " ".join(f"{k}={v:.4f}" for k, v in cov.shares().items()))
+    props = rec.scan.point_properties()
+    with contextlib.ExitStack() as stack:
+        tmp = {p: stack.enter_context(atomic_path(p)) for p in outs}
+        write_ply(tmp[out_ply], rec.scan.points, colors=rec.scan.colors, normals=rec.scan.normals,
+                  extra=props, comments=["prism3d scan", "units mm", "frame left camera (OpenCV axes)", *meta])
+        if mesh_out is not None:
+            write_ply(tmp[Path(mesh_out)], verts, faces=faces, colors=rec.scan.colors, normals=rec.scan.normals,
+                      comments=["prism3d scan mesh", "units mm", *meta])
+        if disparity_out is not None:
+            write_pfm(tmp[Path(disparity_out)], np.where(np.isfinite(rec.disparity), rec.disparity, np.inf))
+        if depth_out is not None:
+            write_depth(tmp[Path(depth_out)], rec.scan.depth_mm)
     return rec
+
+
+def _stated_max_disparity(cal: Any) -> float:
+    """The largest rectified disparity a calibration's stated range allows (its
+    ``doffs`` added: rectification moves the views by it)."""
+    lo, n = cal.disparity_range
+    return float(lo + n - 1 + (cal.doffs or 0.0))

@@ -276,7 +276,9 @@ def save_rectification(path: str | Path, rect: Rectification, rig: StereoRig | N
     write_filestorage(path, values)
 
 
-def _write_png(path: Path, image: NDArray) -> None:
+def _write_png(path: Path, image: NDArray, *, atomic: bool = True) -> None:
+    import contextlib
+
     import cv2
 
     img = image
@@ -284,35 +286,28 @@ def _write_png(path: Path, image: NDArray) -> None:
         img = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    with atomic_path(path) as tmp:
+    with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
         if not cv2.imwrite(str(tmp), img):
             raise InputError(f"{path}: could not write the PNG (check the folder is writable)")
 
 
 def rectify_to_folder(
-    shot_path: str | Path,
-    calib_path: str | Path,
+    shot_path: str | Path | None,
+    calib_paths: str | Path | list[str | Path],
     out_dir: str | Path,
     *,
+    left_path: str | Path | None = None,
+    right_path: str | Path | None = None,
     alpha: float = 1.0,
+    image_size: tuple[int, int] | None = None,
 ) -> dict[str, Path]:
-    """Rectify one shot with a calibration file: what ``prism3d rectify SHOT --calib
-    calib.yaml -o OUT_DIR`` calls.
+    """What ``prism3d rectify`` calls: a side-by-side shot, or two view files
+    (``left_path``, ``right_path``), rectified with a calibration in any format
+    :func:`~prism3d.capture.calib_formats.load_stereo_calibration` reads.
 
     Writes ``left.png``, ``right.png`` (RGB, rectified) and ``rectification.yaml``
-    (``R1 R2 P1 P2 Q rectified_size`` plus the calibration) into ``out_dir``, each
-    atomically, only after everything has been computed.
-
-    Parameters
-    ----------
-    shot_path : path
-        Side-by-side sensor image (``rig.split.sensor_size``).
-    calib_path : path
-        Calibration or rig YAML (:meth:`Calibration.save` / ``prism3d simulate``'s rig.yaml).
-    out_dir : path
-        Output folder (created).
-    alpha : float in [0, 1]
-        See :func:`~prism3d.capture.rig.compute_rectification`.
+    (``R1 R2 P1 P2 Q rectified_size`` plus the calibration) into ``out_dir``: all
+    computed first, then written to temporary names and moved into place together.
 
     Returns
     -------
@@ -322,26 +317,42 @@ def rectify_to_folder(
     Raises
     ------
     InputError
-        Missing or unreadable files, a shot whose size does not match the calibration.
+        Missing or unreadable files, views whose size does not match the calibration.
     """
-    from prism3d.reconstruct.corners import load_image
+    import contextlib
 
-    rig = StereoRig.load(calib_path)
-    shot = load_image(shot_path)
-    try:
-        left, right, rect = rectify_shot(shot, rig, alpha=alpha)
-    except InputError as exc:
-        raise InputError(f"{shot_path}: {exc} (calibration {calib_path})") from exc
+    from prism3d.capture.calib_formats import load_stereo_calibration
+    from prism3d.io.images import read_image
+
+    two_files = left_path is not None or right_path is not None
+    if two_files == (shot_path is not None) or (two_files and (left_path is None or right_path is None)):
+        raise InputError("give either a side-by-side SHOT or both --left and --right view files")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: output folder exists and is not a folder")
+    rig = load_stereo_calibration(calib_paths if isinstance(calib_paths, list) else [calib_paths],
+                                  image_size=image_size).rig
+    try:
+        if two_files:
+            la, ra = read_image(left_path), read_image(right_path)  # type: ignore[arg-type]
+            if la.shape != ra.shape:
+                raise InputError(f"the views are {la.shape[1]}x{la.shape[0]} and {ra.shape[1]}x{ra.shape[0]}; "
+                                 "they must have the same size")
+            left, right, rect = rectify_pair(la, ra, rig, alpha=alpha)
+        else:
+            left, right, rect = rectify_shot(read_image(shot_path), rig, alpha=alpha)  # type: ignore[arg-type]
+    except InputError as exc:
+        src = f"{left_path}, {right_path}" if two_files else str(shot_path)
+        raise InputError(f"{src}: {exc} (calibration {calib_paths})") from exc
     paths = {
         "left": out / "left.png",
         "right": out / "right.png",
         "rectification": out / "rectification.yaml",
     }
     out.mkdir(parents=True, exist_ok=True)
-    _write_png(paths["left"], left)
-    _write_png(paths["right"], right)
-    save_rectification(paths["rectification"], rect, rig)
+    with contextlib.ExitStack() as stack:
+        tmp = {k: stack.enter_context(atomic_path(p)) for k, p in paths.items()}
+        _write_png(tmp["left"], left, atomic=False)
+        _write_png(tmp["right"], right, atomic=False)
+        save_rectification(tmp["rectification"], rect, rig)
     return paths

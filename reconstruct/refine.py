@@ -106,6 +106,26 @@ def _as_float_channels(img: NDArray, name: str) -> NDArray[np.float32]:
     return np.ascontiguousarray(out)
 
 
+def _correlation_factor(resid: NDArray[np.float32], mask: NDArray[np.bool_]) -> float:
+    """Variance inflation for residuals correlated between neighbouring pixels.
+
+    The least-squares variance assumes every window sample is independent; image
+    residuals are smooth over a few pixels, so a window holds fewer independent
+    samples. With lag-1 correlations ``rx``, ``ry`` of the residual field (measured
+    over ``mask``) and a first-order autoregressive model, the effective sample count
+    shrinks by ``(1 - r) / (1 + r)`` along each axis; the variance grows by the
+    inverse (at least 1).
+    """
+    e = np.where(mask[..., None], resid, 0.0).astype(np.float64)
+    den = float((e * e).sum())
+    if den <= 0.0:
+        return 1.0
+    rx = float((e[:, 1:] * e[:, :-1]).sum()) / den
+    ry = float((e[1:] * e[:-1]).sum()) / den
+    rx, ry = (min(max(r, 0.0), 0.95) for r in (rx, ry))
+    return (1.0 + rx) / (1.0 - rx) * (1.0 + ry) / (1.0 - ry)
+
+
 def refine_slanted(
     left: NDArray,
     right: NDArray,
@@ -305,7 +325,7 @@ def refine_slanted(
     s_e2 = mom(e2, one_x, one_y)[idx]
     ratio = s_e2 / (mom(gl2, one_x, one_y)[idx] + 1e-6)
     n_obs = mom(wgt, one_x, one_y)[idx] * nc
-    var = s_e2 / np.maximum(n_obs - 3.0, 1.0) * inv00[idx]
+    var = s_e2 / np.maximum(n_obs - 3.0, 1.0) * inv00[idx] * _correlation_factor(Lf - Rw, mc)
     moved = np.abs(d[idx] - d0[idx]) > float(max_change)
     d[idx] = np.where(moved, d0[idx], d[idx])
     ratio = np.where(moved, np.inf, ratio)
