@@ -5,7 +5,8 @@ Inputs are validated by the public wrappers; these loops assume contiguous array
 cached) -> ``rotate_rays`` -> ``cull_rays`` + ``pack_rays_sel`` (float32 rays for
 Open3D) -> Open3D cast -> ``refine_compact`` (float64 hits); the simulator then runs
 ``light_hits``, ``pack_segments`` (shadow rays), ``shade_colour``, ``box_mean``,
-``scatter_truth`` and ``sensor_noise``.
+``scatter_truth`` and ``sensor_noise``; with camera effects (:mod:`prism3d.capture.camera_effects`)
+``specular_weight``, ``shade_colour_specular`` and ``gain_vignetting``.
 """
 
 from __future__ import annotations
@@ -531,3 +532,104 @@ def quantize_u8(x: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - c
             out[i] = 255
         else:
             out[i] = np.uint8(v)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def specular_weight(
+    index: np.ndarray,
+    P: np.ndarray,
+    N: np.ndarray,
+    obj: np.ndarray,
+    eye: np.ndarray,
+    src: np.ndarray,
+    ks: np.ndarray,
+    shininess: np.ndarray,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Blinn-Phong weight ``out[index[i]] = ks[o] * max(0, n . h)^shininess[o]`` (``o = obj[i]``).
+
+    ``h`` is the bisector of the unit directions from ``P[i]`` to the camera centre
+    ``eye`` and to the light ``src``; ``N`` unit normals. Geometry only: the
+    shading multiplies it by the flash light (0 in shadow).
+    """
+    for i in prange(P.shape[0]):
+        o = obj[i]
+        c = ks[o]
+        w = 0.0
+        if c > 0.0:
+            vx = eye[0] - P[i, 0]
+            vy = eye[1] - P[i, 1]
+            vz = eye[2] - P[i, 2]
+            lx = src[0] - P[i, 0]
+            ly = src[1] - P[i, 1]
+            lz = src[2] - P[i, 2]
+            nv2 = vx * vx + vy * vy + vz * vz
+            nl2 = lx * lx + ly * ly + lz * lz
+            if nv2 > 0.0 and nl2 > 0.0:
+                iv = 1.0 / np.sqrt(nv2)
+                il = 1.0 / np.sqrt(nl2)
+                hx = vx * iv + lx * il
+                hy = vy * iv + ly * il
+                hz = vz * iv + lz * il
+                d = N[i, 0] * hx + N[i, 1] * hy + N[i, 2] * hz
+                h2 = hx * hx + hy * hy + hz * hz
+                if d > 0.0 and h2 > 0.0:
+                    # (n . h / |h|)^s = exp(s/2 log(d^2 / |h|^2))
+                    w = c * math.exp(0.5 * shininess[o] * math.log(min(d * d / h2, 1.0)))
+        out[index[i]] = w
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def shade_colour_specular(
+    pix: np.ndarray,
+    albedo: np.ndarray,
+    k: np.ndarray,
+    rgb: np.ndarray,
+    spec: np.ndarray,
+    first: int,
+    row_len: int,
+    ss: int,
+    width: int,
+    ambient: float,
+    img: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """``img[pix[i]] = max(0, albedo_i (ambient + k_i rgb_i) + spec[q] k_i rgb_i)``.
+
+    Diffuse plus specular radiance, not clipped above (the sensor saturates).
+    ``spec`` is the output-pixel weight map (flat, ``width`` per row); ray
+    ``first + pix[i]`` of a camera supersampled ``ss`` times (``row_len`` rays per
+    row) lies in output pixel ``q = (r // ss) * width + (c // ss)``, ``r, c`` its
+    supersampled row and column (``ss = 1``: ``q`` is the pixel itself).
+    """
+    inv_len = 1.0 / row_len
+    inv_ss = 1.0 / ss
+    for i in prange(pix.shape[0]):
+        p = pix[i]
+        g = first + p
+        if ss == 1:
+            q = g
+        else:
+            # integer divisions by multiplication: (x + 0.5) / n is >= 0.5 / n away
+            # from an integer, far more than the float64 rounding error
+            r = np.int64((g + 0.5) * inv_len)
+            c = g - r * row_len
+            q = np.int64((r + 0.5) * inv_ss) * width + np.int64((c + 0.5) * inv_ss)
+        s = spec[q]
+        for c in range(3):
+            x = albedo[i, c] * (ambient + k[i] * rgb[i, c]) + s * k[i] * rgb[i, c]
+            img[p, c] = max(x, 0.0)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def gain_vignetting(
+    img: np.ndarray, gain: np.ndarray, cx: float, cy: float, a: float, inv_rc2: float
+) -> None:  # pragma: no cover - compiled
+    """In place ``img[r, c, ch] *= gain[ch] * (1 - a ((c - cx)^2 + (r - cy)^2) inv_rc2)``."""
+    H = img.shape[0]
+    W = img.shape[1]
+    for r in prange(H):
+        dy2 = (r - cy) * (r - cy)
+        for c in range(W):
+            f = 1.0 - a * ((c - cx) * (c - cx) + dy2) * inv_rc2
+            for ch in range(img.shape[2]):
+                img[r, c, ch] *= gain[ch] * f

@@ -1,5 +1,10 @@
 """Test scenes for the virtual rig: textured plate, chessboard, turntable poses.
 
+Materials: a mesh may name its material class in ``metadata["material"]`` (a key
+of :data:`prism3d.capture.camera_effects.MATERIALS`), which sets its flash gloss
+when camera effects are on; a mesh without one is ``painted_metal``. The chessboard
+is ``matte_paper``.
+
 Frames (see DESIGN.md): millimetres, OpenCV-like object frames for flat objects
 (x right, y down, the visible *front* side faces -z, i.e. towards a camera that looks
 along +z). A plate placed with ``T_rig_obj = translation(0, 0, z)`` faces the rig.
@@ -135,6 +140,7 @@ def flat_plate(
     albedo: object | None = None,
     cell_mm: float = 5.0,
     name: str = "plate",
+    material: str | None = None,
 ) -> SceneMesh:
     """A flat plate centred on its origin in the plane z = 0, front side facing -z.
 
@@ -148,6 +154,9 @@ def flat_plate(
     cell_mm : float
         Triangle size (fine enough for per-vertex colours in the pyrender backend;
         the ray caster is exact with any subdivision).
+    material : str, optional
+        Material class (``metadata["material"]``, e.g. ``"lambertian"``); None
+        leaves it unset (the camera effects' default, painted metal).
     """
     w = check_positive(width_mm, "width_mm")
     h = check_positive(height_mm, "height_mm")
@@ -162,7 +171,12 @@ def flat_plate(
         if rgb.min() < 0 or rgb.max() > 1:
             raise InputError(f"albedo: RGB values must lie in [0, 1], got {tuple(rgb)}")
         field = UniformAlbedo(tuple(float(v) for v in rgb))
-    return SceneMesh(V, F, albedo_field=field, name=name, metadata={"width_mm": w, "height_mm": h})
+    metadata: dict[str, object] = {"width_mm": w, "height_mm": h}
+    if material is not None:
+        if not isinstance(material, str) or not material:
+            raise InputError(f"material: expected a material class name, got {material!r}")
+        metadata["material"] = material
+    return SceneMesh(V, F, albedo_field=field, name=name, metadata=metadata)
 
 
 def chessboard(
@@ -178,7 +192,8 @@ def chessboard(
     9 x 6 inner corners = 10 x 7 squares. The object frame has its origin at the first
     inner corner, x along the columns, y along the rows, the board in z = 0 with the
     printed side facing -z. The albedo (:class:`ChessboardAlbedo`) is exact per point:
-    black 0.05, white 0.95, white margin of ``margin_squares`` squares all round.
+    black 0.05, white 0.95, white margin of ``margin_squares`` squares all round;
+    material ``matte_paper`` (a print on matte stock: a faint, broad flash sheen).
     """
     cols = int(cols)
     rows = int(rows)
@@ -194,7 +209,9 @@ def chessboard(
         F,
         albedo_field=ChessboardAlbedo(cols, rows, s),
         name=name,
-        metadata={"cols": cols, "rows": rows, "square_mm": s, "margin_squares": m},
+        metadata={
+            "cols": cols, "rows": rows, "square_mm": s, "margin_squares": m, "material": "matte_paper",
+        },
     )
 
 

@@ -5,6 +5,15 @@ Image model (per view pixel, linear, values in [0, 1])::
     illumination = ambient + flash * max(0, n . l) * visible * pattern_rgb / falloff
     image        = clip(albedo * illumination, 0, 1)   -> blur -> noise -> uint8
 
+That is the ideal camera (``effects=None`` or ``CameraEffects.ideal()``). By default
+a :class:`~prism3d.capture.camera_effects.CameraEffects` adds what a real prism shot
+has: a Blinn-Phong flash highlight ``gloss * (n . h)^shininess * flash-light`` per
+material (view-dependent: ``h`` bisects the directions to the view's camera centre
+and to the flash), no per-ray clip (the sensor saturates), a gain and colour cast on
+the right view, vignetting about each view's principal point, a lens PSF, then after
+noise and quantisation a JPEG round trip of the sensor image (order and values: see
+that module).
+
 * ``n`` is the unit surface normal, ``l`` the unit direction from the surface point to
   the projector centre; ``visible`` is 1 when the segment to the projector is free
   (cast shadows, tested by ray casting), ``pattern_rgb`` the projector colour that
@@ -13,9 +22,10 @@ Image model (per view pixel, linear, values in [0, 1])::
   ``falloff = (distance / Projector.ref_distance_mm) ** 2`` (inverse-square law,
   1 at the reference distance). ``ambient`` is a uniform, shadowless light.
 * The truth ``shading_<view>`` is the same illumination with the pattern taken as
-  white (a scalar per pixel), ``illumination_<view>`` the RGB one. With a white
-  flash, supersample 1 and no noise, ``image / 255 == albedo * shading`` up to
-  quantisation.
+  white (a scalar per pixel), ``illumination_<view>`` the RGB one. The truth maps
+  are diffuse-only and free of camera effects (no highlight, gain, vignetting, blur
+  or JPEG). With the ideal camera, a white flash, supersample 1 and no noise,
+  ``image / 255 == albedo * shading`` up to quantisation.
 * Each view is rendered through its virtual camera (lens distortion exact) with
   ``supersample x supersample`` rays per pixel box-averaged (colour only); the
   truth maps come from one ray through each exact output pixel centre (depth is
@@ -45,6 +55,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from prism3d.capture.camera_effects import CameraEffects, jpeg_roundtrip
 from prism3d.capture.camouflage import CamouflageField
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.pattern import stripe_pattern
@@ -248,11 +259,14 @@ class Shot:
         Ground truth (see :func:`simulate_shot`).
     rectification : Rectification
         The rectification ``disparity_rect`` refers to.
+    effects : CameraEffects or None
+        The camera effects applied (None = the ideal camera).
     """
 
     sensor_image: NDArray[np.uint8]
     truth: dict[str, NDArray]
     rectification: Rectification
+    effects: CameraEffects | None = None
 
 
 def _illumination(
@@ -272,6 +286,44 @@ def _illumination(
     return k, rgb, white
 
 
+def _gloss_table(
+    renderer: RaycastRenderer, effects: CameraEffects
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(ks, shininess)`` ``(n_objects,)`` of the scene's meshes (``metadata["material"]``)."""
+    ks = np.zeros(renderer.n_objects)
+    shin = np.ones(renderer.n_objects)
+    if effects.specular:
+        for i, mesh in enumerate(renderer._meshes):
+            g = effects.gloss(mesh.metadata.get("material"))
+            ks[i], shin[i] = g.coefficient, g.shininess
+    return ks, shin
+
+
+def _shade(
+    pix: NDArray[np.int64],
+    alb: NDArray,
+    k: NDArray[np.float64],
+    rgb: NDArray[np.float64],
+    ambient: float,
+    img: NDArray,
+    spec: NDArray[np.float64] | None,
+    first: int = 0,
+    row_len: int = 1,
+    ss: int = 1,
+    width: int = 1,
+) -> None:
+    """Shade hits into ``img`` rows ``pix``: the ideal clipped diffuse colour when
+    ``spec`` is None, else diffuse + highlight (``spec``: the view's output-pixel
+    weight map; ray ``first + pix`` of a ``ss``-times supersampled camera with
+    ``row_len`` rays per row), unclipped above."""
+    from prism3d.capture._render_kernels import shade_colour, shade_colour_specular
+
+    if spec is None:
+        shade_colour(pix, alb, k, rgb, ambient, img)
+    else:
+        shade_colour_specular(pix, alb, k, rgb, spec, first, row_len, ss, width, ambient, img)
+
+
 def _render_view(
     renderer: RaycastRenderer,
     cam: CameraModel,
@@ -281,9 +333,19 @@ def _render_view(
     flash: float,
     background: float,
     supersample: int,
+    gloss: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> tuple[NDArray[np.float64], dict[str, NDArray]]:
-    """Clean colour image ``(H, W, 3)`` in [0, 1] and the truth maps of one view."""
-    from prism3d.capture._render_kernels import box_mean, scatter_truth, shade_colour
+    """Clean colour image ``(H, W, 3)`` and the truth maps of one view.
+
+    ``gloss`` None: the ideal image in [0, 1]. Else ``(ks, shininess)`` per object:
+    the flash highlight seen from this view's camera centre is added and values are
+    not clipped above (the truth maps stay diffuse-only either way). The highlight
+    weight ``ks (n . h)^s`` is evaluated on each output pixel's centre ray (the truth
+    pass) and multiplies the flash light of every supersampled ray of that pixel:
+    the lobe spans hundreds of pixels, and the transcendental maths then costs one
+    evaluation per pixel instead of ``supersample^2``.
+    """
+    from prism3d.capture._render_kernels import box_mean, scatter_truth, specular_weight
 
     w, h = cam.size
     n = h * w
@@ -296,6 +358,9 @@ def _render_view(
     normals = np.full((n, 3), np.nan, dtype=np.float32)
     object_id = np.full(n, -1, dtype=np.int32)
     R = np.ascontiguousarray(T_rig_cam[:3, :3])
+    eye = np.ascontiguousarray(T_rig_cam[:3, 3], dtype=np.float64)
+    src = projector.position_rig
+    spec = None if gloss is None else np.zeros(n)
     img1 = np.full((n, 3), float(background)) if supersample == 1 else np.zeros((0, 3))
 
     def truth_band(s: int, e: int, hb: CameraHits) -> None:
@@ -303,12 +368,16 @@ def _render_view(
             return
         alb = renderer._albedo(hb.object_id, hb.face_id, hb.bary_uv, hb.points, np.float32)
         k, rgb, white = _illumination(renderer, hb, projector, flash)
+        if spec is not None and gloss is not None and gloss[0].max() > 0:
+            specular_weight(
+                hb.index, hb.points, hb.normals, hb.object_id, eye, src, gloss[0], gloss[1], spec
+            )
         scatter_truth(
             hb.index, hb.t, hb.z_cam, alb, k, rgb, white, hb.normals, R, hb.object_id, ambient,
             depth, mask, albedo, shading, illum, normals, object_id,
         )
         if supersample == 1:
-            shade_colour(hb.index, alb, k, rgb, ambient, img1)
+            _shade(hb.index, alb, k, rgb, ambient, img1, spec, 0, w, 1, w)
 
     renderer.stream_camera(cam, T_rig_cam, truth_band)
     truth = {
@@ -339,7 +408,7 @@ def _render_view(
         if len(hb.index):
             alb_s = renderer._albedo(hb.object_id, hb.face_id, hb.bary_uv, hb.points, np.float32)
             k_s, rgb_s, _ = _illumination(renderer, hb, projector, flash)
-            shade_colour(hb.index - s, alb_s, k_s, rgb_s, ambient, b)
+            _shade(hb.index - s, alb_s, k_s, rgb_s, ambient, b, spec, s, ws, ss, w)
         r0 = s // ws // ss
         r1 = e // ws // ss
         box_mean(b.reshape(-1, ws, 3), ss, img[r0:r1])
@@ -362,6 +431,7 @@ def simulate_shot(
     rectification: Rectification | None = None,
     background: float = 0.0,
     renderer: RaycastRenderer | None = None,
+    effects: CameraEffects | None = CameraEffects(),  # noqa: B008  (frozen, immutable)
 ) -> Shot:
     """Simulate one flash photograph through the prism rig, with exact ground truth.
 
@@ -381,7 +451,8 @@ def simulate_shot(
     noise : bool or SensorNoise
         Sensor noise (True = ``SensorNoise()``), seeded by ``seed``.
     blur_sigma : float
-        Gaussian blur of each view (pixels), applied before noise.
+        Gaussian blur of each view (pixels), applied before noise (combined with
+        the effects' lens PSF as ``hypot(blur_sigma, effects.psf_sigma_px)``).
     seed : int
         Seed of the noise generator; same seed, same image.
     rectification : Rectification, optional
@@ -390,6 +461,12 @@ def simulate_shot(
         Image value where no surface is hit (0 = black).
     renderer : RaycastRenderer, optional
         A renderer already built for ``objects`` (in the rig frame), to reuse.
+    effects : CameraEffects or None
+        Real-camera effects (:class:`~prism3d.capture.camera_effects.CameraEffects`):
+        on by default with plausible values (right view 0.88x with a colour cast,
+        0.5-stop vignetting, 0.7 px PSF, JPEG quality 92, painted-metal gloss).
+        None or ``CameraEffects.ideal()`` = the ideal camera (bit-identical to
+        the simulator before effects existed). Deterministic: same seed, same image.
 
     Returns
     -------
@@ -401,7 +478,8 @@ def simulate_shot(
         (camera frame, facing the camera), ``object_id_<v>`` int32; plus
         ``disparity_rect`` (rectified-left grid, float32, NaN = no surface),
         ``depth_rect_mm``, ``R1 R2 P1 P2 Q``, ``T_rig_left``, ``T_right_left``,
-        ``projector_T_rig_proj``.
+        ``projector_T_rig_proj``. The truth maps are diffuse-only (no highlight)
+        and free of camera effects.
     """
     if not isinstance(rig, StereoRig):
         raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
@@ -424,16 +502,24 @@ def simulate_shot(
         noise_model = noise
     else:
         raise InputError(f"noise: expected a bool or SensorNoise, got {type(noise).__name__}")
+    if effects is not None and not isinstance(effects, CameraEffects):
+        raise InputError(f"effects: expected a CameraEffects or None, got {type(effects).__name__}")
+    fx = None if effects is None or effects.is_ideal else effects
     if renderer is None:
         renderer = RaycastRenderer(objects)
     rect = rectification if rectification is not None else compute_rectification(rig)
+    gloss = None if fx is None else _gloss_table(renderer, fx)
 
     truth: dict[str, NDArray] = {}
     views = []
     for name, cam, T in (("left", rig.left, rig.T_rig_left), ("right", rig.right, rig.T_rig_right)):
-        img, t = _render_view(renderer, cam, T, projector, a, fl, bg, ss)
-        if blur > 0:
-            img = gaussian_blur(img, blur)
+        img, t = _render_view(renderer, cam, T, projector, a, fl, bg, ss, gloss)
+        sigma = blur
+        if fx is not None:
+            _apply_view_optics(img, cam, fx, name)
+            sigma = float(np.hypot(blur, fx.psf_sigma_px))
+        if sigma > 0:
+            img = gaussian_blur(img, sigma)
         views.append(img)
         truth[f"depth_{name}_mm"] = t["depth_mm"]
         for key in ("mask", "albedo", "shading", "illumination", "normals", "object_id"):
@@ -469,7 +555,22 @@ def simulate_shot(
         sensor_u8 = quantize(noise_model.apply(sensor, rng))
     else:
         sensor_u8 = quantize(sensor * 255.0)
-    return Shot(sensor_u8, truth, rect)
+    if fx is not None and fx.jpeg_quality is not None:
+        sensor_u8 = jpeg_roundtrip(sensor_u8, fx.jpeg_quality)
+    return Shot(sensor_u8, truth, rect, effects)
+
+
+def _apply_view_optics(
+    img: NDArray[np.float64], cam: CameraModel, fx: CameraEffects, view: str
+) -> None:
+    """In place: the view's RGB gain and vignetting about its principal point."""
+    from prism3d.capture._render_kernels import gain_vignetting
+
+    gain = fx.view_gain(view)
+    cx, cy = float(cam.K[0, 2]), float(cam.K[1, 2])
+    a, inv_rc2 = fx.vignetting_coefficients(cam.size, (cx, cy))
+    if a > 0 or np.any(gain != 1.0):
+        gain_vignetting(img, gain, cx, cy, a, inv_rc2)
 
 
 # -- files -----------------------------------------------------------------------------
@@ -546,6 +647,7 @@ def simulate_to_folder(
     board: tuple[int, int] = (9, 6),
     square_mm: float = 25.0,
     blur_sigma: float = 0.0,
+    effects: CameraEffects | None = CameraEffects(),  # noqa: B008  (frozen, immutable)
 ) -> dict[str, Any]:
     """Simulate shots and write them with their ground truth (``prism3d simulate``).
 
@@ -567,7 +669,8 @@ def simulate_to_folder(
         ``truth_00.npz``..., ``target.ply`` (the true mesh, mm, world = turntable
         frame, z up) and ``poses.json`` (per view ``T_world_cam`` of the left
         virtual camera and ``T_world_rig``, 4x4 lists).
-        Every kind writes ``rig.yaml`` (:meth:`StereoRig.save`).
+        Every kind writes ``rig.yaml`` (:meth:`StereoRig.save`) with ``simulated: 1``
+        and the camera effects used as ``sim_*`` entries (:func:`_effects_entries`).
     out_dir : path
         Output folder (created).
     rig : StereoRig, optional
@@ -601,15 +704,23 @@ def simulate_to_folder(
     square_mm : float
         ``calib``: square size, mm.
     blur_sigma : float
-        Gaussian optical blur (lens PSF) of each view, pixels; 0 (default) leaves
-        the box-integrated pixels as rendered (sharp edges alias a little).
+        Extra Gaussian optical blur of each view, pixels, combined with the
+        effects' PSF (``hypot``); 0 (default) adds none.
+    effects : CameraEffects or None
+        Real-camera effects (default on, see :func:`simulate_shot`); None or
+        ``CameraEffects.ideal()`` = the ideal camera. The PNGs then hold the
+        JPEG-decoded pixels (lossless copies of what the camera's JPEG decodes to).
 
     Returns
     -------
     dict
-        ``kind``, ``out_dir``, ``files`` (names written), ``n_shots``, ``seconds``.
+        ``kind``, ``out_dir``, ``files`` (names written), ``n_shots``, ``pattern``,
+        ``camera_effects`` (``CameraEffects.to_dict()``, None for the ideal
+        camera), ``seconds``.
     """
     check_choice(kind, "kind", ("plate", "calib", "scene"))
+    if effects is not None and not isinstance(effects, CameraEffects):
+        raise InputError(f"effects: expected a CameraEffects or None, got {type(effects).__name__}")
     t0 = time.perf_counter()
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -636,7 +747,7 @@ def simulate_to_folder(
     files: list[str] = []
     common = dict(
         projector=projector, supersample=supersample, noise=noise, rectification=rect,
-        blur_sigma=check_positive(blur_sigma, "blur_sigma", strict=False),
+        blur_sigma=check_positive(blur_sigma, "blur_sigma", strict=False), effects=effects,
     )
     out.mkdir(parents=True, exist_ok=True)
     shots: list[tuple[str, str, list[tuple[SceneMesh, NDArray]], dict[str, NDArray]]] = []
@@ -716,7 +827,8 @@ def simulate_to_folder(
         atomic_write_text(out / "poses.json", json.dumps(doc, indent=1))
         files.append("poses.json")
 
-    rig.save(out / "rig.yaml", extra={"simulated": 1})
+    sim_entries = _effects_entries(effects, float(common["blur_sigma"]))  # type: ignore[arg-type]
+    rig.save(out / "rig.yaml", extra={"simulated": 1, **sim_entries})
     files.append("rig.yaml")
     total = len(shots)
     cached: dict[int, RaycastRenderer] = {}
@@ -740,5 +852,34 @@ def simulate_to_folder(
         "files": sorted(files),
         "n_shots": total,
         "pattern": use_pattern,
+        "camera_effects": None if effects is None or effects.is_ideal else effects.to_dict(),
         "seconds": time.perf_counter() - t0,
     }
+
+
+def _effects_entries(effects: CameraEffects | None, blur_sigma: float) -> dict[str, Any]:
+    """The camera effects of a simulated folder as flat ``rig.yaml`` entries.
+
+    ``sim_ideal_camera`` (1 = no effects; then nothing else but the blur),
+    ``sim_blur_sigma_px``, ``sim_exposure_right``, ``sim_colour_gain_right`` (R, G, B),
+    ``sim_vignetting_stops``, ``sim_psf_sigma_px``, ``sim_jpeg_quality`` (0 = none),
+    ``sim_specular``, ``sim_default_material`` and ``sim_gloss_<class>``
+    (coefficient, shininess) per material class.
+    """
+    out: dict[str, Any] = {"sim_ideal_camera": 1, "sim_blur_sigma_px": float(blur_sigma)}
+    if effects is None or effects.is_ideal:
+        return out
+    out.update(
+        sim_ideal_camera=0,
+        sim_exposure_right=effects.exposure_right,
+        sim_colour_gain_right=np.asarray(effects.colour_gain_right, dtype=np.float64),
+        sim_vignetting_stops=effects.vignetting_stops,
+        sim_psf_sigma_px=effects.psf_sigma_px,
+        sim_jpeg_quality=int(effects.jpeg_quality or 0),
+        sim_specular=int(effects.specular),
+        sim_default_material=effects.default_material,
+    )
+    for name, g in effects.materials:
+        key = "sim_gloss_" + "".join(c if c.isalnum() else "_" for c in name)
+        out[key] = np.array([g.coefficient, g.shininess])
+    return out
