@@ -12,14 +12,15 @@ export PYOPENGL_PLATFORM ?= osmesa
 export NUMBA_THREADING_LAYER ?= omp
 export MPLBACKEND ?= Agg
 
-.PHONY: setup system-deps test test-all demo bench clean help
+.PHONY: setup system-deps precompile test test-all demo bench clean help
 
 help:
 	@echo "make demo      install everything, then run the demo on built-in data (demo_out/report.html)"
 	@echo "make test      install everything, then run the test suite"
 	@echo "make test-all  also the slow tests"
 	@echo "make bench     benchmarks against OpenCV / Open3D (benchmarks/RESULTS.md)"
-	@echo "make setup     only install (system libraries + .venv)"
+	@echo "make setup     only install (system libraries + .venv), numba kernels compiled ahead"
+	@echo "make precompile  compile the numba kernels again (after editing a kernel)"
 
 system-deps:
 	@missing=""; for p in $(SYS_PKGS); do \
@@ -41,9 +42,16 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -c constraints.txt -e '.[test]'
+	@# first run without waiting: byte-code of our sources (an editable install has none;
+	@# ignored by git), then every numba kernel compiled into numba's on-disk cache
+	$(PY) -m compileall -q prism3d capture reconstruct atr datasets
+	$(PY) -m prism3d._precompile
 	@touch $(STAMP)
 
 setup: $(STAMP)
+
+precompile: setup
+	$(PY) -m prism3d._precompile
 
 test: setup
 	@set +e; $(PY) -m pytest -q -m "not slow" -p no:cacheprovider $(PYTEST_ARGS); rc=$$?; \

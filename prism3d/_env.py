@@ -6,9 +6,13 @@ OpenGL, pyrender, numba or a process pool. Values the user already set win.
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import sys
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import multiprocessing.context
 
 #: OpenGL platform for headless pyrender: ``osmesa`` (default, software) or ``egl``.
 OPENGL_PLATFORMS = ("osmesa", "egl")
@@ -37,4 +41,67 @@ def spawn_context() -> multiprocessing.context.SpawnContext:
     ``fork`` after an OpenMP (numba) or OpenGL call can hang the child, so pools
     always ``spawn``.
     """
+    import multiprocessing  # not at module level: ~5-25 ms that most commands never need
+
     return multiprocessing.get_context("spawn")
+
+
+# --- import hooks ----------------------------------------------------------------------------
+class ImportHook:
+    """A one-shot ``sys.meta_path`` entry that runs ``before(module)`` just before the
+    module ``name`` executes and ``after(module)`` once it has, whenever (and if ever)
+    something imports it. Nothing is imported on its behalf.
+
+    ``before`` may return a callable, called when the module body ends, even by an
+    exception (to undo a temporary change); ``after`` runs only on success. Use
+    :func:`on_import`; :meth:`remove` takes the hook out if it has not fired.
+    """
+
+    def __init__(self, name: str, before: Callable[[Any], Callable[[], None] | None] | None,
+                 after: Callable[[Any], None] | None) -> None:
+        self.name = name
+        self.before = before
+        self.after = after
+
+    def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> Any:
+        if fullname != self.name:
+            return None
+        from importlib.machinery import SourceFileLoader, SourcelessFileLoader
+        from importlib.util import find_spec
+
+        self.remove()  # one shot; the other finders locate the real module
+        spec = find_spec(fullname)
+        loader = getattr(spec, "loader", None)
+        # a per-spec loader object (source or byte-code file) only: never patch a shared one
+        if not isinstance(loader, (SourceFileLoader, SourcelessFileLoader)):
+            return spec
+        exec_module = loader.exec_module
+        before, after = self.before, self.after
+
+        def exec_with_hooks(module: Any) -> None:
+            undo = before(module) if before is not None else None
+            try:
+                exec_module(module)
+            finally:
+                if undo is not None:
+                    undo()
+            if after is not None:
+                after(module)
+
+        loader.exec_module = exec_with_hooks
+        return spec
+
+    def remove(self) -> None:
+        """Take the hook out of ``sys.meta_path`` (no-op once it has fired)."""
+        if self in sys.meta_path:
+            sys.meta_path.remove(self)
+
+
+def on_import(name: str, *, before: Callable[[Any], Callable[[], None] | None] | None = None,
+              after: Callable[[Any], None] | None = None) -> ImportHook:
+    """Run ``before`` / ``after`` around the first import of ``name`` (see
+    :class:`ImportHook`); ``name`` must not be imported yet."""
+    hook = ImportHook(name, before, after)
+    sys.meta_path.insert(0, hook)
+    return hook
+

@@ -2,16 +2,18 @@
 
 Library functions take an optional ``progress`` callable ``(done, total, label)``;
 the CLI passes one made here. Nothing is shown when stderr is not a TTY or when
-``--quiet`` was given.
+``--quiet`` was given. :func:`compile_notice` tells the user when numba kernels
+have to be compiled (a cold cache) instead of leaving a silent wait.
 """
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["ProgressFn", "make_progress", "null_progress"]
+__all__ = ["COMPILE_NOTICE", "ProgressFn", "compile_notice", "make_progress", "null_progress"]
 
 ProgressFn = Callable[[int, int, str], None]
 
@@ -51,3 +53,82 @@ def make_progress(desc: str, *, quiet: bool = False) -> ProgressFn:
     if quiet or not sys.stderr.isatty():
         return null_progress
     return _Bar(desc)
+
+
+#: The one line shown when a kernel has to be compiled at run time.
+COMPILE_NOTICE = (
+    "prism3d: compiling numeric kernels for first use (about 1-2 minutes, once; "
+    "'python -m prism3d._precompile' does it ahead)..."
+)
+_noticed = False
+
+
+def _notice_once(stream: Any) -> None:
+    global _noticed
+    if _noticed:
+        return
+    _noticed = True
+    try:
+        print(COMPILE_NOTICE, file=stream, flush=True)
+    except (OSError, ValueError):  # a closed or broken stderr must not break the command
+        pass
+
+
+def _compile_listener(stream: Any) -> Any:
+    """A numba event listener that prints :data:`COMPILE_NOTICE` once when a prism3d
+    kernel starts compiling (not when it loads from numba's on-disk cache)."""
+    from numba.core import event
+
+    class _Listener(event.Listener):
+        def on_start(self, ev: Any) -> None:
+            fn = getattr(ev.data.get("dispatcher"), "py_func", None)
+            if getattr(fn, "__module__", "").startswith("prism3d."):
+                _notice_once(stream)
+
+        def on_end(self, ev: Any) -> None:
+            pass
+
+    return _Listener()
+
+
+@contextmanager
+def compile_notice(*, quiet: bool = False, stream: Any = None) -> Iterator[None]:
+    """Inside the block, print :data:`COMPILE_NOTICE` on stderr (once per process) when
+    a numba kernel has to be compiled, so a cold cache is not a silent minute-long
+    wait.
+
+    For the CLI only (library code never prints). Costs nothing when the kernels load
+    from the cache, and does not import numba: when numba is not imported yet, the
+    listener is registered right after its import, if the command imports it at all.
+    The line goes to stderr whether or not it is a terminal (a notebook's ``!prism3d``
+    or a CI log stalls just the same; stdout stays clean for parsers); ``quiet``
+    silences it.
+    """
+    if quiet:
+        yield
+        return
+    out = sys.stderr if stream is None else stream
+    state: dict[str, Any] = {}
+
+    def register() -> None:
+        from numba.core import event
+
+        state["listener"] = _compile_listener(out)
+        event.register("numba:compile", state["listener"])
+
+    hook = None
+    if "numba" in sys.modules:
+        register()
+    else:
+        from prism3d._env import on_import
+
+        hook = on_import("numba", after=lambda module: register())
+    try:
+        yield
+    finally:
+        if hook is not None:
+            hook.remove()
+        if "listener" in state:
+            from numba.core import event
+
+            event.unregister("numba:compile", state["listener"])
