@@ -44,9 +44,16 @@ __all__ = [
 ]
 
 
+#: Axes that cross further than this many baselines away (a convergence angle below
+#: ~3 deg) belong to a parallel rig with a small toe-in, not one aimed at a distance.
+_CONVERGING_MAX_BASELINES = 20.0
+
+
 def convergence_distance_mm(rig: StereoRig) -> float | None:
-    """Distance (along the left optical axis) where the two optical axes pass closest;
-    ``None`` for (near-)parallel cameras."""
+    """Distance (along the left optical axis) where the two optical axes pass closest,
+    for a rig aimed at a working distance (the prism adapter's views cross at ~6
+    baselines); ``None`` for parallel cameras, including a toe-in of a fraction of a
+    degree (axes crossing beyond ``_CONVERGING_MAX_BASELINES`` baselines)."""
     c_r = rig.T_left_right[:3, 3]
     z_l = np.array([0.0, 0.0, 1.0])
     z_r = rig.T_left_right[:3, 2]
@@ -57,7 +64,9 @@ def convergence_distance_mm(rig: StereoRig) -> float | None:
     A = np.array([[z_l @ z_l, -z_l @ z_r], [z_l @ z_r, -z_r @ z_r]])
     b = np.array([c_r @ z_l, c_r @ z_r])
     s, _ = np.linalg.solve(A, b)
-    return float(s) if s > 0 else None
+    if not 0 < s <= _CONVERGING_MAX_BASELINES * rig.baseline_mm:
+        return None
+    return float(s)
 
 
 def _bspline_views(views: tuple[NDArray, NDArray], maps: RectifyMaps, r0: int, r1: int) -> tuple[NDArray, NDArray]:
@@ -74,6 +83,39 @@ def _bspline_views(views: tuple[NDArray, NDArray], maps: RectifyMaps, r0: int, r
         full[r0:r1] = part
         out.append(full)
     return out[0], out[1]
+
+
+#: Colour detail both views hold: Bayer sensors and JPEG's 4:2:0 store chroma at half
+#: resolution, on a grid whose phase differs between the views; a Gaussian of 2 px keeps
+#: chroma below that grid's Nyquist band.
+_CHROMA_SIGMA_PX = 2.0
+#: Scale (px) of the local contrast normalisation before the refinement: wider than the
+#: refinement window (7 x 19), so that within a window only the scene's own contrast
+#: remains, while gain and offset that change more slowly (a flash highlight seen from
+#: two angles, vignetting the gain field left) cancel between the views.
+_NORMALISE_SIGMA_PX = 12.0
+
+
+def _refinement_view(view: NDArray, noise: float) -> NDArray[np.float32]:
+    """A view as the slanted-plane refinement compares it: luma at full resolution,
+    chroma low-passed to the band both views of a real camera hold, then each pixel's
+    deviation from its neighbourhood's mean over the neighbourhood's contrast (the
+    shot's noise keeps flat regions from being amplified). docs/reconstruction.md
+    has what each step bought on the simulated plate."""
+    import cv2
+
+    v = np.asarray(view, dtype=np.float32)
+    if v.ndim == 3 and v.shape[2] == 3:
+        luma = (0.299 * v[..., 0] + 0.587 * v[..., 1] + 0.114 * v[..., 2])[..., None]
+        chroma = cv2.GaussianBlur(np.ascontiguousarray(v - luma), (0, 0), _CHROMA_SIGMA_PX)
+        v = np.ascontiguousarray(chroma + luma)
+    v3 = v if v.ndim == 3 else v[..., None]
+    mean = cv2.GaussianBlur(v3, (0, 0), _NORMALISE_SIGMA_PX).reshape(v3.shape)
+    dev = v3 - mean
+    var = cv2.GaussianBlur(np.ascontiguousarray((dev * dev).mean(-1)), (0, 0), _NORMALISE_SIGMA_PX)
+    scale = np.float32(64.0) / np.sqrt(var + np.float32(max(noise, 1.0)) ** 2)
+    out = dev * scale[..., None] + np.float32(128.0)
+    return np.ascontiguousarray(out if v.ndim == 3 else out[..., 0], dtype=np.float32)
 
 
 def disparity_range(
@@ -102,9 +144,10 @@ def estimate_disparity_range(left: NDArray, right: NDArray) -> tuple[int, int]:
     """``(min_disp, num_disp)`` for a rectified pair from sparse feature matches.
 
     ORB features matched across the views (mutual nearest neighbours, Lowe's ratio
-    test) on the same row (within 1.5 px): the 0.5th to 99.5th percentile of their
-    disparities, widened by a quarter of that span and 8 px each way. Used when
-    the cameras are parallel and the user gives no range.
+    test) on the same row (within 1.5 px): the 1st to 99th percentile of their
+    disparities, widened by a quarter of that span and 8 px each way, and never below
+    0 (with equal principal points a point in front of the cameras has ``d = f B / z
+    > 0``). Used when the cameras are parallel and the user gives no range.
 
     Raises
     ------
@@ -126,8 +169,11 @@ def estimate_disparity_range(left: NDArray, right: NDArray) -> tuple[int, int]:
     disp: list[float] = []
     if dl is not None and dr is not None and len(kl) >= 2 and len(kr) >= 2:
         bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+        back = {m.queryIdx: m.trainIdx for m in bf.match(dr, dl)}
         for pair in bf.knnMatch(dl, dr, k=2):
             if len(pair) < 2 or pair[0].distance >= 0.8 * pair[1].distance:
+                continue
+            if back.get(pair[0].trainIdx) != pair[0].queryIdx:
                 continue
             pl, pr = kl[pair[0].queryIdx].pt, kr[pair[0].trainIdx].pt
             if abs(pl[1] - pr[1]) <= 1.5:
@@ -136,9 +182,9 @@ def estimate_disparity_range(left: NDArray, right: NDArray) -> tuple[int, int]:
         raise ReconstructionError(
             f"cannot tell the disparity range from the images ({len(disp)} feature matches on the "
             "same rows): give --min-disp/--num-disp or --depth-range NEAR:FAR")
-    lo, hi = np.percentile(np.asarray(disp), [0.5, 99.5])
+    lo, hi = np.percentile(np.asarray(disp), [1.0, 99.0])
     margin = 0.25 * (hi - lo) + 8.0
-    d0 = int(math.floor(lo - margin))
+    d0 = max(int(math.floor(lo - margin)), 0)
     num = int(math.ceil((hi + margin - d0 + 1) / 16.0) * 16)
     return d0, num
 
@@ -303,6 +349,7 @@ def _reconstruct_views(
             left_r, right_r = left, right
         if res.right_gain is not None:
             right_r = res.right_gain.apply(right_r)
+        left_r, right_r = _refinement_view(left_r, noise), _refinement_view(right_r, noise)
         d_ref, _, d_std = refine_slanted(left_r, right_r, dense, measured, window=refine_window,
                                          extra=holes, orientation_weight=refine_orientation_weight,
                                          curvature=refine_curvature, max_change=_MAX_REFINE_CHANGE_PX)

@@ -83,6 +83,8 @@ References
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -126,6 +128,31 @@ def _correlation_factor(resid: NDArray[np.float32], mask: NDArray[np.bool_]) -> 
     return (1.0 + rx) / (1.0 - rx) * (1.0 + ry) / (1.0 - ry)
 
 
+def _offset_moments(Lf: NDArray, Rw: NDArray, G: NDArray, support: NDArray, dd: NDArray,
+                    owt: NDArray | None, mom: Any, kernels: tuple) -> dict[str, Any]:
+    """Window sums for the per-window offset: ``s = sum G [1 x y]`` (channels summed),
+    ``y = sum (G d - e)`` and the sample count ``n`` (weighted like the plane's rows)."""
+    one_x, one_y, ramp_x, ramp_y = kernels
+    wt = support.astype(np.float64) if owt is None else support * owt
+    g1 = G.sum(-1) * wt
+    y1 = (dd * G.sum(-1) - (Lf - Rw).sum(-1)) * wt
+    n = mom(wt * G.shape[2], one_x, one_y)
+    return {"g1": g1, "n": n, "s": (mom(g1, one_x, one_y), mom(g1, ramp_x, one_y), mom(g1, one_x, ramp_y)),
+            "y": mom(y1, one_x, one_y)}
+
+
+def _eliminate_offset(moments: list[NDArray], off: dict[str, Any]) -> list[NDArray]:
+    """The plane's normal equations with the offset eliminated (Schur complement):
+    ``A - s s' / n`` and ``r - s y / n``."""
+    n = off["n"]
+    inv_n = np.divide(1.0, n, out=np.zeros_like(n), where=n > 0)
+    s0, sx, sy = off["s"]
+    a00, a01, a02, a11, a22, a12, r0, r1, r2 = moments
+    return [a00 - s0 * s0 * inv_n, a01 - s0 * sx * inv_n, a02 - s0 * sy * inv_n, a11 - sx * sx * inv_n,
+            a22 - sy * sy * inv_n, a12 - sx * sy * inv_n, r0 - s0 * off["y"] * inv_n,
+            r1 - sx * off["y"] * inv_n, r2 - sy * off["y"] * inv_n]
+
+
 def refine_slanted(
     left: NDArray,
     right: NDArray,
@@ -138,6 +165,7 @@ def refine_slanted(
     extra: NDArray | None = None,
     orientation_weight: bool = False,
     curvature: bool = True,
+    offset: bool = True,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
     """Refine ``disparity`` at ``valid`` pixels with slanted-plane windows.
 
@@ -187,6 +215,13 @@ def refine_slanted(
         c x^2`` is fitted to the refined map over the same window, and the bias it
         gives the plane fit, ``c`` times a factor from the window's own weights, is
         subtracted.
+
+    offset : bool
+        Fit an additive offset between the views per window along with the plane
+        (``L = R(x - d) + beta``; it is eliminated from the normal equations, so the
+        system stays 3 x 3): light that differs between the views but varies slowly,
+        such as a flash's specular highlight seen from two angles, or a JPEG block's
+        DC error, is absorbed instead of read as disparity.
 
     Returns
     -------
@@ -289,10 +324,13 @@ def refine_slanted(
         if owt is not None:
             g2 *= owt
             ge *= owt
-        moments = (mom(g2, one_x, one_y), mom(g2, ramp_x, one_y), mom(g2, one_x, ramp_y),
+        moments = [mom(g2, one_x, one_y), mom(g2, ramp_x, one_y), mom(g2, one_x, ramp_y),
                    mom(g2, ramp_x * ramp_x, one_y), mom(g2, one_x, ramp_y * ramp_y),
                    mom(g2, ramp_x, ramp_y), mom(ge, one_x, one_y), mom(ge, ramp_x, one_y),
-                   mom(ge, one_x, ramp_y))
+                   mom(ge, one_x, ramp_y)]
+        if offset:
+            off = _offset_moments(Lf, Rw, G, support, dd, owt, mom, (one_x, one_y, ramp_x, ramp_y))
+            moments = _eliminate_offset(moments, off)
         # one Gauss-Newton step moves a pixel by at most 1 px; a small ridge on the
         # slopes keeps windows with texture in one column only well posed
         _k.solve_planes(mc, *moments, 1e-6, 1.0, dd, inv00)
@@ -302,8 +340,13 @@ def refine_slanted(
         # (A: the last iteration's normal matrix); c from the refined map itself
         rx2 = ramp_x * ramp_x
         kappa = np.zeros((h, w))
-        _k.solve_planes(mc, *moments[:6], mom(g2, rx2, one_y), mom(g2, rx2 * ramp_x, one_y),
-                        mom(g2, rx2, ramp_y), 1e-6, np.inf, kappa, np.empty((h, w)))
+        rhs = [mom(g2, rx2, one_y), mom(g2, rx2 * ramp_x, one_y), mom(g2, rx2, ramp_y)]
+        if offset:
+            # the x^2 regressor's own correlation with the offset, removed as for the plane
+            s_x2 = mom(off["g1"], rx2, one_y)
+            rhs = [r - si * np.divide(s_x2, off["n"], out=np.zeros_like(s_x2), where=off["n"] > 0)
+                   for r, si in zip(rhs, off["s"], strict=True)]
+        _k.solve_planes(mc, *moments[:6], *rhs, 1e-6, np.inf, kappa, np.empty((h, w)))
         wm = mc.astype(np.float64)
         ry2 = ramp_y * ramp_y
         m = np.stack([mom(wm, one_x, one_y), mom(wm, ramp_x, one_y), mom(wm, one_x, ramp_y),
@@ -320,12 +363,20 @@ def refine_slanted(
     idx = np.nonzero(mc)
     _k.warp_rows(coef, x0, dd, d_ref, Rw, G)
     wgt = mc.astype(np.float32)
-    e2 = ((Lf - Rw) ** 2).sum(-1) * wgt
+    diff = Lf - Rw
+    e2 = (diff * diff).sum(-1) * wgt
     gl2 = (gl * gl).sum(-1) * wgt
     s_e2 = mom(e2, one_x, one_y)[idx]
+    if offset:
+        # the residual about the window's best offset: sum e^2 - (sum e)^2 / n
+        s_e = mom(diff.sum(-1) * wgt, one_x, one_y)[idx]
+        n_e = mom(wgt, one_x, one_y)[idx] * nc
+        s_e2 = np.maximum(s_e2 - np.divide(s_e * s_e, n_e, out=np.zeros_like(s_e), where=n_e > 0), 0.0)
     ratio = s_e2 / (mom(gl2, one_x, one_y)[idx] + 1e-6)
     n_obs = mom(wgt, one_x, one_y)[idx] * nc
-    var = s_e2 / np.maximum(n_obs - 3.0, 1.0) * inv00[idx] * _correlation_factor(Lf - Rw, mc)
+    with np.errstate(invalid="ignore"):  # inv00 is inf where a window was singular
+        var = s_e2 / np.maximum(n_obs - 3.0 - offset, 1.0) * inv00[idx] * _correlation_factor(diff, mc)
+    var = np.where(np.isfinite(var) & (var >= 0), var, np.inf)
     moved = np.abs(d[idx] - d0[idx]) > float(max_change)
     d[idx] = np.where(moved, d0[idx], d[idx])
     ratio = np.where(moved, np.inf, ratio)
