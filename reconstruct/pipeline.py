@@ -96,26 +96,43 @@ _CHROMA_SIGMA_PX = 2.0
 _NORMALISE_SIGMA_PX = 12.0
 
 
-def _refinement_view(view: NDArray, noise: float) -> NDArray[np.float32]:
+def _smooth(img: NDArray[np.float32], sigma: float) -> NDArray[np.float32]:
+    """Gaussian smoothing at a large ``sigma``, computed on a level ``sigma / 3`` times
+    smaller and interpolated back (the result is smooth on that scale anyway)."""
+    import cv2
+
+    k = max(1, int(sigma // 3))
+    h, w = img.shape[:2]
+    if k == 1 or h < 4 * k or w < 4 * k:
+        return cv2.GaussianBlur(img, (0, 0), sigma).reshape(img.shape)
+    small = cv2.resize(img, (-(-w // k), -(-h // k)), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), sigma / k)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR).reshape(img.shape)
+
+
+def _refinement_view(view: NDArray, noise: float, rows: tuple[int, int] | None = None) -> NDArray[np.float32]:
     """A view as the slanted-plane refinement compares it: luma at full resolution,
     chroma low-passed to the band both views of a real camera hold, then each pixel's
     deviation from its neighbourhood's mean over the neighbourhood's contrast (the
-    shot's noise keeps flat regions from being amplified). docs/reconstruction.md
-    has what each step bought on the simulated plate."""
+    shot's noise keeps flat regions from being amplified). Only ``rows`` (start, stop)
+    are computed (0 elsewhere). docs/reconstruction.md has what each step bought on
+    the simulated plate."""
     import cv2
 
-    v = np.asarray(view, dtype=np.float32)
+    full = np.asarray(view, dtype=np.float32)
+    r0, r1 = (0, full.shape[0]) if rows is None else (max(rows[0], 0), min(rows[1], full.shape[0]))
+    v = full[r0:r1]
     if v.ndim == 3 and v.shape[2] == 3:
         luma = (0.299 * v[..., 0] + 0.587 * v[..., 1] + 0.114 * v[..., 2])[..., None]
         chroma = cv2.GaussianBlur(np.ascontiguousarray(v - luma), (0, 0), _CHROMA_SIGMA_PX)
-        v = np.ascontiguousarray(chroma + luma)
-    v3 = v if v.ndim == 3 else v[..., None]
-    mean = cv2.GaussianBlur(v3, (0, 0), _NORMALISE_SIGMA_PX).reshape(v3.shape)
-    dev = v3 - mean
-    var = cv2.GaussianBlur(np.ascontiguousarray((dev * dev).mean(-1)), (0, 0), _NORMALISE_SIGMA_PX)
-    scale = np.float32(64.0) / np.sqrt(var + np.float32(max(noise, 1.0)) ** 2)
-    out = dev * scale[..., None] + np.float32(128.0)
-    return np.ascontiguousarray(out if v.ndim == 3 else out[..., 0], dtype=np.float32)
+        v = chroma + luma
+    v3 = np.ascontiguousarray(v if v.ndim == 3 else v[..., None])
+    dev = v3 - _smooth(v3, _NORMALISE_SIGMA_PX)
+    var = _smooth(np.ascontiguousarray((dev * dev).mean(-1)), _NORMALISE_SIGMA_PX)
+    scale = np.float32(64.0) / np.sqrt(np.maximum(var, 0.0) + np.float32(max(noise, 1.0)) ** 2)
+    out = np.zeros(full.shape[:2] + v3.shape[2:], np.float32)
+    out[r0:r1] = dev * scale[..., None] + np.float32(128.0)
+    return out if full.ndim == 3 else out[..., 0]
 
 
 def disparity_range(
@@ -341,15 +358,17 @@ def _reconstruct_views(
     refined = np.full(dense.shape, np.nan, np.float32)
     own_std = np.full(dense.shape, np.nan, np.float32)
     if measured.any() or holes.any():
+        rows = np.flatnonzero((measured | holes).any(axis=1))
+        r0, r1 = rows[0] - refine_window[0], rows[-1] + refine_window[0]
         if refine_interpolation == "bspline":
-            rows = np.flatnonzero((measured | holes).any(axis=1))
-            r0, r1 = rows[0] - refine_window[0], rows[-1] + refine_window[0]
             left_r, right_r = _bspline_views(views, maps, r0, r1)
         else:
             left_r, right_r = left, right
-        if res.right_gain is not None:
-            right_r = res.right_gain.apply(right_r)
-        left_r, right_r = _refinement_view(left_r, noise), _refinement_view(right_r, noise)
+        band = (max(r0, 0), min(r1 + 1, right_r.shape[0]))
+        if res.right_gain is not None and not res.right_gain.negligible():
+            right_r = np.array(right_r, dtype=np.float32)
+            right_r[band[0]:band[1]] = res.right_gain.apply(right_r[band[0]:band[1]], row0=band[0])
+        left_r, right_r = _refinement_view(left_r, noise, band), _refinement_view(right_r, noise, band)
         d_ref, _, d_std = refine_slanted(left_r, right_r, dense, measured, window=refine_window,
                                          extra=holes, orientation_weight=refine_orientation_weight,
                                          curvature=refine_curvature, max_change=_MAX_REFINE_CHANGE_PX)
