@@ -27,7 +27,7 @@ import prism3d  # noqa: F401
 
 def pose_errors(T_model_scan, poses, V):
     """Per view: rotation error (deg) and RMS motion (mm) of the true surface."""
-    from prism3d.capture.rig import rotation_angle_deg
+    from prism3d.reconstruct.registration import rotation_angle_deg
 
     T0_inv = np.linalg.inv(poses[0])
     out = []
@@ -69,7 +69,12 @@ def run(name: str, folder: Path, options: dict) -> dict:
     V = read_ply(folder / "target.ply").points.astype(np.float64)
     out = {"target": name, "reconstruct_s": t_rec, "points": int(np.mean([len(s[0]) for s in scans]))}
     for hint in (45.0, None):
-        res = stitch_scans(scans, turntable_step_deg=hint, mesh=False)
+        try:
+            res = stitch_scans(scans, turntable_step_deg=hint, mesh=False)
+        except Exception as exc:  # a failed registration is a result too
+            out["hint" if hint else "nohint"] = {"worst_deg": float("nan"), "worst_motion_mm": float("nan"),
+                                                 "worst_view": -1, "warnings": [f"failed: {exc}"]}
+            continue
         errs = pose_errors(res.T_model_scan, poses, V)
         key = "hint" if hint else "nohint"
         out[key] = {"worst_deg": max(a for a, _ in errs), "worst_motion_mm": max(b for _, b in errs),
@@ -108,7 +113,7 @@ def main() -> None:
         warn = "; ".join(sorted(set(h["warnings"] + n["warnings"])))[:80]
         print(f"| {name} | {r['points']} | {h['worst_deg']:.3f} ({h['worst_view']}) | {h['worst_motion_mm']:.3f} | "
               f"{n['worst_deg']:.3f} | {n['worst_motion_mm']:.3f} | {warn} | {r['reconstruct_s']:.1f} |", flush=True)
-    ok = sum(max(r["hint"]["worst_deg"], r["nohint"]["worst_deg"]) <= 0.05 for r in rows)
+    ok = sum(bool(max(r["hint"]["worst_deg"], r["nohint"]["worst_deg"]) <= 0.05) for r in rows)
     print(f"\n{ok} of {len(rows)} targets within 0.05 deg in both modes")
 
 

@@ -515,6 +515,8 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
         opts["voxel"] = args.voxel
     if args.smooth:
         opts["smooth_iterations"] = args.smooth
+    if args.min_confidence is not None:
+        opts["min_confidence"] = args.min_confidence
     res = stitch_to_files(args.scans, args.output, mesh_out=args.mesh, turntable_step_deg=args.turntable_step,
                           progress=_progress(args, "stitch"), **opts)
     _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
@@ -546,6 +548,8 @@ def _add_stitch(sub: Any) -> None:
     p.add_argument("--turntable-step", type=float, metavar="DEG", help="known rotation between views")
     p.add_argument("--voxel", type=float, help="fusion voxel size in the scans' units (default: from spacing)")
     p.add_argument("--smooth", type=int, default=0, metavar="N", help="mesh smoothing iterations (default 0)")
+    p.add_argument("--min-confidence", type=float, metavar="C", help="use the scans' points whose confidence "
+                   "property reaches this (default 0.9: disparity within 1 px with 90 %% chance; 0 = all)")
     p.set_defaults(func=_cmd_stitch)
 
 

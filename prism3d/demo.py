@@ -290,8 +290,11 @@ def _stage_model360(ctx: DemoContext) -> Section:
     scans = []
     from prism3d.reconstruct.pipeline import reconstruct_shot
 
+    from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE
+
     for k in range(8):
-        rec = reconstruct_shot(read_image(out / f"shot_{k:02d}.png"), rig)
+        # the points the stitcher uses (prism3d stitch on scan files keeps the same)
+        rec = reconstruct_shot(read_image(out / f"shot_{k:02d}.png"), rig, min_confidence=STITCH_MIN_CONFIDENCE)
         sc = rec.scan
         scans.append((sc.points.astype(np.float64), sc.colors, sc.normals))
         write_ply(ctx.path("scans", f"scan_{k:02d}.ply"), sc.points, colors=sc.colors, normals=sc.normals,

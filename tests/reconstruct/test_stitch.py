@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 from prism3d.reconstruct.registration import rotation_angle_deg
-from prism3d.reconstruct.stitch import stitch_scans, stitch_to_files
+from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE, stitch_scans, stitch_to_files
 
 from prism3d.errors import InputError, ReconstructionError
 
@@ -256,7 +256,7 @@ def test_ship_stereo_coverage_with_true_depth(tmp_path, hint):
     rng = np.random.default_rng(0)
     scans, poses = [], []
     for v in views:
-        scan = reconstruct_shot(read_image(folder / v["image"]), rig).scan
+        scan = reconstruct_shot(read_image(folder / v["image"]), rig, min_confidence=STITCH_MIN_CONFIDENCE).scan
         t = np.load(folder / v["truth"], allow_pickle=False)
         z_true = t["depth_rect_mm"][scan.pixels[:, 0], scan.pixels[:, 1]].astype(np.float64)
         ok = np.isfinite(z_true)
@@ -291,7 +291,8 @@ def test_ship_stereo_scans_stitch_within_the_targets(tmp_path):
     simulate_to_folder("scene", folder, target=builtin_target("ship_s2", seed=0), views=8, seed=0, supersample=1)
     rig = StereoRig.load(folder / "rig.yaml")
     views = json.loads((folder / "poses.json").read_text())["views"]
-    scans = [reconstruct_shot(read_image(folder / v["image"]), rig).scan for v in views]
+    scans = [reconstruct_shot(read_image(folder / v["image"]), rig, min_confidence=STITCH_MIN_CONFIDENCE).scan
+             for v in views]
     poses = [np.array(v["T_world_cam"]) for v in views]
     target = read_ply(folder / "target.ply")
     for hint in (45.0, None):
