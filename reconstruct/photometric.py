@@ -34,6 +34,8 @@ __all__ = ["GainField", "fit_gain_field"]
 _DARK, _BRIGHT = 12.0, 243.0
 #: Fewest samples per polynomial term; fewer samples lower the degree.
 _SAMPLES_PER_TERM = 30
+#: Most samples used (an even subset of the matched pixels): ~250 per term at degree 4.
+_MAX_SAMPLES = 4000
 #: Tukey's biweight constant (95 % efficiency for Gaussian residuals).
 _TUKEY_C = 4.685
 #: Spacing (px) of the grid the field is evaluated on before bilinear interpolation.
@@ -179,6 +181,9 @@ def fit_gain_field(
         raise InputError(f"max_degree: expected an integer in [0, 6], got {max_degree!r}")
     full = (int(round(w * scale)), int(round(h * scale))) if size is None else (int(size[0]), int(size[1]))
     ys, xs = np.nonzero(m)
+    if len(ys) > _MAX_SAMPLES:  # an even subset: a few thousand samples pin 15 terms
+        step = -(-len(ys) // _MAX_SAMPLES)
+        ys, xs = ys[::step], xs[::step]
     xr = xs - d[ys, xs].astype(np.float64)
     inside = (xr >= 0) & (xr <= w - 1)
     ys, xs, xr = ys[inside], xs[inside], xr[inside]
