@@ -83,8 +83,6 @@ References
 
 from __future__ import annotations
 
-from typing import Any
-
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -108,49 +106,29 @@ def _as_float_channels(img: NDArray, name: str) -> NDArray[np.float32]:
     return np.ascontiguousarray(out)
 
 
-def _correlation_factor(resid: NDArray[np.float32], mask: NDArray[np.bool_]) -> float:
+def _correlation_factor(left: NDArray[np.float32], warped: NDArray[np.float32], mask: NDArray[np.bool_]) -> float:
     """Variance inflation for residuals correlated between neighbouring pixels.
 
     The least-squares variance assumes every window sample is independent; image
     residuals are smooth over a few pixels, so a window holds fewer independent
-    samples. With lag-1 correlations ``rx``, ``ry`` of the residual field (measured
-    over ``mask``) and a first-order autoregressive model, the effective sample count
-    shrinks by ``(1 - r) / (1 + r)`` along each axis; the variance grows by the
-    inverse (at least 1).
+    samples. With lag-1 correlations ``rx``, ``ry`` of the residual field ``left -
+    warped`` (measured over ``mask``, on every fourth pair of rows: a correlation is a
+    property of the whole field) and a first-order autoregressive model, the effective
+    sample count shrinks by ``(1 - r) / (1 + r)`` along each axis; the variance grows by
+    the inverse (at least 1).
     """
-    e = np.where(mask[..., None], resid, 0.0).astype(np.float64)
-    den = float((e * e).sum())
+    h = left.shape[0]
+    rows = np.arange(0, h - 1, 4)
+    m0 = mask[rows][..., None]
+    e0 = np.where(m0, left[rows] - warped[rows], 0.0).astype(np.float64)
+    e1 = np.where(mask[rows + 1][..., None], left[rows + 1] - warped[rows + 1], 0.0).astype(np.float64)
+    den = float((e0 * e0).sum())
     if den <= 0.0:
         return 1.0
-    rx = float((e[:, 1:] * e[:, :-1]).sum()) / den
-    ry = float((e[1:] * e[:-1]).sum()) / den
+    rx = float((e0[:, 1:] * e0[:, :-1]).sum()) / den
+    ry = float((e0 * e1).sum()) / den
     rx, ry = (min(max(r, 0.0), 0.95) for r in (rx, ry))
     return (1.0 + rx) / (1.0 - rx) * (1.0 + ry) / (1.0 - ry)
-
-
-def _offset_moments(Lf: NDArray, Rw: NDArray, G: NDArray, support: NDArray, dd: NDArray,
-                    owt: NDArray | None, mom: Any, kernels: tuple) -> dict[str, Any]:
-    """Window sums for the per-window offset: ``s = sum G [1 x y]`` (channels summed),
-    ``y = sum (G d - e)`` and the sample count ``n`` (weighted like the plane's rows)."""
-    one_x, one_y, ramp_x, ramp_y = kernels
-    wt = support.astype(np.float64) if owt is None else support * owt
-    g1 = G.sum(-1) * wt
-    y1 = (dd * G.sum(-1) - (Lf - Rw).sum(-1)) * wt
-    n = mom(wt * G.shape[2], one_x, one_y)
-    return {"g1": g1, "n": n, "s": (mom(g1, one_x, one_y), mom(g1, ramp_x, one_y), mom(g1, one_x, ramp_y)),
-            "y": mom(y1, one_x, one_y)}
-
-
-def _eliminate_offset(moments: list[NDArray], off: dict[str, Any]) -> list[NDArray]:
-    """The plane's normal equations with the offset eliminated (Schur complement):
-    ``A - s s' / n`` and ``r - s y / n``."""
-    n = off["n"]
-    inv_n = np.divide(1.0, n, out=np.zeros_like(n), where=n > 0)
-    s0, sx, sy = off["s"]
-    a00, a01, a02, a11, a22, a12, r0, r1, r2 = moments
-    return [a00 - s0 * s0 * inv_n, a01 - s0 * sx * inv_n, a02 - s0 * sy * inv_n, a11 - sx * sx * inv_n,
-            a22 - sy * sy * inv_n, a12 - sx * sy * inv_n, r0 - s0 * off["y"] * inv_n,
-            r1 - sx * off["y"] * inv_n, r2 - sy * off["y"] * inv_n]
 
 
 def refine_slanted(
@@ -300,7 +278,9 @@ def refine_slanted(
 
     Lf = np.ascontiguousarray(Lc, dtype=np.float32)
     # horizontal gradient of the left view: the residual's scale, and the weights
-    gl = np.stack([cv2.Sobel(Lf[..., c], cv2.CV_32F, 1, 0, ksize=1, scale=0.5) for c in range(nc)], -1)
+    gl = np.empty_like(Lf)
+    for c in range(nc):
+        gl[..., c] = cv2.Sobel(Lf[..., c], cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
     owt = None
     if orientation_weight:
         sx = (gl * gl).sum(-1)
@@ -311,26 +291,30 @@ def refine_slanted(
         owt = (sx / (sx + sy + np.float32(1.0))).astype(np.float64)
     g2 = np.empty((h, w), np.float64)
     ge = np.empty((h, w), np.float64)
+    g1 = np.empty((h, w), np.float64)
+    yo = np.empty((h, w), np.float64)
+    wt = np.empty((h, w), np.float64)
+    no_owt = np.empty((0, 0), np.float64)
     dd = np.where(mc, d0, np.float32(0.0)).astype(np.float64)
     inv00 = np.full((h, w), np.inf)
     for it in range(int(iterations)):
         if it > 0 and ex.any():
             support = mc  # the planes reached the extra pixels: they now carry measurements
         _k.warp_rows(coef, x0, dd, d_ref, Rw, G)
-        # linearised about each window pixel's own current disparity d_q:
-        # L - R(x - d_plane) ~ e_q + G_q (d_plane(q) - d_q) = 0
-        # => normal equations  sum G^2 d_plane [1 x y] = sum (G^2 d_q - G e_q) [1 x y]
-        _k.products(Lf, Rw, G, support, dd, g2, ge)
-        if owt is not None:
-            g2 *= owt
-            ge *= owt
+        # linearised about each window pixel's own current disparity d_q, with an
+        # offset beta per window when ``offset``:
+        # L - R(x - d_plane) ~ e_q + G_q (d_plane(q) - d_q) - beta = 0
+        # => normal equations  sum G^2 d_plane [1 x y] = sum (G^2 d_q - G e_q) [1 x y],
+        #    with beta eliminated (A - s s'/n, r - s y/n; s = sum G [1 x y])
+        _k.products_offset(Lf, Rw, G, support, dd, no_owt if owt is None else owt, g2, ge, g1, yo, wt)
         moments = [mom(g2, one_x, one_y), mom(g2, ramp_x, one_y), mom(g2, one_x, ramp_y),
                    mom(g2, ramp_x * ramp_x, one_y), mom(g2, one_x, ramp_y * ramp_y),
                    mom(g2, ramp_x, ramp_y), mom(ge, one_x, one_y), mom(ge, ramp_x, one_y),
                    mom(ge, one_x, ramp_y)]
         if offset:
-            off = _offset_moments(Lf, Rw, G, support, dd, owt, mom, (one_x, one_y, ramp_x, ramp_y))
-            moments = _eliminate_offset(moments, off)
+            n_off = mom(wt, one_x, one_y)
+            s_off = (mom(g1, one_x, one_y), mom(g1, ramp_x, one_y), mom(g1, one_x, ramp_y))
+            _k.eliminate_offset(*moments, n_off, *s_off, mom(yo, one_x, one_y))
         # one Gauss-Newton step moves a pixel by at most 1 px; a small ridge on the
         # slopes keeps windows with texture in one column only well posed
         _k.solve_planes(mc, *moments, 1e-6, 1.0, dd, inv00)
@@ -343,18 +327,22 @@ def refine_slanted(
         rhs = [mom(g2, rx2, one_y), mom(g2, rx2 * ramp_x, one_y), mom(g2, rx2, ramp_y)]
         if offset:
             # the x^2 regressor's own correlation with the offset, removed as for the plane
-            s_x2 = mom(off["g1"], rx2, one_y)
-            rhs = [r - si * np.divide(s_x2, off["n"], out=np.zeros_like(s_x2), where=off["n"] > 0)
-                   for r, si in zip(rhs, off["s"], strict=True)]
+            s_x2 = mom(g1, rx2, one_y)
+            zero = np.zeros_like(s_x2)
+            _k.eliminate_offset(zero, zero.copy(), zero.copy(), zero.copy(), zero.copy(), zero.copy(),
+                                *rhs, n_off, *s_off, s_x2)
         _k.solve_planes(mc, *moments[:6], *rhs, 1e-6, np.inf, kappa, np.empty((h, w)))
-        wm = mc.astype(np.float64)
+        wm = mc.astype(np.float32)  # 0/1: exact in float32, twice as fast to filter
         ry2 = ramp_y * ramp_y
-        m = np.stack([mom(wm, one_x, one_y), mom(wm, ramp_x, one_y), mom(wm, one_x, ramp_y),
-                      mom(wm, rx2, one_y), mom(wm, one_x, ry2), mom(wm, ramp_x, ramp_y),
-                      mom(wm, rx2 * ramp_x, one_y), mom(wm, rx2, ramp_y), mom(wm, rx2 * rx2, one_y)])
+
+        def mom32(f: NDArray, kx: NDArray[np.float64], ky: NDArray[np.float64]) -> NDArray[np.float64]:
+            return cv2.sepFilter2D(f, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT).astype(np.float64)
+
+        m = (mom32(wm, one_x, one_y), mom32(wm, ramp_x, one_y), mom32(wm, one_x, ramp_y),
+             mom32(wm, rx2, one_y), mom32(wm, one_x, ry2), mom32(wm, ramp_x, ramp_y),
+             mom32(wm, rx2 * ramp_x, one_y), mom32(wm, rx2, ramp_y), mom32(wm, rx2 * rx2, one_y))
         dm = np.where(mc, dd, 0.0)
-        md = np.stack([mom(dm, one_x, one_y), mom(dm, ramp_x, one_y), mom(dm, one_x, ramp_y),
-                       mom(dm, rx2, one_y)])
+        md = (mom(dm, one_x, one_y), mom(dm, ramp_x, one_y), mom(dm, one_x, ramp_y), mom(dm, rx2, one_y))
         curv = np.zeros((h, w))
         _k.row_curvature(mc, m, md, 1e-6, curv)
         dd -= np.where(mc, curv * kappa, 0.0)
@@ -362,20 +350,19 @@ def refine_slanted(
     # residual after the last update
     idx = np.nonzero(mc)
     _k.warp_rows(coef, x0, dd, d_ref, Rw, G)
-    wgt = mc.astype(np.float32)
-    diff = Lf - Rw
-    e2 = (diff * diff).sum(-1) * wgt
-    gl2 = (gl * gl).sum(-1) * wgt
+    e2 = np.empty((h, w), np.float64)
+    e1 = np.empty((h, w), np.float64)
+    gl2 = np.empty((h, w), np.float64)
+    _k.residual_sums(Lf, Rw, gl, mc, e2, e1, gl2)
     s_e2 = mom(e2, one_x, one_y)[idx]
+    n_obs = mom(mc.astype(np.float32), one_x, one_y)[idx] * nc
     if offset:
         # the residual about the window's best offset: sum e^2 - (sum e)^2 / n
-        s_e = mom(diff.sum(-1) * wgt, one_x, one_y)[idx]
-        n_e = mom(wgt, one_x, one_y)[idx] * nc
-        s_e2 = np.maximum(s_e2 - np.divide(s_e * s_e, n_e, out=np.zeros_like(s_e), where=n_e > 0), 0.0)
+        s_e = mom(e1, one_x, one_y)[idx]
+        s_e2 = np.maximum(s_e2 - np.divide(s_e * s_e, n_obs, out=np.zeros_like(s_e), where=n_obs > 0), 0.0)
     ratio = s_e2 / (mom(gl2, one_x, one_y)[idx] + 1e-6)
-    n_obs = mom(wgt, one_x, one_y)[idx] * nc
     with np.errstate(invalid="ignore"):  # inv00 is inf where a window was singular
-        var = s_e2 / np.maximum(n_obs - 3.0 - offset, 1.0) * inv00[idx] * _correlation_factor(diff, mc)
+        var = s_e2 / np.maximum(n_obs - 3.0 - offset, 1.0) * inv00[idx] * _correlation_factor(Lf, Rw, mc)
     var = np.where(np.isfinite(var) & (var >= 0), var, np.inf)
     moved = np.abs(d[idx] - d0[idx]) > float(max_change)
     d[idx] = np.where(moved, d0[idx], d[idx])
