@@ -34,8 +34,8 @@ __all__ = ["GainField", "fit_gain_field"]
 _DARK, _BRIGHT = 12.0, 243.0
 #: Fewest samples per polynomial term; fewer samples lower the degree.
 _SAMPLES_PER_TERM = 30
-#: Most samples used (an even subset of the matched pixels): ~250 per term at degree 4.
-_MAX_SAMPLES = 4000
+#: Most samples used (an even subset of the matched pixels): ~1300 per term at degree 4.
+_MAX_SAMPLES = 20000
 #: Tukey's biweight constant (95 % efficiency for Gaussian residuals).
 _TUKEY_C = 4.685
 #: Spacing (px) of the grid the field is evaluated on before bilinear interpolation.
