@@ -48,19 +48,14 @@ def spawn_context() -> multiprocessing.context.SpawnContext:
 
 # --- import hooks ----------------------------------------------------------------------------
 class ImportHook:
-    """A one-shot ``sys.meta_path`` entry that runs ``before(module)`` just before the
-    module ``name`` executes and ``after(module)`` once it has, whenever (and if ever)
-    something imports it. Nothing is imported on its behalf.
-
-    ``before`` may return a callable, called when the module body ends, even by an
-    exception (to undo a temporary change); ``after`` runs only on success. Use
-    :func:`on_import`; :meth:`remove` takes the hook out if it has not fired.
+    """A one-shot ``sys.meta_path`` entry that runs ``after(module)`` once the module
+    ``name`` has been imported, whenever (and if ever) something imports it. Nothing is
+    imported on its behalf. Use :func:`on_import`; :meth:`remove` takes the hook out if
+    it has not fired.
     """
 
-    def __init__(self, name: str, before: Callable[[Any], Callable[[], None] | None] | None,
-                 after: Callable[[Any], None] | None) -> None:
+    def __init__(self, name: str, after: Callable[[Any], None]) -> None:
         self.name = name
-        self.before = before
         self.after = after
 
     def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> Any:
@@ -75,20 +70,13 @@ class ImportHook:
         # a per-spec loader object (source or byte-code file) only: never patch a shared one
         if not isinstance(loader, (SourceFileLoader, SourcelessFileLoader)):
             return spec
-        exec_module = loader.exec_module
-        before, after = self.before, self.after
+        exec_module, after = loader.exec_module, self.after
 
-        def exec_with_hooks(module: Any) -> None:
-            undo = before(module) if before is not None else None
-            try:
-                exec_module(module)
-            finally:
-                if undo is not None:
-                    undo()
-            if after is not None:
-                after(module)
+        def exec_then_after(module: Any) -> None:
+            exec_module(module)
+            after(module)
 
-        loader.exec_module = exec_with_hooks
+        loader.exec_module = exec_then_after
         return spec
 
     def remove(self) -> None:
@@ -97,11 +85,9 @@ class ImportHook:
             sys.meta_path.remove(self)
 
 
-def on_import(name: str, *, before: Callable[[Any], Callable[[], None] | None] | None = None,
-              after: Callable[[Any], None] | None = None) -> ImportHook:
-    """Run ``before`` / ``after`` around the first import of ``name`` (see
-    :class:`ImportHook`); ``name`` must not be imported yet."""
-    hook = ImportHook(name, before, after)
+def on_import(name: str, *, after: Callable[[Any], None]) -> ImportHook:
+    """Run ``after(module)`` once ``name`` is first imported (see :class:`ImportHook`);
+    ``name`` must not be imported yet."""
+    hook = ImportHook(name, after)
     sys.meta_path.insert(0, hook)
     return hook
-

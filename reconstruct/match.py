@@ -614,13 +614,7 @@ def _match_c2f(
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     h, w, nc = lf.shape
     hc, wc = h // scale, w // scale
-
-    def down(img: NDArray[np.float32]) -> NDArray[np.float32]:
-        crop = np.ascontiguousarray(img[: hc * scale, : wc * scale], dtype=np.float32)
-        small = cv2.resize(crop, (wc, hc), interpolation=cv2.INTER_AREA)
-        return np.ascontiguousarray(small.reshape(hc, wc, nc))
-
-    lc, rc = down(lf), down(rf)
+    lc, rc = (_downsample(np.asarray(v, dtype=np.float32), scale) for v in (lf, rf))
     dmin_c = math.floor(min_disp / scale) - 1
     dmax_c = math.ceil((min_disp + num_disp - 1) / scale) + 1
     dlo_c = np.full((hc, wc), dmin_c, np.int32)

@@ -581,7 +581,7 @@ def reconstruct_to_files(
     two_files = left_path is not None or right_path is not None
     if two_files == (shot_path is not None) or (two_files and (left_path is None or right_path is None)):
         raise InputError("give either a side-by-side SHOT or both --left and --right view files")
-    cal = load_stereo_calibration(calib_paths if isinstance(calib_paths, list) else [calib_paths],
+    cal = load_stereo_calibration(calib_paths,
                                   image_size=image_size)
     rig = cal.rig
     if two_files:

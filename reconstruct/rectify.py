@@ -330,7 +330,7 @@ def rectify_to_folder(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: output folder exists and is not a folder")
-    rig = load_stereo_calibration(calib_paths if isinstance(calib_paths, list) else [calib_paths],
+    rig = load_stereo_calibration(calib_paths,
                                   image_size=image_size).rig
     try:
         if two_files:

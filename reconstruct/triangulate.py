@@ -329,7 +329,7 @@ def triangulate_to_file(
         raise InputError(f"{out}: the cloud is written as .ply")
     if out.is_dir():
         raise InputError(f"{out}: is a directory; give an output file name")
-    rig = load_stereo_calibration(calib_paths if isinstance(calib_paths, list) else [calib_paths],
+    rig = load_stereo_calibration(calib_paths,
                                   image_size=image_size).rig
     rect = compute_rectification(rig, alpha=alpha)
     try:
