@@ -47,6 +47,7 @@ References
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -65,7 +66,7 @@ from prism3d.errors import InputError, ReconstructionError
 from . import _match_kernels as _k
 from .photometric import GainField, fit_gain_field
 
-__all__ = ["C2F_AUTO_CELLS", "StereoResult", "match_files", "match_stereo", "match_stereo_full"]
+__all__ = ["C2F_AUTO_CELLS", "MatchOptions", "StereoResult", "match_files", "match_stereo", "match_stereo_full"]
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +105,30 @@ class StereoResult:
     raw: NDArray[np.float32]
     coarse_to_fine: bool
     right_gain: GainField | None = None
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """Options of :func:`match_stereo_full` (defaults: docs/matching.md)."""
+
+    coarse_to_fine: bool | None = None
+    census_window: tuple[int, int] = (5, 5)
+    p1: int = 10
+    p2: int = 120
+    p2_gamma: float = 20.0
+    paths: int = 4
+    uniqueness: float = 5.0
+    lr_max_diff: float = 1.0
+    speckle_size: int | None = None
+    speckle_range: float = 2.0
+    subpixel: str = "lk"
+    lk_window: int = 5
+    lk_iters: int = 1
+    fine_window: int | None = None
+    ad_weight: float = 1.0
+    ad_trunc: float = 15.0
+    ad_mode: str = "intensity"
+    equalize: bool = True
 
 
 class _Workspace(threading.local):
@@ -396,6 +421,7 @@ def match_stereo_full(
     ad_trunc: float = 15.0,
     ad_mode: str = "intensity",
     equalize: bool = True,
+    options: MatchOptions | None = None,
 ) -> StereoResult:
     """Match a rectified pair; return dense disparity plus validity and confidence.
 
@@ -471,6 +497,9 @@ def match_stereo_full(
     ReconstructionError
         No pixel passed the consistency checks.
     """
+    if options is not None:  # transitional: the keywords go once callers pass options
+        return match_stereo_full(left, right, min_disp=min_disp, num_disp=num_disp,
+                                 **dataclasses.asdict(options))
     lf = _prepare(left, "left")
     rf = _prepare(right, "right")
     check_same_shape(lf, rf, ("left", "right"))
