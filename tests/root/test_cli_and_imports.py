@@ -3,7 +3,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -44,8 +43,7 @@ def test_user_choice_of_egl_is_kept():
     assert r.stdout.strip() == "egl"
 
 
-def test_version_and_help_are_fast():
-    t0 = time.perf_counter()
+def test_version_and_help_import_nothing_heavy():
     r = run(["--version"])
     assert r.returncode == 0 and r.stdout.startswith("prism3d ")
     r = run(["--help"])
@@ -55,7 +53,6 @@ def test_version_and_help_are_fast():
                         "build_parser(); heavy=[m for m in ('numpy','cv2','open3d','numba','pyrender') "
                         "if m in sys.modules]; print(heavy)"], capture_output=True, text=True, timeout=60)
     assert r.stdout.strip() == "[]", r.stdout
-    assert time.perf_counter() - t0 > 0
 
 
 def test_no_command_prints_help(capsys):
