@@ -1,12 +1,6 @@
-"""Numba kernels behind :mod:`prism3d.capture.render` and the scene simulator (private).
-
-Inputs are validated by the public wrappers; these loops assume contiguous arrays
-(float64 unless stated). Pipeline of a render: ``grid_rays`` (once per camera model,
-cached) -> ``rotate_rays`` -> ``cull_rays`` + ``pack_rays_sel`` (float32 rays for
-Open3D) -> Open3D cast -> ``refine_compact`` (float64 hits); the simulator then runs
-``light_hits``, ``pack_segments`` (shadow rays), ``shade_colour``, ``box_mean``,
-``scatter_truth`` and ``sensor_noise``; with camera effects (:mod:`prism3d.capture.camera_effects`)
-``specular_weight``, ``shade_colour_specular`` and ``gain_vignetting``.
+"""Numba kernels behind :mod:`prism3d.capture.render` and the scene simulator
+(private; inputs validated by the wrappers, contiguous, float64 unless stated).
+Pipeline order: docs/capture.md ("Renderers").
 """
 
 from __future__ import annotations
@@ -27,13 +21,9 @@ def grid_rays(
     out: np.ndarray,
     out_z: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Unit rays through the distorted pixel centres of rows ``row0 ...``, rotated by ``R``.
-
-    ``out[r, u] = R @ ray_cam(u, row0 + r)`` and ``out_z[r, u] = ray_cam[2]`` for
-    ``r < out.shape[0]``. Same model and Newton inversion (to 1e-15) as
-    ``CameraModel.undistort_normalized``; along a row each pixel starts Newton from
-    its left neighbour's solution shifted by the distorted step, which cuts the
-    iterations (same converged answer).
+    """``out[r, u] = R @ ray_cam(u, row0 + r)``, ``out_z[r, u] = ray_cam[2]``: unit rays
+    through the distorted pixel centres (Newton inversion to 1e-15 as
+    ``CameraModel.undistort_normalized``, warm-started from the left neighbour).
     """
     fx = K[0, 0]
     s = K[0, 1]
@@ -91,11 +81,7 @@ def grid_rays(
 def cull_rays(
     o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray, keep: np.ndarray
 ) -> None:  # pragma: no cover - compiled
-    """``keep[i]`` = ray ``o + t d`` (t >= 0) meets the box ``[lo, hi]`` (slab test).
-
-    The box is the padded bounding box of the whole scene: a ray that misses it
-    cannot hit anything and is not handed to the ray caster at all.
-    """
+    """``keep[i]`` = ray ``o + t d`` (t >= 0) meets the scene's padded box ``[lo, hi]`` (slab test)."""
     stride = 0 if o.shape[0] == 1 else 1
     for i in prange(d.shape[0]):
         j = i * stride
@@ -136,6 +122,55 @@ def pack_rays_sel(
         rays[q, 5] = d[i, 2]
 
 
+@njit(cache=True, nogil=True, inline="always")  # inlined: no call cost in the kernel
+def _moller_trumbore(
+    ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
+    A: np.ndarray, E1: np.ndarray, E2: np.ndarray, f: int,
+) -> tuple:  # pragma: no cover - compiled
+    """``(ok, u, v, t)`` of the ray ``o + t d`` on triangle ``f`` in float64;
+    ``ok`` False for a degenerate (zero or non-finite determinant) triangle."""
+    e1x = E1[f, 0]
+    e1y = E1[f, 1]
+    e1z = E1[f, 2]
+    e2x = E2[f, 0]
+    e2y = E2[f, 1]
+    e2z = E2[f, 2]
+    px = dy * e2z - dz * e2y
+    py = dz * e2x - dx * e2z
+    pz = dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    tx = ox - A[f, 0]
+    ty = oy - A[f, 1]
+    tz = oz - A[f, 2]
+    qx = ty * e1z - tz * e1y
+    qy = tz * e1x - tx * e1z
+    qz = tx * e1y - ty * e1x
+    if det != 0.0 and np.isfinite(det):
+        inv = 1.0 / det
+        u = (tx * px + ty * py + tz * pz) * inv
+        v = (dx * qx + dy * qy + dz * qz) * inv
+        t = (e2x * qx + e2y * qy + e2z * qz) * inv
+        return True, u, v, t
+    return False, 0.0, 0.0, 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")  # inlined: no call cost in the kernel
+def _store_facing_normal(
+    N: np.ndarray, f: int, dx: float, dy: float, dz: float, n_out: np.ndarray, j: int
+) -> None:  # pragma: no cover - compiled
+    """``n_out[j]`` = the unit normal of face ``f``, flipped to face the ray ``d``."""
+    nx = N[f, 0]
+    ny = N[f, 1]
+    nz = N[f, 2]
+    if nx * dx + ny * dy + nz * dz > 0.0:
+        nx = -nx
+        ny = -ny
+        nz = -nz
+    n_out[j, 0] = nx
+    n_out[j, 1] = ny
+    n_out[j, 2] = nz
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def refine_compact(
     o: np.ndarray,
@@ -161,13 +196,9 @@ def refine_compact(
     p_out: np.ndarray,
     n_out: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Compact Open3D's answers to the hit rays ``idx`` and refine them in float64.
-
-    Open3D row ``q`` traced ray ``rid[q]`` of this chunk (``d``, ``o`` rows; the
-    chunk's first ray has global index ``first``). Hit ``j`` (Open3D row
-    ``q = idx[j]``) goes to row ``j`` of the outputs: global ray index, object, face,
-    then Moller-Trumbore in float64 on the triangle float32 casting picked (the
-    float32 answer is kept only for a degenerate triangle).
+    """Compact Open3D's hits ``idx`` (row ``q = idx[j]`` traced chunk ray ``rid[q]``,
+    global ``first + rid[q]``) into output row ``j``, refined in float64 by
+    Moller-Trumbore (the float32 answer only for a degenerate triangle).
     """
     last = gid_map.shape[0] - 1
     stride = 0 if o.shape[0] == 1 else 1
@@ -187,28 +218,8 @@ def refine_compact(
         dx = d[i, 0]
         dy = d[i, 1]
         dz = d[i, 2]
-        e1x = E1[f, 0]
-        e1y = E1[f, 1]
-        e1z = E1[f, 2]
-        e2x = E2[f, 0]
-        e2y = E2[f, 1]
-        e2z = E2[f, 2]
-        px = dy * e2z - dz * e2y
-        py = dz * e2x - dx * e2z
-        pz = dx * e2y - dy * e2x
-        det = e1x * px + e1y * py + e1z * pz
-        tx = ox - A[f, 0]
-        ty = oy - A[f, 1]
-        tz = oz - A[f, 2]
-        qx = ty * e1z - tz * e1y
-        qy = tz * e1x - tx * e1z
-        qz = tx * e1y - ty * e1x
-        if det != 0.0 and np.isfinite(det):
-            inv = 1.0 / det
-            u = (tx * px + ty * py + tz * pz) * inv
-            v = (dx * qx + dy * qy + dz * qz) * inv
-            t = (e2x * qx + e2y * qy + e2z * qz) * inv
-        else:
+        ok, u, v, t = _moller_trumbore(ox, oy, oz, dx, dy, dz, A, E1, E2, f)
+        if not ok:
             u = np.float64(uv32[q, 0])
             v = np.float64(uv32[q, 1])
             t = np.float64(t32[q])
@@ -218,16 +229,53 @@ def refine_compact(
         p_out[j, 0] = ox + t * dx
         p_out[j, 1] = oy + t * dy
         p_out[j, 2] = oz + t * dz
-        nx = N[f, 0]
-        ny = N[f, 1]
-        nz = N[f, 2]
-        if nx * dx + ny * dy + nz * dz > 0.0:
-            nx = -nx
-            ny = -ny
-            nz = -nz
-        n_out[j, 0] = nx
-        n_out[j, 1] = ny
-        n_out[j, 2] = nz
+        _store_facing_normal(N, f, dx, dy, dz, n_out, j)
+
+
+@njit(cache=True, nogil=True, inline="always")  # inlined: no call cost in the kernel
+def _project_to_pattern(
+    px: float, py: float, pz: float, R_pr: np.ndarray, t_pr: np.ndarray,
+    fx: float, s: float, cx: float, fy: float, cy: float, pw: int, ph: int,
+) -> tuple:  # pragma: no cover - compiled
+    """``(inside, u, v)``: the rig point's projector pixel and whether it lies in
+    the pattern (pixel-centre convention, half-pixel border)."""
+    qx = R_pr[0, 0] * px + R_pr[0, 1] * py + R_pr[0, 2] * pz + t_pr[0]
+    qy = R_pr[1, 0] * px + R_pr[1, 1] * py + R_pr[1, 2] * pz + t_pr[1]
+    qz = R_pr[2, 0] * px + R_pr[2, 1] * py + R_pr[2, 2] * pz + t_pr[2]
+    inside = False
+    u = 0.0
+    v = 0.0
+    if qz > 0.0:
+        u = fx * qx / qz + s * qy / qz + cx
+        v = fy * qy / qz + cy
+        inside = u >= -0.5 and u <= pw - 0.5 and v >= -0.5 and v <= ph - 0.5
+    return inside, u, v
+
+
+@njit(cache=True, nogil=True, inline="always")  # inlined: no call cost in the kernel
+def _store_bilinear(
+    pattern: np.ndarray, u: float, v: float, pw: int, ph: int, rgb_out: np.ndarray, i: int
+) -> None:  # pragma: no cover - compiled
+    """``rgb_out[i]`` = the pattern bilinearly sampled at ``(u, v)`` (clamped to the edges)."""
+    uu = min(max(u, 0.0), pw - 1.0)
+    vv = min(max(v, 0.0), ph - 1.0)
+    u0 = min(np.int64(np.floor(uu)), pw - 2) if pw > 1 else 0
+    v0 = min(np.int64(np.floor(vv)), ph - 2) if ph > 1 else 0
+    fu = uu - u0
+    fv = vv - v0
+    u1 = min(u0 + 1, pw - 1)
+    v1 = min(v0 + 1, ph - 1)
+    w00 = (1 - fu) * (1 - fv)
+    w10 = fu * (1 - fv)
+    w01 = (1 - fu) * fv
+    w11 = fu * fv
+    for c in range(3):
+        rgb_out[i, c] = (
+            w00 * pattern[v0, u0, c]
+            + w10 * pattern[v0, u1, c]
+            + w01 * pattern[v1, u0, c]
+            + w11 * pattern[v1, u1, c]
+        )
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -249,14 +297,9 @@ def light_hits(
     white_out: np.ndarray,
     lit_out: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Flash light at surface points, before the shadow test.
-
-    Per point ``i``: ``k = flash * max(0, n . l) * (ref_mm / |S - P|)^2`` (``l`` the
-    unit direction to the projector centre ``src``), the projector colour ``rgb``
-    (bilinear in ``pattern`` float [0, 1], white when ``has_pattern`` is False, 0
-    outside the frustum), ``white`` (inside the frustum) and ``lit`` (``n . l > 0``
-    and inside: the points that need a shadow ray). ``R_pr, t_pr`` map rig to
-    projector frame. Same arithmetic as ``Projector.light_at``.
+    """Flash light at points before the shadow test: ``k = flash * max(0, n . l) *
+    (ref_mm / |S - P|)^2``, projector colour ``rgb`` (bilinear; white without pattern;
+    0 outside), ``white`` (inside the frustum), ``lit`` (inside and ``n . l > 0``).
     """
     fx = Kp[0, 0]
     s = Kp[0, 1]
@@ -275,16 +318,7 @@ def light_hits(
         if not ndotl > 0.0:
             ndotl = 0.0
         k_out[i] = flash * ndotl * (ref_mm / dist) ** 2
-        qx = R_pr[0, 0] * px + R_pr[0, 1] * py + R_pr[0, 2] * pz + t_pr[0]
-        qy = R_pr[1, 0] * px + R_pr[1, 1] * py + R_pr[1, 2] * pz + t_pr[1]
-        qz = R_pr[2, 0] * px + R_pr[2, 1] * py + R_pr[2, 2] * pz + t_pr[2]
-        inside = False
-        u = 0.0
-        v = 0.0
-        if qz > 0.0:
-            u = fx * qx / qz + s * qy / qz + cx
-            v = fy * qy / qz + cy
-            inside = u >= -0.5 and u <= pw - 0.5 and v >= -0.5 and v <= ph - 0.5
+        inside, u, v = _project_to_pattern(px, py, pz, R_pr, t_pr, fx, s, cx, fy, cy, pw, ph)
         white_out[i] = inside
         lit_out[i] = inside and ndotl > 0.0
         if not inside:
@@ -296,25 +330,7 @@ def light_hits(
             rgb_out[i, 1] = 1.0
             rgb_out[i, 2] = 1.0
         else:
-            uu = min(max(u, 0.0), pw - 1.0)
-            vv = min(max(v, 0.0), ph - 1.0)
-            u0 = min(np.int64(np.floor(uu)), pw - 2) if pw > 1 else 0
-            v0 = min(np.int64(np.floor(vv)), ph - 2) if ph > 1 else 0
-            fu = uu - u0
-            fv = vv - v0
-            u1 = min(u0 + 1, pw - 1)
-            v1 = min(v0 + 1, ph - 1)
-            w00 = (1 - fu) * (1 - fv)
-            w10 = fu * (1 - fv)
-            w01 = (1 - fu) * fv
-            w11 = fu * fv
-            for c in range(3):
-                rgb_out[i, c] = (
-                    w00 * pattern[v0, u0, c]
-                    + w10 * pattern[v0, u1, c]
-                    + w01 * pattern[v1, u0, c]
-                    + w11 * pattern[v1, u1, c]
-                )
+            _store_bilinear(pattern, u, v, pw, ph, rgb_out, i)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -369,10 +385,9 @@ def rotate_rays(
 def pack_segments(
     P: np.ndarray, sel: np.ndarray, src: np.ndarray, rays: np.ndarray, dist: np.ndarray
 ) -> float:  # pragma: no cover - compiled
-    """Rays ``src -> P[sel[j]]`` (direction ``P - src``, NOT normalised, so the point
-    sits at ray parameter 1) in float32 rows ``(o, d)``; ``dist[j] = |P - src|``, or
-    -1 for a non-finite point or a zero-length segment (direction then +z).
-    Returns the largest valid distance (0 when none)."""
+    """Float32 rays ``src -> P[sel[j]]`` with the point at parameter 1; ``dist[j] =
+    |P - src|`` (-1 for a non-finite point or zero length); returns the largest distance.
+    """
     n = sel.shape[0]
     for j in prange(n):
         i = sel[j]
@@ -420,10 +435,8 @@ def scatter_truth(
     normals_cam: np.ndarray,
     object_id: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Write the per-pixel truth maps (flat, float32) of the hit pixels ``index``.
-
-    ``depth = t * zc``; ``shading = ambient + k * white``; ``illum = ambient + k * rgb``;
-    ``normals_cam = R^T n`` (``R`` = ``R_world_cam``).
+    """Write the flat float32 truth maps of hit pixels ``index``: ``depth = t * zc``,
+    ``shading = ambient + k * white``, ``illum = ambient + k * rgb``, ``normals_cam = R^T n``.
     """
     for j in prange(index.shape[0]):
         p = index[j]
@@ -492,11 +505,8 @@ def _poisson(lam: float, state: np.uint64) -> tuple[np.uint64, float]:  # pragma
 def sensor_noise(
     x: np.ndarray, gain: float, read_dn: float, key: np.uint64, out: np.ndarray
 ) -> None:  # pragma: no cover - compiled
-    """``out[i] = Poisson(255 clip(x[i], 0, 1) gain) / gain + N(0, read_dn)`` (DN).
-
-    Counter-based: element ``i`` draws from its own splitmix64 stream seeded by a
-    hash of ``(key, i)``, so the result depends on ``key`` only -- not on the
-    number of threads or the order the elements are visited.
+    """``out[i] = Poisson(255 clip(x[i], 0, 1) gain) / gain + N(0, read_dn)`` in DN;
+    element ``i`` draws from its own splitmix64 stream keyed by ``(key, i)`` (thread-independent).
     """
     two_pi = 2.0 * np.pi
     for i in prange(x.shape[0]):
@@ -546,11 +556,8 @@ def specular_weight(
     shininess: np.ndarray,
     out: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Blinn-Phong weight ``out[index[i]] = ks[o] * max(0, n . h)^shininess[o]`` (``o = obj[i]``).
-
-    ``h`` is the bisector of the unit directions from ``P[i]`` to the camera centre
-    ``eye`` and to the light ``src``; ``N`` unit normals. Geometry only: the
-    shading multiplies it by the flash light (0 in shadow).
+    """``out[index[i]] = ks[o] * max(0, n . h)^shininess[o]`` (``o = obj[i]``), ``h`` the
+    bisector of the directions from ``P[i]`` to ``eye`` and to ``src``.
     """
     for i in prange(P.shape[0]):
         o = obj[i]
@@ -593,13 +600,9 @@ def shade_colour_specular(
     ambient: float,
     img: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """``img[pix[i]] = max(0, albedo_i (ambient + k_i rgb_i) + spec[q] k_i rgb_i)``.
-
-    Diffuse plus specular radiance, not clipped above (the sensor saturates).
-    ``spec`` is the output-pixel weight map (flat, ``width`` per row); ray
-    ``first + pix[i]`` of a camera supersampled ``ss`` times (``row_len`` rays per
-    row) lies in output pixel ``q = (r // ss) * width + (c // ss)``, ``r, c`` its
-    supersampled row and column (``ss = 1``: ``q`` is the pixel itself).
+    """``img[pix[i]] = max(0, albedo_i (ambient + k_i rgb_i) + spec[q] k_i rgb_i)``,
+    unclipped above; ray ``first + pix[i]`` of an ``ss``-supersampled camera
+    (``row_len`` per row) lies in output pixel ``q = (r // ss) * width + c // ss``.
     """
     inv_len = 1.0 / row_len
     inv_ss = 1.0 / ss

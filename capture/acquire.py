@@ -1,20 +1,5 @@
-"""One-shot (or sequence) capture: arm, fire, grab, check, save atomically.
-
-Each shot is ``shot_NNN.png`` (the full sensor image, RGB) plus a side-car
-``shot_NNN.json`` (schema below). Both files appear together or not at all: they are
-written to temporary files and moved into place only after every check passed; the
-JSON is moved last, so a PNG with its JSON is a complete shot.
-
-Side-car schema (``schema_version`` 1)::
-
-    {"schema_version": 1, "index": 0, "time_utc": "2024-...Z",
-     "pattern_id": 1, "flash": true,
-     "timing": {"shutter_us": 8000, "flash_us": 2000, "flash_delay_us": 500},
-     "trigger": {"port": "/dev/pts/5", "device": {...ID...}, "shot": 1,
-                 "t_shutter_us": ..., "t_flash_us": ..., "flash_fired": true},
-     "source": {...CameraSource.info()...},
-     "image": {"width": W, "height": H, "mean": .., "saturated_fraction": ..,
-               "pattern_fraction": ..}}
+"""One-shot (or sequence) capture: arm, fire, grab, check, save ``shot_NNN.png`` +
+``shot_NNN.json`` atomically, the JSON last (side-car schema: docs/capture.md).
 """
 
 from __future__ import annotations
@@ -24,7 +9,7 @@ import logging
 import re
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -44,7 +29,7 @@ from prism3d.checks import check_positive
 from prism3d.errors import DeviceError, InputError
 from prism3d.io.atomic import atomic_path
 
-__all__ = ["capture_shots", "check_frame", "SHOT_SCHEMA_VERSION"]
+__all__ = ["CaptureOptions", "capture_shots", "check_frame", "SHOT_SCHEMA_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -68,32 +53,13 @@ def check_frame(
     pattern_visible: bool = False,
     source: str = "camera",
 ) -> dict[str, float]:
-    """Check a captured frame; return its statistics.
+    """Check a captured ``(H, W, 3) uint8`` RGB frame; return ``width, height, mean,
+    saturated_fraction, pattern_fraction``.
 
-    Parameters
-    ----------
-    image : (H, W, 3) uint8
-        RGB frame.
-    expected_size : (int, int), optional
-        Sensor ``(width, height)`` from the calibration.
-    pattern_visible : bool
-        Require the colour grating to be visible (flash fired with a pattern):
-        at least :data:`PATTERN_MIN_FRACTION` of the pixels must have a chroma
-        ``max(R, G, B) - min(R, G, B) >= PATTERN_CHROMA``.
-    source : str
-        Name used in messages.
-
-    Returns
-    -------
-    dict
-        ``width, height, mean, saturated_fraction, pattern_fraction``.
-
-    Raises
-    ------
-    InputError
-        Wrong size for the calibration.
-    DeviceError
-        Black frame, saturated frame, or no grating although the flash fired.
+    ``expected_size`` is the calibration's sensor ``(width, height)`` (InputError when
+    it differs); DeviceError for a black or saturated frame, or, with
+    ``pattern_visible``, fewer than :data:`PATTERN_MIN_FRACTION` pixels of chroma
+    >= :data:`PATTERN_CHROMA` (no grating). ``source`` names the camera in messages.
     """
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
@@ -147,128 +113,134 @@ def _write_shot(png: Path, side: Path, image: NDArray[np.uint8], meta: dict[str,
         tmp_json.write_text(text, encoding="utf-8")
 
 
+@dataclass(frozen=True)
+class CaptureOptions:
+    """How :func:`capture_shots` fires and checks each shot (``prism3d capture`` flags)."""
+
+    count: int = 1
+    """Number of shots (``--count``; a UAV sequence)."""
+    interval_s: float = 0.0
+    """Time between shot starts, s (``--interval``); 0 = as fast as possible."""
+    pattern_id: int = 1
+    """Grating pattern, 0 = plain white flash, 1..15."""
+    flash: bool = True
+    """Fire the flash; False = ambient exposure only, no grating check."""
+    expected_size: tuple[int, int] | None = None
+    """Sensor ``(width, height)`` of the calibration (``StereoRig.split.sensor_size``)."""
+    shutter_us: int = DEFAULT_SHUTTER_US
+    """Shutter time sent with ``FIRE``, us."""
+    flash_us: int = DEFAULT_FLASH_US
+    """Flash duration sent with ``FIRE``, us."""
+    flash_delay_us: int = DEFAULT_FLASH_DELAY_US
+    """Flash delay after the shutter opens, us."""
+    trigger_timeout: float = 1.0
+    """Per-try reply timeout of the trigger, s."""
+    grab_timeout: float = 5.0
+    """Time allowed for the camera to deliver each frame, s."""
+
+    def __post_init__(self) -> None:
+        c = self.count
+        if isinstance(c, bool) or not isinstance(c, int) or c < 1:
+            raise InputError(f"count: expected an integer >= 1, got {c!r}")
+        object.__setattr__(self, "interval_s", check_positive(self.interval_s, "interval_s", strict=False))
+        check_positive(self.grab_timeout, "grab_timeout")
+        p = self.pattern_id
+        if isinstance(p, bool) or not isinstance(p, int) or not 0 <= p <= 15:
+            raise InputError(f"pattern_id: expected an integer in [0, 15], got {p!r}")
+        e = self.expected_size
+        if e is not None and (len(tuple(e)) != 2 or min(int(v) for v in e) <= 0):
+            raise InputError(f"expected_size: expected (width, height) > 0, got {e!r}")
+
+    @property
+    def timing(self) -> dict[str, int]:
+        """``shutter_us``, ``flash_us``, ``flash_delay_us`` as sent (flash ones 0 without flash)."""
+        return {"shutter_us": self.shutter_us, "flash_us": self.flash_us if self.flash else 0,
+                "flash_delay_us": self.flash_delay_us if self.flash else 0}
+
+
 def capture_shots(
     trigger_port: str,
     source: str | CameraSource,
     out_dir: str | Path,
+    options: CaptureOptions | None = None,
     *,
-    count: int = 1,
-    interval_s: float = 0.0,
-    pattern_id: int = 1,
-    flash: bool = True,
-    expected_size: tuple[int, int] | None = None,
     progress: Callable[[int, int], object] | None = None,
-    shutter_us: int = DEFAULT_SHUTTER_US,
-    flash_us: int = DEFAULT_FLASH_US,
-    flash_delay_us: int = DEFAULT_FLASH_DELAY_US,
-    trigger_timeout: float = 1.0,
-    grab_timeout: float = 5.0,
     resolver: TargetResolver | None = None,
 ) -> list[Path]:
-    """Capture ``count`` shots: arm, fire, grab, check, save ``shot_NNN.png/.json``.
+    """Capture shots: arm, fire, grab, check, save ``shot_NNN.png/.json``.
 
-    Parameters
-    ----------
-    trigger_port : str
-        Trigger controller port or pyserial URL.
-    source : str or CameraSource
-        ``folder:PATH``, ``opencv:INDEX_OR_URL``, ``virtual[:TARGET]`` or a source
-        object (opened here, closed by its owner).
-    out_dir : path
-        Output folder (created). Numbering continues after existing shots.
-    count : int
-        Number of shots (``--count``; a UAV sequence).
-    interval_s : float
-        Time between shot starts (``--interval``); 0 = as fast as possible.
-    pattern_id : int
-        Grating pattern (0 = plain white flash, 1..15).
-    flash : bool
-        Fire the flash (False: ambient exposure only; no grating check).
-    expected_size : (int, int), optional
-        Sensor ``(width, height)`` of the calibration (``StereoRig.split.sensor_size``).
-    progress : callable, optional
-        ``progress(done, count)`` after each saved shot.
-    shutter_us, flash_us, flash_delay_us : int
-        Exposure timing sent with ``FIRE``.
-    trigger_timeout : float
-        Per-try reply timeout of the trigger (seconds).
-    grab_timeout : float
-        Time allowed for the camera to deliver each frame (seconds).
-    resolver : TargetResolver, optional
-        Virtual target resolver (CLI-supplied).
-
-    Returns
-    -------
-    list of Path
-        The PNG paths, in order.
-
-    Raises
-    ------
-    InputError
-        Bad arguments, unknown source, frame size not matching ``expected_size``.
-    DeviceError
-        Trigger or camera failure, black/saturated frame, missing grating. Shots
-        saved before the failure stay; the failing shot leaves no file.
+    ``trigger_port``: port or pyserial URL; ``source``: ``folder:PATH``,
+    ``opencv:INDEX_OR_URL``, ``virtual[:TARGET]`` or a source object (opened here,
+    closed by its owner); ``out_dir``: created, numbering continues after existing
+    shots; ``options``: None = ``CaptureOptions()``; ``progress(done, count)`` after
+    each saved shot; ``resolver`` names virtual targets. Returns the PNG paths in order.
+    InputError for bad arguments or a wrong frame size; DeviceError for trigger or
+    camera failures and bad frames (earlier shots stay, the failing one leaves no file).
     """
-    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-        raise InputError(f"count: expected an integer >= 1, got {count!r}")
-    interval = check_positive(interval_s, "interval_s", strict=False)
-    check_positive(grab_timeout, "grab_timeout")
-    if isinstance(pattern_id, bool) or not isinstance(pattern_id, int) or not 0 <= pattern_id <= 15:
-        raise InputError(f"pattern_id: expected an integer in [0, 15], got {pattern_id!r}")
-    if expected_size is not None:
-        if len(tuple(expected_size)) != 2 or min(int(v) for v in expected_size) <= 0:
-            raise InputError(f"expected_size: expected (width, height) > 0, got {expected_size!r}")
+    opts = CaptureOptions() if options is None else options
+    if not isinstance(opts, CaptureOptions):
+        raise InputError(f"options: expected a CaptureOptions or None, got {type(opts).__name__}")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: output path exists and is not a folder")
     cam: CameraSource = open_source(source, resolver=resolver) if isinstance(source, str) else source
     owns_source = isinstance(source, str)
-    fl_us = flash_us if flash else 0
-    fl_delay = flash_delay_us if flash else 0
     saved: list[Path] = []
     cam.open()
     try:
-        with TriggerClient(trigger_port, timeout=trigger_timeout) as trig:
+        with TriggerClient(trigger_port, timeout=opts.trigger_timeout) as trig:
             device = asdict(trig.identify())
             out.mkdir(parents=True, exist_ok=True)
             first = _next_index(out)
             t_start = time.monotonic()
-            for k in range(count):
-                wait = t_start + k * interval - time.monotonic()
+            for k in range(opts.count):
+                wait = t_start + k * opts.interval_s - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
-                index = first + k
-                cam.prepare(pattern_id)
-                trig.arm(pattern_id)
-                t_iso = datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
-                report = trig.fire(flash_delay_us=fl_delay, flash_us=fl_us, shutter_us=shutter_us)
-                image = cam.grab(grab_timeout, flash_fired=report.flash_fired)
-                stats = check_frame(
-                    image,
-                    expected_size=expected_size,
-                    pattern_visible=report.flash_fired and pattern_id != 0,
-                    source=cam.spec,
-                )
-                meta = {
-                    "schema_version": SHOT_SCHEMA_VERSION,
-                    "index": index,
-                    "time_utc": t_iso,
-                    "pattern_id": pattern_id,
-                    "flash": report.flash_fired,
-                    "timing": {"shutter_us": shutter_us, "flash_us": fl_us,
-                               "flash_delay_us": fl_delay},
-                    "trigger": {"port": trigger_port, "device": device, **report.to_dict()},
-                    "source": cam.info(),
-                    "image": stats,
-                }
-                png = out / f"shot_{index:03d}.png"
-                _write_shot(png, png.with_suffix(".json"), image, meta)
+                png = _capture_one(trig, cam, out, first + k, opts, {"port": trigger_port, "device": device})
                 saved.append(png)
                 log.info("saved %s", png)
                 if progress is not None:
-                    progress(k + 1, count)
+                    progress(k + 1, opts.count)
     finally:
         if owns_source:
             cam.close()
     return saved
+
+
+def _capture_one(
+    trig: TriggerClient,
+    cam: CameraSource,
+    out: Path,
+    index: int,
+    opts: CaptureOptions,
+    trigger: dict[str, Any],
+) -> Path:
+    """One shot: prepare, arm, fire, grab, check, then write the PNG and its side-car."""
+    timing = opts.timing
+    cam.prepare(opts.pattern_id)
+    trig.arm(opts.pattern_id)
+    t_iso = datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    report = trig.fire(flash_delay_us=timing["flash_delay_us"], flash_us=timing["flash_us"],
+                       shutter_us=timing["shutter_us"])
+    image = cam.grab(opts.grab_timeout, flash_fired=report.flash_fired)
+    stats = check_frame(
+        image,
+        expected_size=opts.expected_size,
+        pattern_visible=report.flash_fired and opts.pattern_id != 0,
+        source=cam.spec,
+    )
+    meta = {
+        "schema_version": SHOT_SCHEMA_VERSION,
+        "index": index,
+        "time_utc": t_iso,
+        "pattern_id": opts.pattern_id,
+        "flash": report.flash_fired,
+        "timing": timing,
+        "trigger": {**trigger, **report.to_dict()},
+        "source": cam.info(),
+        "image": stats,
+    }
+    png = out / f"shot_{index:03d}.png"
+    _write_shot(png, png.with_suffix(".json"), image, meta)
+    return png

@@ -1,23 +1,7 @@
-"""What a real prism shot has that the ideal virtual camera lacks.
-
-The two halves of one sensor see the scene through different glass and mirrors, so
-they differ in exposure, colour balance and vignetting; real surfaces are glossy,
-real lenses blur and real files are JPEG. :class:`CameraEffects` collects these
-effects with plausible values; :func:`~prism3d.capture.simulate.simulate_shot` applies
-them (on by default) in this order::
-
-    radiance = albedo * (ambient + k rgb) + gloss(n . h) * k rgb      (per ray, linear)
-    view     = box-average -> gain_rgb(view) * vignetting(r) -> PSF blur
-    sensor   = join views -> noise -> uint8 (saturates at 255) -> JPEG round trip
-
-``k`` is the flash factor after the shadow test and ``rgb`` the projector colour
-(see :mod:`prism3d.capture.simulate`); the gloss weight is evaluated on each output
-pixel's centre ray and shared by its supersampled rays (the lobe spans hundreds of
-pixels). With effects, radiance is not clipped per ray: the sensor saturates, so a
-highlight bright enough reaches 255 in both views whatever their gains.
-:meth:`CameraEffects.ideal` (or ``effects=None``) is the old ideal camera, exactly.
-
-Ground truth (albedo, shading, illumination) stays diffuse-only and effect-free.
+"""What a real prism shot has that the ideal virtual camera lacks: right-view gain
+and colour cast, vignetting, lens PSF, JPEG, and flash highlights (:class:`CameraEffects`,
+applied by :func:`~prism3d.capture.simulate.simulate_shot`; order and model:
+docs/capture.md, "Camera effects"). Ground truth stays diffuse-only and effect-free.
 """
 
 from __future__ import annotations
@@ -38,21 +22,8 @@ __all__ = ["CameraEffects", "Gloss", "MATERIALS", "jpeg_roundtrip", "vignetting_
 
 @dataclass(frozen=True)
 class Gloss:
-    """Blinn-Phong specular reflection of a material class under the flash.
-
-    The specular radiance added to a pixel is ``coefficient * (n . h)^shininess * k rgb``
-    with ``h`` the unit bisector of the directions to the camera and to the flash:
-    light-coloured (paint is a dielectric: its highlight is not tinted by the
-    pigment), strongest where the normal bisects the view and light directions.
-
-    Attributes
-    ----------
-    coefficient : float
-        Peak specular reflectance (``n . h = 1``) relative to a white diffuse
-        surface, in [0, 1].
-    shininess : float
-        Blinn-Phong exponent (>= 1): the lobe falls to half at an angle
-        ``arccos(0.5 ** (1 / shininess))`` between ``n`` and ``h`` (4.8 deg at 200).
+    """Blinn-Phong flash highlight of a material class: ``coefficient * (n . h)^shininess * k rgb``
+    added to a pixel, ``h`` bisecting the directions to camera and flash (light-coloured).
 
     References
     ----------
@@ -61,7 +32,9 @@ class Gloss:
     """
 
     coefficient: float
+    """Peak specular reflectance (``n . h = 1``) relative to a white diffuse surface, in [0, 1]."""
     shininess: float
+    """Blinn-Phong exponent >= 1 (lobe half-width ``arccos(0.5 ** (1 / shininess))``)."""
 
     def __post_init__(self) -> None:
         ks = check_in_range(self.coefficient, "gloss coefficient", 0.0, 1.0)
@@ -69,12 +42,8 @@ class Gloss:
         object.__setattr__(self, "shininess", check_in_range(self.shininess, "gloss shininess", 1.0, 1e6))
 
 
-#: Gloss of the material classes a mesh may name in ``SceneMesh.metadata["material"]``.
-#: ``painted_metal`` (the default): satin/semi-gloss enamel on steel, peak ~6 % (a
-#: dielectric's Fresnel reflectance at normal incidence is ~4-5 %, roughness spreads
-#: it), lobe half-width ~5 deg. ``matte_paint``: flat military paint (CARC-like, a
-#: 60-deg gloss of a few GU), a weak broad sheen. ``gloss_paint``: car-like clear coat.
-#: ``matte_paper``: a printed calibration board on matte stock. ``lambertian``: none.
+#: Gloss of the material classes a mesh may name in ``SceneMesh.metadata["material"]``
+#: (why these values: docs/capture.md, "Camera effects").
 MATERIALS: Mapping[str, Gloss] = MappingProxyType(
     {
         "painted_metal": Gloss(0.06, 200.0),
@@ -93,60 +62,26 @@ def _gain3(value: Any, name: str) -> tuple[float, float, float]:
 
 @dataclass(frozen=True)
 class CameraEffects:
-    """Real-camera effects of the virtual prism rig (defaults: plausible values).
-
-    Attributes
-    ----------
-    exposure_right : float
-        Gain of the right view relative to the left (1 = equal). The two views
-        reach the sensor over different prism and mirror paths: a front-surface
-        aluminium mirror reflects ~88-92 %, a protected one less, and an extra
-        reflection or a longer glass path costs a few % to ~15 %. Default 0.88.
-    colour_gain_right : (float, float, float)
-        Extra per-channel (R, G, B) gain of the right view: a colour cast, since
-        mirror coatings and glass do not reflect/transmit all wavelengths equally
-        (aluminium dips in the red near 800 nm, glass absorbs a little blue). A
-        white balance set on one view leaves the other a few % off. Default
-        (0.96, 1.0, 1.04).
-    vignetting_stops : float
-        Light fall-off at the corner of each view, in stops (0 = none), as
-        ``V(r) = 1 - (1 - 2^-stops) (r / r_corner)^2`` (the leading term of the
-        cos^4 law), ``r`` the distance from the view's principal point (its optical
-        centre, not the sensor centre) and ``r_corner`` the distance to the view's
-        farthest corner pixel centre. A 100 mm lens at a moderate aperture loses
-        ~0.5-1 stop in the corners; the adapter's mirror edges add mechanical
-        vignetting. Default 0.5 (corner at 71 %).
-    psf_sigma_px : float
-        Gaussian lens PSF of each view, standard deviation in pixels, applied
-        before noise (combined with ``simulate_shot``'s ``blur_sigma`` as
-        ``hypot(blur_sigma, psf_sigma_px)``). A good lens at 5 MP (2.2 um pixels)
-        has a PSF of ~0.5-1 px sigma. Default 0.7.
-    jpeg_quality : int or None
-        JPEG quality (1-100) of the final sensor image, encoded and decoded in
-        memory by OpenCV after noise and quantisation, as a camera does; None =
-        lossless (no JPEG). OpenCV's default encoder subsamples chroma 4:2:0 (as
-        most cameras do), which smears the colour grating a little. Cameras save
-        at quality ~90-95. Default 92.
-    materials : tuple of (str, Gloss)
-        Specular gloss per material class (default: :data:`MATERIALS`); a mesh
-        names its class in ``metadata["material"]``.
-    default_material : str
-        Class of meshes that name none. Default ``"painted_metal"`` (targets are
-        painted metal: moderate gloss).
-    specular : bool
-        Add the flash highlights (view-dependent: they sit where the surface normal
-        bisects the directions to the camera and to the flash, so the two views see
-        them at different places). Default True.
-    """
+    """Real-camera effects of the virtual prism rig; defaults are plausible values
+    whose sources are in docs/capture.md ("Camera effects")."""
 
     exposure_right: float = 0.88
+    """Gain of the right view relative to the left (its prism/mirror path loses light)."""
     colour_gain_right: tuple[float, float, float] = (0.96, 1.0, 1.04)
+    """Extra (R, G, B) gain of the right view: the colour cast of mirror coatings and glass."""
     vignetting_stops: float = 0.5
+    """Fall-off at a view's farthest corner, stops: ``V = 1 - (1 - 2^-stops) (r / r_corner)^2``
+    about the view's principal point (corner at 71 % by default)."""
     psf_sigma_px: float = 0.7
+    """Gaussian lens PSF per view, px, before noise (``hypot`` with ``blur_sigma``)."""
     jpeg_quality: int | None = 92
+    """JPEG quality 1-100 of the sensor image (OpenCV, 4:2:0), after noise; None = lossless."""
     materials: tuple[tuple[str, Gloss], ...] = field(default_factory=lambda: tuple(MATERIALS.items()))
+    """Gloss per material class (default :data:`MATERIALS`), named by ``metadata["material"]``."""
     default_material: str = "painted_metal"
+    """Class of meshes that name none (targets are painted metal)."""
     specular: bool = True
+    """Add the view-dependent flash highlights."""
 
     def __post_init__(self) -> None:
         setv = object.__setattr__
@@ -267,11 +202,8 @@ class CameraEffects:
 def vignetting_factor(
     size: tuple[int, int], principal_point: tuple[float, float], stops: float
 ) -> NDArray[np.float64]:
-    """``(H, W)`` relative illumination ``V(r)`` of a view (see :class:`CameraEffects`).
-
-    ``size`` is ``(W, H)``, ``principal_point`` ``(cx, cy)`` in view pixels. The
-    simulator applies the same formula in a kernel; this is its reference.
-    """
+    """``(H, W)`` relative illumination ``V(r)`` of a ``(W, H)`` view with principal
+    point ``(cx, cy)`` (the reference of the simulator's kernel)."""
     fx = CameraEffects(vignetting_stops=stops)
     a, inv_rc2 = fx.vignetting_coefficients(size, principal_point)
     u = np.arange(int(size[0])) - float(principal_point[0])

@@ -1,37 +1,12 @@
 """Disruptive camouflage paint as a procedural albedo field.
 
-A :class:`CamouflageField` maps any 3-D point of an object frame (millimetres) to
-one of a few flat paint colours. The pattern is *piecewise constant*: exactly the
-palette colours, with hard boundaries, like real disruptive paint (woodland,
-desert, naval schemes). The darkest colour of every built-in palette is a
-near-black, because in real schemes those patches are meant to read as shadows;
-that is precisely the "false shadow" the 3-D pipeline removes.
-
-How the pattern is made
------------------------
-The first palette colour is the base coat. Each further colour is a layer of
-patches painted over the previous ones: layer ``k`` covers the points where a
-smooth, deterministic 3-D noise field ``n_k(p)`` exceeds a threshold. The noise is
-fractal value noise (a few octaves of smoothly interpolated random lattice values,
-each octave randomly rotated so the lattice axes never line up with the faces of a
-box-shaped hull). Thresholds are calibrated once, at construction, so that the
-final area fractions match the requested ``fractions`` (on a large sample of
-space; one small model shows fewer patches and so scatters around them).
-
-Because the field is defined in 3-D (not by texture coordinates), patches wrap
-continuously over edges and between parts, need no UV mapping, and are exact at
-every rendered pixel. The lattice cell size is ``patch_size_mm``: a patch is
-roughly one cell across. Scaling a model by ``s`` and its ``patch_size_mm`` by ``s``
-reproduces the same pattern on the scaled model.
-
-The random lattice is periodic with a period of 32 cells (32 patches: ~1 m on a
-1:35 model, ~40 m on a full-size tank), far larger than any target it paints.
-The reference implementation is vectorised numpy (``_noise``, used to calibrate the
-thresholds); :meth:`CamouflageField.labels` runs the same operations, in the same
-precision and order, in a parallel numba kernel (bit-identical labels, several times
-faster; layers are tested from the top down, so covered layers are never evaluated).
-Lattices and calibrated thresholds are cached per (seed, octaves, fractions), so
-building many fields is cheap.
+A :class:`CamouflageField` maps 3-D object-frame points (mm) to one of a few flat
+paint colours with hard boundaries; the darkest colour of each built-in palette is
+a near-black "false shadow", which the 3-D pipeline removes. Each colour after the
+base coat is a layer of patches where a rotated fractal value-noise field exceeds a
+threshold calibrated to the requested area fractions; defined in 3-D, the patches
+wrap over edges without UV mapping. Construction details, periodicity and the numba
+labeller: docs/capture.md ("Camouflage").
 
 References
 ----------
@@ -72,15 +47,8 @@ _KERNEL_CHUNK = 1 << 20  # points per numba call: bounds the (octaves, 3, chunk)
 
 @dataclass(frozen=True)
 class Palette:
-    """A paint scheme: flat colours and the area fraction each should cover.
-
-    Attributes
-    ----------
-    colors : tuple of (r, g, b)
-        Linear albedo in [0, 1]. The first colour is the base coat; later colours
-        are patch layers painted over the earlier ones.
-    fractions : tuple of float
-        Target area fraction of each colour (same length as ``colors``, sums to 1).
+    """A paint scheme: ``colors`` (linear albedo (r, g, b) in [0, 1], the first the
+    base coat, later ones patch layers) and the area ``fractions`` they cover (sum 1).
     """
 
     colors: tuple[tuple[float, float, float], ...]
@@ -201,10 +169,8 @@ def _noise(
 def _lattice_state(
     seed: int, octaves: int, fractions: tuple[float, ...]
 ) -> tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float64], NDArray[np.float32]]:
-    """Random lattice, octave rotations and offsets, and calibrated thresholds.
-
-    Everything is in lattice units (independent of the patch size), so it is cached
-    and shared by every field with the same seed, octaves and fractions.
+    """Random lattice, octave rotations and offsets, and calibrated thresholds, in
+    lattice units: cached per (seed, octaves, fractions).
     """
     layers = len(fractions) - 1
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5EED_CA40]))
@@ -250,30 +216,13 @@ def _lattice_state(
 
 @dataclass(frozen=True, eq=False)
 class CamouflageField:
-    """Piecewise-constant multi-colour camouflage albedo, a callable albedo field.
+    """Piecewise-constant multi-colour camouflage, a callable albedo field.
 
-    Parameters
-    ----------
-    colors : sequence of (r, g, b)
-        2 to 8 flat paint colours in [0, 1]; the first is the base coat.
-    fractions : sequence of float
-        Target area fraction per colour (positive, summing to 1).
-    patch_size_mm : float
-        Typical patch diameter, millimetres, in the frame the field is evaluated
-        in (scale it with the model: ~1 m on a real tank is ~30 mm at 1:35).
-    seed : int
-        Pattern seed; the same seed gives the same pattern, bit for bit.
-    octaves : int
-        Number of noise octaves (1-4). More octaves give more ragged edges.
-    name : str
-        Palette name, for metadata.
-
-    Notes
-    -----
-    Calling the field with points ``(N, 3)`` mm (object frame) returns ``(N, 3)``
-    float64 albedo, exactly one of ``colors`` per point. :meth:`labels` returns the
-    colour index per point instead (a ground-truth paint map for ATR tests).
-    Algorithm and references: see the module docstring.
+    ``colors``: 2 to 8 flat (r, g, b) in [0, 1], the first the base coat; ``fractions``:
+    area per colour (sum 1); ``patch_size_mm``: patch diameter in the evaluation frame;
+    ``seed``: same seed, same pattern bit for bit; ``octaves`` 1-4 (more = raggeder
+    edges); ``name`` for metadata. Called on ``(N, 3)`` mm points it returns ``(N, 3)``
+    float64 albedo; :meth:`labels` the colour index.
     """
 
     colors: tuple[tuple[float, float, float], ...]
@@ -333,17 +282,8 @@ class CamouflageField:
     # -- evaluation -------------------------------------------------------------------
 
     def labels(self, points_obj: NDArray[np.float64]) -> NDArray[np.uint8]:
-        """Paint colour index per point.
-
-        Parameters
-        ----------
-        points_obj : (N, 3) float
-            Points in the object frame, millimetres.
-
-        Returns
-        -------
-        (N,) uint8
-            Index into :attr:`colors` (0 = base coat).
+        """``(N,) uint8`` paint colour index (0 = base coat) of ``(N, 3)`` object-frame
+        points in mm.
         """
         from prism3d.capture._scene_kernels import camouflage_labels
 
@@ -378,18 +318,9 @@ class CamouflageField:
 def camouflage_field(
     target_class: str, *, patch_size_mm: float, seed: int = 0, palette: str | None = None
 ) -> CamouflageField:
-    """The default camouflage of a built-in target class.
-
-    Parameters
-    ----------
-    target_class : str
-        One of :data:`CLASS_PALETTES` (``tank``, ``jet``, ``ship``, ``truck``).
-    patch_size_mm : float
-        Patch diameter in the model's frame, millimetres.
-    seed : int
-        Pattern seed.
-    palette : str, optional
-        Override the class's default palette (a key of :data:`PALETTES`).
+    """The default camouflage of a built-in ``target_class`` (a key of
+    :data:`CLASS_PALETTES`), patch diameter ``patch_size_mm`` in the model frame,
+    ``seed``, optional ``palette`` override (a key of :data:`PALETTES`).
     """
     check_choice(target_class, "target_class", CLASS_PALETTES)
     name = CLASS_PALETTES[target_class] if palette is None else palette
@@ -397,19 +328,8 @@ def camouflage_field(
 
 
 def plain_paint(target_class: str, *, palette: str | None = None) -> UniformAlbedo:
-    """Uniform base-coat colour of a target class (no camouflage patches).
-
-    Parameters
-    ----------
-    target_class : str
-        One of :data:`CLASS_PALETTES`.
-    palette : str, optional
-        Override the class's default palette; its base (first) colour is used.
-
-    Returns
-    -------
-    UniformAlbedo
-        Callable albedo field with one colour everywhere.
+    """A :class:`UniformAlbedo` of the base (first) colour of ``target_class``'s
+    palette (or ``palette``): paint without camouflage patches.
     """
     check_choice(target_class, "target_class", CLASS_PALETTES)
     name = CLASS_PALETTES[target_class] if palette is None else palette

@@ -1,9 +1,6 @@
-"""Triangle meshes with albedo, as the renderer and the simulator consume them.
-
-A :class:`SceneMesh` holds vertices in millimetres in its own (object) frame, faces,
-and its surface colour (albedo in [0, 1]) either per vertex or as a procedural
-*albedo field* evaluated at any 3-D point of the object frame (exact at every pixel,
-the way camouflage paint patterns are defined by the built-in targets).
+"""Triangle meshes with albedo, as the renderer and the simulator consume them:
+vertices in mm in the object frame, faces, and albedo in [0, 1] per vertex or as a
+procedural field evaluated at any 3-D point (exact at every pixel).
 """
 
 from __future__ import annotations
@@ -39,9 +36,8 @@ class UniformAlbedo:
 
 @dataclass(frozen=True, eq=False)
 class MovedAlbedo:
-    """An albedo field carried along by a rigid motion (picklable, unlike a closure).
-
-    ``T_obj_new`` maps points of the moved mesh's frame back to the field's frame.
+    """An albedo field carried along by a rigid motion (picklable, unlike a closure);
+    ``T_obj_new`` maps the moved mesh's frame back to the field's frame.
     """
 
     field: AlbedoField
@@ -54,21 +50,9 @@ class MovedAlbedo:
 
 @dataclass(frozen=True, eq=False)
 class SceneMesh:
-    """A triangle mesh in millimetres with albedo.
-
-    Parameters
-    ----------
-    vertices : (N, 3) float64
-        Vertex positions in the object frame, millimetres.
-    faces : (M, 3) int64
-        Vertex indices of each triangle, counter-clockwise seen from outside.
-    vertex_albedo : (N, 3) float64, optional
-        Per-vertex albedo in [0, 1] (interpolated barycentrically).
-    albedo_field : AlbedoField, optional
-        Procedural albedo evaluated at surface points (takes precedence over
-        ``vertex_albedo``). Default: uniform 0.7 grey when neither is given.
-    name : str
-        For messages and reports.
+    """A triangle mesh in millimetres with albedo: ``vertices`` (N, 3) object frame,
+    ``faces`` (M, 3) counter-clockwise from outside, ``vertex_albedo`` (N, 3) in [0, 1]
+    (barycentric), ``albedo_field`` (wins; neither = uniform 0.7 grey), ``name``.
     """
 
     vertices: NDArray[np.float64]
@@ -110,9 +94,8 @@ class SceneMesh:
     def albedo_at(
         self, points_obj: NDArray[np.float64], face_ids: NDArray[np.int64], bary_uv: NDArray[np.float64]
     ) -> NDArray[np.float64]:
-        """Albedo ``(N, 3)`` at surface points given their faces and barycentric (u, v).
-
-        ``bary_uv`` follows Open3D's convention: point = (1-u-v) a + u b + v c.
+        """Albedo ``(N, 3)`` at surface points from faces and barycentric (u, v)
+        (Open3D: point = (1-u-v) a + u b + v c).
         """
         if self.albedo_field is not None:
             out = np.asarray(self.albedo_field(points_obj), dtype=np.float64)

@@ -1,11 +1,5 @@
-"""Colour-coded gratings for the flash projector.
-
-The projector casts vertical colour stripes whose colour sequence is a De Bruijn-type
-sequence: no two neighbouring stripes share a colour (so every stripe edge is visible)
-and every run of ``window`` consecutive stripes occurs only once along x, so a matcher
-that sees ``window`` stripes knows where it is in the pattern.
-
-Patterns are RGB ``uint8`` images in memory (BGR only when written by OpenCV).
+"""Colour-coded gratings for the flash projector (RGB ``uint8``): vertical stripes,
+neighbours differ and every ``window`` stripes occur once along x.
 
 References
 ----------
@@ -46,27 +40,9 @@ DEFAULT_COLORS.setflags(write=False)
 
 
 def de_bruijn(k: int, n: int) -> NDArray[np.int64]:
-    """The lexicographically least De Bruijn sequence B(k, n).
-
-    Every length-``n`` word over ``k`` symbols occurs exactly once as a cyclic
-    window of the result.
-
-    Parameters
-    ----------
-    k : int
-        Alphabet size (>= 2).
-    n : int
-        Word length (>= 1).
-
-    Returns
-    -------
-    (k**n,) int64
-        Symbols in ``[0, k)``.
-
-    References
-    ----------
-    .. [1] Fredricksen & Maiorana (1978): concatenation of Lyndon words whose length
-       divides ``n``, generated in lexicographic order.
+    """The lexicographically least De Bruijn sequence B(k, n): ``(k**n,) int64`` in
+    ``[0, k)`` where every length-``n`` word occurs once cyclically (Fredricksen and
+    Maiorana: Lyndon words whose length divides ``n``, in order).
     """
     k = int(k)
     n = int(n)
@@ -92,12 +68,8 @@ def de_bruijn(k: int, n: int) -> NDArray[np.int64]:
 
 
 def _eulerian_stripe_sequence(k: int, window: int, rng: np.random.Generator | None) -> list[int]:
-    """Longest colour sequence with no equal neighbours and unique ``window``-runs.
-
-    Hierholzer's algorithm on the graph whose nodes are the ``window - 1``-runs
-    without equal neighbours and whose edges are the valid ``window``-runs; every
-    node has in- and out-degree ``k - 1``, so an Eulerian circuit exists and visits
-    all ``k * (k - 1) ** (window - 1)`` runs once.
+    """Longest colour sequence with no equal neighbours and unique ``window``-runs:
+    an Eulerian circuit (Hierholzer) of the graph of valid runs.
     """
     if window == 1:
         order = list(range(k))
@@ -138,23 +110,8 @@ def _eulerian_stripe_sequence(k: int, window: int, rng: np.random.Generator | No
 def stripe_sequence(
     n_stripes: int, *, n_colors: int = len(DEFAULT_COLORS), window: int = 3, seed: int | None = None
 ) -> NDArray[np.int64]:
-    """Colour indices of ``n_stripes`` stripes: neighbours differ, ``window``-runs unique.
-
-    Parameters
-    ----------
-    n_stripes : int
-        Number of stripes needed.
-    n_colors : int
-        Number of colours (>= 3 so an Eulerian sequence exists).
-    window : int
-        Length of the runs that must be unique (>= 1).
-    seed : int, optional
-        Randomises the sequence (deterministically); ``None`` gives the canonical one.
-
-    Returns
-    -------
-    (n_stripes,) int64
-        Indices into the colour table.
+    """``(n_stripes,) int64`` colour indices (of ``n_colors`` >= 3): neighbours differ,
+    ``window``-runs unique; ``seed`` randomises deterministically (None = canonical).
     """
     n_stripes = int(n_stripes)
     n_colors = int(n_colors)
@@ -218,25 +175,9 @@ def stripe_pattern(
     window: int = 3,
     seed: int | None = None,
 ) -> NDArray[np.uint8]:
-    """Vertical De Bruijn colour stripes.
-
-    Parameters
-    ----------
-    width, height : int
-        Pattern size in projector pixels.
-    period_px : int
-        Stripe width in pixels.
-    colors : (K, 3) uint8
-        Colour table (RGB), ``K >= 3`` distinct colours.
-    window : int
-        Every ``window`` consecutive stripes occur only once along x.
-    seed : int, optional
-        Randomises the stripe order deterministically.
-
-    Returns
-    -------
-    (height, width, 3) uint8
-        RGB pattern; every row is the same.
+    """``(height, width, 3) uint8`` vertical De Bruijn stripes ``period_px`` wide
+    from the ``colors`` (K, 3) table, every ``window`` stripes unique along x; ``seed``
+    randomises the order deterministically.
     """
     c = _check_colors(colors)
     height = int(height)
@@ -258,15 +199,8 @@ def grid_pattern(
     row_shift: int = 1,
     seed: int | None = None,
 ) -> NDArray[np.uint8]:
-    """A colour grid: De Bruijn coloured cells separated by black grid lines.
-
-    Cell ``(r, c)`` takes colour ``seq[c + r * row_shift]`` of a stripe sequence, so
-    along x every row is a valid De Bruijn stripe code (neighbours differ, ``window``
-    runs unique within the row); the black lines give corner features in 2-D.
-
-    Returns
-    -------
-    (height, width, 3) uint8
+    """``(height, width, 3) uint8`` colour grid: cell ``(r, c)`` takes
+    ``seq[c + r * row_shift]`` of a stripe sequence, between black grid lines (corners in 2-D).
     """
     c = _check_colors(colors)
     width = int(width)
@@ -304,10 +238,8 @@ def grid_pattern(
 
 
 def check_window_unique(ids: NDArray, window: int) -> bool:
-    """True when no two neighbours of ``ids`` are equal and every run of ``window``
-    consecutive entries occurs once.
-
-    ``ids`` is a per-stripe sequence ``(N,)`` (not per pixel: use ``ids[::period]``).
+    """True when neighbours of the per-stripe ``ids`` (N,) differ and every
+    ``window``-run occurs once.
     """
     a = check_array(ids, "ids", ndim=1, dtype_kind="iu")
     window = int(window)

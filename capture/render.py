@@ -1,33 +1,10 @@
 """One renderer interface for the virtual rig and for ATR chip rendering.
 
-A render takes a list of ``(SceneMesh, T_world_obj)`` and a camera
-(:class:`~prism3d.capture.rig.CameraModel` + ``T_world_cam``) and returns a
-:class:`RenderResult` of per-pixel maps.
-
-Backends
---------
-:class:`RaycastRenderer`
-    Exact geometry. Rays go through the DISTORTED pixel centres
-    (``CameraModel.pixel_rays``, exact inversion of the distortion model), are cast
-    in float32 by Open3D's ``RaycastingScene`` to find the hit triangle, and the hit
-    is then recomputed in float64 (Moller-Trumbore on the hit triangle), so a plane
-    at depth z renders depth z to ~1e-9 mm and every pixel sees exactly what
-    ``CameraModel.project`` predicts. Build once, render many cameras.
-
-    Speed (a full 2592x1944 simulated shot in a few seconds): the camera-frame
-    rays of a camera model are computed once and cached on the renderer; rays are
-    cast in bands of ~1 M, after a bounding-box cull, and only the hits are kept
-    (:meth:`RaycastRenderer.trace_camera` / :meth:`~RaycastRenderer.stream_camera`
-    give compact hits, the streaming form without full-image buffers); shadow
-    tests are a float32 any-hit pass whose blocked answers are re-decided exactly
-    in float64, and are skipped when the whole scene is one plane (a plane cannot
-    shadow itself). All per-ray loops are parallel numba kernels
-    (:mod:`prism3d.capture._render_kernels`).
-:class:`~prism3d.capture._pyrender_backend.PyrenderRenderer`
-    Fast OpenGL (OSMesa) rasterisation for chips: RGB, depth, mask; pinhole only.
-
-Also here: :func:`box_downsample` (supersampling), :class:`SensorNoise` (shot +
-read noise), :func:`gaussian_blur`, :func:`quantize`.
+A render takes ``(SceneMesh, T_world_obj)`` pairs and a camera (``CameraModel`` +
+``T_world_cam``) and returns a :class:`RenderResult` of per-pixel maps. Backends:
+:class:`RaycastRenderer` (exact geometry, distortion exact, float64 hits) and
+:class:`~prism3d.capture.render_gl.PyrenderRenderer` (OpenGL rasterisation for chips, pinhole only). How and how
+fast: docs/capture.md ("Renderers").
 """
 
 from __future__ import annotations
@@ -46,13 +23,14 @@ from prism3d.errors import InputError
 
 __all__ = [
     "CameraHits",
-    "PyrenderRenderer",
     "RayHits",
     "RaycastRenderer",
     "RenderResult",
     "SensorNoise",
     "box_downsample",
     "camera_rays",
+    "check_objects",
+    "check_pose",
     "gaussian_blur",
     "quantize",
 ]
@@ -62,33 +40,20 @@ _CHUNK = 1 << 20
 #: Camera models whose pixel rays a renderer keeps (a shot uses 1x, supersampled and
 #: rectified cameras; ~32 bytes per pixel each).
 _RAY_CACHE_SIZE = 3
+#: Gaussian kernel half-width in sigmas: the weight beyond 3.5 sigma is < 0.05 %.
+GAUSS_RADIUS_SIGMAS = 3.5
 #: A point within this distance of a planar scene's plane counts as on it (mm).
 _PLANE_TOL_MM = 1e-6
 
 
 @dataclass(eq=False)
 class RenderResult:
-    """Per-pixel output of a render, ``(H, W)`` = the camera's ``(height, width)``.
-
-    Attributes
-    ----------
-    depth_mm : (H, W) float32
-        Depth along the camera z axis, mm; NaN where no surface.
-    normals_cam : (H, W, 3) float32
-        Unit surface normals in the OpenCV camera frame, turned to face the camera;
-        NaN where no surface.
-    points_world : (H, W, 3) float64
-        Hit points in the world frame, mm; NaN where no surface.
-    albedo : (H, W, 3) float32
-        Surface albedo in [0, 1] (``SceneMesh.albedo_at``); 0 where no surface.
-    mask : (H, W) bool
-        True where a surface was hit.
-    object_id : (H, W) int32
-        Index of the object (order of the objects list) hit, -1 for none.
-    face_id : (H, W) int64
-        Triangle index within that object's mesh, -1 for none.
-    rgb : (H, W, 3) uint8 or None
-        Shaded colour image (pyrender backend only).
+    """Per-pixel maps of a render, ``(H, W)`` = the camera's ``(height, width)``:
+    ``depth_mm`` (H, W) float32 along camera z, NaN = no surface; ``normals_cam``
+    (H, W, 3) float32, OpenCV camera frame, facing the camera, NaN = none;
+    ``points_world`` (H, W, 3) float64 mm, NaN = none; ``albedo`` (H, W, 3) float32
+    in [0, 1], 0 = none; ``mask`` (H, W) bool; ``object_id`` (H, W) int32 (-1 = none);
+    ``face_id`` (H, W) int64 (-1 = none); ``rgb`` (H, W, 3) uint8 (pyrender only).
     """
 
     depth_mm: NDArray[np.float32]
@@ -102,10 +67,8 @@ class RenderResult:
 
 
 def _raycast_threads() -> int:
-    """Threads Open3D may use per cast: ``PRISM3D_NUM_THREADS`` (0 or unset = all cores).
-
-    Job runners set it to 1 in each worker process so that N workers use N cores
-    instead of N x all cores fighting each other.
+    """Threads Open3D may use per cast: ``PRISM3D_NUM_THREADS`` (0 or unset = all
+    cores; job runners set 1 per worker).
     """
     import os
 
@@ -117,22 +80,10 @@ def _raycast_threads() -> int:
 
 @dataclass(eq=False)
 class RayHits:
-    """Float64-refined ray hits for ``N`` rays (see :meth:`RaycastRenderer.cast`).
-
-    Attributes
-    ----------
-    t : (N,) float64
-        Distance along the (unit) ray, mm; inf for a miss.
-    object_id : (N,) int32
-        Object index, -1 for a miss.
-    face_id : (N,) int64
-        Triangle index within the object, -1 for a miss.
-    bary_uv : (N, 2) float64
-        Barycentric (u, v), Open3D convention ``p = (1-u-v) a + u b + v c``.
-    points : (N, 3) float64
-        Hit points (world), NaN for a miss.
-    normals : (N, 3) float64
-        Unit geometric normals (world) facing against the ray, NaN for a miss.
+    """Float64-refined hits of ``N`` rays (:meth:`RaycastRenderer.cast`): ``t`` (N,) mm
+    (inf = miss), ``object_id`` (N,) int32 and ``face_id`` (N,) int64 (-1 = miss),
+    ``bary_uv`` (N, 2) (Open3D: ``p = (1-u-v) a + u b + v c``), ``points`` and unit
+    ``normals`` (N, 3) world frame, normals facing against the ray (NaN = miss).
     """
 
     t: NDArray[np.float64]
@@ -147,7 +98,8 @@ class RayHits:
         return self.object_id >= 0
 
 
-def _check_pose(T: NDArray, name: str) -> NDArray[np.float64]:
+def check_pose(T: NDArray, name: str) -> NDArray[np.float64]:
+    """``T`` as a (4, 4) float64 rigid transform, or InputError naming ``name``."""
     T = check_array(T, name, shape=(4, 4), dtype_kind="fiu").astype(np.float64)
     if not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
         raise InputError(f"{name}: expected a finite rigid 4x4 transform")
@@ -157,7 +109,8 @@ def _check_pose(T: NDArray, name: str) -> NDArray[np.float64]:
     return T
 
 
-def _check_objects(objects: Sequence[tuple[SceneMesh, NDArray]]) -> list[tuple[SceneMesh, NDArray[np.float64]]]:
+def check_objects(objects: Sequence[tuple[SceneMesh, NDArray]]) -> list[tuple[SceneMesh, NDArray[np.float64]]]:
+    """A non-empty scene as a list of (SceneMesh, (4, 4) float64 pose), or InputError."""
     try:
         items = list(objects)
     except TypeError as exc:
@@ -168,27 +121,15 @@ def _check_objects(objects: Sequence[tuple[SceneMesh, NDArray]]) -> list[tuple[S
     for i, item in enumerate(items):
         if not (isinstance(item, tuple | list) and len(item) == 2 and isinstance(item[0], SceneMesh)):
             raise InputError(f"objects[{i}]: expected a (SceneMesh, T_world_obj) pair, got {type(item).__name__}")
-        out.append((item[0], _check_pose(item[1], f"objects[{i}] pose")))
+        out.append((item[0], check_pose(item[1], f"objects[{i}] pose")))
     return out
 
 
 class RaycastRenderer:
-    """Exact ray-casting renderer (Open3D ``RaycastingScene`` + float64 refinement).
-
-    Parameters
-    ----------
-    objects : sequence of (SceneMesh, (4, 4) float64)
-        Meshes and their poses ``T_world_obj``. The scene is built once; render as
-        many cameras as needed.
-
-    Notes
-    -----
-    A renderer reuses internal buffers and caches camera rays: use one renderer per
-    thread. Open3D intersects in float32, which only decides *which* triangle a ray hits;
-    distances, barycentric coordinates, points and normals are recomputed in float64
-    on that triangle (Moller-Trumbore). A ray that float32 puts a hair beside a
-    triangle edge may pick the neighbouring triangle: on a continuous surface that
-    gives the same point. Normals are the flat (geometric) triangle normals.
+    """Exact ray-casting renderer (Open3D ``RaycastingScene`` + float64 refinement) of
+    ``objects``: (SceneMesh, ``T_world_obj`` (4, 4)) pairs; build once, render many
+    cameras, one renderer per thread (cached buffers). Float32 casting picks the
+    triangle; hits are recomputed in float64 on it (docs/capture.md).
 
     References
     ----------
@@ -199,7 +140,7 @@ class RaycastRenderer:
     def __init__(self, objects: Sequence[tuple[SceneMesh, NDArray]]) -> None:
         import open3d as o3d
 
-        items = _check_objects(objects)
+        items = check_objects(objects)
         self._meshes = [m for m, _ in items]
         self._poses = [T for _, T in items]
         self._poses_inv = [np.linalg.inv(T) for T in self._poses]
@@ -254,13 +195,8 @@ class RaycastRenderer:
     def cast(self, origins: NDArray, directions: NDArray, *, normalized: bool = False) -> RayHits:
         """Intersect rays with the scene, refined in float64.
 
-        Parameters
-        ----------
-        origins : (N, 3) or (3,) float64
-            Ray origins (world, mm); one origin is broadcast to all rays.
-        directions : (N, 3) float64
-            Ray directions (world); normalised internally (unless ``normalized``
-            says they already are), so ``t`` is a distance.
+        ``origins`` (N, 3) or (3,) world mm (one origin is broadcast); ``directions``
+        (N, 3), normalised here unless ``normalized``, so ``t`` is a distance.
         """
         d = check_array(directions, "directions", shape=(None, 3), dtype_kind="f").astype(np.float64)
         o = np.asarray(origins, dtype=np.float64)
@@ -315,13 +251,9 @@ class RaycastRenderer:
         band: Callable[[int, int], tuple[NDArray[np.float64], NDArray[np.float64] | None]],
         consume: Callable[[int, int, _Hits], None] | None = None,
     ) -> _Hits | None:
-        """Cast ``n`` rays produced ``chunk`` at a time by ``band(start, end)`` ->
-        ``(unit directions (e-s, 3) float64, optional per-ray extra (e-s,))``.
-
-        Without ``consume``: returns all hits, compact. With it: calls
-        ``consume(start, end, hits)`` once per chunk (also for a chunk without
-        hits) with the chunk's hits in buffers that the next chunk overwrites, and
-        returns None -- a streaming pass whose memory does not grow with ``n``.
+        """Cast ``n`` rays made ``chunk`` at a time by ``band(start, end)`` ->
+        ``(unit directions, optional per-ray extra)``: all hits, compact; or, with
+        ``consume(start, end, hits)``, one call per chunk in reused buffers (returns None).
         """
         import open3d as o3d
         from prism3d.capture._render_kernels import cull_rays, pack_rays_sel, refine_compact
@@ -429,19 +361,10 @@ class RaycastRenderer:
     ) -> NDArray[np.bool_]:
         """True where the segment from ``source_world`` to a point is unobstructed.
 
-        A ray is cast from the source towards each point; the point is visible when
-        the first hit lies no nearer than the point itself (minus
-        ``tol_mm + 1e-7 * distance``). Points that are NaN give False.
-
-        Notes
-        -----
-        Implemented as a float32 any-hit test (Open3D ``test_occlusions``) of the
-        segments, with the direction ``point - source`` so the point sits at ray
-        parameter 1 and one ``tfar`` just below 1 covers every segment; only the
-        segments it reports as blocked are re-cast and decided by the float64 rule
-        above (in an open scene that is almost none of them). When the whole scene
-        lies in one plane and the source is off it, points on that plane are
-        visible without any ray (the segment meets the plane only at its end).
+        The first hit from the source must lie no nearer than the point (minus
+        ``tol_mm + 1e-7 * distance``); NaN points give False. A float32 any-hit pass;
+        only segments it reports blocked are re-decided in float64; a one-plane scene
+        needs no rays (docs/capture.md).
         """
         p = check_array(points_world, "points_world", shape=(None, 3)).astype(np.float64)
         src = check_array(source_world, "source_world", shape=(3,)).astype(np.float64)
@@ -513,14 +436,12 @@ class RaycastRenderer:
         *,
         with_albedo: bool = True,
     ) -> RenderResult:
-        """Render ``camera`` at pose ``T_world_cam`` (OpenCV frame).
-
-        Rays pass through every distorted pixel centre, so distortion is exact.
-        ``with_albedo=False`` skips the albedo evaluation (the map is then zeros).
+        """Render ``camera`` at pose ``T_world_cam`` (OpenCV frame), rays through the
+        distorted pixel centres; ``with_albedo=False`` leaves the albedo map zero.
         """
         if not isinstance(camera, CameraModel):
             raise InputError(f"camera: expected a CameraModel, got {type(camera).__name__}")
-        T = _check_pose(T_world_cam, "T_world_cam")
+        T = check_pose(T_world_cam, "T_world_cam")
         w, h = camera.size
         hits = self.trace_camera(camera, T)
         n = h * w
@@ -575,10 +496,8 @@ class RaycastRenderer:
         return hit
 
     def trace_camera(self, camera: CameraModel, T_world_cam: NDArray[np.float64]) -> CameraHits:
-        """All hits of a camera's pixel rays, compact (hit pixels only).
-
-        For callers that need only the hit pixels (the scene simulator): no full-size
-        maps are built. ``T_world_cam`` must be a valid pose (not re-checked).
+        """All hits of a camera's pixel rays, compact (hit pixels only);
+        ``T_world_cam`` is not re-checked.
         """
         hits: list[CameraHits] = []
         self._camera_bands(camera, T_world_cam, None, 1, hits)
@@ -592,11 +511,9 @@ class RaycastRenderer:
         *,
         rows_multiple: int = 1,
     ) -> None:
-        """Cast a camera's pixel rays in bands of whole rows, streaming the hits.
-
-        ``consume(first_pixel, end_pixel, hits)`` is called for every band (a
-        multiple of ``rows_multiple`` rows, ~1 M rays) with that band's hits, in
-        buffers the next band overwrites: memory does not grow with the image.
+        """Cast a camera's pixel rays in bands of whole rows (a multiple of
+        ``rows_multiple``, ~1 M rays), calling ``consume(first_pixel, end_pixel, hits)``
+        per band with buffers the next band overwrites.
         """
         self._camera_bands(camera, T_world_cam, consume, rows_multiple, [])
 
@@ -666,25 +583,11 @@ class _Hits:
 
 @dataclass(eq=False)
 class CameraHits:
-    """The hit pixels of a camera render (:meth:`RaycastRenderer.trace_camera`).
-
-    Attributes
-    ----------
-    index : (M,) int64
-        Flat pixel index ``v * W + u`` of each hit, increasing.
-    object_id : (M,) int32
-    face_id : (M,) int64
-    t : (M,) float64
-        Distance along the unit ray, mm.
-    bary_uv : (M, 2) float64
-    points : (M, 3) float64
-        Hit points, world frame, mm.
-    normals : (M, 3) float64
-        Unit normals, world frame, facing the camera.
-    z_cam : (M,) float64
-        Camera-frame z of the unit ray (depth = ``t * z_cam``).
-    shape : (int, int)
-        ``(H, W)`` of the camera.
+    """The hit pixels of a camera render (:meth:`RaycastRenderer.trace_camera`):
+    ``index`` (M,) int64 flat pixel ``v * W + u``, increasing; ``object_id``,
+    ``face_id``, ``t`` (M,) mm along the unit ray, ``bary_uv`` (M, 2), ``points`` and
+    unit ``normals`` (M, 3) world frame (facing the camera), ``z_cam`` (M,) camera z
+    of the unit ray (depth = ``t * z_cam``), ``shape`` ``(H, W)``.
     """
 
     index: NDArray[np.int64]
@@ -701,13 +604,9 @@ class CameraHits:
 def camera_rays(
     camera: CameraModel, R_world_cam: NDArray | None = None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Unit rays through every distorted pixel centre.
-
-    Returns ``(rays, z_cam)``: ``rays`` ``(H, W, 3)`` float64 in the world frame
-    (``R_world_cam @ ray_cam``; camera frame when ``R_world_cam`` is None) and
-    ``z_cam`` ``(H, W)``, the rays' camera-frame z component (depth = t * z_cam).
-    Same rays as ``camera.pixel_grid_rays()`` (exact Newton inversion of the
-    distortion model), computed by a parallel numba kernel.
+    """``(rays (H, W, 3), z_cam (H, W))``: unit rays through every distorted pixel
+    centre, in the world frame (``R_world_cam @ ray_cam``; camera frame when None),
+    and their camera z (depth = t * z_cam). Same as ``camera.pixel_grid_rays()``.
     """
     from prism3d.capture._render_kernels import grid_rays
 
@@ -722,21 +621,10 @@ def camera_rays(
     return out, out_z
 
 
-def __getattr__(name: str) -> object:
-    # PyrenderRenderer lives in its own module (OpenGL imports are heavy); import lazily.
-    if name == "PyrenderRenderer":
-        from prism3d.capture._pyrender_backend import PyrenderRenderer
-
-        return PyrenderRenderer
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 # -- image formation helpers -----------------------------------------------------------
 def box_downsample(image: NDArray, factor: int) -> NDArray[np.float64]:
-    """Average non-overlapping ``factor x factor`` blocks of ``(H*f, W*f[, C])``.
-
-    With the pixel-centre convention of :meth:`CameraModel.scaled`, block ``(r, c)``
-    covers exactly output pixel ``(r, c)``.
+    """Average non-overlapping ``factor x factor`` blocks of ``(H*f, W*f[, C])``;
+    block ``(r, c)`` is output pixel ``(r, c)`` (pixel centres as ``CameraModel.scaled``).
     """
     f = int(factor)
     if f < 1 or f != factor:
@@ -759,24 +647,15 @@ def gaussian_blur(image: NDArray, sigma_px: float) -> NDArray:
     if s == 0:
         return image
     img = np.asarray(image)
-    k = 2 * int(np.ceil(3.5 * s)) + 1
+    k = 2 * int(np.ceil(GAUSS_RADIUS_SIGMAS * s)) + 1
     return cv2.GaussianBlur(img, (k, k), sigmaX=s, sigmaY=s, borderType=cv2.BORDER_REFLECT)
 
 
 @dataclass(frozen=True)
 class SensorNoise:
-    """A simple sensor model: photon shot noise + Gaussian read noise, in DN.
-
-    A signal of ``x`` DN (0-255 scale) collects ``x * gain_e_per_dn`` electrons, which
-    are Poisson-distributed; read noise adds ``N(0, read_noise_dn)``.
-
-    Attributes
-    ----------
-    gain_e_per_dn : float
-        Electrons per digital number (full scale 255 DN = ``255 * gain`` electrons).
-        Larger = less shot noise. Default 40 (full well ~10 000 e-).
-    read_noise_dn : float
-        Standard deviation of the read noise, DN.
+    """Photon shot noise + Gaussian read noise, in DN (0-255 scale): ``x`` DN
+    collects ``x * gain_e_per_dn`` Poisson electrons; read noise ``N(0, read_noise_dn)``.
+    Default gain 40 e-/DN (full well ~10 000 e-).
     """
 
     gain_e_per_dn: float = 40.0
@@ -787,14 +666,8 @@ class SensorNoise:
         check_positive(self.read_noise_dn, "read_noise_dn", strict=False)
 
     def apply(self, image01: NDArray, rng: np.random.Generator) -> NDArray[np.float64]:
-        """Noisy image in DN (float64, unclipped) from a clean image in [0, 1].
-
-        ``rng`` supplies one 63-bit key; each pixel value then draws its shot and
-        read noise from its own counter-based stream (splitmix64 keyed by the key
-        and the element index) in a parallel numba kernel: the same generator state
-        gives the same image whatever the number of threads. Poisson variates:
-        multiplication method below a mean of 10 electrons, else Hormann's PTRS;
-        read noise: Box-Muller.
+        """Noisy image in DN (float64, unclipped) from a clean image in [0, 1], one
+        counter-based stream per value keyed from ``rng`` (thread-count independent).
 
         References
         ----------

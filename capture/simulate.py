@@ -1,47 +1,7 @@
 """The scene simulator: one flash shot through the virtual prism rig, with ground truth.
 
-Image model (per view pixel, linear, values in [0, 1])::
-
-    illumination = ambient + flash * max(0, n . l) * visible * pattern_rgb / falloff
-    image        = clip(albedo * illumination, 0, 1)   -> blur -> noise -> uint8
-
-That is the ideal camera (``effects=None`` or ``CameraEffects.ideal()``). By default
-a :class:`~prism3d.capture.camera_effects.CameraEffects` adds what a real prism shot
-has: a Blinn-Phong flash highlight ``gloss * (n . h)^shininess * flash-light`` per
-material (view-dependent: ``h`` bisects the directions to the view's camera centre
-and to the flash), no per-ray clip (the sensor saturates), a gain and colour cast on
-the right view, vignetting about each view's principal point, a lens PSF, then after
-noise and quantisation a JPEG round trip of the sensor image (order and values: see
-that module).
-
-* ``n`` is the unit surface normal, ``l`` the unit direction from the surface point to
-  the projector centre; ``visible`` is 1 when the segment to the projector is free
-  (cast shadows, tested by ray casting), ``pattern_rgb`` the projector colour that
-  lands on the point (bilinear in the pattern image, 0 outside the projector's
-  frustum; 1 everywhere inside it for a white flash), and
-  ``falloff = (distance / Projector.ref_distance_mm) ** 2`` (inverse-square law,
-  1 at the reference distance). ``ambient`` is a uniform, shadowless light.
-* The truth ``shading_<view>`` is the same illumination with the pattern taken as
-  white (a scalar per pixel), ``illumination_<view>`` the RGB one. The truth maps
-  are diffuse-only and free of camera effects (no highlight, gain, vignetting, blur
-  or JPEG). With the ideal camera, a white flash, supersample 1 and no noise,
-  ``image / 255 == albedo * shading`` up to quantisation.
-* Each view is rendered through its virtual camera (lens distortion exact) with
-  ``supersample x supersample`` rays per pixel box-averaged (colour only); the
-  truth maps come from one ray through each exact output pixel centre (depth is
-  never averaged across edges). The two views are then put on the sensor with
-  :meth:`PrismSplit.join` (mirror flips applied), and sensor noise is added.
-
-Speed: a full 2592x1944 shot with the pattern and 2x2 supersampling takes a few
-seconds on 2 cores (``benchmarks/bench_simulate.py``). Only hit pixels are carried
-(compact arrays); the supersampled colour rays are streamed in bands of whole output
-rows and each band is lit, shaded and box-averaged at once; lighting, pattern
-sampling, shadow rays, truth maps and noise are parallel numba kernels; the
-rectified-disparity view casts depth-only rays. Camera rays are cached per camera
-model on the renderer, so later shots of a sequence skip the distortion inversion.
-
-Contract of :func:`simulate_to_folder` (``prism3d simulate plate|calib|scene OUT``):
-see its docstring.
+Image model, speed notes and the folder contract: docs/capture.md ("The scene
+simulator"). The truth maps are diffuse-only and free of camera effects.
 """
 
 from __future__ import annotations
@@ -74,6 +34,7 @@ from prism3d.capture.rig import (
     paper_rig,
 )
 from prism3d.capture.scenes import (
+    BoardPoseOptions,
     TextureAlbedo,
     calibration_board_poses,
     chessboard,
@@ -91,10 +52,11 @@ __all__ = [
     "TRUTH_SCHEMA_VERSION",
     "Projector",
     "Shot",
+    "ShotOptions",
+    "SimulateOptions",
     "simulate_shot",
     "simulate_to_folder",
     "working_distance_mm",
-    "write_ply",
 ]
 
 #: Version of the truth ``.npz`` / ``poses.json`` layout.
@@ -102,32 +64,139 @@ TRUTH_SCHEMA_VERSION = 1
 
 ProgressFn = Callable[[int, int, str], None]
 
+#: Paper rig working distance, mm; also the fallback for parallel views.
+DEFAULT_WORKING_DISTANCE_MM = 1250.0
+#: Projector field width / one view's field width: covers both views with margin.
+PROJECTOR_FIELD_MARGIN = 1.4
+#: Shadow rays start this far (mm) along the ray, so a surface does not shadow itself.
+SHADOW_EPS_MM = 1e-3
+#: Side of the accuracy-test plate, mm (the paper's Table I: a 30 x 30 cm plate).
+PLATE_SIZE_MM = 300.0
+#: Camouflage patch size on the plate, mm (a few patches per view field).
+PLATE_CAMO_PATCH_MM = 60.0
+#: A scene target's camouflage: about this many patches along its longest side ...
+TARGET_CAMO_PATCHES = 6
+#: ... but patches no smaller than this, mm (small targets stay legibly painted).
+MIN_TARGET_CAMO_PATCH_MM = 10.0
+#: Shots per kind when ``views`` is None: 1 plate, 5 board poses (paper: 3-5), 8 turntable views.
+DEFAULT_VIEWS = {"plate": 1, "calib": 5, "scene": 8}
+#: Shot k of a folder is seeded ``seed * SHOT_SEED_STRIDE + k``: distinct, reproducible.
+SHOT_SEED_STRIDE = 1000
+
+
+# -- options ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ShotOptions:
+    """How one flash shot is lit, sampled and recorded (image model: docs/capture.md)."""
+
+    ambient: float = 0.25
+    """Uniform shadowless light level, in [0, 10]."""
+    flash: float = 0.75
+    """Flash strength at the projector's reference distance, in [0, 10]."""
+    supersample: int = 2
+    """Colour rays per pixel along each axis, box-averaged, in [1, 8] (2 smooths edges)."""
+    noise: bool | SensorNoise = True
+    """Sensor noise: True = ``SensorNoise()``, False = none, or a ``SensorNoise``."""
+    blur_sigma: float = 0.0
+    """Extra Gaussian blur of each view, px, before noise (``hypot`` with the effects' PSF)."""
+    seed: int = 0
+    """Seed of the noise generator: same seed, same image."""
+    background: float = 0.0
+    """Image value where no surface is hit, in [0, 1] (0 = black)."""
+    effects: CameraEffects | None = field(default_factory=CameraEffects)
+    """Real-camera effects (on by default); None or ``CameraEffects.ideal()`` = the ideal camera."""
+
+    def __post_init__(self) -> None:
+        setv = object.__setattr__
+        setv(self, "ambient", check_in_range(self.ambient, "ambient", 0.0, 10.0))
+        setv(self, "flash", check_in_range(self.flash, "flash", 0.0, 10.0))
+        setv(self, "background", check_in_range(self.background, "background", 0.0, 1.0))
+        ss = int(self.supersample)
+        if ss != self.supersample or ss < 1 or ss > 8:
+            raise InputError(f"supersample: expected an integer in [1, 8], got {self.supersample!r}")
+        setv(self, "supersample", ss)
+        setv(self, "blur_sigma", check_positive(self.blur_sigma, "blur_sigma", strict=False))
+        if not (self.noise is None or isinstance(self.noise, (bool, SensorNoise))):
+            raise InputError(f"noise: expected a bool or SensorNoise, got {type(self.noise).__name__}")
+        _check_effects(self.effects)
+
+    @property
+    def noise_model(self) -> SensorNoise | None:
+        """The sensor noise model, None for a noise-free shot."""
+        if self.noise is True:
+            return SensorNoise()
+        return self.noise if isinstance(self.noise, SensorNoise) else None
+
+    @property
+    def real_effects(self) -> CameraEffects | None:
+        """The camera effects, None when they are all neutral (the ideal camera)."""
+        return None if self.effects is None or self.effects.is_ideal else self.effects
+
+
+@dataclass(frozen=True)
+class SimulateOptions:
+    """What ``prism3d simulate plate|calib|scene`` renders (folder contract: docs/capture.md)."""
+
+    pattern: bool | None = None
+    """Project the grating; None = on for plate and scene, off for calib (stripes defeat corners)."""
+    camouflage: bool = True
+    """Plate: woodland camouflage (else grey speckle); scene: paint targets that have no albedo."""
+    views: int | None = None
+    """Number of shots; None = 1 plate, 5 board poses, 8 turntable views (45 deg steps)."""
+    seed: int = 0
+    """Seeds poses, textures, the pattern order and the noise: same seed, same files."""
+    noise: bool = True
+    """Sensor noise on/off."""
+    supersample: int = 2
+    """Colour supersampling factor (see ``ShotOptions.supersample``)."""
+    compress: bool = True
+    """Deflate the truth ``.npz`` (~60x smaller for ~0.3 s more per 5 MP shot)."""
+    board: tuple[int, int] = (9, 6)
+    """calib: inner corners (cols, rows); a denser board pins the principal point better."""
+    square_mm: float = 25.0
+    """calib: chessboard square size, mm."""
+    blur_sigma: float = 0.0
+    """Extra Gaussian optical blur of each view, px (``hypot`` with the effects' PSF)."""
+    effects: CameraEffects | None = field(default_factory=CameraEffects)
+    """Real-camera effects; None or ``CameraEffects.ideal()`` = the ideal camera."""
+
+    def __post_init__(self) -> None:
+        _check_effects(self.effects)
+        v = self.views
+        if v is not None and (int(v) != v or int(v) < 1):
+            raise InputError(f"views: expected a positive integer, got {v!r}")
+        b = self.board
+        if len(b) != 2 or any(int(x) != x or int(x) < 2 for x in b):
+            raise InputError(f"board: expected (cols, rows) inner corners >= 2, got {b!r}")
+        object.__setattr__(self, "square_mm", check_positive(self.square_mm, "square_mm"))
+        object.__setattr__(self, "blur_sigma", check_positive(self.blur_sigma, "blur_sigma", strict=False))
+        self.shot_options(0)  # validates supersample and noise now, not after the first file
+
+    def shot_options(self, seed: int) -> ShotOptions:
+        """The options of one shot of the folder, noise seeded by ``seed``."""
+        return ShotOptions(supersample=self.supersample, noise=self.noise, blur_sigma=self.blur_sigma,
+                           seed=seed, effects=self.effects)
+
+
+def _check_effects(effects: object) -> None:
+    if effects is not None and not isinstance(effects, CameraEffects):
+        raise InputError(f"effects: expected a CameraEffects or None, got {type(effects).__name__}")
+
 
 # -- projector -------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class Projector:
-    """A pinhole flash projector.
-
-    Parameters
-    ----------
-    K : (3, 3) float64
-        Projector intrinsics (OpenCV pixel-centre convention) for the pattern image.
-    size : (int, int)
-        Pattern ``(width, height)`` in projector pixels.
-    pattern : (H, W, 3) uint8, optional
-        RGB image the projector casts; ``None`` = a uniform white flash.
-    T_rig_proj : (4, 4) float64
-        Projector pose in the rig frame (OpenCV frame). Default identity: the rig
-        origin (midway between the two views), looking along rig z.
-    ref_distance_mm : float
-        Distance at which the inverse-square falloff factor is 1.
+    """A pinhole flash projector: ``K`` (3, 3) intrinsics of the pattern image, ``size``
+    ``(width, height)`` px, ``pattern`` (H, W, 3) uint8 cast (None = white flash),
+    ``T_rig_proj`` (4, 4) pose (default identity: rig origin, along rig z) and
+    ``ref_distance_mm`` where the inverse-square falloff is 1.
     """
 
     K: NDArray[np.float64]
     size: tuple[int, int]
     pattern: NDArray[np.uint8] | None = None
     T_rig_proj: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
-    ref_distance_mm: float = 1250.0
+    ref_distance_mm: float = DEFAULT_WORKING_DISTANCE_MM
 
     def __post_init__(self) -> None:
         cam = CameraModel(self.K, np.zeros(5), self.size)  # validates K and size
@@ -159,15 +228,12 @@ class Projector:
         period_px: int = 8,
         seed: int | None = None,
     ) -> Projector:
-        """A projector at the rig origin whose field covers the views at the working
-        distance with margin (default width: 1.4x a view's field width).
-
-        ``pattern``: True = De Bruijn colour stripes (:func:`stripe_pattern`),
-        False = white flash, or an explicit ``(H, W, 3) uint8`` image.
-        """
+        """A projector at the rig origin covering the views at the working distance
+        (default field width ``PROJECTOR_FIELD_MARGIN`` x a view's). ``pattern``:
+        True = De Bruijn stripes, False = white flash, or an ``(H, W, 3) uint8`` image."""
         wd = working_distance_mm(rig)
         if field_width_mm is None:
-            field_width_mm = 1.4 * rig.left.width / rig.left.fx * wd
+            field_width_mm = PROJECTOR_FIELD_MARGIN * rig.left.width / rig.left.fx * wd
         fw = check_positive(field_width_mm, "field_width_mm")
         if isinstance(pattern, np.ndarray):
             pat: NDArray[np.uint8] | None = pattern
@@ -185,11 +251,8 @@ class Projector:
         return self.T_rig_proj[:3, 3].copy()
 
     def light_at(self, points_rig: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """``(rgb (N, 3), white (N,))`` the projector casts on rig-frame points.
-
-        ``white`` is 1 inside the frustum and 0 outside; ``rgb`` is the bilinearly
-        sampled pattern (``white`` repeated for a white flash).
-        """
+        """``(rgb (N, 3), white (N,))`` cast on rig-frame points: the bilinear pattern
+        colour, and 1 inside the frustum / 0 outside."""
         P = np.ascontiguousarray(check_array(points_rig, "points_rig", shape=(None, 3)), dtype=np.float64)
         _, rgb, white, _ = self._light(P, np.zeros_like(P), 1.0)
         return rgb, white.astype(np.float64)
@@ -208,13 +271,8 @@ class Projector:
     def _light(
         self, P: NDArray[np.float64], N: NDArray[np.float64], flash: float
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
-        """``(k, rgb, white, lit)`` at rig-frame points ``P`` with unit normals ``N``.
-
-        ``k (N,) = flash * max(0, n . l) * (ref / distance)^2`` before the shadow
-        test, ``rgb (N, 3)`` the projector colour (0 outside the frustum), ``white``
-        inside the frustum, ``lit`` = inside and facing the projector (the points
-        that need a shadow ray). One parallel numba pass (``light_hits``).
-        """
+        """``(k, rgb, white, lit)`` at rig-frame points with unit normals, before the
+        shadow test (one parallel pass of ``light_hits``)."""
         from prism3d.capture._render_kernels import light_hits
 
         m = len(P)
@@ -233,9 +291,9 @@ class Projector:
         return k, rgb, white, lit
 
 
-def working_distance_mm(rig: StereoRig, default: float = 1250.0) -> float:
-    """Depth (rig z) where the left optical axis crosses the rig's y-z plane
-    (the convergence distance of a symmetric rig); ``default`` for parallel views."""
+def working_distance_mm(rig: StereoRig, default: float = DEFAULT_WORKING_DISTANCE_MM) -> float:
+    """Rig depth where the left optical axis crosses the rig's y-z plane (convergence
+    distance of a symmetric rig), mm; ``default`` for parallel views."""
     c = rig.T_rig_left[:3, 3]
     z_axis = rig.T_rig_left[:3, 2]
     if abs(z_axis[0]) < 1e-9:
@@ -248,20 +306,10 @@ def working_distance_mm(rig: StereoRig, default: float = 1250.0) -> float:
 # -- one shot --------------------------------------------------------------------------
 @dataclass(eq=False)
 class Shot:
-    """A simulated flash shot.
-
-    Attributes
-    ----------
-    sensor_image : (H_s, W_s, 3) uint8
-        RGB side-by-side image as the camera records it (views joined by the prism
-        split, mirror flips applied).
-    truth : dict[str, ndarray]
-        Ground truth (see :func:`simulate_shot`).
-    rectification : Rectification
-        The rectification ``disparity_rect`` refers to.
-    effects : CameraEffects or None
-        The camera effects applied (None = the ideal camera).
-    """
+    """A simulated flash shot: ``sensor_image`` (H_s, W_s, 3) uint8 as the camera
+    records it (views joined, mirror flips applied), ``truth`` (see
+    :func:`simulate_shot`), the ``rectification`` of ``disparity_rect`` and the
+    camera ``effects`` applied (None = ideal)."""
 
     sensor_image: NDArray[np.uint8]
     truth: dict[str, NDArray]
@@ -275,12 +323,12 @@ def _illumination(
     projector: Projector,
     flash: float,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
-    """``(k, rgb, white)`` at the hits: flash factor AFTER the shadow test (0 in
+    """``(k, rgb, white)`` at the hits: flash factor after the shadow test (0 in
     shadow), projector colour and frustum flag (rig frame = world)."""
     k, rgb, white, lit = projector._light(hits.points, hits.normals, flash)
     li = np.flatnonzero(lit)
     if len(li):
-        vis = renderer._visible(hits.points, projector.position_rig, 1e-3, li)
+        vis = renderer._visible(hits.points, projector.position_rig, SHADOW_EPS_MM, li)
         k[li[~vis]] = 0.0
     k[~lit] = 0.0
     return k, rgb, white
@@ -312,10 +360,9 @@ def _shade(
     ss: int = 1,
     width: int = 1,
 ) -> None:
-    """Shade hits into ``img`` rows ``pix``: the ideal clipped diffuse colour when
-    ``spec`` is None, else diffuse + highlight (``spec``: the view's output-pixel
-    weight map; ray ``first + pix`` of a ``ss``-times supersampled camera with
-    ``row_len`` rays per row), unclipped above."""
+    """Shade hits into ``img`` rows ``pix``: clipped diffuse when ``spec`` is None,
+    else diffuse + highlight (``spec``: per output pixel; ray ``first + pix`` of an
+    ``ss``-supersampled camera with ``row_len`` rays per row), unclipped."""
     from prism3d.capture._render_kernels import shade_colour, shade_colour_specular
 
     if spec is None:
@@ -324,32 +371,43 @@ def _shade(
         shade_colour_specular(pix, alb, k, rgb, spec, first, row_len, ss, width, ambient, img)
 
 
+_TRUTH_KEYS = ("mask", "albedo", "shading", "illumination", "normals", "object_id")
+
+
 def _render_view(
     renderer: RaycastRenderer,
     cam: CameraModel,
     T_rig_cam: NDArray,
     projector: Projector,
-    ambient: float,
-    flash: float,
-    background: float,
-    supersample: int,
+    opts: ShotOptions,
     gloss: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> tuple[NDArray[np.float64], dict[str, NDArray]]:
-    """Clean colour image ``(H, W, 3)`` and the truth maps of one view.
-
-    ``gloss`` None: the ideal image in [0, 1]. Else ``(ks, shininess)`` per object:
-    the flash highlight seen from this view's camera centre is added and values are
-    not clipped above (the truth maps stay diffuse-only either way). The highlight
-    weight ``ks (n . h)^s`` is evaluated on each output pixel's centre ray (the truth
-    pass) and multiplies the flash light of every supersampled ray of that pixel:
-    the lobe spans hundreds of pixels, and the transcendental maths then costs one
-    evaluation per pixel instead of ``supersample^2``.
+    """Clean colour image ``(H, W, 3)`` and truth maps of one view; ``gloss`` None:
+    ideal, in [0, 1]; else ``(ks, shininess)`` per object: highlight added, unclipped.
     """
-    from prism3d.capture._render_kernels import box_mean, scatter_truth, specular_weight
+    spec = None if gloss is None else np.zeros(cam.size[0] * cam.size[1])
+    img1, truth = _truth_pass(renderer, cam, T_rig_cam, projector, opts, gloss, spec)
+    if img1 is not None:
+        return img1, truth
+    return _colour_pass(renderer, cam, T_rig_cam, projector, opts, spec), truth
+
+
+def _truth_pass(
+    renderer: RaycastRenderer,
+    cam: CameraModel,
+    T_rig_cam: NDArray,
+    projector: Projector,
+    opts: ShotOptions,
+    gloss: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+    spec: NDArray[np.float64] | None,
+) -> tuple[NDArray[np.float64] | None, dict[str, NDArray]]:
+    """One exact ray per output pixel centre, streamed in bands of rows: the truth
+    maps, the highlight weights ``spec`` (filled in place) and, at supersample 1,
+    the colour image (else None)."""
+    from prism3d.capture._render_kernels import scatter_truth, specular_weight
 
     w, h = cam.size
     n = h * w
-    # truth: one exact ray per output pixel centre, streamed in bands of rows
     depth = np.full(n, np.nan, dtype=np.float32)
     mask = np.zeros(n, dtype=bool)
     albedo = np.zeros((n, 3), dtype=np.float32)
@@ -360,24 +418,24 @@ def _render_view(
     R = np.ascontiguousarray(T_rig_cam[:3, :3])
     eye = np.ascontiguousarray(T_rig_cam[:3, 3], dtype=np.float64)
     src = projector.position_rig
-    spec = None if gloss is None else np.zeros(n)
-    img1 = np.full((n, 3), float(background)) if supersample == 1 else np.zeros((0, 3))
+    one_ray = opts.supersample == 1
+    img1 = np.full((n, 3), float(opts.background)) if one_ray else np.zeros((0, 3))
 
     def truth_band(s: int, e: int, hb: CameraHits) -> None:
         if len(hb.index) == 0:
             return
         alb = renderer._albedo(hb.object_id, hb.face_id, hb.bary_uv, hb.points, np.float32)
-        k, rgb, white = _illumination(renderer, hb, projector, flash)
+        k, rgb, white = _illumination(renderer, hb, projector, opts.flash)
         if spec is not None and gloss is not None and gloss[0].max() > 0:
             specular_weight(
                 hb.index, hb.points, hb.normals, hb.object_id, eye, src, gloss[0], gloss[1], spec
             )
         scatter_truth(
-            hb.index, hb.t, hb.z_cam, alb, k, rgb, white, hb.normals, R, hb.object_id, ambient,
+            hb.index, hb.t, hb.z_cam, alb, k, rgb, white, hb.normals, R, hb.object_id, opts.ambient,
             depth, mask, albedo, shading, illum, normals, object_id,
         )
-        if supersample == 1:
-            _shade(hb.index, alb, k, rgb, ambient, img1, spec, 0, w, 1, w)
+        if one_ray:
+            _shade(hb.index, alb, k, rgb, opts.ambient, img1, spec, 0, w, 1, w)
 
     renderer.stream_camera(cam, T_rig_cam, truth_band)
     truth = {
@@ -389,11 +447,23 @@ def _render_view(
         "normals": normals.reshape(h, w, 3),
         "object_id": object_id.reshape(h, w),
     }
-    if supersample == 1:
-        return img1.reshape(h, w, 3), truth
-    # colour: supersampled rays streamed in bands of whole output rows, each band
-    # shaded and box-averaged at once (memory stays ~one band)
-    ss = supersample
+    return (img1.reshape(h, w, 3) if one_ray else None), truth
+
+
+def _colour_pass(
+    renderer: RaycastRenderer,
+    cam: CameraModel,
+    T_rig_cam: NDArray,
+    projector: Projector,
+    opts: ShotOptions,
+    spec: NDArray[np.float64] | None,
+) -> NDArray[np.float64]:
+    """The supersampled colour image: rays streamed in bands of whole output rows,
+    each band shaded and box-averaged at once (memory stays ~one band)."""
+    from prism3d.capture._render_kernels import box_mean
+
+    w, h = cam.size
+    ss = opts.supersample
     cs = cam.scaled(ss)
     ws = cs.size[0]
     img = np.empty((h, w, 3))
@@ -404,128 +474,86 @@ def _render_view(
         if len(band_img) < e - s:
             band_img = np.empty((e - s, 3), dtype=np.float32)
         b = band_img[: e - s]
-        b.fill(background)
+        b.fill(opts.background)
         if len(hb.index):
             alb_s = renderer._albedo(hb.object_id, hb.face_id, hb.bary_uv, hb.points, np.float32)
-            k_s, rgb_s, _ = _illumination(renderer, hb, projector, flash)
-            _shade(hb.index - s, alb_s, k_s, rgb_s, ambient, b, spec, s, ws, ss, w)
+            k_s, rgb_s, _ = _illumination(renderer, hb, projector, opts.flash)
+            _shade(hb.index - s, alb_s, k_s, rgb_s, opts.ambient, b, spec, s, ws, ss, w)
         r0 = s // ws // ss
         r1 = e // ws // ss
         box_mean(b.reshape(-1, ws, 3), ss, img[r0:r1])
 
     renderer.stream_camera(cs, T_rig_cam, shade_band, rows_multiple=ss)
-    return img, truth
+    return img
 
 
 def simulate_shot(
     rig: StereoRig,
     objects: Sequence[tuple[SceneMesh, NDArray]],
+    options: ShotOptions | None = None,
     *,
     projector: Projector | None = None,
-    ambient: float = 0.25,
-    flash: float = 0.75,
-    supersample: int = 2,
-    noise: bool | SensorNoise = True,
-    blur_sigma: float = 0.0,
-    seed: int = 0,
     rectification: Rectification | None = None,
-    background: float = 0.0,
     renderer: RaycastRenderer | None = None,
-    effects: CameraEffects | None = CameraEffects(),  # noqa: B008  (frozen, immutable)
 ) -> Shot:
     """Simulate one flash photograph through the prism rig, with exact ground truth.
 
-    Parameters
-    ----------
-    rig : StereoRig
-        The virtual rig (e.g. :func:`~prism3d.capture.rig.paper_rig`).
-    objects : sequence of (SceneMesh, (4, 4) float64)
-        Meshes and their poses ``T_rig_obj`` in the rig frame.
-    projector : Projector, optional
-        The flash. Default: a white flash at the rig origin
-        (``Projector.for_rig(rig, pattern=False)``).
-    ambient, flash : float
-        Ambient light level and flash strength (see the module docstring).
-    supersample : int
-        Rays per pixel along each axis for the colour image (box-averaged).
-    noise : bool or SensorNoise
-        Sensor noise (True = ``SensorNoise()``), seeded by ``seed``.
-    blur_sigma : float
-        Gaussian blur of each view (pixels), applied before noise (combined with
-        the effects' lens PSF as ``hypot(blur_sigma, effects.psf_sigma_px)``).
-    seed : int
-        Seed of the noise generator; same seed, same image.
-    rectification : Rectification, optional
-        Grid of ``disparity_rect``; default ``compute_rectification(rig)``.
-    background : float
-        Image value where no surface is hit (0 = black).
-    renderer : RaycastRenderer, optional
-        A renderer already built for ``objects`` (in the rig frame), to reuse.
-    effects : CameraEffects or None
-        Real-camera effects (:class:`~prism3d.capture.camera_effects.CameraEffects`):
-        on by default with plausible values (right view 0.88x with a colour cast,
-        0.5-stop vignetting, 0.7 px PSF, JPEG quality 92, painted-metal gloss).
-        None or ``CameraEffects.ideal()`` = the ideal camera (bit-identical to
-        the simulator before effects existed). Deterministic: same seed, same image.
+    ``objects``: (SceneMesh, ``T_rig_obj`` (4, 4)) pairs; ``options`` None =
+    ``ShotOptions()``; ``projector`` default a white flash at the rig origin;
+    ``rectification`` (grid of ``disparity_rect``) default ``compute_rectification(rig)``;
+    ``renderer``: one already built for ``objects``, to reuse.
 
-    Returns
-    -------
-    Shot
-        ``truth`` holds, for ``<v>`` in ``left``/``right`` (view pixels after split
-        and un-flip): ``depth_<v>_mm`` (H, W) float32 NaN = no surface, ``mask_<v>``
-        bool, ``albedo_<v>`` (H, W, 3) float32, ``shading_<v>`` (H, W) float32,
-        ``illumination_<v>`` (H, W, 3) float32, ``normals_<v>`` (H, W, 3) float32
-        (camera frame, facing the camera), ``object_id_<v>`` int32; plus
-        ``disparity_rect`` (rectified-left grid, float32, NaN = no surface),
-        ``depth_rect_mm``, ``R1 R2 P1 P2 Q``, ``T_rig_left``, ``T_right_left``,
-        ``projector_T_rig_proj``. The truth maps are diffuse-only (no highlight)
-        and free of camera effects.
+    ``Shot.truth`` per view ``<v>`` (left/right, view pixels): ``depth_<v>_mm`` (H, W)
+    float32 NaN = no surface, ``mask_<v>`` bool, ``albedo_<v>`` (H, W, 3) float32,
+    ``shading_<v>`` (H, W) float32, ``illumination_<v>`` (H, W, 3) float32,
+    ``normals_<v>`` (H, W, 3) float32 (camera frame), ``object_id_<v>`` int32; plus
+    ``disparity_rect``, ``depth_rect_mm`` (rectified-left grid), ``R1 R2 P1 P2 Q``,
+    ``T_rig_left``, ``T_right_left``, ``projector_T_rig_proj``.
     """
     if not isinstance(rig, StereoRig):
         raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
-    a = check_in_range(ambient, "ambient", 0.0, 10.0)
-    fl = check_in_range(flash, "flash", 0.0, 10.0)
-    bg = check_in_range(background, "background", 0.0, 1.0)
-    ss = int(supersample)
-    if ss != supersample or ss < 1 or ss > 8:
-        raise InputError(f"supersample: expected an integer in [1, 8], got {supersample!r}")
-    blur = check_positive(blur_sigma, "blur_sigma", strict=False)
+    opts = ShotOptions() if options is None else options
+    if not isinstance(opts, ShotOptions):
+        raise InputError(f"options: expected a ShotOptions or None, got {type(opts).__name__}")
     if projector is None:
         projector = Projector.for_rig(rig, pattern=False)
     elif not isinstance(projector, Projector):
         raise InputError(f"projector: expected a Projector or None, got {type(projector).__name__}")
-    if noise is True:
-        noise_model: SensorNoise | None = SensorNoise()
-    elif noise is False or noise is None:
-        noise_model = None
-    elif isinstance(noise, SensorNoise):
-        noise_model = noise
-    else:
-        raise InputError(f"noise: expected a bool or SensorNoise, got {type(noise).__name__}")
-    if effects is not None and not isinstance(effects, CameraEffects):
-        raise InputError(f"effects: expected a CameraEffects or None, got {type(effects).__name__}")
-    fx = None if effects is None or effects.is_ideal else effects
     if renderer is None:
         renderer = RaycastRenderer(objects)
     rect = rectification if rectification is not None else compute_rectification(rig)
-    gloss = None if fx is None else _gloss_table(renderer, fx)
+    views, truth = _render_views(renderer, rig, projector, opts)
+    truth.update(_rectified_truth(renderer, rig, rect))
+    truth["projector_T_rig_proj"] = projector.T_rig_proj.copy()
+    return Shot(_sensor_image(rig, views, opts), truth, rect, opts.effects)
 
+
+def _render_views(
+    renderer: RaycastRenderer, rig: StereoRig, projector: Projector, opts: ShotOptions
+) -> tuple[list[NDArray[np.float64]], dict[str, NDArray]]:
+    """Both views, each with its optics (gain, vignetting, blur) applied, and their truth."""
+    fx = opts.real_effects
+    gloss = None if fx is None else _gloss_table(renderer, fx)
     truth: dict[str, NDArray] = {}
     views = []
     for name, cam, T in (("left", rig.left, rig.T_rig_left), ("right", rig.right, rig.T_rig_right)):
-        img, t = _render_view(renderer, cam, T, projector, a, fl, bg, ss, gloss)
-        sigma = blur
+        img, t = _render_view(renderer, cam, T, projector, opts, gloss)
+        sigma = opts.blur_sigma
         if fx is not None:
             _apply_view_optics(img, cam, fx, name)
-            sigma = float(np.hypot(blur, fx.psf_sigma_px))
+            sigma = float(np.hypot(opts.blur_sigma, fx.psf_sigma_px))
         if sigma > 0:
             img = gaussian_blur(img, sigma)
         views.append(img)
         truth[f"depth_{name}_mm"] = t["depth_mm"]
-        for key in ("mask", "albedo", "shading", "illumination", "normals", "object_id"):
+        for key in _TRUTH_KEYS:
             truth[f"{key}_{name}"] = t[key]
+    return views, truth
 
-    # true disparity on the rectified-left grid
+
+def _rectified_truth(renderer: RaycastRenderer, rig: StereoRig, rect: Rectification) -> dict[str, NDArray]:
+    """True disparity and depth on the rectified-left grid (depth-only rays), the
+    rectification matrices and the rig poses."""
     R1_4 = np.eye(4)
     R1_4[:3, :3] = rect.R1
     T_rig_rect = rig.T_rig_left @ np.linalg.inv(R1_4)
@@ -534,30 +562,35 @@ def simulate_shot(
     depth_rect = np.full(rw * rhh, np.nan, dtype=np.float32)
     fb = rect.focal_px * rect.baseline_mm
 
-    def rect_band(s: int, e: int, hb: CameraHits) -> None:  # depth only: no albedo, no light
+    def rect_band(s: int, e: int, hb: CameraHits) -> None:
         z = hb.t * hb.z_cam
         depth_rect[hb.index] = z
         with np.errstate(divide="ignore", invalid="ignore"):
             disp[hb.index] = fb / z
 
     renderer.stream_camera(rect.camera, T_rig_rect, rect_band)
-    truth["disparity_rect"] = disp.reshape(rhh, rw)
-    truth["depth_rect_mm"] = depth_rect.reshape(rhh, rw)
+    truth: dict[str, NDArray] = {"disparity_rect": disp.reshape(rhh, rw),
+                                 "depth_rect_mm": depth_rect.reshape(rhh, rw)}
     for k in ("R1", "R2", "P1", "P2", "Q"):
         truth[k] = np.asarray(getattr(rect, k), dtype=np.float64)
     truth["T_rig_left"] = rig.T_rig_left.copy()
     truth["T_right_left"] = rig.T_right_left.copy()
-    truth["projector_T_rig_proj"] = projector.T_rig_proj.copy()
+    return truth
 
+
+def _sensor_image(rig: StereoRig, views: list[NDArray[np.float64]], opts: ShotOptions) -> NDArray[np.uint8]:
+    """Join the views on the sensor, add noise, quantise, then the JPEG round trip."""
     sensor = rig.split.join(views[0], views[1], fill=0.0)
+    noise_model = opts.noise_model
     if noise_model is not None:
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng(opts.seed)
         sensor_u8 = quantize(noise_model.apply(sensor, rng))
     else:
         sensor_u8 = quantize(sensor * 255.0)
+    fx = opts.real_effects
     if fx is not None and fx.jpeg_quality is not None:
         sensor_u8 = jpeg_roundtrip(sensor_u8, fx.jpeg_quality)
-    return Shot(sensor_u8, truth, rect, effects)
+    return sensor_u8
 
 
 def _apply_view_optics(
@@ -583,11 +616,8 @@ def _write_png(path: Path, rgb: NDArray[np.uint8]) -> None:
 
 
 def _write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> None:
-    """Write arrays as ``.npz`` (readable by ``np.load``), atomically.
-
-    ``compress``: deflate at level 1. A 5 MP scene shot's truth is ~94 % NaN
-    background: 281 MB plain, 4.8 MB at level 1 (0.6 s in memory, against 0.3 s
-    plain), 3.8 MB at ``np.savez_compressed``'s level 6 (1.2 s)."""
+    """Write arrays as ``.npz`` atomically; ``compress``: deflate level 1 (sizes and
+    times: docs/capture.md)."""
     import zipfile
 
     if not compress:
@@ -600,127 +630,47 @@ def _write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> Non
                 np.lib.format.write_array(fh, np.asanyarray(a), allow_pickle=False)
 
 
-def write_ply(path: str | Path, mesh: SceneMesh) -> None:
-    """Write a mesh as binary little-endian PLY (double xyz mm, uchar RGB), atomically."""
-    V = mesh.vertices
-    F = mesh.faces
-    C = np.clip(np.rint(mesh.vertex_colors() * 255.0), 0, 255).astype(np.uint8)
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"comment prism3d true target mesh, millimetres ({mesh.name})\n"
-        f"element vertex {len(V)}\nproperty double x\nproperty double y\nproperty double z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    vdt = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
-    va = np.empty(len(V), dtype=vdt)
-    va["x"], va["y"], va["z"] = V[:, 0], V[:, 1], V[:, 2]
-    va["r"], va["g"], va["b"] = C[:, 0], C[:, 1], C[:, 2]
-    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
-    fa = np.empty(len(F), dtype=fdt)
-    fa["n"] = 3
-    fa["i"] = F.astype(np.int32)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(va.tobytes())
-        fh.write(fa.tobytes())
+def _write_target_ply(path: Path, mesh: SceneMesh) -> None:
+    """The true target mesh as PLY: float64 xyz in mm, RGB, ``units mm``, ``up z``
+    (the turntable frame), so ``prism3d features`` reads it as it is."""
+    from prism3d.io.ply import write_ply
+
+    write_ply(path, mesh.vertices, colors=mesh.vertex_colors(), faces=mesh.faces, double=True,
+              comments=[f"prism3d true target mesh ({mesh.name})", "units mm", "up z"])
 
 
 def _has_own_albedo(mesh: SceneMesh) -> bool:
     return mesh.albedo_field is not None or mesh.vertex_albedo is not None
 
 
+#: One planned shot: (png name, truth npz name, objects with rig-frame poses, extra truth).
+_PlannedShot = tuple[str, str, list[tuple[SceneMesh, NDArray]], dict[str, NDArray]]
+
+
 def simulate_to_folder(
     kind: str,
     out_dir: str | Path,
+    options: SimulateOptions | None = None,
     *,
     rig: StereoRig | None = None,
     target: SceneMesh | None = None,
-    pattern: bool | None = None,
-    camouflage: bool = True,
-    views: int | None = None,
-    seed: int = 0,
-    noise: bool = True,
-    supersample: int = 2,
     progress: ProgressFn | None = None,
-    compress: bool = True,
-    board: tuple[int, int] = (9, 6),
-    square_mm: float = 25.0,
-    blur_sigma: float = 0.0,
-    effects: CameraEffects | None = CameraEffects(),  # noqa: B008  (frozen, immutable)
 ) -> dict[str, Any]:
     """Simulate shots and write them with their ground truth (``prism3d simulate``).
 
-    Parameters
-    ----------
-    kind : {"plate", "calib", "scene"}
-        ``plate``: the paper's accuracy test, a flat 300 x 300 mm plate facing the
-        rig (perpendicular to rig z) at the working distance (1250 mm for the paper
-        rig); writes ``shot.png`` + ``truth.npz`` (``shot_00.png``... when
-        ``views`` > 1: the same plate, a fresh noise seed per shot).
-        ``calib``: a chessboard (``board`` inner corners, default 9 x 6, ``square_mm``
-        squares, default 25 mm) in ``views``
-        (default 5) varied poses (tilts 20-40 deg, 1100-1400 mm, seeded, whole board
-        in both views); writes ``calib_00.png``... + ``truth_00.npz``... with
-        ``corners_left``/``corners_right`` ((cols*rows, 2) float64 true distorted pixels,
-        NaN outside the view) and ``T_left_board``, ``T_rig_board``.
-        ``scene``: ``target`` on a turntable, ``views`` (default 8) views at
-        ``360 / views`` degree steps (45 deg for 8); writes ``shot_00.png``... +
-        ``truth_00.npz``..., ``target.ply`` (the true mesh, mm, world = turntable
-        frame, z up) and ``poses.json`` (per view ``T_world_cam`` of the left
-        virtual camera and ``T_world_rig``, 4x4 lists).
-        Every kind writes ``rig.yaml`` (:meth:`StereoRig.save`) with ``simulated: 1``
-        and the camera effects used as ``sim_*`` entries (:func:`_effects_entries`).
-    out_dir : path
-        Output folder (created).
-    rig : StereoRig, optional
-        Default :func:`paper_rig`.
-    target : SceneMesh, optional
-        The object of ``scene`` (required there), world frame = turntable frame.
-    pattern : bool, optional
-        Project the colour grating. Default: on for plate and scene, off (white
-        flash) for calib -- stripes over a chessboard defeat corner detection.
-    camouflage : bool
-        Plate: woodland camouflage albedo (else a mild grey speckle texture). Scene:
-        paint a camouflage albedo on a target that has no albedo of its own.
-    views : int, optional
-        Number of shots (see ``kind``).
-    seed : int
-        Seeds poses, textures, the pattern order and the noise: same seed, same files.
-    noise : bool
-        Sensor noise on/off.
-    supersample : int
-        Colour supersampling factor.
-    progress : callable(done, total, label), optional
-        Called after each shot.
-    compress : bool
-        Write the truth ``.npz`` deflated (default; ~60x smaller, a 5 MP shot's
-        truth 4.8 MB instead of 281 MB, for ~0.3 s more per shot). False writes
-        it plain.
-    board : (cols, rows)
-        ``calib``: inner corners of the chessboard. A denser board pins the
-        principal point better: with 5 poses at the paper rig's focal length its
-        standard deviation is ~0.6 px for 9 x 6 corners, ~0.3 px for 19 x 13.
-    square_mm : float
-        ``calib``: square size, mm.
-    blur_sigma : float
-        Extra Gaussian optical blur of each view, pixels, combined with the
-        effects' PSF (``hypot``); 0 (default) adds none.
-    effects : CameraEffects or None
-        Real-camera effects (default on, see :func:`simulate_shot`); None or
-        ``CameraEffects.ideal()`` = the ideal camera. The PNGs then hold the
-        JPEG-decoded pixels (lossless copies of what the camera's JPEG decodes to).
+    ``kind``: ``plate`` (the 300 x 300 mm accuracy-test plate at the working distance),
+    ``calib`` (a chessboard in varied poses) or ``scene`` (``target``, world = turntable
+    frame z up, on a turntable); files per kind: docs/capture.md ("Simulated folders").
+    ``out_dir`` is created; ``options`` None = ``SimulateOptions()``; ``rig`` default
+    :func:`paper_rig`; ``progress(done, total, label)`` after each shot.
 
-    Returns
-    -------
-    dict
-        ``kind``, ``out_dir``, ``files`` (names written), ``n_shots``, ``pattern``,
-        ``camera_effects`` (``CameraEffects.to_dict()``, None for the ideal
-        camera), ``seconds``.
+    Returns ``kind``, ``out_dir``, ``files`` (names written), ``n_shots``, ``pattern``,
+    ``camera_effects`` (``CameraEffects.to_dict()``, None = ideal), ``seconds``.
     """
     check_choice(kind, "kind", ("plate", "calib", "scene"))
-    if effects is not None and not isinstance(effects, CameraEffects):
-        raise InputError(f"effects: expected a CameraEffects or None, got {type(effects).__name__}")
+    opts = SimulateOptions() if options is None else options
+    if not isinstance(opts, SimulateOptions):
+        raise InputError(f"options: expected a SimulateOptions or None, got {type(opts).__name__}")
     t0 = time.perf_counter()
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -729,143 +679,154 @@ def simulate_to_folder(
         rig = paper_rig()
     if not isinstance(rig, StereoRig):
         raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
-    if views is not None and (int(views) != views or int(views) < 1):
-        raise InputError(f"views: expected a positive integer, got {views!r}")
-    if kind == "calib":
-        if len(board) != 2 or any(int(b) != b or int(b) < 2 for b in board):
-            raise InputError(f"board: expected (cols, rows) inner corners >= 2, got {board!r}")
-        square_mm = check_positive(square_mm, "square_mm")
     if kind == "scene":
         if target is None:
             raise InputError("simulate scene: a target mesh is required (target=SceneMesh)")
         if not isinstance(target, SceneMesh):
             raise InputError(f"target: expected a SceneMesh, got {type(target).__name__}")
-    use_pattern = (kind != "calib") if pattern is None else bool(pattern)
-    wd = working_distance_mm(rig)
-    projector = Projector.for_rig(rig, pattern=use_pattern, seed=seed if seed else None)
-    rect = compute_rectification(rig)
-    files: list[str] = []
-    common = dict(
-        projector=projector, supersample=supersample, noise=noise, rectification=rect,
-        blur_sigma=check_positive(blur_sigma, "blur_sigma", strict=False), effects=effects,
-    )
+    use_pattern = (kind != "calib") if opts.pattern is None else bool(opts.pattern)
+    projector = Projector.for_rig(rig, pattern=use_pattern, seed=opts.seed if opts.seed else None)
     out.mkdir(parents=True, exist_ok=True)
-    shots: list[tuple[str, str, list[tuple[SceneMesh, NDArray]], dict[str, NDArray]]] = []
-
+    files: list[str] = []
+    n = DEFAULT_VIEWS[kind] if opts.views is None else int(opts.views)
     if kind == "plate":
-        albedo = (
-            CamouflageField.from_palette("woodland", patch_size_mm=60.0, seed=seed)
-            if camouflage
-            else TextureAlbedo(seed=seed)
-        )
-        plate = flat_plate(300.0, 300.0, albedo=albedo)
-        objs = [(plate, translation(0.0, 0.0, wd))]
-        n = 1 if views is None else int(views)
-        for k in range(n):
-            stem = ("shot", "truth") if n == 1 else (f"shot_{k:02d}", f"truth_{k:02d}")
-            extra = {"T_rig_plate": objs[0][1]}
-            shots.append((stem[0] + ".png", stem[1] + ".npz", objs, extra))
+        shots = _plan_plate(rig, n, opts)
     elif kind == "calib":
-        cols, rows = (int(b) for b in board)
-        board_mesh = chessboard(cols, rows, square_mm)
-        corners = chessboard_corners(cols, rows, square_mm)
-        n = 5 if views is None else int(views)
-        poses = calibration_board_poses(rig, n, cols=cols, rows=rows, square_mm=square_mm, seed=seed)
-        for k, T_rig_board in enumerate(poses):
-            extra: dict[str, NDArray] = {"T_rig_board": T_rig_board}
-            for name, cam, T_rig_cam in (
-                ("left", rig.left, rig.T_rig_left),
-                ("right", rig.right, rig.T_rig_right),
-            ):
-                T_cam_board = np.linalg.inv(T_rig_cam) @ T_rig_board
-                pc = corners @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
-                uv = cam.project(pc)
-                w, h = cam.size
-                outside = ~(
-                    (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5)
-                )
-                uv[outside] = np.nan
-                extra[f"corners_{name}"] = uv
-                extra[f"T_{name}_board"] = T_cam_board
-            extra["board_corners_mm"] = corners
-            extra["board_inner_corners"] = np.array([cols, rows], dtype=np.int32)
-            extra["board_square_mm"] = np.array(float(square_mm))
-            shots.append((f"calib_{k:02d}.png", f"truth_{k:02d}.npz", [(board_mesh, T_rig_board)], extra))
+        shots = _plan_calib(rig, n, opts)
     else:
-        tgt: SceneMesh = target  # type: ignore[assignment]  # validated above
-        if camouflage and not _has_own_albedo(tgt):
-            camo = CamouflageField.from_palette("woodland", patch_size_mm=max(10.0, float(tgt.extent_mm.max()) / 6), seed=seed)
-            tgt = SceneMesh(tgt.vertices, tgt.faces, None, camo, tgt.name, dict(tgt.metadata))
-        n = 8 if views is None else int(views)
-        poses = turntable_poses(n, 360.0 / n, distance_mm=wd)
-        view_records = []
-        for k, T_world_rig in enumerate(poses):
-            T_rig_world = np.linalg.inv(T_world_rig)
-            T_world_cam = T_world_rig @ rig.T_rig_left
-            extra = {"T_world_rig": T_world_rig, "T_world_cam": T_world_cam}
-            shots.append((f"shot_{k:02d}.png", f"truth_{k:02d}.npz", [(tgt, T_rig_world)], extra))
-            view_records.append(
-                {
-                    "index": k,
-                    "image": f"shot_{k:02d}.png",
-                    "truth": f"truth_{k:02d}.npz",
-                    "T_world_cam": T_world_cam.tolist(),
-                    "T_world_rig": T_world_rig.tolist(),
-                }
-            )
-        write_ply(out / "target.ply", tgt)
-        files.append("target.ply")
-        doc = {
-            "schema_version": TRUTH_SCHEMA_VERSION,
-            "units": "mm",
-            "world_frame": "turntable: origin on the axis, z up",
-            "camera": "left virtual camera, OpenCV frame (x right, y down, z forward)",
-            "T_rig_left": rig.T_rig_left.tolist(),
-            "T_world_rig": [v["T_world_rig"] for v in view_records],
-            "views": view_records,
-        }
-        atomic_write_text(out / "poses.json", json.dumps(doc, indent=1))
-        files.append("poses.json")
-
-    sim_entries = _effects_entries(effects, float(common["blur_sigma"]))  # type: ignore[arg-type]
+        shots = _plan_scene(rig, target, n, opts, out)  # type: ignore[arg-type]  # validated above
+        files += ["target.ply", "poses.json"]
+    sim_entries = _effects_entries(opts.effects, float(opts.blur_sigma))
     rig.save(out / "rig.yaml", extra={"simulated": 1, **sim_entries})
     files.append("rig.yaml")
-    total = len(shots)
+    files += _write_shots(out, rig, shots, projector, opts, progress)
+    return {
+        "kind": kind,
+        "out_dir": str(out),
+        "files": sorted(files),
+        "n_shots": len(shots),
+        "pattern": use_pattern,
+        "camera_effects": None if opts.effects is None or opts.effects.is_ideal else opts.effects.to_dict(),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _plan_plate(rig: StereoRig, n: int, opts: SimulateOptions) -> list[_PlannedShot]:
+    """The accuracy-test plate facing the rig at the working distance, ``n`` shots
+    (a fresh noise seed each)."""
+    albedo = (
+        CamouflageField.from_palette("woodland", patch_size_mm=PLATE_CAMO_PATCH_MM, seed=opts.seed)
+        if opts.camouflage
+        else TextureAlbedo(seed=opts.seed)
+    )
+    plate = flat_plate(PLATE_SIZE_MM, PLATE_SIZE_MM, albedo=albedo)
+    objs = [(plate, translation(0.0, 0.0, working_distance_mm(rig)))]
+    shots: list[_PlannedShot] = []
+    for k in range(n):
+        stem = ("shot", "truth") if n == 1 else (f"shot_{k:02d}", f"truth_{k:02d}")
+        shots.append((stem[0] + ".png", stem[1] + ".npz", objs, {"T_rig_plate": objs[0][1]}))
+    return shots
+
+
+def _plan_calib(rig: StereoRig, n: int, opts: SimulateOptions) -> list[_PlannedShot]:
+    """A chessboard in ``n`` seeded poses with its true corners in both views."""
+    cols, rows = (int(b) for b in opts.board)
+    square_mm = opts.square_mm
+    board_mesh = chessboard(cols, rows, square_mm)
+    corners = chessboard_corners(cols, rows, square_mm)
+    poses = calibration_board_poses(
+        rig, n, options=BoardPoseOptions(cols=cols, rows=rows, square_mm=square_mm, seed=opts.seed)
+    )
+    shots: list[_PlannedShot] = []
+    for k, T_rig_board in enumerate(poses):
+        extra: dict[str, NDArray] = {"T_rig_board": T_rig_board}
+        views = (("left", rig.left, rig.T_rig_left), ("right", rig.right, rig.T_rig_right))
+        for name, cam, T_rig_cam in views:
+            T_cam_board = np.linalg.inv(T_rig_cam) @ T_rig_board
+            pc = corners @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+            extra[f"corners_{name}"] = _visible_corners(cam, pc)
+            extra[f"T_{name}_board"] = T_cam_board
+        extra["board_corners_mm"] = corners
+        extra["board_inner_corners"] = np.array([cols, rows], dtype=np.int32)
+        extra["board_square_mm"] = np.array(float(square_mm))
+        shots.append((f"calib_{k:02d}.png", f"truth_{k:02d}.npz", [(board_mesh, T_rig_board)], extra))
+    return shots
+
+
+def _visible_corners(cam: CameraModel, pc: NDArray[np.float64]) -> NDArray[np.float64]:
+    """True distorted pixels ``(N, 2)`` of camera-frame points, NaN outside the view."""
+    uv = cam.project(pc)
+    w, h = cam.size
+    outside = ~((uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5))
+    uv[outside] = np.nan
+    return uv
+
+
+def _plan_scene(
+    rig: StereoRig, target: SceneMesh, n: int, opts: SimulateOptions, out: Path
+) -> list[_PlannedShot]:
+    """``target`` on a turntable in ``n`` views; writes ``target.ply`` and ``poses.json``."""
+    tgt = target
+    if opts.camouflage and not _has_own_albedo(tgt):
+        patch = max(MIN_TARGET_CAMO_PATCH_MM, float(tgt.extent_mm.max()) / TARGET_CAMO_PATCHES)
+        camo = CamouflageField.from_palette("woodland", patch_size_mm=patch, seed=opts.seed)
+        tgt = SceneMesh(tgt.vertices, tgt.faces, None, camo, tgt.name, dict(tgt.metadata))
+    poses = turntable_poses(n, 360.0 / n, distance_mm=working_distance_mm(rig))
+    shots: list[_PlannedShot] = []
+    records = []
+    for k, T_world_rig in enumerate(poses):
+        T_world_cam = T_world_rig @ rig.T_rig_left
+        extra = {"T_world_rig": T_world_rig, "T_world_cam": T_world_cam}
+        shots.append((f"shot_{k:02d}.png", f"truth_{k:02d}.npz", [(tgt, np.linalg.inv(T_world_rig))], extra))
+        records.append({"index": k, "image": f"shot_{k:02d}.png", "truth": f"truth_{k:02d}.npz",
+                        "T_world_cam": T_world_cam.tolist(), "T_world_rig": T_world_rig.tolist()})
+    _write_target_ply(out / "target.ply", tgt)
+    doc = {
+        "schema_version": TRUTH_SCHEMA_VERSION,
+        "units": "mm",
+        "world_frame": "turntable: origin on the axis, z up",
+        "camera": "left virtual camera, OpenCV frame (x right, y down, z forward)",
+        "T_rig_left": rig.T_rig_left.tolist(),
+        "T_world_rig": [v["T_world_rig"] for v in records],
+        "views": records,
+    }
+    atomic_write_text(out / "poses.json", json.dumps(doc, indent=1))
+    return shots
+
+
+def _write_shots(
+    out: Path,
+    rig: StereoRig,
+    shots: list[_PlannedShot],
+    projector: Projector,
+    opts: SimulateOptions,
+    progress: ProgressFn | None,
+) -> list[str]:
+    """Render and write each planned shot (PNG + truth npz); one renderer per object list."""
+    rect = compute_rectification(rig)
+    files: list[str] = []
     cached: dict[int, RaycastRenderer] = {}
     for k, (png, npz, objs, extra) in enumerate(shots):
         key = id(objs)
         if key not in cached:
             cached.clear()
             cached[key] = RaycastRenderer(objs)
-        shot = simulate_shot(rig, objs, seed=seed * 1000 + k, renderer=cached[key], **common)  # type: ignore[arg-type]
+        shot_opts = opts.shot_options(opts.seed * SHOT_SEED_STRIDE + k)
+        shot = simulate_shot(rig, objs, shot_opts, projector=projector, rectification=rect, renderer=cached[key])
         truth = dict(shot.truth)
         truth.update({k2: np.asarray(v) for k2, v in extra.items()})
         truth["schema_version"] = np.array(TRUTH_SCHEMA_VERSION)
         _write_png(out / png, shot.sensor_image)
-        _write_npz(out / npz, truth, compress=compress)
+        _write_npz(out / npz, truth, compress=opts.compress)
         files += [png, npz]
         if progress is not None:
-            progress(k + 1, total, png)
-    return {
-        "kind": kind,
-        "out_dir": str(out),
-        "files": sorted(files),
-        "n_shots": total,
-        "pattern": use_pattern,
-        "camera_effects": None if effects is None or effects.is_ideal else effects.to_dict(),
-        "seconds": time.perf_counter() - t0,
-    }
+            progress(k + 1, len(shots), png)
+    return files
 
 
 def _effects_entries(effects: CameraEffects | None, blur_sigma: float) -> dict[str, Any]:
-    """The camera effects of a simulated folder as flat ``rig.yaml`` entries.
-
-    ``sim_ideal_camera`` (1 = no effects; then nothing else but the blur),
-    ``sim_blur_sigma_px``, ``sim_exposure_right``, ``sim_colour_gain_right`` (R, G, B),
-    ``sim_vignetting_stops``, ``sim_psf_sigma_px``, ``sim_jpeg_quality`` (0 = none),
-    ``sim_specular``, ``sim_default_material`` and ``sim_gloss_<class>``
-    (coefficient, shininess) per material class.
-    """
+    """The camera effects of a simulated folder as flat ``rig.yaml`` ``sim_*`` entries
+    (list: docs/capture.md)."""
     out: dict[str, Any] = {"sim_ideal_camera": 1, "sim_blur_sigma_px": float(blur_sigma)}
     if effects is None or effects.is_ideal:
         return out

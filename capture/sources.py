@@ -1,20 +1,7 @@
-"""Camera sources behind one interface, named by strings on the command line.
-
-``folder:PATH``
-    A tethered camera (or a gphoto-style tool) drops image files into ``PATH``; the
-    source waits for a NEW, COMPLETE file (size unchanged over two polls and
-    decodable) that appeared after :meth:`CameraSource.prepare`.
-``opencv:INDEX_OR_URL``
-    ``cv2.VideoCapture`` on a device index (``opencv:0``), a stream URL or a video
-    file.
-``virtual[:TARGET]``
-    The virtual rig: renders a shot, with the projected grating only when the flash
-    fired. ``TARGET`` names come from :mod:`prism3d.datasets`, a layer this module
-    must not import: pass a ``resolver`` callable (``TARGET -> render function``).
-    Without a target, a built-in flat plate is rendered.
-
-All images are returned as ``(H, W, 3) uint8`` RGB. Every blocking call has a timeout;
-failures raise :class:`~prism3d.errors.DeviceError` naming the source.
+"""Camera sources named by command-line strings: ``folder:PATH`` (files from a
+tethered camera), ``opencv:INDEX_OR_URL``, ``virtual[:TARGET]`` (targets via a
+``resolver``: this layer must not import :mod:`prism3d.datasets`). Frames are
+``(H, W, 3) uint8`` RGB; waits are bounded; failures raise DeviceError.
 """
 
 from __future__ import annotations
@@ -65,11 +52,9 @@ TargetResolver = Callable[[str], RenderFn]
 
 @runtime_checkable
 class CameraSource(Protocol):
-    """What :func:`prism3d.capture.acquire.capture_shots` needs from a camera.
-
-    The capture loop calls ``open()`` once, then per shot ``prepare(pattern_id)``
-    before the trigger fires and ``grab(timeout, flash_fired=...)`` after it, and
-    ``close()`` at the end.
+    """What :func:`~prism3d.capture.acquire.capture_shots` needs from a camera:
+    ``open()`` once, per shot ``prepare(pattern_id)`` before the trigger and
+    ``grab(timeout, flash_fired=...)`` after it, ``close()`` at the end.
     """
 
     spec: str
@@ -91,17 +76,8 @@ class CameraSource(Protocol):
 
 
 def to_rgb8(image: NDArray, name: str = "image") -> NDArray[np.uint8]:
-    """Convert a decoded frame (grey, BGR/BGRA as OpenCV decodes, 8 or 16 bit) to RGB uint8.
-
-    Parameters
-    ----------
-    image : (H, W) or (H, W, 3|4) uint8 or uint16
-        As returned by ``cv2.imread(..., IMREAD_UNCHANGED)`` (BGR channel order).
-
-    Raises
-    ------
-    DeviceError
-        For other shapes or dtypes.
+    """RGB uint8 from a frame as ``cv2.imread(..., IMREAD_UNCHANGED)`` decodes it:
+    (H, W) or (H, W, 3|4) BGR(A), uint8 or uint16; DeviceError otherwise.
     """
     img = np.asarray(image)
     if img.dtype == np.uint16:
@@ -121,15 +97,8 @@ def to_rgb8(image: NDArray, name: str = "image") -> NDArray[np.uint8]:
 
 
 class FolderSource:
-    """Frames dropped into a folder by a tethered camera.
-
-    Parameters
-    ----------
-    path : path
-        The watched folder (must exist).
-    poll_s : float
-        Polling interval; a file is complete when its size and mtime are unchanged
-        over two consecutive polls and it decodes.
+    """Frames dropped into the existing folder ``path`` by a tethered camera; a file
+    is complete when size and mtime hold over two polls ``poll_s`` apart and it decodes.
     """
 
     def __init__(self, path: str | Path, *, poll_s: float = 0.05) -> None:
@@ -174,13 +143,7 @@ class FolderSource:
         self._t_armed_ns = time.time_ns()
 
     def grab(self, timeout: float, *, flash_fired: bool = False) -> NDArray[np.uint8]:
-        """Wait for a new complete image file and decode it.
-
-        Raises
-        ------
-        DeviceError
-            No new complete, decodable file within ``timeout`` seconds.
-        """
+        """Wait for a new complete image file and decode it (DeviceError after ``timeout`` s)."""
         check_positive(timeout, "timeout")
         deadline = time.monotonic() + timeout
         seen: dict[str, tuple[int, int]] = {}
@@ -219,14 +182,8 @@ class FolderSource:
 
 
 class OpenCVSource:
-    """``cv2.VideoCapture`` on a device index, URL or video file.
-
-    Parameters
-    ----------
-    target : int or str
-        Device index (``0``) or URL/path.
-    flush_frames : int
-        Frames read and discarded in :meth:`prepare` (stale buffered frames).
+    """``cv2.VideoCapture`` on a device index or URL/path ``target``; ``prepare``
+    discards ``flush_frames`` stale buffered frames.
     """
 
     def __init__(self, target: int | str, *, flush_frames: int = 0) -> None:
@@ -299,21 +256,10 @@ def synthetic_plate_render(
     disparity_px: float = 40.0,
     seed: int = 0,
 ) -> RenderFn:
-    """A cheap built-in render of a textured flat plate seen by a side-by-side prism rig.
-
-    The sensor holds two views (left and right halves). The plate carries a mild grey
-    speckle; ambient light is dim. When the flash fires, the projector adds vertical
-    colour stripes (the De Bruijn grating of :mod:`prism3d.capture.pattern`, stripe
-    period ``4 + 2 * pattern_id`` px, pattern 0 = plain white flash), shifted by
-    ``disparity_px`` between the views. Sensor noise is seeded per shot.
-
-    This is a 2-D stand-in (no lens model, constant disparity); the physically based
-    virtual capture is :mod:`prism3d.capture.simulate`, injected as ``render``.
-
-    Returns
-    -------
-    RenderFn
-        ``render(flash_fired, pattern_id, shot_index) -> (H, W, 3) uint8``.
+    """A cheap 2-D stand-in render (no lens model, constant ``disparity_px``): a
+    speckled plate in two side-by-side views, dim ambient light, and with the flash the
+    De Bruijn grating (stripe period ``4 + 2 * pattern_id`` px, 0 = white); noise seeded
+    per shot. Returns ``render(flash_fired, pattern_id, shot_index) -> (H, W, 3) uint8``.
     """
     w, h = (int(v) for v in sensor_size)
     if w < 16 or h < 16 or w % 2:
@@ -346,20 +292,8 @@ def synthetic_plate_render(
 
 
 class VirtualSource:
-    """The virtual rig as a camera: renders a shot when grabbed.
-
-    Parameters
-    ----------
-    target : str, optional
-        Scene name resolved by ``resolver``; ``None`` = the built-in flat plate.
-    render : RenderFn, optional
-        Explicit render function (wins over ``target``).
-    resolver : TargetResolver, optional
-        ``target -> RenderFn``; the CLI passes one built from :mod:`prism3d.datasets`.
-    sensor_size : (int, int)
-        Sensor size of the built-in plate render.
-    seed : int
-        Seed of the built-in render.
+    """The virtual rig as a camera: renders a shot when grabbed, with ``render`` (wins),
+    else ``resolver(target)``, else the built-in plate of ``sensor_size`` and ``seed``.
     """
 
     def __init__(
@@ -434,19 +368,9 @@ def _split_spec(spec: str) -> _Spec:
 
 
 def open_source(spec: str, *, resolver: TargetResolver | None = None) -> CameraSource:
-    """Build (not yet open) a camera source from its command-line spelling.
-
-    Parameters
-    ----------
-    spec : str
-        ``folder:PATH``, ``opencv:INDEX_OR_URL`` or ``virtual[:TARGET]``.
-    resolver : TargetResolver, optional
-        Resolves virtual target names (the CLI passes one from prism3d.datasets).
-
-    Raises
-    ------
-    InputError
-        Unknown scheme or missing argument; the message lists the valid forms.
+    """Build (not yet open) a camera source from ``folder:PATH``,
+    ``opencv:INDEX_OR_URL`` or ``virtual[:TARGET]`` (``resolver`` names targets);
+    InputError listing the valid forms otherwise.
     """
     s = _split_spec(spec)
     forms = ", ".join(SOURCE_FORMS)

@@ -1,18 +1,7 @@
-"""Host client of the flash/shutter trigger controller (serial line, pyserial).
-
-The controller is a small microcontroller on a serial port (115200 8N1) that opens
-the camera shutter and fires the grating flash projector in one exposure. The line
-protocol is specified in ``docs/trigger-protocol.md`` and framed by
-:mod:`prism3d.capture.trigger_protocol`.
-
-Any pyserial URL works: a device path (``/dev/ttyACM0``, a pty such as
-``/dev/pts/5``, a stable ``/dev/serial/by-id/...`` link), ``loop://``,
-``socket://host:port``, ``rfc2217://...``.
-
-Every blocking call is bounded: a command waits at most ``timeout`` seconds per try
-and is sent at most ``1 + retries`` times (with the same sequence number, which the
-device de-duplicates, so a retried ``FIRE`` never fires twice). Failures raise
-:class:`~prism3d.errors.DeviceError` naming the port and what happened.
+"""Host client of the flash/shutter trigger controller over a serial line (pyserial):
+protocol in docs/trigger-protocol.md, framing in :mod:`prism3d.capture.trigger_protocol`.
+Calls are bounded (``timeout`` per try, ``1 + retries`` tries with the same sequence
+number, so a retried ``FIRE`` never fires twice); failures raise DeviceError.
 """
 
 from __future__ import annotations
@@ -74,20 +63,8 @@ class DeviceInfo:
 
 @dataclass(frozen=True)
 class FireReport:
-    """What the controller did for one ``FIRE`` (times in device microseconds).
-
-    Parameters
-    ----------
-    shot : int
-        Device shot counter (1 = first shot since power-up).
-    pattern_id : int
-        Grating pattern the flash projected (0 = plain white flash).
-    t_shutter_us : int
-        Device time the shutter opened.
-    t_flash_us : int or None
-        Device time the flash fired; ``None`` when no flash was requested.
-    shutter_us, flash_us, flash_delay_us : int
-        Exposure, flash duration and flash delay after shutter opening.
+    """What the controller did for one ``FIRE`` (device us): ``shot`` counter, ``pattern_id``,
+    ``t_shutter_us``, ``t_flash_us`` (None without flash), ``shutter_us, flash_us, flash_delay_us``.
     """
 
     shot: int
@@ -134,31 +111,9 @@ def _check_us(value: int, name: str, lo: int, hi: int) -> int:
 
 
 class TriggerClient:
-    """Talk to a trigger controller on any pyserial URL.
-
-    Parameters
-    ----------
-    url : str
-        Port path or pyserial URL (``/dev/ttyACM0``, ``/dev/pts/5``, ``loop://``...).
-    timeout : float
-        Seconds to wait for each reply (per try).
-    retries : int
-        Extra tries after a timeout or a corrupted reply (0 = send once).
-    baudrate : int
-        Line speed (the controller uses 115200 8N1).
-
-    Raises
-    ------
-    DeviceError
-        When the port cannot be opened.
-    InputError
-        For a non-positive timeout or negative retries.
-
-    Examples
-    --------
-    >>> with TriggerClient("/dev/ttyACM0", timeout=0.5) as trig:  # doctest: +SKIP
-    ...     trig.arm(1)
-    ...     report = trig.fire()
+    """Talk to a trigger controller on any pyserial URL ``url``: ``timeout`` s per
+    reply and try, ``retries`` extra tries after a timeout or corrupted reply,
+    ``baudrate`` (115200 8N1). DeviceError when the port cannot be opened.
     """
 
     def __init__(
@@ -213,10 +168,8 @@ class TriggerClient:
                 log.debug("closing %s: %s", self.url, exc)
 
     def reconnect(self, timeout: float = 5.0) -> None:
-        """Close and reopen the port, waiting up to ``timeout`` s for it to reappear.
-
-        Use after :class:`DeviceError` "port vanished" (a controller that reset or
-        was re-plugged; give its stable ``/dev/serial/by-id`` name as ``url``).
+        """Close and reopen the port, waiting up to ``timeout`` s for it to reappear
+        (after "port vanished"; use the stable ``/dev/serial/by-id`` name).
         """
         self.close()
         deadline = time.monotonic() + check_positive(timeout, "timeout")
@@ -275,13 +228,8 @@ class TriggerClient:
         return self._seq
 
     def request(self, word: str, *args: object) -> Message:
-        """Send one command and return its ``OK`` reply (with bounded retries).
-
-        Raises
-        ------
-        DeviceError
-            No valid reply after ``1 + retries`` tries, an ``ERR`` reply, or a
-            vanished port.
+        """Send one command and return its ``OK`` reply; DeviceError after ``1 + retries``
+        tries without a valid reply, on ``ERR``, or a vanished port.
         """
         line = encode(self._next_seq(), word, *args)
         seq = self._seq
@@ -361,12 +309,8 @@ class TriggerClient:
     # -- commands ---------------------------------------------------------------------
 
     def identify(self) -> DeviceInfo:
-        """``ID``: model, firmware, protocol version and serial number.
-
-        Raises
-        ------
-        DeviceError
-            Also when the device speaks another protocol version.
+        """``ID``: model, firmware, protocol version and serial number (DeviceError also
+        for another protocol version).
         """
         kv = parse_kv(self.request("ID").args[1:])
         try:
@@ -413,17 +357,10 @@ class TriggerClient:
         flash_us: int = DEFAULT_FLASH_US,
         shutter_us: int = DEFAULT_SHUTTER_US,
     ) -> FireReport:
-        """``FIRE``: open the shutter for ``shutter_us`` and fire the flash inside it.
-
-        ``flash_us = 0`` exposes without flash. Waits for the ``FIRED`` event (at most
-        ``timeout`` plus the exposure); if the event is lost, asks ``STATUS``.
-
-        Raises
-        ------
-        InputError
-            For timings out of range or a flash that ends after the shutter closes.
-        DeviceError
-            Not armed (``ERR 3``), no reply, or port vanished.
+        """``FIRE``: open the shutter for ``shutter_us`` and fire the flash inside it
+        (``flash_us = 0``: no flash). Waits for ``FIRED`` (``timeout`` plus the exposure),
+        else asks ``STATUS``. InputError for bad timings; DeviceError if not armed, no
+        reply or the port vanished.
         """
         _check_us(shutter_us, "shutter_us", 1, 1_000_000)
         _check_us(flash_us, "flash_us", 0, 100_000)
@@ -466,12 +403,8 @@ class TriggerClient:
 
 
 def trigger_ping(port: str, timeout: float = 1.0) -> dict[str, Any]:
-    """``prism3d trigger ping PORT``: identify the controller and time the round trip.
-
-    Returns
-    -------
-    dict
-        ``port, model, firmware, protocol, serial, round_trip_ms``.
+    """``prism3d trigger ping PORT``: ``port, model, firmware, protocol, serial,
+    round_trip_ms``.
     """
     with TriggerClient(port, timeout=timeout) as trig:
         t0 = time.perf_counter()
@@ -495,12 +428,8 @@ def trigger_fire(
     shutter_us: int = DEFAULT_SHUTTER_US,
     timeout: float = 1.0,
 ) -> dict[str, Any]:
-    """``prism3d trigger fire PORT``: arm with ``pattern_id`` and fire once.
-
-    Returns
-    -------
-    dict
-        ``port`` plus :meth:`FireReport.to_dict`.
+    """``prism3d trigger fire PORT``: arm ``pattern_id``, fire once; ``port`` plus
+    :meth:`FireReport.to_dict`.
     """
     with TriggerClient(port, timeout=timeout) as trig:
         trig.arm(pattern_id)

@@ -1,18 +1,10 @@
-"""The trigger-controller line protocol: framing, checksum and a streaming parser.
+"""The trigger-controller line protocol: framing, checksum and a streaming parser (no I/O).
 
-Pure functions and a byte-stream parser; no I/O. The protocol is specified in
-``docs/trigger-protocol.md``; in short, every line is::
-
-    <seq> <WORD> [args...] *<CK>\\n
-
-where ``<seq>`` is a decimal sequence number (0..65535), ``<WORD>`` an upper-case
-command (host -> device) or reply/event kind (``OK``, ``ERR``, ``EV``), args are
-printable ASCII tokens without spaces or ``*``, and ``<CK>`` is the XOR of every
-byte before ``" *"``, as two upper-case hex digits (the NMEA 0183 checksum).
-
-The parser never raises on input bytes: garbage, overlong lines, bad checksums and
-malformed lines come out as :class:`FrameError` items, so a reader can count them,
-report them, and keep going (resynchronising at the next newline).
+Every line is ``<seq> <WORD> [args...] *<CK>\n``: ``seq`` 0..65535, an upper-case
+command or reply kind (``OK``, ``ERR``, ``EV``), printable tokens without spaces or
+``*``, and ``CK`` the NMEA 0183 XOR checksum of the bytes before ``" *"`` in two hex
+digits (docs/trigger-protocol.md). The parser never raises on input bytes: bad
+lines come out as :class:`FrameError` items and it resynchronises at the next newline.
 """
 
 from __future__ import annotations
@@ -67,17 +59,9 @@ _CK = re.compile(rb"^[0-9A-Fa-f]{2}$")
 
 @dataclass(frozen=True)
 class Message:
-    """One validated protocol line.
-
-    Parameters
-    ----------
-    seq : int
-        Sequence number, 0..65535. Replies echo the command's number; events carry
-        the device's own event counter.
-    word : str
-        Command (``ID``, ``ARM``...) or reply kind (``OK``, ``ERR``, ``EV``).
-    args : tuple of str
-        The remaining tokens.
+    """One validated protocol line: ``seq`` 0..65535 (replies echo the command's, events
+    carry the device's counter), ``word`` (``ID``, ``ARM``..., ``OK``, ``ERR``, ``EV``) and
+    the remaining ``args``.
     """
 
     seq: int
@@ -97,17 +81,9 @@ class Message:
 
 @dataclass(frozen=True)
 class FrameError:
-    """A line (or run of bytes) that could not be accepted.
-
-    Parameters
-    ----------
-    reason : str
-        ``"checksum error"``, ``"overlong line"``, ``"malformed line"`` or
-        ``"non-ASCII bytes"``.
-    raw : bytes
-        The offending bytes (truncated to :data:`MAX_LINE`).
-    seq : int or None
-        The sequence number, when it could still be read (checksum errors).
+    """A line (or run of bytes) that could not be accepted: ``reason`` (``"checksum
+    error"``, ``"overlong line"``, ``"malformed line"``, ``"non-ASCII bytes"``), the
+    ``raw`` bytes (at most :data:`MAX_LINE`) and ``seq`` when still readable.
     """
 
     reason: str
@@ -116,13 +92,7 @@ class FrameError:
 
 
 def checksum(payload: bytes) -> int:
-    """XOR of all bytes of ``payload`` (the NMEA 0183 checksum), 0..255.
-
-    References
-    ----------
-    NMEA 0183 standard, sentence checksum (XOR of the characters between ``$``
-    and ``*``).
-    """
+    """XOR of all bytes of ``payload``, 0..255 (the NMEA 0183 sentence checksum)."""
     ck = 0
     for b in payload:
         ck ^= b
@@ -130,14 +100,8 @@ def checksum(payload: bytes) -> int:
 
 
 def encode(seq: int, word: str, *args: object) -> bytes:
-    """Frame one line: ``b"<seq> <WORD> args... *CK\\n"``.
-
-    Raises
-    ------
-    InputError
-        When ``seq`` is out of range, the word is not an upper-case token, an
-        argument contains a space, ``*`` or non-printable characters, or the line
-        would exceed :data:`MAX_LINE` bytes.
+    """Frame one line ``b"<seq> <WORD> args... *CK\n"``; InputError for a bad ``seq``,
+    word or argument, or a line longer than :data:`MAX_LINE`.
     """
     if isinstance(seq, bool) or not isinstance(seq, int) or not 0 <= seq <= MAX_SEQ:
         raise InputError(f"seq: expected an integer in [0, {MAX_SEQ}], got {seq!r}")
@@ -161,10 +125,7 @@ def encode(seq: int, word: str, *args: object) -> bytes:
 
 
 def decode_line(line: bytes) -> Message | FrameError:
-    """Validate one line (without or with its trailing ``\\n`` / ``\\r\\n``).
-
-    Never raises on any ``bytes`` input.
-    """
+    """Validate one line (with or without ``\n`` / ``\r\n``); never raises on bytes."""
     raw = bytes(line[: MAX_LINE + 2])
     body = raw.rstrip(b"\r\n")
     if len(body) + 1 > MAX_LINE:
@@ -203,11 +164,8 @@ def parse_kv(args: tuple[str, ...]) -> dict[str, str]:
 
 
 class LineParser:
-    """Streaming parser: feed arbitrary byte chunks, get complete validated lines.
-
-    A line longer than :data:`MAX_LINE` is reported once as ``"overlong line"`` and
-    everything up to the next ``\\n`` is discarded (resynchronisation). Empty lines
-    are ignored. :meth:`feed` never raises for ``bytes`` input.
+    """Streaming parser: feed byte chunks, get validated lines; an overlong line is
+    reported once and skipped to the next ``\n``; empty lines are ignored; never raises.
     """
 
     def __init__(self) -> None:

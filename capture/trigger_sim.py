@@ -1,27 +1,9 @@
 """A simulated trigger controller speaking the line protocol on a real pseudo-terminal.
 
-The simulator opens a pty pair (``os.openpty``); the host side opens the slave
-path (``os.ttyname(slave)``, e.g. ``/dev/pts/5``) with pyserial exactly as it would
-open ``/dev/ttyACM0``. Faults can be injected to exercise the host's timeouts,
-retries, resynchronisation and reconnection:
-
-``None``
-    a well-behaved device;
-``"silence"``
-    never answers;
-``"garbage"``
-    sends random bytes (and lines with corrupted checksums) instead of replies;
-``"drop"``
-    drops every other reply line (the first, third, ...);
-``"disconnect"``
-    answers the first command of each connection, then closes the pty (a USB
-    device that resets); after ``reboot_s`` it comes back on a NEW pty, and the
-    stable symlink ``link`` (when given) is re-pointed at it, like a udev
-    ``/dev/serial/by-id`` link;
-``"slow"``
-    answers ``slow_s`` seconds late (longer than the client's timeout).
-
-See ``docs/trigger-protocol.md`` for the protocol.
+The host opens the pty slave path (e.g. ``/dev/pts/5``) with pyserial as it would
+``/dev/ttyACM0``. Injectable faults (:data:`FAULTS`, described in
+docs/trigger-protocol.md and docs/capture.md): None, ``silence``, ``garbage``,
+``drop``, ``disconnect`` (comes back on a new pty, ``link`` re-pointed) and ``slow``.
 """
 
 from __future__ import annotations
@@ -74,16 +56,9 @@ def _check_fault(fault: str | None) -> str | None:
 
 
 class SimulatedDevice:
-    """The device's protocol logic, independent of any port (pure state machine).
-
-    Parameters
-    ----------
-    clock_us : callable, optional
-        Device clock in microseconds since boot (default: monotonic clock).
-    sleep : callable, optional
-        Used to wait for the exposure to finish (default :func:`time.sleep`).
-    serial : str
-        Serial number reported by ``ID``.
+    """The device's protocol logic as a pure state machine: ``clock_us`` (device clock,
+    us since boot; default monotonic), ``sleep`` (waits out the exposure), ``serial``
+    (reported by ``ID``).
     """
 
     def __init__(
@@ -288,32 +263,13 @@ def run_simulator(
     reboot_s: float = 0.2,
     seed: int = 0,
 ) -> None:
-    """Serve the trigger protocol on a new pty until ``stop`` is set.
+    """Serve the trigger protocol on a new pty until ``stop`` is set (checked every 50 ms).
 
-    Parameters
-    ----------
-    fault : {None, "silence", "garbage", "drop", "disconnect", "slow"}
-        Fault to inject (see the module docstring).
-    ready : callable, optional
-        Called with the slave path (e.g. ``"/dev/pts/5"``) each time a pty is ready
-        for the host to open (once, or again after each simulated disconnect).
-    stop : threading.Event, optional
-        Set it to stop serving (checked every 50 ms). Without it the simulator
-        serves forever.
-    link : path, optional
-        A symlink kept pointing at the current pty (a stable port name across
-        reconnects, like ``/dev/serial/by-id/...``).
-    slow_s : float
-        Reply delay of the ``"slow"`` fault, seconds.
-    reboot_s : float
-        Time the device is absent after a ``"disconnect"``, seconds.
-    seed : int
-        Seed of the ``"garbage"`` fault's random bytes.
-
-    Raises
-    ------
-    InputError
-        For an unknown fault.
+    ``fault`` one of :data:`FAULTS`; ``ready(path)`` is called each time a pty is ready
+    (again after each simulated disconnect); ``link`` a symlink kept pointing at the
+    current pty; ``slow_s`` the ``slow`` reply delay and ``reboot_s`` the absence after
+    a ``disconnect``, s; ``seed`` seeds the ``garbage`` bytes. InputError for an
+    unknown fault.
     """
     _check_fault(fault)
     stop = stop or threading.Event()
@@ -346,20 +302,14 @@ def run_simulator(
 
 
 class TriggerSimulator:
-    """Run :func:`run_simulator` in a daemon thread (for tests and demos).
-
-    Use as a context manager::
+    """Run :func:`run_simulator` in a daemon thread (tests, demos), as a context manager::
 
         with TriggerSimulator(fault="drop") as sim:
             with TriggerClient(sim.port, timeout=0.3) as trig:
                 trig.identify()
 
-    Parameters
-    ----------
-    fault, link, slow_s, reboot_s, seed
-        As in :func:`run_simulator`.
-    start_timeout : float
-        Seconds to wait for the pty to appear.
+    ``fault, link, slow_s, reboot_s, seed`` as in :func:`run_simulator`;
+    ``start_timeout`` s to wait for the pty.
     """
 
     def __init__(
@@ -416,15 +366,6 @@ class TriggerSimulator:
             raise DeviceError(f"trigger simulator did not start: {self._error or 'timeout'}")
         return self
 
-    def wait_for_port(self, count: int, timeout: float) -> str:
-        """Wait until the ``count``-th pty (1 = first) exists; return its path."""
-        deadline = time.monotonic() + timeout
-        while len(self._ports) < count:
-            if time.monotonic() > deadline:
-                raise DeviceError(f"trigger simulator: no pty #{count} within {timeout} s")
-            time.sleep(0.01)
-        return self._ports[count - 1]
-
     def stop(self, timeout: float = 2.0) -> None:
         """Stop serving and join the thread (bounded by ``timeout``)."""
         self._stop.set()
@@ -445,26 +386,9 @@ def simulate_main(
     link: str | Path | None = None,
     stop: threading.Event | None = None,
 ) -> int:
-    """Entry point of ``prism3d trigger simulate [--fault F] [--link PATH]``.
-
-    Prints the pty path as the FIRST stdout line (flushed), then one line per new
-    pty after a simulated disconnect, and serves until SIGINT or SIGTERM.
-
-    Parameters
-    ----------
-    fault : str or None
-        Fault to inject (see :data:`FAULTS`).
-    out : text stream
-        Where the pty path is printed (default ``sys.stdout``).
-    link : path, optional
-        Stable symlink kept pointing at the current pty.
-    stop : threading.Event, optional
-        Another way to stop (when embedding; signals work only in the main thread).
-
-    Returns
-    -------
-    int
-        Exit code 0.
+    """Entry point of ``prism3d trigger simulate [--fault F] [--link PATH]``: prints the
+    pty path as the first stdout line (flushed), one line per new pty after a
+    disconnect, and serves until SIGINT/SIGTERM or ``stop`` is set; returns 0.
     """
     import sys
 

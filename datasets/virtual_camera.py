@@ -1,10 +1,5 @@
-"""Targets for the ``virtual[:TARGET]`` camera source of ``prism3d capture``.
-
-The capture layer cannot import the built-in targets (they live in this layer), so
-the CLI hands :func:`resolve_virtual_target` to the camera source: it turns a target
-name into a render function that simulates one flash photograph of that target
-through the paper's rig, with the projector's grating only when the flash fired.
-"""
+"""Targets for the ``virtual[:TARGET]`` camera source of ``prism3d capture``: the CLI
+hands :func:`resolve_virtual_target` to the source, as capture cannot import this layer."""
 
 from __future__ import annotations
 
@@ -13,7 +8,7 @@ from numpy.typing import NDArray
 
 from prism3d.capture.rig import StereoRig, paper_rig
 from prism3d.capture.scenes import flat_plate, translation, turntable_poses
-from prism3d.capture.simulate import Projector, simulate_shot, working_distance_mm
+from prism3d.capture.simulate import Projector, ShotOptions, simulate_shot, working_distance_mm
 from prism3d.capture.sources import RenderFn
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
@@ -27,17 +22,10 @@ VIRTUAL_TARGETS = ("plate",)
 def resolve_virtual_target(
     name: str, *, rig: StereoRig | None = None, supersample: int = 1
 ) -> RenderFn:
-    """A render function ``(flash_fired, pattern_id, shot_index) -> (H, W, 3) uint8``.
-
-    Parameters
-    ----------
-    name : str
-        ``plate`` (the paper's 30 x 30 cm plate at the working distance) or a built-in
-        target name (placed on the turntable; shot ``k`` turns it by 45 * k degrees).
-    rig : StereoRig, optional
-        Default: the paper's rig.
-    supersample : int
-        Anti-aliasing factor (1 keeps capture fast).
+    """A render function ``(flash_fired, pattern_id, shot_index) -> (H, W, 3) uint8``: one
+    flash photograph through ``rig`` (default the paper's), the grating only when the
+    flash fired. ``name``: ``plate`` (30 x 30 cm at the working distance) or a built-in
+    target on the turntable (shot ``k`` turned by 45 k deg); ``supersample``: anti-aliasing.
     """
     rig = rig or paper_rig()
     wd = working_distance_mm(rig)
@@ -60,11 +48,11 @@ def resolve_virtual_target(
         if flash_fired:
             if pattern_id not in projectors:
                 projectors[pattern_id] = Projector.for_rig(rig, pattern=pattern_id != 0, seed=pattern_id or None)
-            shot = simulate_shot(rig, objects_for(shot_index), projector=projectors[pattern_id],
-                                 supersample=supersample, seed=shot_index)
+            shot = simulate_shot(rig, objects_for(shot_index), ShotOptions(supersample=supersample, seed=shot_index),
+                                 projector=projectors[pattern_id])
         else:  # ambient light only
-            shot = simulate_shot(rig, objects_for(shot_index), projector=None, flash=0.0,
-                                 supersample=supersample, seed=shot_index)
+            shot = simulate_shot(rig, objects_for(shot_index), ShotOptions(flash=0.0, supersample=supersample, seed=shot_index),
+                                 projector=None)
         return shot.sensor_image
 
     return render

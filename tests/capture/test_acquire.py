@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from prism3d.capture.acquire import check_frame, capture_shots
+from prism3d.capture.acquire import CaptureOptions, check_frame, capture_shots
 from prism3d.capture.sources import VirtualSource
 from prism3d.capture.trigger_sim import TriggerSimulator
 from prism3d.errors import DeviceError, InputError
@@ -34,9 +34,9 @@ def test_round_trip_virtual(sim: TriggerSimulator, tmp_path: Path) -> None:
     out = tmp_path / "shots"
     done: list[tuple[int, int]] = []
     paths = capture_shots(
-        sim.port, VirtualSource(sensor_size=SIZE), out, count=2, interval_s=0.05,
-        pattern_id=2, expected_size=SIZE, progress=lambda k, n: done.append((k, n)),
-        trigger_timeout=0.3,
+        sim.port, VirtualSource(sensor_size=SIZE), out,
+        CaptureOptions(count=2, interval_s=0.05, pattern_id=2, expected_size=SIZE, trigger_timeout=0.3),
+        progress=lambda k, n: done.append((k, n)),
     )
     assert [p.name for p in paths] == ["shot_000.png", "shot_001.png"]
     assert _files(out) == ["shot_000.json", "shot_000.png", "shot_001.json", "shot_001.png"]
@@ -52,7 +52,7 @@ def test_round_trip_virtual(sim: TriggerSimulator, tmp_path: Path) -> None:
     assert meta["image"]["pattern_fraction"] > 0.5
     assert meta["time_utc"].endswith("Z")
     # Numbering continues; no flash = no grating check, ambient exposure.
-    more = capture_shots(sim.port, VirtualSource(sensor_size=SIZE), out, flash=False, trigger_timeout=0.3)
+    more = capture_shots(sim.port, VirtualSource(sensor_size=SIZE), out, CaptureOptions(flash=False, trigger_timeout=0.3))
     assert more[0].name == "shot_002.png"
     meta = json.loads(more[0].with_suffix(".json").read_text())
     assert meta["flash"] is False and meta["trigger"]["t_flash_us"] is None
@@ -71,8 +71,7 @@ def test_round_trip_folder_spec(sim: TriggerSimulator, tmp_path: Path) -> None:
 
     th = threading.Thread(target=camera, daemon=True)
     th.start()
-    paths = capture_shots(sim.port, f"folder:{drop}", tmp_path / "out", grab_timeout=3.0,
-                          trigger_timeout=0.3)
+    paths = capture_shots(sim.port, f"folder:{drop}", tmp_path / "out", CaptureOptions(grab_timeout=3.0, trigger_timeout=0.3))
     th.join(2)
     saved = cv2.imread(str(paths[0]), cv2.IMREAD_COLOR)[:, :, ::-1]
     np.testing.assert_array_equal(saved, rgb)
@@ -102,7 +101,7 @@ def test_failed_checks_leave_no_files(
 ) -> None:
     out = tmp_path / "o"
     with pytest.raises(error, match=match):
-        capture_shots(sim.port, VirtualSource(render=_render(value)), out, trigger_timeout=0.3, **kwargs)
+        capture_shots(sim.port, VirtualSource(render=_render(value)), out, CaptureOptions(trigger_timeout=0.3, **kwargs))
     assert _files(out) == []
 
 
@@ -112,14 +111,14 @@ def test_trigger_faults_leave_no_files(tmp_path: Path, fault: str) -> None:
     with TriggerSimulator(fault, slow_s=1.5) as s:
         t0 = time.monotonic()
         with pytest.raises(DeviceError, match=r"no reply|no valid reply|port vanished"):
-            capture_shots(s.port, VirtualSource(sensor_size=SIZE), out, trigger_timeout=0.2)
+            capture_shots(s.port, VirtualSource(sensor_size=SIZE), out, CaptureOptions(trigger_timeout=0.2))
         assert time.monotonic() - t0 < 0.2 * 3 + 0.6
     assert _files(out) == []
 
 
 def test_drop_fault_recovers(tmp_path: Path) -> None:
     with TriggerSimulator("drop") as s:
-        paths = capture_shots(s.port, VirtualSource(sensor_size=SIZE), tmp_path, trigger_timeout=0.2)
+        paths = capture_shots(s.port, VirtualSource(sensor_size=SIZE), tmp_path, CaptureOptions(trigger_timeout=0.2))
     assert len(paths) == 1 and paths[0].with_suffix(".json").exists()
 
 
@@ -128,7 +127,7 @@ def test_camera_timeout_leaves_no_files(sim: TriggerSimulator, tmp_path: Path) -
     drop.mkdir()
     out = tmp_path / "o"
     with pytest.raises(DeviceError, match="no new complete image within 0.2 s"):
-        capture_shots(sim.port, f"folder:{drop}", out, grab_timeout=0.2, trigger_timeout=0.3)
+        capture_shots(sim.port, f"folder:{drop}", out, CaptureOptions(grab_timeout=0.2, trigger_timeout=0.3))
     assert _files(out) == []
 
 
@@ -144,7 +143,7 @@ def test_camera_timeout_leaves_no_files(sim: TriggerSimulator, tmp_path: Path) -
 )
 def test_argument_errors(tmp_path: Path, kwargs: dict, match: str) -> None:
     with pytest.raises(InputError, match=match):
-        capture_shots("loop://", "virtual", tmp_path, **kwargs)
+        capture_shots("loop://", "virtual", tmp_path, CaptureOptions(**kwargs))
 
 
 def test_out_dir_is_a_file(tmp_path: Path) -> None:
@@ -152,6 +151,13 @@ def test_out_dir_is_a_file(tmp_path: Path) -> None:
     f.write_text("x")
     with pytest.raises(InputError, match="not a folder"):
         capture_shots("loop://", "virtual", f)
+    with pytest.raises(InputError, match="options: expected a CaptureOptions"):
+        capture_shots("loop://", "virtual", tmp_path, {"count": 2})  # type: ignore[arg-type]
+
+
+def test_capture_options_timing_without_flash() -> None:
+    assert CaptureOptions(flash=False).timing == {"shutter_us": CaptureOptions().shutter_us, "flash_us": 0,
+                                                  "flash_delay_us": 0}
 
 
 def test_check_frame_stats_and_shape() -> None:

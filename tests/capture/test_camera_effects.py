@@ -19,7 +19,7 @@ from prism3d.capture.camera_effects import (
 )
 from prism3d.capture.rig import CameraModel, StereoRig, paper_rig
 from prism3d.capture.scenes import TextureAlbedo, chessboard, flat_plate, rotation_about, translation
-from prism3d.capture.simulate import Projector, simulate_shot, simulate_to_folder
+from prism3d.capture.simulate import Projector, ShotOptions, SimulateOptions, simulate_shot, simulate_to_folder
 
 import prism3d  # noqa: F401  (sets the environment)
 from prism3d.errors import InputError
@@ -85,24 +85,24 @@ _OLD_DIGESTS = {
 @pytest.mark.parametrize("effects", [None, CameraEffects.ideal()], ids=["None", "ideal"])
 def test_ideal_camera_is_bit_identical_to_the_simulator_before_effects(effects):
     rig, objs, proj = _reference_scene()
-    a = simulate_shot(rig, objs, projector=proj, supersample=2, noise=True, blur_sigma=0.8, seed=7, effects=effects)
-    b = simulate_shot(rig, objs, supersample=1, noise=False, seed=1, effects=effects)
+    a = simulate_shot(rig, objs, ShotOptions(supersample=2, noise=True, blur_sigma=0.8, seed=7, effects=effects), projector=proj)
+    b = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=False, seed=1, effects=effects))
     assert _digest(a) == _OLD_DIGESTS["pattern_ss2_noise_blur"]
     assert _digest(b) == _OLD_DIGESTS["white_ss1"]
 
 
 def test_default_effects_change_the_image_but_not_the_truth():
     rig, objs, proj = _reference_scene()
-    ideal = simulate_shot(rig, objs, projector=proj, supersample=2, seed=7, effects=None)
-    real = simulate_shot(rig, objs, projector=proj, supersample=2, seed=7)  # default: effects on
+    ideal = simulate_shot(rig, objs, ShotOptions(supersample=2, seed=7, effects=None), projector=proj)
+    real = simulate_shot(rig, objs, ShotOptions(supersample=2, seed=7), projector=proj)  # default: effects on
     assert real.effects == CameraEffects() and ideal.effects is None
     assert not np.array_equal(real.sensor_image, ideal.sensor_image)
     assert sorted(real.truth) == sorted(ideal.truth)
     for k in ideal.truth:  # truth stays diffuse-only and effect-free
         assert np.array_equal(real.truth[k], ideal.truth[k], equal_nan=ideal.truth[k].dtype.kind == "f"), k
     # seeded: same seed, same image; another seed, another noise draw
-    again = simulate_shot(rig, objs, projector=proj, supersample=2, seed=7)
-    other = simulate_shot(rig, objs, projector=proj, supersample=2, seed=8)
+    again = simulate_shot(rig, objs, ShotOptions(supersample=2, seed=7), projector=proj)
+    other = simulate_shot(rig, objs, ShotOptions(supersample=2, seed=8), projector=proj)
     assert np.array_equal(real.sensor_image, again.sensor_image)
     assert not np.array_equal(real.sensor_image, other.sensor_image)
 
@@ -121,9 +121,9 @@ def test_ideal_flags():
 def test_right_view_gain_equals_the_exposure_and_colour_cast():
     rig = eighth_rig()
     objs = grey_wall(0.5)
-    ideal = simulate_shot(rig, objs, supersample=1, noise=True, seed=2, effects=None)
+    ideal = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=True, seed=2, effects=None))
     fx = only(exposure_right=0.88, colour_gain_right=(0.95, 1.0, 1.05))
-    shot = simulate_shot(rig, objs, supersample=1, noise=True, seed=2, effects=fx)
+    shot = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=True, seed=2, effects=fx))
     l0, r0 = views(rig, ideal)
     l1, r1 = views(rig, shot)
     assert np.array_equal(l0, l1)  # the left view is the reference
@@ -138,8 +138,7 @@ def test_right_view_gain_equals_the_exposure_and_colour_cast():
 
 def test_default_right_view_is_darker_and_bluer():
     rig = eighth_rig()
-    shot = simulate_shot(rig, grey_wall(0.5), supersample=1, noise=False,
-                         effects=dataclasses.replace(CameraEffects(), jpeg_quality=None, vignetting_stops=0.0))
+    shot = simulate_shot(rig, grey_wall(0.5), ShotOptions(supersample=1, noise=False, effects=dataclasses.replace(CameraEffects(), jpeg_quality=None, vignetting_stops=0.0)))
     left, right = views(rig, shot)
     ratio = right.reshape(-1, 3).mean(0) / left.reshape(-1, 3).mean(0)  # symmetric rig and scene
     assert ratio == pytest.approx(0.88 * np.array([0.96, 1.0, 1.04]), abs=3e-3)
@@ -155,8 +154,8 @@ def test_vignetting_falls_to_the_stated_corner_attenuation_about_the_principal_p
     K[1, 2] -= 15.0
     rig = StereoRig(CameraModel(K, base.left.dist, (w, h)), base.right, base.T_right_left, base.split, base.T_rig_left)
     objs = grey_wall(0.7)
-    ideal = simulate_shot(rig, objs, supersample=1, noise=False, effects=None)
-    shot = simulate_shot(rig, objs, supersample=1, noise=False, effects=only(vignetting_stops=0.5))
+    ideal = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=False, effects=None))
+    shot = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=False, effects=only(vignetting_stops=0.5)))
     for view, cam in ((0, rig.left), (1, rig.right)):
         dn = views(rig, ideal)[view]
         ratio = views(rig, shot)[view] / dn
@@ -198,17 +197,17 @@ def test_psf_blurs_by_its_sigma_and_folds_with_blur_sigma():
     rig = quarter_rig()
     objs = [(flat_plate(900, 900, albedo=_step_albedo, material="lambertian"), translation(0, 0, 1250))]
     kw = dict(supersample=4, noise=False)
-    ideal = simulate_shot(rig, objs, effects=None, **kw)
-    psf = simulate_shot(rig, objs, effects=only(psf_sigma_px=1.0), **kw)
+    ideal = simulate_shot(rig, objs, ShotOptions(effects=None, **kw))
+    psf = simulate_shot(rig, objs, ShotOptions(effects=only(psf_sigma_px=1.0), **kw))
     rows = range(200, 290, 6)
     var0 = _edge_width_sq(views(rig, ideal)[0], rows)
     var1 = _edge_width_sq(views(rig, psf)[0], rows)
     # variances add: PSF sigma^2 = 1 px^2 on top of the box-integrated pixel
     assert var1 - var0 == pytest.approx(1.0, abs=0.1)
     # the PSF is the same Gaussian as blur_sigma, and the two combine in quadrature
-    same = simulate_shot(rig, objs, effects=None, blur_sigma=1.0, **kw)
+    same = simulate_shot(rig, objs, ShotOptions(effects=None, blur_sigma=1.0, **kw))
     assert np.array_equal(psf.sensor_image, same.sensor_image)
-    both = simulate_shot(rig, objs, effects=only(psf_sigma_px=0.6), blur_sigma=0.8, **kw)
+    both = simulate_shot(rig, objs, ShotOptions(effects=only(psf_sigma_px=0.6), blur_sigma=0.8, **kw))
     assert np.abs(both.sensor_image.astype(int) - same.sensor_image.astype(int)).max() <= 1
 
 
@@ -216,8 +215,8 @@ def test_psf_blurs_by_its_sigma_and_folds_with_blur_sigma():
 def test_jpeg_round_trip_of_the_sensor_image():
     rig = quarter_rig()
     objs = [(flat_plate(900, 900, albedo=TextureAlbedo(seed=1)), translation(0, 0, 1250))]
-    raw = simulate_shot(rig, objs, supersample=1, seed=4, effects=None)
-    jpg = simulate_shot(rig, objs, supersample=1, seed=4, effects=only(jpeg_quality=92))
+    raw = simulate_shot(rig, objs, ShotOptions(supersample=1, seed=4, effects=None))
+    jpg = simulate_shot(rig, objs, ShotOptions(supersample=1, seed=4, effects=only(jpeg_quality=92)))
     assert jpg.sensor_image.shape == raw.sensor_image.shape == (486, 648, 3)
     assert jpg.sensor_image.dtype == np.uint8
     assert np.array_equal(jpg.sensor_image, jpeg_roundtrip(raw.sensor_image, 92))
@@ -253,8 +252,8 @@ def test_specular_highlight_sits_at_the_mirror_point_of_each_view():
     objs = [(flat_plate(300, 300, albedo=(0.4, 0.4, 0.4), material="test_gloss"), translation(0, 0, z))]
     gloss = Gloss(0.5, 5000.0)  # a compact lobe: half width ~1 deg, ~20 px here
     fx = only(specular=True, materials=(("test_gloss", gloss),), default_material="test_gloss")
-    shot = simulate_shot(rig, objs, supersample=1, noise=False, effects=fx)
-    ideal = simulate_shot(rig, objs, supersample=1, noise=False, effects=None)
+    shot = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=False, effects=fx))
+    ideal = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=False, effects=None))
     light = np.zeros(3)  # the default white flash sits at the rig origin
     plate_x = []
     for i, (name, cam, T) in enumerate((("left", rig.left, rig.T_rig_left), ("right", rig.right, rig.T_rig_right))):
@@ -287,10 +286,10 @@ def test_material_classes_set_the_gloss():
     rig = eighth_rig()
     kw = dict(supersample=1, noise=False)
     fx = dataclasses.replace(CameraEffects.ideal(), specular=True)
-    matte = simulate_shot(rig, grey_wall(0.5), effects=fx, **kw)
-    assert np.array_equal(matte.sensor_image, simulate_shot(rig, grey_wall(0.5), effects=None, **kw).sensor_image)
+    matte = simulate_shot(rig, grey_wall(0.5), ShotOptions(effects=fx, **kw))
+    assert np.array_equal(matte.sensor_image, simulate_shot(rig, grey_wall(0.5), ShotOptions(effects=None, **kw)).sensor_image)
     metal = [(flat_plate(900, 900, albedo=(0.5, 0.5, 0.5)), translation(0, 0, 1250))]  # no class: painted metal
-    shiny = simulate_shot(rig, metal, effects=fx, **kw)
+    shiny = simulate_shot(rig, metal, ShotOptions(effects=fx, **kw))
     gain = views(rig, shiny)[0].max() / views(rig, matte)[0].max()
     g = MATERIALS["painted_metal"]
     # brightest pixel ~ at the mirror point, ~1.25 m away, flash 0.75, ambient 0.25:
@@ -298,13 +297,13 @@ def test_material_classes_set_the_gloss():
     assert gain == pytest.approx(1 + g.coefficient * 0.75 / (0.5 * 1.0), abs=0.01)
     assert chessboard().metadata["material"] == "matte_paper"
     with pytest.raises(InputError, match="material 'velvet': unknown class"):
-        simulate_shot(rig, [(flat_plate(material="velvet"), translation(0, 0, 1250))], effects=fx, **kw)
+        simulate_shot(rig, [(flat_plate(material="velvet"), translation(0, 0, 1250))], ShotOptions(effects=fx, **kw))
 
 
 # -- the record of a simulated folder --------------------------------------------------
 def test_simulate_to_folder_records_the_effects(tmp_path):
     rig = eighth_rig()
-    s = simulate_to_folder("plate", tmp_path / "real", rig=rig, supersample=1)
+    s = simulate_to_folder("plate", tmp_path / "real", SimulateOptions(supersample=1), rig=rig)
     assert s["camera_effects"] == CameraEffects().to_dict()
     assert sorted(p.name for p in (tmp_path / "real").iterdir()) == ["rig.yaml", "shot.png", "truth.npz"]
     fs = cv2.FileStorage(str(tmp_path / "real" / "rig.yaml"), cv2.FILE_STORAGE_READ)
@@ -320,7 +319,7 @@ def test_simulate_to_folder_records_the_effects(tmp_path):
     finally:
         fs.release()
     assert StereoRig.load(tmp_path / "real" / "rig.yaml").left.size == rig.left.size
-    s = simulate_to_folder("plate", tmp_path / "ideal", rig=rig, supersample=1, effects=None)
+    s = simulate_to_folder("plate", tmp_path / "ideal", SimulateOptions(supersample=1, effects=None), rig=rig)
     assert s["camera_effects"] is None
     fs = cv2.FileStorage(str(tmp_path / "ideal" / "rig.yaml"), cv2.FILE_STORAGE_READ)
     try:
@@ -328,7 +327,7 @@ def test_simulate_to_folder_records_the_effects(tmp_path):
     finally:
         fs.release()
     with pytest.raises(InputError, match="effects: expected a CameraEffects"):
-        simulate_to_folder("plate", tmp_path / "x", rig=rig, effects="on")  # type: ignore[arg-type]
+        simulate_to_folder("plate", tmp_path / "x", SimulateOptions(effects="on"), rig=rig)  # type: ignore[arg-type]
 
 
 # -- values and errors -----------------------------------------------------------------
@@ -381,6 +380,6 @@ def test_other_errors():
     with pytest.raises(InputError, match="quality"):
         jpeg_roundtrip(np.zeros((4, 4, 3), np.uint8), 0)
     with pytest.raises(InputError, match="effects: expected a CameraEffects"):
-        simulate_shot(eighth_rig(), grey_wall(), effects="on")  # type: ignore[arg-type]
+        simulate_shot(eighth_rig(), grey_wall(), ShotOptions(effects="on"))  # type: ignore[arg-type]
     with pytest.raises(InputError, match="material: expected"):
         flat_plate(material="")

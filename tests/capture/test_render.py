@@ -188,7 +188,7 @@ def test_split_then_join_is_lossless():
 @pytest.fixture(scope="module")
 def pyrender_plate():
     pytest.importorskip("pyrender")
-    from prism3d.capture.render import PyrenderRenderer
+    from prism3d.capture.render_gl import PyrenderRenderer
 
     objs = [(flat_plate(300, 300, albedo=(0.5, 0.5, 0.5)), translation(0, 0, 1250))]
     try:

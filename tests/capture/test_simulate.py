@@ -20,6 +20,8 @@ from prism3d.capture.scenes import (
 )
 from prism3d.capture.simulate import (
     Projector,
+    ShotOptions,
+    SimulateOptions,
     simulate_shot,
     simulate_to_folder,
     working_distance_mm,
@@ -51,7 +53,7 @@ def plate_shot():
     rig = quarter_rig()
     plate = flat_plate(300, 300)
     # the ideal camera: these are known-answer tests of the image model itself
-    shot = simulate_shot(rig, [(plate, translation(0, 0, 1250))], supersample=1, noise=False, effects=None)
+    shot = simulate_shot(rig, [(plate, translation(0, 0, 1250))], ShotOptions(supersample=1, noise=False, effects=None))
     return rig, shot
 
 
@@ -95,9 +97,9 @@ def test_shading_albedo_consistency_white_flash(plate_shot):
 def test_supersampled_noisy_shot_is_deterministic_and_close():
     rig = eighth_rig()
     objs = [(flat_plate(300, 300, albedo=(0.5, 0.5, 0.5)), translation(0, 0, 1250))]
-    a = simulate_shot(rig, objs, supersample=2, noise=True, seed=3, effects=None)
-    b = simulate_shot(rig, objs, supersample=2, noise=True, seed=3, effects=None)
-    c = simulate_shot(rig, objs, supersample=2, noise=True, seed=4, effects=None)
+    a = simulate_shot(rig, objs, ShotOptions(supersample=2, noise=True, seed=3, effects=None))
+    b = simulate_shot(rig, objs, ShotOptions(supersample=2, noise=True, seed=3, effects=None))
+    c = simulate_shot(rig, objs, ShotOptions(supersample=2, noise=True, seed=4, effects=None))
     assert np.array_equal(a.sensor_image, b.sensor_image)
     assert not np.array_equal(a.sensor_image, c.sensor_image)
     left, _ = rig.split.split(a.sensor_image)
@@ -113,7 +115,7 @@ def test_pattern_colours_follow_the_projector():
     rig = eighth_rig()
     proj = Projector.for_rig(rig, pattern=True)
     objs = [(flat_plate(300, 300, albedo=(1.0, 1.0, 1.0)), translation(0, 0, 1250))]
-    shot = simulate_shot(rig, objs, projector=proj, supersample=1, noise=False)
+    shot = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=False), projector=proj)
     t = shot.truth
     m = t["mask_left"]
     ill = t["illumination_left"][m]
@@ -128,7 +130,7 @@ def test_shadow_of_an_occluder_is_where_geometry_says():
     plate = flat_plate(300, 300, albedo=(0.8, 0.8, 0.8))
     occ = flat_plate(40, 40, albedo=(0.8, 0.8, 0.8), name="occluder")
     T_occ = translation(20, -10, 900)
-    shot = simulate_shot(rig, [(plate, translation(0, 0, 1250)), (occ, T_occ)], supersample=1, noise=False)
+    shot = simulate_shot(rig, [(plate, translation(0, 0, 1250)), (occ, T_occ)], ShotOptions(supersample=1, noise=False))
     t = shot.truth
     _, pts = plane_depth(rig.left, rig.T_rig_left, 1250.0)
     on_plate = t["object_id_left"] == 0
@@ -154,7 +156,7 @@ def test_calib_truth_corners_match_projectpoints_and_detector():
         @ rotation_about((0, 1, 0), np.radians(10))
         @ rotation_about((0, 0, 1), np.radians(10))
     )
-    shot = simulate_shot(rig, [(board, T_rig_board)], supersample=4, noise=False)
+    shot = simulate_shot(rig, [(board, T_rig_board)], ShotOptions(supersample=4, noise=False))
     left, _ = rig.split.split(shot.sensor_image)
     T_left_board = np.linalg.inv(rig.T_rig_left) @ T_rig_board
     rvec, _ = cv2.Rodrigues(T_left_board[:3, :3])
@@ -182,8 +184,8 @@ def test_mirror_flip_split_recovers_views():
     objs = [(flat_plate(300, 300), translation(0, 0, 1250))]
     # every effect but JPEG acts per view; JPEG's 8x8 blocks sit on the sensor layout
     fx = CameraEffects(jpeg_quality=None)
-    a = simulate_shot(rig, objs, supersample=1, noise=False, effects=fx)
-    b = simulate_shot(eighth_rig(), objs, supersample=1, noise=False, effects=fx)
+    a = simulate_shot(rig, objs, ShotOptions(supersample=1, noise=False, effects=fx))
+    b = simulate_shot(eighth_rig(), objs, ShotOptions(supersample=1, noise=False, effects=fx))
     la, ra = rig.split.split(a.sensor_image)
     lb, rb = eighth_rig().split.split(b.sensor_image)
     assert np.array_equal(la, lb) and np.array_equal(ra, rb)
@@ -202,15 +204,15 @@ def test_simulate_shot_errors():
     with pytest.raises(InputError, match="rig: expected a StereoRig"):
         simulate_shot("rig", objs)  # type: ignore[arg-type]
     with pytest.raises(InputError, match="supersample"):
-        simulate_shot(rig, objs, supersample=0)
+        simulate_shot(rig, objs, ShotOptions(supersample=0))
     with pytest.raises(InputError, match="ambient"):
-        simulate_shot(rig, objs, ambient=-1)
+        simulate_shot(rig, objs, ShotOptions(ambient=-1))
     with pytest.raises(InputError, match="blur_sigma"):
-        simulate_shot(rig, objs, blur_sigma=-1)
+        simulate_shot(rig, objs, ShotOptions(blur_sigma=-1))
     with pytest.raises(InputError, match="projector"):
         simulate_shot(rig, objs, projector="x")  # type: ignore[arg-type]
     with pytest.raises(InputError, match="noise"):
-        simulate_shot(rig, objs, noise="loud")  # type: ignore[arg-type]
+        simulate_shot(rig, objs, ShotOptions(noise="loud"))  # type: ignore[arg-type]
     with pytest.raises(InputError, match="scene is empty"):
         simulate_shot(rig, [])
     with pytest.raises(InputError, match="pattern: expected"):
@@ -232,7 +234,7 @@ def test_simulate_to_folder_plate_contract(tmp_path):
     rig = eighth_rig()
     calls = []
     summary = simulate_to_folder(
-        "plate", tmp_path / "plate", rig=rig, supersample=1, progress=lambda *a: calls.append(a)
+        "plate", tmp_path / "plate", SimulateOptions(supersample=1), rig=rig, progress=lambda *a: calls.append(a)
     )
     out = tmp_path / "plate"
     assert sorted(p.name for p in out.iterdir()) == ["rig.yaml", "shot.png", "truth.npz"]
@@ -258,8 +260,8 @@ def test_truth_npz_is_deflated_by_default_and_equal_to_plain(tmp_path):
     import zipfile
 
     rig = eighth_rig()
-    simulate_to_folder("plate", tmp_path / "z", rig=rig, supersample=1)
-    simulate_to_folder("plate", tmp_path / "p", rig=rig, supersample=1, compress=False)
+    simulate_to_folder("plate", tmp_path / "z", SimulateOptions(supersample=1), rig=rig)
+    simulate_to_folder("plate", tmp_path / "p", SimulateOptions(supersample=1, compress=False), rig=rig)
     z_path, p_path = tmp_path / "z" / "truth.npz", tmp_path / "p" / "truth.npz"
     with zipfile.ZipFile(z_path) as zf:
         assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_DEFLATED}
@@ -275,8 +277,8 @@ def test_truth_npz_is_deflated_by_default_and_equal_to_plain(tmp_path):
 
 def test_simulate_to_folder_calib_contract_and_determinism(tmp_path):
     rig = eighth_rig()
-    s1 = simulate_to_folder("calib", tmp_path / "a", rig=rig, views=2, supersample=1, seed=5)
-    s2 = simulate_to_folder("calib", tmp_path / "b", rig=rig, views=2, supersample=1, seed=5)
+    s1 = simulate_to_folder("calib", tmp_path / "a", SimulateOptions(views=2, supersample=1, seed=5), rig=rig)
+    s2 = simulate_to_folder("calib", tmp_path / "b", SimulateOptions(views=2, supersample=1, seed=5), rig=rig)
     names = ["calib_00.png", "calib_01.png", "rig.yaml", "truth_00.npz", "truth_01.npz"]
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == names
     assert s1["files"] == names == s2["files"] and s1["pattern"] is False
@@ -302,7 +304,8 @@ def test_simulate_to_folder_scene_contract(tmp_path):
     trimesh = pytest.importorskip("trimesh")
     rig = eighth_rig()
     target = from_trimesh(trimesh.creation.box(extents=(150.0, 100.0, 80.0)), name="box")
-    s = simulate_to_folder("scene", tmp_path, rig=rig, target=target, views=2, supersample=1, noise=False)
+    s = simulate_to_folder("scene", tmp_path, SimulateOptions(views=2, supersample=1, noise=False), rig=rig,
+                           target=target)
     names = ["poses.json", "rig.yaml", "shot_00.png", "shot_01.png", "target.ply", "truth_00.npz", "truth_01.npz"]
     assert sorted(p.name for p in tmp_path.iterdir()) == names == s["files"]
     doc = json.loads((tmp_path / "poses.json").read_text())
@@ -311,6 +314,14 @@ def test_simulate_to_folder_scene_contract(tmp_path):
     assert T_world_cam.shape == (4, 4)
     mesh = trimesh.load(tmp_path / "target.ply", process=False)
     assert np.allclose(mesh.vertices, target.vertices) and len(mesh.faces) == len(target.faces)
+    from prism3d.atr.features import features_table
+    from prism3d.io.ply import read_ply
+
+    ply = read_ply(tmp_path / "target.ply")
+    assert "units mm" in ply.comments and "up z" in ply.comments
+    assert np.array_equal(ply.points, target.vertices)  # float64, exact
+    table = features_table([tmp_path / "target.ply"], up="z")  # no --units: the file declares mm
+    assert table["kind"].tolist() == ["mesh"] and table["units_in"].tolist() == ["mm"]
     with np.load(tmp_path / "truth_01.npz", allow_pickle=False) as z:
         depth = z["depth_left_mm"]
         m = z["mask_left"]
@@ -330,7 +341,7 @@ def test_simulate_to_folder_errors(tmp_path):
     with pytest.raises(InputError, match="target mesh is required"):
         simulate_to_folder("scene", tmp_path, rig=eighth_rig())
     with pytest.raises(InputError, match="views"):
-        simulate_to_folder("plate", tmp_path, rig=eighth_rig(), views=0)
+        simulate_to_folder("plate", tmp_path, SimulateOptions(views=0), rig=eighth_rig())
     f = tmp_path / "file"
     f.write_text("x")
     with pytest.raises(InputError, match="not a folder"):
@@ -338,6 +349,47 @@ def test_simulate_to_folder_errors(tmp_path):
     with pytest.raises(InputError, match="target: expected a SceneMesh"):
         simulate_to_folder("scene", tmp_path, rig=eighth_rig(), target="box")  # type: ignore[arg-type]
     assert not any(p.suffix == ".png" for p in tmp_path.iterdir())
+    with pytest.raises(InputError, match="options: expected a SimulateOptions"):
+        simulate_to_folder("plate", tmp_path, ShotOptions())  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"views": 1.5}, "views: expected a positive integer"),
+        ({"board": (1, 6)}, r"board: expected \(cols, rows\)"),
+        ({"board": (9, 6, 2)}, r"board: expected \(cols, rows\)"),
+        ({"square_mm": 0}, "square_mm"),
+        ({"blur_sigma": -1}, "blur_sigma"),
+        ({"effects": "on"}, "effects: expected a CameraEffects"),
+        ({"supersample": 9}, "supersample"),
+        ({"noise": "loud"}, "noise"),
+    ],
+)
+def test_simulate_options_validation(kwargs, match):
+    with pytest.raises(InputError, match=match):
+        SimulateOptions(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"flash": 11}, "flash"),
+        ({"background": 2}, "background"),
+        ({"supersample": 1.5}, "supersample"),
+        ({"effects": 1}, "effects: expected a CameraEffects"),
+    ],
+)
+def test_shot_options_validation(kwargs, match):
+    with pytest.raises(InputError, match=match):
+        ShotOptions(**kwargs)
+    o = ShotOptions(noise=False, effects=CameraEffects.ideal())
+    assert o.noise_model is None and o.real_effects is None and ShotOptions().real_effects == CameraEffects()
+
+
+def test_simulate_shot_rejects_other_options():
+    with pytest.raises(InputError, match="options: expected a ShotOptions"):
+        simulate_shot(eighth_rig(), [(flat_plate(), translation(0, 0, 1250))], SimulateOptions())  # type: ignore[arg-type]
 
 
 def test_uniform_albedo_mesh_roundtrip():
@@ -355,9 +407,9 @@ def test_streamed_supersampled_shot_does_not_depend_on_band_size(monkeypatch):
     plate = flat_plate(300, 300)  # speckle texture albedo
     occ = flat_plate(40, 40, albedo=(0.8, 0.8, 0.8), name="occluder")
     objs = [(plate, translation(0, 0, 1250)), (occ, translation(20, -10, 900))]
-    a = simulate_shot(rig, objs, projector=proj, supersample=2, noise=False)
+    a = simulate_shot(rig, objs, ShotOptions(supersample=2, noise=False), projector=proj)
     monkeypatch.setattr(render_mod, "_CHUNK", 4 * 324 + 7)  # many small bands
-    b = simulate_shot(rig, objs, projector=proj, supersample=2, noise=False)
+    b = simulate_shot(rig, objs, ShotOptions(supersample=2, noise=False), projector=proj)
     assert np.array_equal(a.sensor_image, b.sensor_image)
     for k, v in a.truth.items():
         np.testing.assert_array_equal(v, b.truth[k], err_msg=k)

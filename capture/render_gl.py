@@ -1,20 +1,9 @@
 """OpenGL (pyrender, headless OSMesa) backend of the renderer -- fast chip rendering.
 
-The ONLY place in prism3d where the OpenCV camera frame (x right, y down, z forward)
-is converted to the OpenGL one (x right, y up, z backward): ``T_world_gl =
-T_world_cam @ diag(1, -1, -1, 1)``.
-
-Limitations (documented, checked):
-
-* pinhole only: a camera with lens distortion raises :class:`InputError` (use
-  :class:`~prism3d.capture.render.RaycastRenderer` for distorted cameras);
-* ``pyrender.IntrinsicsCamera`` has no skew term: a camera with skew raises;
-* depth comes from the 24-bit z-buffer (relative error ~1e-6 of the depth range),
-  not exact like the ray caster; normals are the flat triangle normals rendered
-  as colours (exact up to 8-bit quantisation, ~0.01).
-
-``PYOPENGL_PLATFORM`` must be set before OpenGL is imported: importing ``prism3d``
-does that (``osmesa`` by default).
+The only place where the OpenCV camera frame becomes the OpenGL one:
+``T_world_gl = T_world_cam @ diag(1, -1, -1, 1)``. Pinhole cameras without skew
+only (InputError otherwise); depth from the 24-bit z-buffer, normals as 8-bit
+colours (accuracy: docs/capture.md). Importing ``prism3d`` sets ``PYOPENGL_PLATFORM``.
 """
 
 from __future__ import annotations
@@ -25,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh
-from prism3d.capture.render import RenderResult, _check_objects, _check_pose
+from prism3d.capture.render import RenderResult, check_objects, check_pose
 from prism3d.capture.rig import CameraModel
 from prism3d.errors import InputError
 
@@ -38,21 +27,10 @@ _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 class PyrenderRenderer:
     """Rasterising renderer: shaded RGB, albedo, depth, mask, object ids, normals.
 
-    Parameters
-    ----------
-    objects : sequence of (SceneMesh, (4, 4) float64)
-        Meshes (vertex colours = ``SceneMesh.vertex_colors()``) and ``T_world_obj``.
-    light_intensity : float
-        Strength of a directional headlight (along the camera axis) for ``rgb``.
-    ambient : float
-        Ambient light level for ``rgb``.
-    znear, zfar : float
-        Clip planes, mm.
-
-    Notes
-    -----
-    One ``OffscreenRenderer`` is kept per image size and reused; call :meth:`close`
-    (or use the renderer as a context manager) to free the GL context.
+    ``objects``: (SceneMesh, ``T_world_obj``) pairs (vertex colours from
+    ``vertex_colors()``); ``light_intensity`` of a headlight and ``ambient`` light for
+    ``rgb``; ``znear, zfar`` clip planes, mm. One ``OffscreenRenderer`` per image size is
+    reused; :meth:`close` (or ``with``) frees the GL context.
     """
 
     def __init__(
@@ -67,7 +45,7 @@ class PyrenderRenderer:
         import pyrender
         import trimesh
 
-        items = _check_objects(objects)
+        items = check_objects(objects)
         if not 0 < znear < zfar:
             raise InputError(f"znear, zfar: expected 0 < znear < zfar, got {znear}, {zfar}")
         self._znear = float(znear)
@@ -125,7 +103,7 @@ class PyrenderRenderer:
             )
         if camera.skew != 0:
             raise InputError("PyrenderRenderer: pyrender's IntrinsicsCamera has no skew; got skew != 0")
-        T = _check_pose(T_world_cam, "T_world_cam")
+        T = check_pose(T_world_cam, "T_world_cam")
         w, h = camera.size
         # pyrender puts pixel centres at i + 0.5; OpenCV at i: shift the principal point
         cam = pyrender.IntrinsicsCamera(
