@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import prism3d.reconstruct.corners as corners_mod
-from prism3d.reconstruct.calibrate import calibrate_camera, calibrate_stereo
+from prism3d.reconstruct.calibrate import CalibrationOptions, calibrate_camera, calibrate_stereo
 from prism3d.reconstruct.corners import board_object_points, detect_views, grid_symmetries
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "calibration"
@@ -44,10 +44,10 @@ def _name(method: str, window: int | None) -> str:
 
 
 def bench_sim(folder: Path) -> None:
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
 
     if not list(folder.glob("calib_*.png")):
-        simulate_to_folder("calib", folder, seed=0, noise=True)
+        simulate_to_folder("calib", folder, SimulateOptions(seed=0, noise=True))
     images = sorted(folder.glob("calib_*.png"))
     truth = [np.load(p, allow_pickle=False) for p in sorted(folder.glob("truth_*.npz"))]
     perms = grid_symmetries((9, 6))
@@ -88,8 +88,9 @@ def bench_real() -> None:
     print("\n# OpenCV 9x6 stereo set, k1 k2 model: RMS px (left / right)")
     for method, window in VARIANTS:
         t = time.perf_counter()
-        cal = calibrate_stereo(images, pairs=True, tangential=False, method=method, window=window)
-        cal_def = calibrate_stereo(images, pairs=True, method=method, window=window)
+        opts = CalibrationOptions(pairs=True, tangential=False, method=method, window=window)
+        cal = calibrate_stereo(images, options=opts)
+        cal_def = calibrate_stereo(images, options=CalibrationOptions(pairs=True, method=method, window=window))
         dt = time.perf_counter() - t
         pts = {s: [x.corners for x in cal.detections if x.view == s] for s in ("left", "right")}
         ok = [
@@ -110,7 +111,7 @@ def bench_real() -> None:
             f"({dt:.1f} s incl. detection)"
         )
     # OpenCV on our default corners
-    cal = calibrate_stereo(images, pairs=True, tangential=False)
+    cal = calibrate_stereo(images, options=CalibrationOptions(pairs=True, tangential=False))
     pl = [x.corners.astype(np.float32) for x in cal.detections if x.view == "left"]
     pr = [x.corners.astype(np.float32) for x in cal.detections if x.view == "right"]
     o = [obj.astype(np.float32)] * len(pl)

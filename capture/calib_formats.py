@@ -1,20 +1,10 @@
 """Read the stereo calibration files people already have into a :class:`StereoRig`.
 
-Formats (detected from the content, not the extension):
-
-- ``prism3d``: prism3d's own OpenCV FileStorage YAML (:meth:`StereoRig.save`).
-- ``opencv``: FileStorage YAML/XML from OpenCV tools: ``K1 D1 K2 D2 R T`` in one file,
-  or the ``stereo_calib`` sample's ``intrinsics.yml`` (``M1 D1 M2 D2``) and
-  ``extrinsics.yml`` (``R T R1 R2 P1 P2 Q``), in either order or merged in one file.
-- ``middlebury``: Middlebury 2014 / ETH3D ``calib.txt`` (already rectified images).
-- ``kitti``: KITTI ``calib_cam_to_cam.txt`` (rectified projections ``P_rect_0x``) or
-  the odometry/object ``calib.txt`` (``P0`` .. ``P3``).
-- ``ros``: ROS ``camera_info`` YAML, a left and a right file, or one file with
-  ``left:`` and ``right:`` mappings.
-
-Rigs follow prism3d's conventions: millimetres, OpenCV camera frame,
-``x_right = R @ x_left + T``. ROS and KITTI translations are metres and are converted;
-Middlebury/ETH3D baselines are millimetres; OpenCV files carry no unit (taken as mm).
+Formats, detected from the content (:data:`SOURCE_FORMATS`): ``prism3d`` and ``opencv``
+FileStorage YAML/XML (``K1 D1 K2 D2 R T``, or ``stereo_calib``'s ``intrinsics.yml`` +
+``extrinsics.yml``), ``middlebury`` (2014 / ETH3D ``calib.txt``), ``kitti``
+(``calib_cam_to_cam.txt`` or ``calib.txt``) and ``ros`` (``camera_info`` YAML, left +
+right). Rigs are in mm (ROS and KITTI metres converted; OpenCV files taken as mm).
 """
 
 from __future__ import annotations
@@ -60,24 +50,10 @@ _T = TypeVar("_T")
 
 @dataclass(frozen=True)
 class StereoCalibration:
-    """A stereo calibration read from a file, as a prism3d rig.
-
-    Attributes
-    ----------
-    rig : StereoRig
-        The two cameras; their views are laid side by side (``PrismSplit.side_by_side``)
-        unless a prism3d file states another split.
-    source_format : str
-        One of :data:`SOURCE_FORMATS`.
-    disparity_range : (int, int) or None
-        ``(min_disp, num_disp)`` stated by the file, in pixels of the images as given
-        (Middlebury ``ndisp`` -> ``(0, ndisp)``); None when the file states none.
-    doffs : float or None
-        Middlebury/ETH3D ``doffs`` = ``cx_right - cx_left`` (px): a disparity ``d`` of
-        the images as given means depth ``z = f * B / (d + doffs)``.
-    notes : tuple of str
-        What the user should know about the conversion (units, ignored entries).
-    """
+    """A stereo calibration read from a file: the ``rig`` (views side by side unless a
+    prism3d file says otherwise), its ``source_format``, the ``(min_disp, num_disp)`` the
+    file states (Middlebury ``ndisp`` -> ``(0, ndisp)``) or None, Middlebury/ETH3D ``doffs``
+    (``z = f * B / (d + doffs)``) or None, and ``notes`` on the conversion."""
 
     rig: StereoRig
     source_format: str
@@ -115,22 +91,12 @@ def load_stereo_calibration(
     image_size: Size | None = None,
     kitti_cameras: tuple[int, int] = (2, 3),
 ) -> StereoCalibration:
-    """Read one stereo calibration given as one or two files, whatever its format.
+    """Read one stereo calibration given as one or two files (OpenCV intrinsics +
+    extrinsics or ROS left + right, either order), whatever its format.
 
-    Parameters
-    ----------
-    paths : path or sequence of one or two paths
-        Two files for OpenCV intrinsics + extrinsics (either order) or ROS left + right.
-    image_size : (int, int), optional
-        ``(width, height)`` of each camera's image; required when the file states none
-        (OpenCV ``stereo_calib`` output, KITTI ``calib.txt``); must agree when it does.
-    kitti_cameras : (int, int)
-        KITTI (left, right) camera indices; default (2, 3), the colour pair.
-
-    Raises
-    ------
-    InputError
-        Missing, empty, non-text or unrecognised files, or inconsistent content.
+    ``image_size``: ``(width, height)`` of each image, required when the file states none
+    and checked when it does; ``kitti_cameras``: KITTI (left, right) indices (default the
+    colour pair). Raises InputError for missing, unreadable or inconsistent files.
     """
     ps = _as_paths(paths)
     kinds = [_detect(p, _read_text(p)) for p in ps]

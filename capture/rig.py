@@ -47,19 +47,10 @@ def _frozen_array(a: NDArray, dtype: Any = np.float64) -> NDArray:
 
 @dataclass(frozen=True, eq=False)
 class CameraModel:
-    """A pinhole camera with skew and OpenCV lens distortion.
-
-    Parameters
-    ----------
-    K : (3, 3) float64
-        Intrinsic matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (``s`` = skew, eq. 2
-        of the paper). Pixels, OpenCV pixel-centre convention.
-    dist : (5,) float64
-        Distortion ``(k1, k2, p1, p2, k3)`` in OpenCV's order and model (eq. 7 of the
-        paper uses k1, k2 only). Shorter input is zero-padded.
-    size : (int, int)
-        Image size ``(width, height)`` in pixels.
-    """
+    """A pinhole camera with skew and OpenCV lens distortion: ``K`` (3, 3)
+    ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` px (eq. 2 of the paper), ``dist`` (5,)
+    ``(k1, k2, p1, p2, k3)`` in OpenCV's model (shorter input zero-padded), ``size``
+    ``(width, height)`` px."""
 
     K: NDArray[np.float64]
     dist: NDArray[np.float64]
@@ -232,18 +223,9 @@ class CameraModel:
 
 @dataclass(frozen=True)
 class PrismSplit:
-    """Where the two views sit on the sensor.
-
-    Parameters
-    ----------
-    sensor_size : (int, int)
-        Full sensor ``(width, height)``.
-    roi_left, roi_right : (x, y, w, h)
-        Each view's rectangle on the sensor (pixels, top-left origin).
-    flip_left, flip_right : bool
-        True when the adapter mirrors that view left-right (a mirror in the path);
-        :meth:`split` un-flips it so each returned view is a normal camera image.
-    """
+    """Where the two views sit on the sensor: full ``sensor_size`` ``(width, height)``,
+    each view's ``roi`` ``(x, y, w, h)`` px, and whether the adapter mirrors a view
+    left-right (:meth:`split` un-flips it)."""
 
     sensor_size: tuple[int, int]
     roi_left: tuple[int, int, int, int]
@@ -354,21 +336,10 @@ def look_at(eye: NDArray, target: NDArray, up: NDArray = (0.0, -1.0, 0.0)) -> ND
 
 @dataclass(frozen=True, eq=False)
 class StereoRig:
-    """Two virtual cameras on one sensor.
-
-    Parameters
-    ----------
-    left, right : CameraModel
-        The two virtual cameras (view-image pixels, after split and un-flip).
-    T_right_left : (4, 4) float64
-        Rigid transform from the left camera frame to the right one (mm).
-    split : PrismSplit
-        Where the views sit on the sensor.
-    T_rig_left : (4, 4) float64
-        Pose of the left camera in the rig frame (origin midway between the camera
-        centres, z along the mean viewing direction). Used to place scenes; identity
-        when unknown (e.g. after calibration).
-    """
+    """Two virtual cameras on one sensor: ``left``, ``right`` (view pixels, after split
+    and un-flip), ``T_right_left`` (mm), the ``split``, and ``T_rig_left``, the left camera's
+    pose in the rig frame (origin midway between the centres, z along the mean viewing
+    direction; identity when unknown, e.g. after calibration)."""
 
     left: CameraModel
     right: CameraModel
@@ -530,11 +501,9 @@ def paper_rig(
     flip_right: bool = False,
 ) -> StereoRig:
     """The paper's rig: a 5 MP sensor split into two 1296x1944 views, f = 5107 px,
-    baseline 197.9 mm, both views converging on a point ``working_distance_mm`` in
-    front of the rig, mild radial distortion.
-
-    The rig frame has its origin midway between the two camera centres, x towards the
-    right camera, z towards the convergence point, y down.
+    baseline 197.9 mm, both views converging ``working_distance_mm`` in front, mild radial
+    distortion. Rig frame: origin midway between the centres, x to the right camera, z to
+    the convergence point, y down.
 
     References
     ----------
@@ -564,20 +533,10 @@ def scaled_rig(range_mm: float, baseline_mm: float, **kwargs: Any) -> StereoRig:
 
 @dataclass(frozen=True, eq=False)
 class Rectification:
-    """Rectifying rotations and projections of a stereo rig (``cv2.stereoRectify``).
-
-    Attributes
-    ----------
-    R1, R2 : (3, 3) float64
-        Rotation from each original camera frame to its rectified frame.
-    P1, P2 : (3, 4) float64
-        Rectified projection matrices; ``P2[0, 3] = -f * B``. Principal points are
-        equal (zero-disparity), so disparity ``d = f * B / z`` in the rectified frame.
-    Q : (4, 4) float64
-        Disparity-to-depth matrix.
-    size : (int, int)
-        Rectified image ``(width, height)``.
-    """
+    """Rectifying rotations ``R1, R2`` (3, 3) (camera -> rectified frame),
+    projections ``P1, P2`` (3, 4) with equal principal points and ``P2[0, 3] = -f * B`` (so
+    ``d = f * B / z``), disparity-to-depth ``Q`` (4, 4) and the rectified ``size``
+    (as ``cv2.stereoRectify``)."""
 
     R1: NDArray[np.float64]
     R2: NDArray[np.float64]
@@ -613,39 +572,15 @@ class Rectification:
         return z.astype(np.float32)
 
 
-def compute_rectification(
-    rig: StereoRig,
-    *,
-    alpha: float = 1.0,
-    size: tuple[int, int] | None = None,
-    focal_px: float | None = None,
-) -> Rectification:
-    """Rectify ``rig``: both views rotated to a common frame whose x axis is the
-    baseline, with equal principal points (zero-disparity), so a point at rectified
-    depth ``z`` has disparity ``d = f * B / z`` (large, ~800 px at the paper's
-    converging geometry).
+#: Samples per image edge when tracing a view's footprint in the rectified frame: the
+#: distorted edges are smooth, so 64 points trace them to far below a pixel.
+_FOOTPRINT_SAMPLES = 64
+#: Rounding allowance (px) on the output size: an exact identity rig keeps its own size.
+_SIZE_ROUNDING_PX = 1e-6
 
-    Because converging views are shifted against each other after rectification,
-    the output is as wide as the union of both views' footprints (nothing that either
-    camera saw is cut off), and as tall as their common rows.
 
-    Parameters
-    ----------
-    alpha : float in [0, 1]
-        0 crops each view's footprint to its inner rectangle (no invalid border
-        pixels inside a view), 1 keeps every source pixel (default).
-    size : (int, int), optional
-        Output ``(width, height)``; the focal length is scaled so the footprint fits.
-    focal_px : float, optional
-        Rectified focal length before any ``size`` fit; default: mean of the cameras' fy.
-
-    References
-    ----------
-    .. [1] A. Fusiello, E. Trucco, A. Verri, "A compact algorithm for rectification of
-       stereo pairs", Machine Vision and Applications 12 (2000).
-    """
-    if not 0.0 <= float(alpha) <= 1.0:
-        raise InputError(f"alpha: expected a value in [0, 1], got {alpha}")
+def _rectifying_rotations(rig: StereoRig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``R1``, ``R2``: x along the baseline, z along the mean optical axis (Fusiello)."""
     R = rig.R
     t = rig.T
     # camera centres in the left frame
@@ -656,44 +591,48 @@ def compute_rectification(
     z_axis /= np.linalg.norm(z_axis)
     y_axis = np.cross(z_axis, x_axis)
     R1 = np.stack([x_axis, y_axis, z_axis])  # rows: rect axes in left frame -> x_rect = R1 x_left
-    R2 = R1 @ R.T  # x_rect(right-centred) = R1 R^T x_right
-    f = float(focal_px) if focal_px is not None else 0.5 * (rig.left.fy + rig.right.fy)
-    if not f > 0:
-        raise InputError(f"focal_px: expected > 0, got {focal_px}")
+    return R1, R1 @ R.T  # x_rect(right-centred) = R1 R^T x_right
 
-    def footprint(cam: CameraModel, Rr: NDArray) -> tuple[float, float, float, float, float, float, float, float]:
-        w, h = cam.size
-        n = 64
-        us = np.linspace(0, w - 1, n)
-        vs = np.linspace(0, h - 1, n)
-        edges = {
-            "top": np.stack([us, np.zeros(n)], 1),
-            "bottom": np.stack([us, np.full(n, h - 1.0)], 1),
-            "left": np.stack([np.zeros(n), vs], 1),
-            "right": np.stack([np.full(n, w - 1.0), vs], 1),
-        }
-        proj = {}
-        for k, uv in edges.items():
-            rays = cam.pixel_rays(uv) @ Rr.T
-            proj[k] = rays[:, :2] / rays[:, 2:3]
-        outer = (
-            min(p[:, 0].min() for p in proj.values()),
-            max(p[:, 0].max() for p in proj.values()),
-            min(p[:, 1].min() for p in proj.values()),
-            max(p[:, 1].max() for p in proj.values()),
-        )
-        inner = (
-            proj["left"][:, 0].max(),
-            proj["right"][:, 0].min(),
-            proj["top"][:, 1].max(),
-            proj["bottom"][:, 1].min(),
-        )
-        return (*outer, *inner)
 
-    a = float(alpha)
+def _footprint(cam: CameraModel, Rr: NDArray) -> tuple[float, ...]:
+    """A view's outer and inner extent ``(x0, x1, y0, y1)`` in normalised rectified coordinates."""
+    w, h = cam.size
+    n = _FOOTPRINT_SAMPLES
+    us = np.linspace(0, w - 1, n)
+    vs = np.linspace(0, h - 1, n)
+    edges = {
+        "top": np.stack([us, np.zeros(n)], 1),
+        "bottom": np.stack([us, np.full(n, h - 1.0)], 1),
+        "left": np.stack([np.zeros(n), vs], 1),
+        "right": np.stack([np.full(n, w - 1.0), vs], 1),
+    }
+    proj = {}
+    for k, uv in edges.items():
+        rays = cam.pixel_rays(uv) @ Rr.T
+        proj[k] = rays[:, :2] / rays[:, 2:3]
+    outer = (
+        min(p[:, 0].min() for p in proj.values()),
+        max(p[:, 0].max() for p in proj.values()),
+        min(p[:, 1].min() for p in proj.values()),
+        max(p[:, 1].max() for p in proj.values()),
+    )
+    inner = (
+        proj["left"][:, 0].max(),
+        proj["right"][:, 0].min(),
+        proj["top"][:, 1].max(),
+        proj["bottom"][:, 1].min(),
+    )
+    return (*outer, *inner)
+
+
+def _rectified_window(
+    rig: StereoRig, R1: NDArray, R2: NDArray, a: float
+) -> tuple[float, float, float, float]:
+    """Union of the views' columns and their common rows, ``(x0, x1, y0, y1)``, between the
+    inner (``a = 0``) and outer (``a = 1``) footprints."""
     xs0, xs1, ys0, ys1 = [], [], [], []
     for cam, Rr in ((rig.left, R1), (rig.right, R2)):
-        ox0, ox1, oy0, oy1, ix0, ix1, iy0, iy1 = footprint(cam, Rr)
+        ox0, ox1, oy0, oy1, ix0, ix1, iy0, iy1 = _footprint(cam, Rr)
         xs0.append(a * ox0 + (1 - a) * ix0)
         xs1.append(a * ox1 + (1 - a) * ix1)
         ys0.append(a * oy0 + (1 - a) * iy0)
@@ -702,6 +641,14 @@ def compute_rectification(
     y0, y1 = max(ys0), min(ys1)  # common rows
     if not (x1 > x0 and y1 > y0):
         raise InputError("the two views share no rows after rectification: check R and T")
+    return x0, x1, y0, y1
+
+
+def _fit_window(
+    f: float, window: tuple[float, float, float, float], size: tuple[int, int] | None
+) -> tuple[float, float, float, int, int]:
+    """Focal length, principal point and output size that hold ``window``."""
+    x0, x1, y0, y1 = window
     if size is not None:
         w_out, h_out = int(size[0]), int(size[1])
         if w_out <= 0 or h_out <= 0:
@@ -710,12 +657,42 @@ def compute_rectification(
         cx = (w_out - 1) / 2.0 - f * (x0 + x1) / 2.0
         cy = (h_out - 1) / 2.0 - f * (y0 + y1) / 2.0
     else:
-        # the footprint's extent in pixels, less a hair of rounding noise (an exact
-        # identity rig must keep its own size, not grow by one)
-        w_out = int(math.ceil(f * (x1 - x0) - 1e-6)) + 1
-        h_out = int(math.ceil(f * (y1 - y0) - 1e-6)) + 1
+        w_out = int(math.ceil(f * (x1 - x0) - _SIZE_ROUNDING_PX)) + 1
+        h_out = int(math.ceil(f * (y1 - y0) - _SIZE_ROUNDING_PX)) + 1
         cx = -f * x0
         cy = -f * y0
+    return f, cx, cy, w_out, h_out
+
+
+def compute_rectification(
+    rig: StereoRig,
+    *,
+    alpha: float = 1.0,
+    size: tuple[int, int] | None = None,
+    focal_px: float | None = None,
+) -> Rectification:
+    """Rectify ``rig``: both views rotated to a common frame whose x axis is the
+    baseline, with equal principal points, so rectified depth ``z`` has disparity
+    ``d = f * B / z``. The output spans the union of both views' columns and their
+    common rows.
+
+    ``alpha`` in [0, 1]: 0 crops each view to its inner rectangle, 1 keeps every source
+    pixel. ``size``: output ``(width, height)``, the focal length scaled to fit.
+    ``focal_px``: rectified focal length before any fit; default the mean fy.
+
+    References
+    ----------
+    .. [1] A. Fusiello, E. Trucco, A. Verri, "A compact algorithm for rectification of
+       stereo pairs", Machine Vision and Applications 12 (2000).
+    """
+    if not 0.0 <= float(alpha) <= 1.0:
+        raise InputError(f"alpha: expected a value in [0, 1], got {alpha}")
+    R1, R2 = _rectifying_rotations(rig)
+    f = float(focal_px) if focal_px is not None else 0.5 * (rig.left.fy + rig.right.fy)
+    if not f > 0:
+        raise InputError(f"focal_px: expected > 0, got {focal_px}")
+    window = _rectified_window(rig, R1, R2, float(alpha))
+    f, cx, cy, w_out, h_out = _fit_window(f, window, size)
     B = rig.baseline_mm
     P1 = np.array([[f, 0.0, cx, 0.0], [0.0, f, cy, 0.0], [0.0, 0.0, 1.0, 0.0]])
     P2 = P1.copy()
@@ -724,9 +701,3 @@ def compute_rectification(
         [[1.0, 0.0, 0.0, -cx], [0.0, 1.0, 0.0, -cy], [0.0, 0.0, 0.0, f], [0.0, 0.0, 1.0 / B, 0.0]]
     )
     return Rectification(R1, R2, P1, P2, Q, (w_out, h_out))
-
-
-def rotation_angle_deg(R: NDArray) -> float:
-    """Angle (degrees) of a rotation matrix."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return math.degrees(math.acos(max(-1.0, min(1.0, c))))

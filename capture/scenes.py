@@ -1,16 +1,10 @@
 """Test scenes for the virtual rig: textured plate, chessboard, turntable poses.
 
-Materials: a mesh may name its material class in ``metadata["material"]`` (a key
-of :data:`prism3d.capture.camera_effects.MATERIALS`), which sets its flash gloss
-when camera effects are on; a mesh without one is ``painted_metal``. The chessboard
-is ``matte_paper``.
-
-Frames (see DESIGN.md): millimetres, OpenCV-like object frames for flat objects
-(x right, y down, the visible *front* side faces -z, i.e. towards a camera that looks
-along +z). A plate placed with ``T_rig_obj = translation(0, 0, z)`` faces the rig.
-
-The turntable (scene) world frame is z-up: the turntable axis is the world z axis
-through the origin, the rig circles around it.
+Materials: ``metadata["material"]`` names a key of
+:data:`prism3d.capture.camera_effects.MATERIALS` (default ``painted_metal``; the
+chessboard is ``matte_paper``). Flat objects use OpenCV-like frames (mm, x right, y down,
+front side facing -z), so ``T_rig_obj = translation(0, 0, z)`` faces the rig. The
+turntable world frame is z-up, its axis the world z axis.
 """
 
 from __future__ import annotations
@@ -24,8 +18,10 @@ from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
 from prism3d.capture.rig import StereoRig, look_at
+from prism3d import geometry
 from prism3d.checks import check_array, check_positive
 from prism3d.errors import InputError
+from prism3d.geometry import make_transform
 
 __all__ = [
     "TextureAlbedo",
@@ -41,14 +37,12 @@ __all__ = [
     "place_at",
     "turntable_poses",
     "calibration_board_poses",
+    "BoardPoseOptions",
 ]
 
 def value_noise(points: NDArray[np.float64], cell_mm: float, seed: int = 0) -> NDArray[np.float64]:
-    """Smooth 3-D value noise in [0, 1] at ``points`` ``(N, 3)`` mm.
-
-    Pseudo-random values (a splitmix64 hash of the lattice coordinates and ``seed``)
-    on an integer lattice of spacing ``cell_mm``, blended trilinearly with the
-    quintic fade curve (C2-continuous). Exact and deterministic at any point.
+    """Smooth 3-D value noise in [0, 1] at ``points`` ``(N, 3)`` mm: hashed lattice
+    values (spacing ``cell_mm``, ``seed``) blended with the quintic fade curve.
 
     References
     ----------
@@ -142,22 +136,10 @@ def flat_plate(
     name: str = "plate",
     material: str | None = None,
 ) -> SceneMesh:
-    """A flat plate centred on its origin in the plane z = 0, front side facing -z.
-
-    Parameters
-    ----------
-    width_mm, height_mm : float
-        Size along x and y.
-    albedo : callable or (3,) tuple, optional
-        An albedo field (points_obj -> (N, 3)) or one RGB colour. Default: a mild grey
-        speckle :class:`TextureAlbedo` (so passive matching works without a pattern).
-    cell_mm : float
-        Triangle size (fine enough for per-vertex colours in the pyrender backend;
-        the ray caster is exact with any subdivision).
-    material : str, optional
-        Material class (``metadata["material"]``, e.g. ``"lambertian"``); None
-        leaves it unset (the camera effects' default, painted metal).
-    """
+    """A flat plate centred on its origin in z = 0, front side facing -z, of
+    ``width_mm x height_mm``. ``albedo``: a field (points -> (N, 3)) or one RGB colour;
+    default a mild grey speckle (:class:`TextureAlbedo`) for passive matching. ``cell_mm``:
+    triangle size (per-vertex colours in pyrender). ``material``: ``metadata["material"]``."""
     w = check_positive(width_mm, "width_mm")
     h = check_positive(height_mm, "height_mm")
     cell = check_positive(cell_mm, "cell_mm")
@@ -187,14 +169,9 @@ def chessboard(
     *,
     name: str = "chessboard",
 ) -> SceneMesh:
-    """A chessboard with ``cols x rows`` INNER corners (OpenCV convention).
-
-    9 x 6 inner corners = 10 x 7 squares. The object frame has its origin at the first
-    inner corner, x along the columns, y along the rows, the board in z = 0 with the
-    printed side facing -z. The albedo (:class:`ChessboardAlbedo`) is exact per point:
-    black 0.05, white 0.95, white margin of ``margin_squares`` squares all round;
-    material ``matte_paper`` (a print on matte stock: a faint, broad flash sheen).
-    """
+    """A chessboard with ``cols x rows`` INNER corners (OpenCV; 9 x 6 = 10 x 7 squares):
+    origin at the first inner corner, x along the columns, y along the rows, printed side
+    facing -z, a white margin of ``margin_squares``; exact albedo, ``matte_paper``."""
     cols = int(cols)
     rows = int(rows)
     if cols < 2 or rows < 2:
@@ -216,13 +193,8 @@ def chessboard(
 
 
 def chessboard_corners(cols: int = 9, rows: int = 6, square_mm: float = 25.0) -> NDArray[np.float64]:
-    """Inner corners ``(cols * rows, 3)`` float64 in the :func:`chessboard` frame.
-
-    Row by row (y), left to right (x) within a row -- the order
-    ``cv2.findChessboardCorners`` returns for an unrotated board seen from the front
-    (measured; ``cv2.findChessboardCornersSB`` returns the same corners in reverse
-    order for this board, since 10 x 7 squares are not 180-degree symmetric).
-    """
+    """Inner corners ``(cols * rows, 3)`` float64 in the :func:`chessboard` frame, row by
+    row (``cv2.findChessboardCorners`` order for an unrotated board; docs/calibration.md)."""
     s = check_positive(square_mm, "square_mm")
     j, i = np.mgrid[0 : int(rows), 0 : int(cols)]
     return np.stack([i.ravel() * s, j.ravel() * s, np.zeros(i.size)], axis=1)
@@ -247,16 +219,8 @@ def translation(x: float, y: float, z: float) -> NDArray[np.float64]:
 
 
 def rotation_about(axis: Sequence[float], angle_rad: float) -> NDArray[np.float64]:
-    """4x4 rotation by ``angle_rad`` about a unit ``axis`` through the origin (Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    n = np.linalg.norm(a)
-    if n == 0:
-        raise InputError("rotation_about: axis must be non-zero")
-    a = a / n
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    T = np.eye(4)
-    T[:3, :3] = np.eye(3) + math.sin(angle_rad) * K + (1 - math.cos(angle_rad)) * K @ K
-    return T
+    """4x4 rotation by ``angle_rad`` about ``axis`` (non-zero) through the origin."""
+    return make_transform(geometry.rotation_about(axis, angle_rad))
 
 
 def place_at(mesh: SceneMesh, distance_mm: float, *, R: NDArray | None = None) -> NDArray[np.float64]:
@@ -280,13 +244,9 @@ def turntable_poses(
     start_deg: float = 0.0,
     target: Sequence[float] = (0.0, 0.0, 0.0),
 ) -> list[NDArray[np.float64]]:
-    """Rig poses ``T_world_rig`` around a turntable (world z up, axis through origin).
-
-    View ``k`` sees the target from azimuth ``start_deg + k * step_deg`` (about +z,
-    measured from the world -y axis), raised by ``elevation_deg``, with the rig's
-    z axis pointing at ``target`` from ``distance_mm`` away. Equivalent to turning
-    the target by ``-k * step_deg`` in front of a fixed rig.
-    """
+    """Rig poses ``T_world_rig`` around a turntable (world z up): view ``k`` from azimuth
+    ``start_deg + k * step_deg`` (from the world -y axis), raised by ``elevation_deg``,
+    ``distance_mm`` from ``target``."""
     n = int(n_views)
     if n < 1:
         raise InputError(f"n_views: expected >= 1, got {n_views}")
@@ -312,71 +272,114 @@ def _board_outline(cols: int, rows: int, s: float, margin: float) -> NDArray[np.
     return np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], dtype=np.float64)
 
 
-def calibration_board_poses(
-    rig: StereoRig,
-    n: int = 5,
-    *,
-    cols: int = 9,
-    rows: int = 6,
-    square_mm: float = 25.0,
-    margin_squares: float = 1.0,
-    distance_range_mm: tuple[float, float] = (1100.0, 1400.0),
-    tilt_range_deg: tuple[float, float] = (20.0, 40.0),
-    edge_px: float = 20.0,
-    seed: int = 0,
-    max_tries: int = 20000,
-) -> list[NDArray[np.float64]]:
-    """Varied, well-conditioned chessboard poses ``T_rig_board`` seen by both views.
+@dataclass(frozen=True)
+class BoardPoseOptions:
+    """How :func:`calibration_board_poses` varies the chessboard (defaults: the paper rig's
+    working range; tilts as docs/calibration.md recommends)."""
 
-    Each pose tilts the board by an angle in ``tilt_range_deg`` about an in-plane axis
-    (the axes' directions spread evenly over the poses), turns it in-plane around
-    portrait orientation, and places it at a depth in ``distance_range_mm`` with a
-    lateral offset; a pose is kept only when the whole board (with its white margin)
-    projects inside both views with ``edge_px`` to spare.
+    cols: int = 9
+    """Inner corners per row."""
+    rows: int = 6
+    """Inner corners per column."""
+    square_mm: float = 25.0
+    """Square size, mm."""
+    margin_squares: float = 1.0
+    """White margin around the squares, in squares (must stay inside the views too)."""
+    distance_range_mm: tuple[float, float] = (1100.0, 1400.0)
+    """Board centre depth range, mm: around the paper rig's 1250 mm working distance."""
+    tilt_range_deg: tuple[float, float] = (20.0, 40.0)
+    """Tilt range about an in-plane axis, deg: tilts pin f and the principal point, until
+    foreshortening spoils the corners near 45 deg (Zhang 2000)."""
+    edge_px: float = 20.0
+    """Room kept between the board outline and each view's border, px."""
+    seed: int = 0
+    """Random seed of the poses."""
+    max_tries: int = 20000
+    """Random poses tried before giving up (the board is too large for the views)."""
+
+    def __post_init__(self) -> None:
+        if int(self.cols) < 2 or int(self.rows) < 2:
+            raise InputError(f"cols, rows: expected at least 2x2 inner corners, got {self.cols}x{self.rows}")
+        check_positive(self.square_mm, "square_mm")
+        check_positive(self.margin_squares, "margin_squares", strict=False)
+        check_positive(self.edge_px, "edge_px", strict=False)
+        for name in ("distance_range_mm", "tilt_range_deg"):
+            lo, hi = (float(v) for v in getattr(self, name))
+            if not lo <= hi:
+                raise InputError(f"{name}: expected (low, high) with low <= high, got {getattr(self, name)}")
+        check_positive(self.distance_range_mm[0], "distance_range_mm")
+        if int(self.max_tries) < 1:
+            raise InputError(f"max_tries: expected >= 1, got {self.max_tries}")
+
+
+#: Random pose spread: jitter of the tilt axis direction (rad) about its even spread,
+#: in-plane turn about portrait orientation (deg), lateral offset as a fraction of the
+#: half field (x, y) -- enough variety for the calibration, with the board kept in view.
+_AXIS_JITTER_RAD = 0.2
+_SPIN_JITTER_DEG = 15.0
+_OFFSET_FRACTION = (0.3, 0.5)
+
+
+def _random_board_pose(
+    rng: np.random.Generator, k: int, n: int, rig: StereoRig, o: BoardPoseOptions, centre: NDArray
+) -> NDArray[np.float64]:
+    """Pose ``k`` of ``n``: tilt axes spread evenly over the poses, portrait orientation."""
+    tilt = math.radians(rng.uniform(*o.tilt_range_deg))
+    axis_angle = math.pi * (k / n) + rng.uniform(-_AXIS_JITTER_RAD, _AXIS_JITTER_RAD)
+    axis = np.array([math.cos(axis_angle), math.sin(axis_angle), 0.0])
+    spin = math.radians(90.0 + rng.uniform(-_SPIN_JITTER_DEG, _SPIN_JITTER_DEG))
+    z = rng.uniform(*o.distance_range_mm)
+    half_field = 0.5 * rig.left.width / rig.left.fx * z
+    x = rng.uniform(-_OFFSET_FRACTION[0], _OFFSET_FRACTION[0]) * half_field
+    y = rng.uniform(-_OFFSET_FRACTION[1], _OFFSET_FRACTION[1]) * half_field * rig.left.height / rig.left.width
+    R = rotation_about(axis, tilt) @ rotation_about((0, 0, 1), spin)
+    return translation(x, y, z) @ R @ translation(*(-centre))
+
+
+def _inside_both_views(rig: StereoRig, pts_rig: NDArray, edge_px: float) -> bool:
+    for T_rig_cam, cam in ((rig.T_rig_left, rig.left), (rig.T_rig_right, rig.right)):
+        T_cam_rig = np.linalg.inv(T_rig_cam)
+        uv = cam.project(pts_rig @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3])
+        w, h = cam.size
+        if not (
+            np.all(np.isfinite(uv))
+            and uv[:, 0].min() >= edge_px
+            and uv[:, 1].min() >= edge_px
+            and uv[:, 0].max() <= w - 1 - edge_px
+            and uv[:, 1].max() <= h - 1 - edge_px
+        ):
+            return False
+    return True
+
+
+def calibration_board_poses(
+    rig: StereoRig, n: int = 5, *, options: BoardPoseOptions | None = None
+) -> list[NDArray[np.float64]]:
+    """Varied, well-conditioned chessboard poses ``T_rig_board`` ``(4, 4)`` seen by both views.
+
+    Each pose tilts the board about an in-plane axis, turns it in-plane around portrait
+    orientation and places it in the depth range with a lateral offset; a pose is kept
+    only when the whole board (with its margin) projects inside both views.
     """
+    o = BoardPoseOptions() if options is None else options
+    if not isinstance(o, BoardPoseOptions):
+        raise InputError(f"options: expected BoardPoseOptions, got {type(o).__name__}")
     n = int(n)
     if n < 1:
         raise InputError(f"n: expected >= 1, got {n}")
-    rng = np.random.default_rng(seed)
-    outline = _board_outline(cols, rows, square_mm, margin_squares)
+    rng = np.random.default_rng(o.seed)
+    outline = _board_outline(o.cols, o.rows, o.square_mm, o.margin_squares)
     centre = outline.mean(axis=0)
     poses: list[NDArray[np.float64]] = []
     tries = 0
-    T_left_rig = np.linalg.inv(rig.T_rig_left)
-    T_right_rig = np.linalg.inv(rig.T_rig_right)
     while len(poses) < n:
         tries += 1
-        if tries > max_tries:
+        if tries > o.max_tries:
             raise InputError(
                 f"could not place {n} chessboards inside both views (placed {len(poses)}); "
                 "the board is too large for this rig's field of view"
             )
-        k = len(poses)
-        tilt = math.radians(rng.uniform(*tilt_range_deg))
-        axis_angle = math.pi * (k / n) + rng.uniform(-0.2, 0.2)
-        axis = np.array([math.cos(axis_angle), math.sin(axis_angle), 0.0])
-        spin = math.radians(90.0 + rng.uniform(-15.0, 15.0))
-        z = rng.uniform(*distance_range_mm)
-        half_field = 0.5 * rig.left.width / rig.left.fx * z
-        x = rng.uniform(-0.3, 0.3) * half_field
-        y = rng.uniform(-0.5, 0.5) * half_field * rig.left.height / rig.left.width
-        R = rotation_about(axis, tilt) @ rotation_about((0, 0, 1), spin)
-        T = translation(x, y, z) @ R @ translation(*(-centre))
-        pts = outline @ T[:3, :3].T + T[:3, 3]
-        ok = True
-        for T_cam_rig, cam in ((T_left_rig, rig.left), (T_right_rig, rig.right)):
-            pc = pts @ T_cam_rig[:3, :3].T + T_cam_rig[:3, 3]
-            uv = cam.project(pc)
-            w, h = cam.size
-            if not (
-                np.all(np.isfinite(uv))
-                and uv[:, 0].min() >= edge_px
-                and uv[:, 1].min() >= edge_px
-                and uv[:, 0].max() <= w - 1 - edge_px
-                and uv[:, 1].max() <= h - 1 - edge_px
-            ):
-                ok = False
-                break
-        if ok:
+        T = _random_board_pose(rng, len(poses), n, rig, o, centre)
+        if _inside_both_views(rig, outline @ T[:3, :3].T + T[:3, 3], o.edge_px):
             poses.append(T)
     return poses

@@ -1,21 +1,11 @@
-"""Bundle adjustment for chessboard calibration (private).
-
-One problem covers a single camera or a stereo pair: every camera's intrinsics and
-distortion, the rig's relative pose (stereo) and every board pose are refined jointly
-by :func:`scipy.optimize.least_squares` with a sparse Jacobian pattern.
-
-Parameter layout (the *full* vector; a boolean mask selects the free entries)::
+"""Bundle adjustment for chessboard calibration (private): one camera or a stereo
+pair, every board pose and (stereo) the rig pose refined jointly by
+:func:`scipy.optimize.least_squares`, on reprojection errors (px). Full vector::
 
     [cam 0: fx fy cx cy skew k1 k2 p1 p2 k3]        10
     [cam 1: the same]                               10   (stereo only)
     [rig: rvec(3) t(3)]  x_right = R x_left + t      6   (stereo only)
     [view v: rvec(3) t(3)]  x_left = R_v X + t_v     6 per view
-
-Residuals are reprojection errors in pixels, two rows (u, v) per observation. The
-Jacobian is dense (a few hundred columns at most) and computed by central differences
-over column groups that exploit its sparsity: each residual depends on one camera,
-the rig pose (right camera only) and one board pose, so the j-th pose parameter of
-all views is perturbed in one evaluation (about 30 evaluations per Jacobian).
 
 References
 ----------
@@ -35,34 +25,25 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from prism3d.geometry import matrix_from_rotvec
+
 __all__ = [
     "CAM_PARAM_NAMES",
     "N_CAM",
     "BundleProblem",
     "BundleResult",
-    "rodrigues",
     "rodrigues_inv",
     "solve_bundle",
 ]
 
 CAM_PARAM_NAMES = ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "p1", "p2", "k3")
 N_CAM = len(CAM_PARAM_NAMES)
-
-
-def rodrigues(rvec: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation matrices ``(V, 3, 3)`` from rotation vectors ``(V, 3)`` (vectorised)."""
-    r = np.asarray(rvec, dtype=np.float64).reshape(-1, 3)
-    theta2 = np.einsum("ij,ij->i", r, r)
-    theta = np.sqrt(theta2)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
-    K = np.zeros((r.shape[0], 3, 3))
-    K[:, 0, 1], K[:, 0, 2] = -r[:, 2], r[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = r[:, 2], -r[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -r[:, 1], r[:, 0]
-    return np.eye(3)[None] + a[:, None, None] * K + b[:, None, None] * (K @ K)
+#: Central-difference step, relative to max(1, |parameter|): near the square root of the
+#: float64 precision that balances truncation against rounding.
+_DIFF_STEP = 1e-6
+#: Solver tolerances of the robust pass and of the final least-squares pass.
+_ROBUST_TOL = 1e-10
+_FINAL_TOL = 1e-12
 
 
 def rodrigues_inv(R: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -75,27 +56,10 @@ def rodrigues_inv(R: NDArray[np.float64]) -> NDArray[np.float64]:
 
 @dataclass
 class BundleProblem:
-    """Observations and the starting point of a calibration bundle adjustment.
-
-    Attributes
-    ----------
-    object_points : (M, 3) float64
-        Board points (board frame, board units) of every observation.
-    image_points : (M, 2) float64
-        Their detected pixels.
-    cam_index : (M,) int
-        0 = left (or the single camera), 1 = right.
-    view_index : (M,) int
-        Board pose index of every observation.
-    x0 : (P,) float64
-        Full parameter vector (layout in the module docstring).
-    free : (P,) bool
-        Which parameters are optimised.
-    n_cams : int
-        1 or 2.
-    n_views : int
-        Number of board poses.
-    """
+    """Observations and the starting point of a calibration bundle adjustment: board
+    points ``(M, 3)`` (board units), their pixels ``(M, 2)``, camera (0 left or single,
+    1 right) and board pose index ``(M,)`` of each, the full start vector ``x0 (P,)``
+    (module docstring) and its ``free (P,)`` mask."""
 
     object_points: NDArray[np.float64]
     image_points: NDArray[np.float64]
@@ -129,12 +93,12 @@ class BundleProblem:
         """Pixels ``(M, 2)`` of every observation for the full parameter vector."""
         vo = self.view_offset
         views = full[vo : vo + 6 * self.n_views].reshape(self.n_views, 6)
-        Rv = rodrigues(views[:, :3])
+        Rv = matrix_from_rotvec(views[:, :3])
         vi = self.view_index
         X = np.einsum("mij,mj->mi", Rv[vi], self.object_points) + views[vi, 3:]
         if self.n_cams == 2:
             ro = self.rig_offset
-            Rr = rodrigues(full[ro : ro + 3])[0]
+            Rr = matrix_from_rotvec(full[ro : ro + 3])
             tr = full[ro + 3 : ro + 6]
             right = self.cam_index == 1
             X[right] = X[right] @ Rr.T + tr
@@ -157,12 +121,8 @@ class BundleProblem:
         return full
 
     def _groups(self) -> list[NDArray[np.intp]]:
-        """Free-parameter column groups that touch disjoint residual rows.
-
-        Camera and rig parameters affect many rows (one column per group); the j-th
-        pose parameter of every view can be perturbed at once, since each residual
-        row depends on one view only.
-        """
+        """Free-parameter column groups touching disjoint residual rows: one per camera or
+        rig parameter; the j-th pose parameter of all views together (a row sees one view)."""
         free_idx = np.full(self.x0.size, -1)
         free_idx[self.free] = np.arange(int(self.free.sum()))
         groups = []
@@ -187,7 +147,7 @@ class BundleProblem:
         # rows touched by each view's pose
         row_view = np.repeat(self.view_index, 2)
         for cols in self._groups():
-            h = 1e-6 * np.maximum(1.0, np.abs(full[cols]))
+            h = _DIFF_STEP * np.maximum(1.0, np.abs(full[cols]))
             fp = full.copy()
             fm = full.copy()
             fp[cols] += h
@@ -208,22 +168,8 @@ class BundleProblem:
 
 @dataclass
 class BundleResult:
-    """Refined parameters and their quality.
-
-    Attributes
-    ----------
-    params : (P,) float64
-        Full refined parameter vector.
-    residuals : (M, 2) float64
-        Final reprojection errors, pixels.
-    std : (P,) float64
-        Standard deviation of every parameter (0 for fixed ones), from
-        ``sigma^2 (J^T J)^-1`` with ``sigma^2 = |r|^2 / (2M - n_free)``.
-    names : list of str
-        Parameter names (see :meth:`BundleProblem.param_names`).
-    success : bool
-        The solver's convergence flag.
-    """
+    """Refined full vector ``(P,)``, reprojection errors ``(M, 2)`` px, standard deviations
+    ``(P,)`` from ``sigma^2 (J^T J)^-1`` (0 when fixed), names, the solver's success flag."""
 
     params: NDArray[np.float64]
     residuals: NDArray[np.float64]
@@ -235,12 +181,8 @@ class BundleResult:
 def solve_bundle(
     problem: BundleProblem, *, loss: str = "soft_l1", f_scale: float = 1.0, max_nfev: int = 200
 ) -> BundleResult:
-    """Refine ``problem`` with a robust pass, then a linear-loss pass for the statistics.
-
-    The robust pass (``loss`` with ``f_scale`` pixels) limits the pull of a few bad
-    corners; the final pass with the plain squared loss gives the maximum-likelihood
-    estimate under Gaussian corner noise and the Jacobian for the covariance.
-    """
+    """Refine ``problem``: a robust pass (``loss``, ``f_scale`` px) against a few bad
+    corners, then plain least squares for the estimate and its covariance."""
 
     def fun(x: NDArray[np.float64]) -> NDArray[np.float64]:
         return problem.residuals_full(problem.expand(x))
@@ -250,8 +192,7 @@ def solve_bundle(
 
 
 def _single_blas_thread() -> contextlib.AbstractContextManager:
-    """Limit BLAS to one thread: the matrices are small, and on a busy 2-core machine
-    threaded SVDs of a ~1000 x 100 Jacobian were measured 17x slower than serial."""
+    """Limit BLAS to one thread: the matrices are small (docs/calibration.md)."""
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - optional
@@ -271,13 +212,13 @@ def _solve(
             loss=loss,
             f_scale=f_scale,
             max_nfev=max_nfev,
-            xtol=1e-10,
-            ftol=1e-10,
-            gtol=1e-10,
+            xtol=_ROBUST_TOL,
+            ftol=_ROBUST_TOL,
+            gtol=_ROBUST_TOL,
             **opts,
         )
         x = res.x
-    res = least_squares(fun, x, max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12, **opts)
+    res = least_squares(fun, x, max_nfev=max_nfev, xtol=_FINAL_TOL, ftol=_FINAL_TOL, gtol=_FINAL_TOL, **opts)
     full = problem.expand(res.x)
     r = res.fun
     J = res.jac.toarray() if hasattr(res.jac, "toarray") else np.asarray(res.jac)

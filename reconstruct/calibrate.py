@@ -1,23 +1,13 @@
 """Chessboard calibration of one camera or a (prism) stereo rig, refined by our own
-bundle adjustment.
-
-Pipeline: corners in every view (:mod:`prism3d.reconstruct.corners`) -> Zhang's
-closed-form initialisation per camera (``cv2.calibrateCamera``) -> corner order made
-consistent between the two views by the stereo geometry -> initial ``R, T`` from the
-per-view relative poses -> one joint bundle adjustment of both cameras' intrinsics
-(fx, fy, cx, cy, optional skew), distortion (k1 k2, optional p1 p2, optional k3), the
-rig's ``R, T`` and every board pose (:mod:`prism3d.reconstruct._bundle`), robust loss
-first, then plain least squares for the standard deviations -> a check that the shots
-pin the rig well enough for stereo matching (the parameters' covariance propagated to
-rectified row offsets and disparities at the working distance), with advice on the
-board poses that would help (:attr:`Calibration.warnings`).
+bundle adjustment: corners -> Zhang's closed form per camera -> right-view corner
+order fixed by the stereo geometry -> joint bundle adjustment -> a check that the shots
+pin the rig for stereo matching (docs/calibration.md).
 
 References
 ----------
 .. [1] Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11),
    1330-1334 (2000).
-.. [2] J.-Y. Bouguet, "Camera Calibration Toolbox for Matlab" (skew off by default;
-   per-parameter uncertainties from the Jacobian).
+.. [2] J.-Y. Bouguet, "Camera Calibration Toolbox for Matlab" (skew off by default).
 .. [3] B. Triggs et al., "Bundle Adjustment -- A Modern Synthesis", LNCS 1883 (2000).
 """
 
@@ -36,19 +26,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.capture.rig import CameraModel, PrismSplit, StereoRig, compute_rectification
-from prism3d.checks import check_array, check_positive
+from prism3d.checks import check_array, check_choice, check_positive
 from prism3d.errors import CalibrationError, InputError
+from prism3d.geometry import make_transform, matrix_from_rotvec, rotation_angle_deg
 from prism3d.reconstruct._bundle import (
     CAM_PARAM_NAMES,
     N_CAM,
     BundleProblem,
     BundleResult,
-    rodrigues,
     rodrigues_inv,
     solve_bundle,
 )
 from prism3d.reconstruct.corners import (
     DEFAULT_WINDOW,
+    DETECTORS,
     CornerDetection,
     board_object_points,
     detect_views,
@@ -57,6 +48,7 @@ from prism3d.reconstruct.corners import (
 
 __all__ = [
     "Calibration",
+    "CalibrationOptions",
     "CameraCalibration",
     "calibrate_camera",
     "calibrate_stereo",
@@ -72,6 +64,10 @@ log = logging.getLogger(__name__)
 MIN_VIEWS = 3
 #: A view is an outlier when its RMS exceeds this multiple of the median view RMS.
 OUTLIER_FACTOR = 3.0
+#: Two board-to-board poses agree (same corner order) within this rotation (deg) and this
+#: fraction of the translation: a wrong order is off by >= 90 deg or a board width.
+_POSE_AGREE_DEG = 3.0
+_POSE_AGREE_REL = 0.1
 
 
 # --------------------------------------------------------------------------------------
@@ -79,23 +75,9 @@ OUTLIER_FACTOR = 3.0
 # --------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class CameraCalibration:
-    """Result of :func:`calibrate_camera`.
-
-    Attributes
-    ----------
-    camera : CameraModel
-        Calibrated intrinsics and distortion.
-    rms_px : float
-        RMS reprojection error over all corners (per coordinate pair, i.e.
-        ``sqrt(mean(du^2 + dv^2))``, as ``cv2.calibrateCamera`` reports).
-    per_view_rms_px : (V,) float64
-        The same per view.
-    std : dict of str -> float
-        Standard deviation of each free parameter (``fx fy cx cy skew k1 k2 p1 p2 k3``),
-        0 for fixed ones.
-    T_cam_board : (V, 4, 4) float64
-        Board pose in the camera frame per view (board units).
-    """
+    """Result of :func:`calibrate_camera`: the camera, RMS reprojection error (px,
+    ``sqrt(mean(du^2 + dv^2))`` as ``cv2.calibrateCamera``) overall and per view ``(V,)``,
+    standard deviation per parameter name (0 when fixed), ``T_cam_board (V, 4, 4)``."""
 
     camera: CameraModel
     rms_px: float
@@ -108,47 +90,13 @@ class CameraCalibration:
 class Calibration:
     """A calibrated stereo rig and its quality figures.
 
-    Attributes
-    ----------
-    rig : StereoRig
-        Both cameras, ``R, T`` (mm) and the prism split.
-    rms_px, rms_left_px, rms_right_px : float
-        RMS reprojection error (pixels) over all corners / per camera.
-    per_view_rms_px : (V, 2) float64
-        RMS per view (rows) and camera (left, right); NaN where a camera missed the board.
-    std : dict of str -> float
-        Standard deviations: ``fx_left ... k3_left``, ``fx_right ...``, rig rotation
-        vector ``rx ry rz`` (radians) and translation ``tx ty tz`` (mm).
-    rectification_rms_px : float
-        RMS vertical disparity of the corners after rectification with this rig.
-    n_views : int
-        Views used in the adjustment.
-    board : (int, int)
-        Inner corners ``(cols, rows)``.
-    square_mm : float
-        Square size.
-    flags : dict of str -> bool
-        Model options: ``skew``, ``tangential``, ``k3``.
-    outlier_views : tuple of int
-        Views whose RMS exceeds 3x the median view RMS.
-    sources : tuple of str
-        Image name of every view.
-    detections : tuple of CornerDetection
-        Per-image detection report (empty when calibrated from points or loaded).
-    precision : dict of str -> float
-        What the calibration's uncertainty does to stereo matching, for a scene at the
-        working distance (median distance of the boards): ``working_distance_mm``,
-        ``row_offset_px`` (rectified row offset) and ``disparity_px`` (disparity error,
-        ``depth_mm`` in depth), each the standard deviation at the worst of a grid of
-        points over both views. Empty when not checked (loaded files).
-    needs : dict of str -> float
-        Per parameter (keys of ``std``, plus ``baseline``), the standard deviation it
-        may have before it alone moves rectified rows by more than
-        ``ROW_OFFSET_NEED_PX`` or disparities by more than ``DISPARITY_NEED_PX``.
-    warnings : tuple of str
-        One line per shortfall: the precision at the working distance, then each
-        parameter group whose uncertainty exceeds its need, with the board poses that
-        would help (tilts, image regions without corners). Not stored in the YAML.
+    RMS reprojection errors are px (``per_view_rms_px`` ``(V, 2)``, NaN where a camera
+    missed the board); ``std`` holds ``fx_left ... k3_right``, ``rx ry rz`` (rad) and
+    ``tx ty tz`` (mm); ``outlier_views`` exceed ``OUTLIER_FACTOR`` x the median view RMS.
+    ``precision`` (working distance, 1-sigma rectified row offset and disparity px at the
+    worst image point, depth mm), ``needs`` (per parameter, the std that alone reaches
+    ``ROW_OFFSET_NEED_PX`` / ``DISPARITY_NEED_PX``) and ``warnings`` come from the pinning
+    check; they are empty for loaded files and not stored in the YAML.
     """
 
     rig: StereoRig
@@ -181,13 +129,8 @@ class Calibration:
 
     # -- file I/O ----------------------------------------------------------------------
     def save(self, path: str | Path) -> None:
-        """Write an OpenCV FileStorage YAML: the rig entries plus quality figures.
-
-        ``cv2.FileStorage`` reads ``K1 D1 K2 D2 R T`` and ``rms_px``,
-        ``rms_left_px``, ``rms_right_px``, ``rectification_rms_px``, ``per_view_rms_px``
-        and the standard deviations ``std_K1 std_D1 std_K2 std_D2`` (same layout as
-        ``fx fy cx cy skew`` / ``k1 k2 p1 p2 k3``), ``std_om`` (rad) and ``std_T`` (mm).
-        """
+        """Write OpenCV FileStorage YAML: ``K1 D1 K2 D2 R T``, the RMS figures and the
+        standard deviations ``std_K1 std_D1 std_K2 std_D2 std_om`` (rad) ``std_T`` (mm)."""
         extra: dict[str, Any] = {
             "rms_px": float(self.rms_px),
             "rms_left_px": float(self.rms_left_px),
@@ -298,8 +241,6 @@ class Calibration:
                 f"       k1 {d[0]:.5f} ±{s.get(f'k1_{name}', 0):.5f}  k2 {d[1]:.5f} "
                 f"±{s.get(f'k2_{name}', 0):.5f}  p1 {d[2]:.6f}  p2 {d[3]:.6f}  k3 {d[4]:.5f}"
             )
-        from prism3d.capture.rig import rotation_angle_deg
-
         t = rig.T
         lines.append(
             f"baseline {rig.baseline_mm:.3f} mm  T = ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) mm "
@@ -322,19 +263,11 @@ class Calibration:
 # helpers
 # --------------------------------------------------------------------------------------
 def _pose_matrix(rvec: NDArray, tvec: NDArray) -> NDArray[np.float64]:
-    T = np.eye(4)
-    T[:3, :3] = rodrigues(np.asarray(rvec, dtype=np.float64).ravel())[0]
-    T[:3, 3] = np.asarray(tvec, dtype=np.float64).ravel()
-    return T
+    return make_transform(matrix_from_rotvec(np.asarray(rvec, dtype=np.float64).ravel()), tvec)
 
 
 def _pose_vec(T: NDArray) -> NDArray[np.float64]:
     return np.concatenate([rodrigues_inv(T[:3, :3]), T[:3, 3]])
-
-
-def _rot_angle(R: NDArray) -> float:
-    c = (np.trace(R) - 1.0) / 2.0
-    return math.acos(max(-1.0, min(1.0, float(c))))
 
 
 def _zhang_init(
@@ -394,10 +327,10 @@ def _mean_pose(Ts: Sequence[NDArray]) -> NDArray[np.float64]:
     return out
 
 
-def _pose_close(A: NDArray, B: NDArray, *, deg: float = 3.0, rel: float = 0.1) -> bool:
-    ang = math.degrees(_rot_angle(A[:3, :3] @ B[:3, :3].T))
+def _pose_close(A: NDArray, B: NDArray) -> bool:
+    ang = rotation_angle_deg(A[:3, :3] @ B[:3, :3].T)
     dt = np.linalg.norm(A[:3, 3] - B[:3, 3])
-    return ang < deg and dt < rel * max(np.linalg.norm(B[:3, 3]), 1e-9)
+    return ang < _POSE_AGREE_DEG and dt < _POSE_AGREE_REL * max(np.linalg.norm(B[:3, 3]), 1e-9)
 
 
 def _free_mask_cam(*, skew: bool, tangential: bool, k3: bool) -> NDArray[np.bool_]:
@@ -435,12 +368,8 @@ def _check_points(points: Sequence[NDArray], name: str, ncols: int) -> list[NDAr
 
 
 def _one_opencv_thread(fn: Callable) -> Callable:
-    """Run ``fn`` with OpenCV limited to one thread (restored afterwards).
-
-    With OpenCV's thread pool the same shots calibrated twice differed in the 10th
-    digit (measured: 5 chessboard shots, 4 of 6 runs different), enough to move a
-    later stitched view pose by 0.01 deg; single-threaded, every run was identical,
-    in the same time (the bundle adjustment dominates)."""
+    """Run ``fn`` with OpenCV limited to one thread (restored afterwards), so that a
+    calibration repeats to the last bit (docs/calibration.md)."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -469,38 +398,12 @@ def calibrate_camera(
     tangential: bool = True,
     k3: bool = False,
 ) -> CameraCalibration:
-    """Calibrate one camera from planar-target correspondences (Zhang + our bundle adjustment).
+    """Calibrate one camera from planar-target correspondences (Zhang + bundle adjustment).
 
-    Parameters
-    ----------
-    object_points_list : list of (N_i, 3) float
-        Target points per view, target frame (z = 0), any length unit.
-    image_points_list : list of (N_i, 2) float
-        Their pixels, same order.
-    image_size : (int, int)
-        ``(width, height)``.
-    skew : bool
-        Estimate the skew ``K[0, 1]`` (off by default, as Bouguet recommends).
-    tangential : bool
-        Estimate p1, p2.
-    k3 : bool
-        Estimate k3.
-
-    Returns
-    -------
-    CameraCalibration
-
-    Raises
-    ------
-    CalibrationError
-        Fewer than 3 views or a failed initialisation.
-    InputError
-        Malformed point arrays or mismatched lists.
-
-    References
-    ----------
-    .. [1] Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI
-       22(11) (2000).
+    ``object_points_list``: per view ``(N_i, 3)`` target points (z = 0, any unit);
+    ``image_points_list``: their pixels ``(N_i, 2)``; ``image_size`` ``(width, height)``.
+    ``skew`` (off, as Bouguet recommends), ``tangential`` (p1 p2), ``k3``: free
+    parameters. Raises CalibrationError with fewer than ``MIN_VIEWS`` views.
     """
     obj = _check_points(object_points_list, "object_points_list", 3)
     img = _check_points(image_points_list, "image_points_list", 2)
@@ -629,6 +532,13 @@ _GROUPS: tuple[tuple[str, tuple[str, ...], dict[str, str]], ...] = (
     ("rig translation", ("baseline", "tx", "ty", "tz"), {}),
 )
 _RIG_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+_N_RIG = 2 * N_CAM + 6  # bundle parameters of the rig: both cameras, then R, T
+#: Sensitivity steps: a hundredth of a parameter's std (well inside the linear range), or
+#: a relative 1e-6 for a parameter without variance.
+_DIFF_STEP_SIGMA = 1e-2
+_DIFF_STEP_REL = 1e-6
+#: Fewer common pixel pairs than this at the working distance: nothing to check.
+_MIN_CHECK_PAIRS = 3
 
 
 @dataclass(frozen=True)
@@ -721,28 +631,9 @@ def _with_unit(name: str, value: float) -> str:
     return f"{value:.2g}"
 
 
-def _check_pinning(
-    prob: BundleProblem,
-    res: BundleResult,
-    rig: StereoRig,
-    board_points: NDArray,
-    left_points: Sequence[NDArray | None],
-    right_points: Sequence[NDArray | None],
-) -> _Pinning:
-    """Compare the calibration's precision with what stereo matching needs.
-
-    The covariance of the rig parameters (both cameras, ``R``, ``T``; from the bundle
-    adjustment's Jacobian, as the standard deviations) is propagated to the rectified
-    row offset and the disparity of pixel pairs on a grid over both views, for a scene
-    at the working distance (the boards' median distance). The parameters are strongly
-    correlated -- a principal-point error is mostly absorbed by the rig rotation -- so a
-    parameter's need is set by its effective sensitivity ``cov(q, p) / var(p)``: how
-    much the row offsets and disparities ``q`` move with a unit error of ``p`` as the
-    other parameters follow it the way the shots let them. A parameter whose standard
-    deviation exceeds its need moves rows or disparities beyond the thresholds by itself.
-    """
-    n_rig = 2 * N_CAM + 6
-    size = rig.left.size
+def _rig_covariance(prob: BundleProblem, res: BundleResult) -> tuple[NDArray, NDArray[np.intp], list[str]]:
+    """Covariance of the free rig parameters (both cameras, ``R``, ``T``) from the bundle
+    Jacobian, their indices in the full vector, and their :attr:`Calibration.std` names."""
     x = res.params[prob.free]
     J = prob.jacobian(x)
     r = res.residuals.ravel()
@@ -750,41 +641,40 @@ def _check_pinning(
     JtJ = J.T @ J
     s = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))  # column scaling for a well-conditioned inverse
     cov = np.linalg.pinv(JtJ / np.outer(s, s)) / np.outer(s, s) * sigma2
-    cols = np.flatnonzero(prob.free[:n_rig])  # free rig parameters, full indices
+    cols = np.flatnonzero(prob.free[:_N_RIG])  # free rig parameters, full indices
     at = np.cumsum(prob.free) - 1  # full index -> free index
-    C = cov[np.ix_(at[cols], at[cols])]
-    names = [_rig_param_names()[j] for j in cols]
-    views = res.params[prob.view_offset :].reshape(prob.n_views, 6)
-    rots = rodrigues(views[:, :3])
-    dists = rots @ board_points.mean(axis=0) + views[:, 3:]
-    depth = float(np.median(dists[:, 2]))
-    uv_l, uv_r = _check_pixels(rig, depth)
-    if len(uv_l) < 3:
-        log.info("calibration precision not checked: the views share too few pixels at %.0f mm", depth)
-        return _Pinning()
-    f0, b0 = (rig.left.fy + rig.right.fy) / 2.0, rig.baseline_mm
-    p0 = res.params[:n_rig]
-    G = np.empty((2 * len(uv_l), len(cols)))
-    for k, j in enumerate(cols):
-        step = np.zeros(n_rig)
-        step[j] = 1e-2 * math.sqrt(C[k, k]) if C[k, k] > 0 else 1e-6 * max(1.0, abs(p0[j]))
-        hi = _stereo_errors(p0 + step, size, rig.split, uv_l, uv_r, f0, b0)
-        lo = _stereo_errors(p0 - step, size, rig.split, uv_l, uv_r, f0, b0)
-        G[:, k] = (hi - lo) / (2.0 * step[j])
-    m = len(uv_l)
-    std_q = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
-    row_px, disp_px = float(std_q[:m].max()), float(std_q[m:].max())
-    depth_mm = disp_px * depth**2 / (f0 * b0)
-    precision = {"working_distance_mm": depth, "row_offset_px": row_px, "disparity_px": disp_px,
-                 "depth_mm": depth_mm}
+    return cov[np.ix_(at[cols], at[cols])], cols, [_rig_param_names()[j] for j in cols]
 
-    # needs from the effective sensitivities cov(q, p) / var(p), and for the baseline |T|
+
+def _stereo_gradients(
+    rig: StereoRig, p0: NDArray, cols: NDArray[np.intp], C: NDArray, uv: tuple[NDArray, NDArray], f0: float
+) -> NDArray[np.float64]:
+    """Central-difference derivatives ``(2 M, k)`` of the row offsets and disparities of the
+    pixel pairs ``uv`` by each free rig parameter (steps of a hundredth of its std)."""
+    G = np.empty((2 * len(uv[0]), len(cols)))
+    for k, j in enumerate(cols):
+        step = np.zeros(_N_RIG)
+        if C[k, k] > 0:
+            step[j] = _DIFF_STEP_SIGMA * math.sqrt(C[k, k])
+        else:
+            step[j] = _DIFF_STEP_REL * max(1.0, abs(p0[j]))
+        args = (rig.left.size, rig.split, uv[0], uv[1], f0, rig.baseline_mm)
+        G[:, k] = (_stereo_errors(p0 + step, *args) - _stereo_errors(p0 - step, *args)) / (2.0 * step[j])
+    return G
+
+
+def _needs(
+    G: NDArray, C: NDArray, names: list[str], T: NDArray, m: int
+) -> tuple[dict[str, float], dict[str, float]]:
+    """Standard deviation and need of each parameter (and of the baseline ``|T|``), the need
+    from the effective sensitivity ``cov(q, p) / var(p)`` of the ``m`` row offsets and the
+    disparities ``q``."""
     GC = G @ C
     std = {n: math.sqrt(C[k, k]) for k, n in enumerate(names) if C[k, k] > 0}
     g_eff = {n: GC[:, k] / C[k, k] for k, n in enumerate(names) if C[k, k] > 0}
     if {"tx", "ty", "tz"} <= set(names):
         u = np.zeros(len(names))
-        u[[names.index(n) for n in ("tx", "ty", "tz")]] = rig.T / b0
+        u[[names.index(n) for n in ("tx", "ty", "tz")]] = T / float(np.linalg.norm(T))
         if (var_b := float(u @ C @ u)) > 0:
             std["baseline"], g_eff["baseline"] = math.sqrt(var_b), GC @ u / var_b
     needs = {
@@ -792,34 +682,40 @@ def _check_pinning(
                DISPARITY_NEED_PX / max(float(np.abs(g[m:]).max()), 1e-300))
         for n, g in g_eff.items()
     }
+    return std, needs
 
-    # what the board poses lack: tilts about the camera's axes, corners in the image
+
+def _precision_warning(n_views: int, pr: dict[str, float]) -> list[str]:
+    """The line saying the rows or disparities are not pinned at the working distance."""
+    row_px, disp_px = pr["row_offset_px"], pr["disparity_px"]
+    parts = []
+    if row_px > ROW_OFFSET_NEED_PX:
+        parts.append(f"rectified rows may be {row_px:.2f} px apart (needs <= {ROW_OFFSET_NEED_PX:g} px)")
+    if disp_px > DISPARITY_NEED_PX:
+        parts.append(f"disparities off by {disp_px:.2f} px = {pr['depth_mm']:.2f} mm of depth "
+                     f"(needs <= {DISPARITY_NEED_PX:g} px)")
+    if not parts:
+        return []
+    return [f"the {n_views} shots do not pin the rig to what stereo matching needs at "
+            f"the working distance ({pr['working_distance_mm']:.0f} mm): {' and '.join(parts)} "
+            "(1 sigma, worst image point)"]
+
+
+def _group_warnings(
+    flagged: list[str], std: dict[str, float], needs: dict[str, float], rots: NDArray, dists: NDArray,
+    corners_advice: str,
+) -> list[str]:
+    """One line per parameter group with a parameter looser than its need, with advice."""
     normals = rots[:, :, 2] * np.where(rots[:, 2, 2] < 0, -1.0, 1.0)[:, None]  # facing away
     tilt = {"vertical": np.degrees(np.arctan2(normals[:, 0], normals[:, 2])),
             "horizontal": np.degrees(np.arctan2(normals[:, 1], normals[:, 2]))}
-    holes = [f"the {_join(regions)} of the {side} view"
-             for side, pts in (("left", left_points), ("right", right_points))
-             if (regions := _regions_without_corners(pts, size))]
-    corners_advice = ("add shots with corners in the image regions that have none" if holes
-                      else "add shots with the board reaching into the image corners")
 
     def tilt_advice(axis: str) -> str:
         lo, hi = tilt[axis].min(), tilt[axis].max()
         return (f"add shots tilted {_TILT_ADVICE_DEG[0]}-{_TILT_ADVICE_DEG[1]} deg about the {axis} axis, "
                 f"both ways (now {lo:+.0f}..{hi:+.0f} deg)")
 
-    warnings: list[str] = []
-    if row_px > ROW_OFFSET_NEED_PX or disp_px > DISPARITY_NEED_PX:
-        parts = []
-        if row_px > ROW_OFFSET_NEED_PX:
-            parts.append(f"rectified rows may be {row_px:.2f} px apart (needs <= {ROW_OFFSET_NEED_PX:g} px)")
-        if disp_px > DISPARITY_NEED_PX:
-            parts.append(f"disparities off by {disp_px:.2f} px = {depth_mm:.2f} mm of depth "
-                         f"(needs <= {DISPARITY_NEED_PX:g} px)")
-        warnings.append(f"the {prob.n_views} shots do not pin the rig to what stereo matching needs at "
-                        f"the working distance ({depth:.0f} mm): {' and '.join(parts)} "
-                        "(1 sigma, worst image point)")
-    flagged = [n for n in [*names, "baseline"] if n in needs and std[n] > needs[n]]
+    out = []
     for label, members, tilt_axis in _GROUPS:
         hit = [n for n in flagged if n.split("_")[0] in members]
         if not hit:
@@ -831,7 +727,52 @@ def _check_pinning(
         if label.startswith("rig"):
             lo, hi = dists[:, 2].min(), dists[:, 2].max()
             advice.append(f"place boards nearer and farther (now {lo:.0f}-{hi:.0f} mm)")
-        warnings.append(f"{label}: {items}: {'; '.join(advice)}")
+        out.append(f"{label}: {items}: {'; '.join(advice)}")
+    return out
+
+
+def _check_pinning(
+    prob: BundleProblem,
+    res: BundleResult,
+    rig: StereoRig,
+    board_points: NDArray,
+    left_points: Sequence[NDArray | None],
+    right_points: Sequence[NDArray | None],
+) -> _Pinning:
+    """Compare the calibration's precision with what stereo matching needs.
+
+    The rig parameters' covariance is propagated to the rectified row offsets and
+    disparities of pixel pairs over both views at the boards' median distance; each
+    parameter's need follows from its effective sensitivity ``cov(q, p) / var(p)``, since
+    the parameters are strongly correlated (docs/calibration.md).
+    """
+    C, cols, names = _rig_covariance(prob, res)
+    views = res.params[prob.view_offset :].reshape(prob.n_views, 6)
+    rots = matrix_from_rotvec(views[:, :3])
+    dists = rots @ board_points.mean(axis=0) + views[:, 3:]
+    depth = float(np.median(dists[:, 2]))
+    uv_l, uv_r = _check_pixels(rig, depth)
+    if len(uv_l) < _MIN_CHECK_PAIRS:
+        log.info("calibration precision not checked: the views share too few pixels at %.0f mm", depth)
+        return _Pinning()
+    f0, b0 = (rig.left.fy + rig.right.fy) / 2.0, rig.baseline_mm
+    G = _stereo_gradients(rig, res.params[:_N_RIG], cols, C, (uv_l, uv_r), f0)
+    m = len(uv_l)
+    std_q = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
+    row_px, disp_px = float(std_q[:m].max()), float(std_q[m:].max())
+    precision = {"working_distance_mm": depth, "row_offset_px": row_px, "disparity_px": disp_px,
+                 "depth_mm": disp_px * depth**2 / (f0 * b0)}
+    std, needs = _needs(G, C, names, rig.T, m)
+
+    # what the board poses lack: tilts about the camera's axes, corners in the image
+    holes = [f"the {_join(regions)} of the {side} view"
+             for side, pts in (("left", left_points), ("right", right_points))
+             if (regions := _regions_without_corners(pts, rig.left.size))]
+    corners_advice = ("add shots with corners in the image regions that have none" if holes
+                      else "add shots with the board reaching into the image corners")
+    flagged = [n for n in [*names, "baseline"] if n in needs and std[n] > needs[n]]
+    warnings = _precision_warning(prob.n_views, precision)
+    warnings += _group_warnings(flagged, std, needs, rots, dists, corners_advice)
     if warnings and not flagged:  # jointly, not singly, too loose
         warnings[0] += f"; {corners_advice}"
     if warnings and holes:
@@ -839,6 +780,159 @@ def _check_pinning(
     for w in warnings:
         log.warning("%s", w, extra={"prism3d_calibration_warning": True})
     return _Pinning(tuple(warnings), needs, precision)
+
+
+# --------------------------------------------------------------------------------------
+# stereo calibration: the stages
+# --------------------------------------------------------------------------------------
+def _view_points(
+    left_points: Sequence[NDArray | None], right_points: Sequence[NDArray | None], board: tuple[int, int],
+    square_mm: float,
+) -> tuple[NDArray[np.float64], list[NDArray | None], list[NDArray | None]]:
+    """The board's object points ``(n, 3)`` and per camera every view's ``(n, 2)`` float64
+    corners or None, checked."""
+    if len(left_points) != len(right_points):
+        raise InputError(
+            f"left_points and right_points must have the same length, got {len(left_points)} and {len(right_points)}"
+        )
+    obj = board_object_points(board, square_mm)
+    n = obj.shape[0]
+    L: list[NDArray | None] = []
+    Rt: list[NDArray | None] = []
+    for side, pts, out in (("left", left_points, L), ("right", right_points, Rt)):
+        for i, p in enumerate(pts):
+            if p is None:
+                out.append(None)
+                continue
+            a = check_array(p, f"{side}_points[{i}]", dtype_kind="fiu").astype(np.float64).reshape(-1, 2)
+            if a.shape[0] != n:
+                raise InputError(
+                    f"{side}_points[{i}]: expected {n} corners for a {board[0]}x{board[1]} board, got {a.shape[0]}"
+                )
+            out.append(a)
+    return obj, L, Rt
+
+
+def _init_cameras(
+    obj: NDArray, points: tuple[list, list], size: tuple[int, int], *, tangential: bool, k3: bool
+) -> list[tuple[NDArray, NDArray, dict[int, NDArray]]]:
+    """Zhang's initialisation of each camera: ``(K, dist, {view: T_cam_board})``."""
+    init = []
+    for name, pts in zip(("left", "right"), points, strict=True):
+        idx = [i for i in range(len(pts)) if pts[i] is not None]
+        K, d, poses = _zhang_init(
+            [obj] * len(idx), [pts[i] for i in idx], size, tangential=tangential, k3=k3, who=f"{name} camera"
+        )
+        init.append((K, d, dict(zip(idx, poses, strict=True))))
+    return init
+
+
+def _fix_corner_order(
+    obj: NDArray, board: tuple[int, int], both: list[int], Rt: list, P1: dict, right: tuple, srcs: list[str]
+) -> tuple[list[int], dict[int, NDArray]]:
+    """Re-order each right view whose corners disagree with the stereo geometry the views
+    agree on most (updating ``Rt`` and the right poses ``right[2]`` in place), dropping
+    it when no grid symmetry fits. Returns the views kept and ``T_right_left`` per view."""
+    K2, D2, P2 = right
+    rel = {i: P2[i] @ np.linalg.inv(P1[i]) for i in both}
+    support = {i: sum(_pose_close(rel[j], rel[i]) for j in both) for i in both}
+    ref = rel[max(both, key=lambda i: support[i])]
+    perms = grid_symmetries(board)
+    dropped: list[int] = []
+    for i in both:
+        if _pose_close(rel[i], ref):
+            continue
+        best = None
+        for p in perms[1:]:
+            T = _solve_pnp(obj, Rt[i][p], K2, D2)
+            cand = T @ np.linalg.inv(P1[i])
+            if _pose_close(cand, ref):
+                best = (p, T, cand)
+                break
+        if best is None:
+            log.warning("%s: the two views disagree with the rig geometry; right view dropped", srcs[i])
+            Rt[i] = None
+            dropped.append(i)
+        else:
+            log.info("%s: right-view corner order corrected by the stereo geometry", srcs[i])
+            Rt[i] = Rt[i][best[0]]
+            P2[i], rel[i] = best[1], best[2]
+    return [i for i in both if i not in dropped], rel
+
+
+def _reported_detections(
+    detections: Sequence[CornerDetection], Rt: list, V: int
+) -> tuple[CornerDetection, ...]:
+    """The detection report with the corrected right-view corner order."""
+    dets = list(detections)
+    if len(dets) == 2 * V:
+        for i in range(V):
+            d = dets[2 * i + 1]
+            if Rt[i] is not None and d.corners is not None and not np.array_equal(d.corners, Rt[i]):
+                dets[2 * i + 1] = dataclasses.replace(d, corners=Rt[i].copy())
+    return tuple(dets)
+
+
+def _stereo_problem(
+    obj: NDArray, L: list, Rt: list, used: list[int], init: list, T_rl0: NDArray, cam_free: NDArray[np.bool_]
+) -> BundleProblem:
+    """The joint bundle problem of both cameras, the rig pose and the ``used`` board poses."""
+    (K1, D1, P1), (K2, D2, P2) = init
+    N = obj.shape[0]
+    views = [P1[i] if L[i] is not None else np.linalg.inv(T_rl0) @ P2[i] for i in used]
+    x0 = np.concatenate(
+        [_cam_vector(K1, D1), _cam_vector(K2, D2), _pose_vec(T_rl0)] + [_pose_vec(T) for T in views]
+    )
+    free = np.concatenate([cam_free, cam_free, np.ones(6 + 6 * len(used), bool)])
+    objs, imgs, cams, vidx = [], [], [], []
+    for k, i in enumerate(used):
+        for c, pts in ((0, L[i]), (1, Rt[i])):
+            if pts is not None:
+                objs.append(obj)
+                imgs.append(pts)
+                cams.append(np.full(N, c, dtype=np.intp))
+                vidx.append(np.full(N, k, dtype=np.intp))
+    return BundleProblem(
+        object_points=np.concatenate(objs),
+        image_points=np.concatenate(imgs),
+        cam_index=np.concatenate(cams),
+        view_index=np.concatenate(vidx),
+        x0=x0,
+        free=free,
+        n_cams=2,
+        n_views=len(used),
+    )
+
+
+def _stereo_quality(
+    prob: BundleProblem, res: BundleResult
+) -> tuple[NDArray[np.float64], tuple[int, ...], dict[str, float]]:
+    """Per-view RMS ``(V, 2)``, outlier views and the named standard deviations."""
+    r = res.residuals
+    per_view = np.full((prob.n_views, 2), np.nan)
+    for k in range(prob.n_views):
+        for c in (0, 1):
+            m = (prob.view_index == k) & (prob.cam_index == c)
+            if m.any():
+                per_view[k, c] = _rms(r[m])
+    view_rms = np.array([_rms(r[prob.view_index == k]) for k in range(prob.n_views)])
+    med = float(np.median(view_rms))
+    outliers = tuple(int(k) for k in np.flatnonzero(view_rms > OUTLIER_FACTOR * med))
+    std = {n: float(res.std[j]) for j, n in enumerate(_rig_param_names())}
+    return per_view, outliers, std
+
+
+def _calibrated_rig(p: NDArray, size: tuple[int, int], split: PrismSplit | None) -> StereoRig:
+    """The rig of the solved bundle vector ``p`` (default split: two views side by side)."""
+    T_rl = _pose_matrix(p[2 * N_CAM : 2 * N_CAM + 3], p[2 * N_CAM + 3 : 2 * N_CAM + 6])
+    if split is None:
+        split = PrismSplit.side_by_side((2 * size[0], size[1]))
+    try:
+        left_cam = _camera_from_vector(p[:N_CAM], size)
+        right_cam = _camera_from_vector(p[N_CAM : 2 * N_CAM], size)
+        return StereoRig(left_cam, right_cam, T_rl, split, _rig_frame(T_rl))
+    except InputError as exc:
+        raise CalibrationError(f"calibration produced an invalid rig ({exc})") from exc
 
 
 @_one_opencv_thread
@@ -858,185 +952,39 @@ def calibrate_stereo_points(
 ) -> Calibration:
     """Calibrate a stereo rig from chessboard corners already detected.
 
-    Parameters
-    ----------
-    left_points, right_points : list of (N, 2) float or None
-        Per view, the board's corners in canonical order
-        (:func:`~prism3d.reconstruct.corners.board_object_points` order) in each
-        camera; None where that camera did not see the board.
-    image_size : (int, int)
-        ``(width, height)`` of each view.
-    board : (cols, rows)
-        Inner corners.
-    square_mm : float
-        Square size; sets the unit of ``T``.
-    split : PrismSplit, optional
-        The prism split of the calibrated rig (default: two ``image_size`` views side
-        by side).
-    skew, tangential, k3 : bool
-        Model options (skew and k3 off, p1 p2 on by default).
-    sources : list of str, optional
-        A name per view for the report.
-    detections : list of CornerDetection
-        Carried into the result's report: ``(left, right)`` of each view, flattened;
-        right-view corners re-ordered by the geometry check are updated.
-
-    Returns
-    -------
-    Calibration
-        With ``precision``, ``needs`` and ``warnings`` from the check that the shots
-        pin the rig well enough for stereo matching (warnings also logged).
-
-    Raises
-    ------
-    CalibrationError
-        Fewer than 3 views seen by both cameras, or an inconsistent geometry.
+    ``left_points``, ``right_points``: per view ``(N, 2)`` corners in
+    :func:`~prism3d.reconstruct.corners.board_object_points` order, or None where that
+    camera missed the board; ``image_size`` ``(width, height)`` of each view; ``board`` to
+    ``k3`` as :class:`CalibrationOptions`; ``sources`` a name per view; ``detections``
+    ``(left, right)`` per view, flattened, carried into the report (right-view order
+    corrected). Raises CalibrationError with fewer than ``MIN_VIEWS`` views in both cameras.
     """
     check_positive(square_mm, "square_mm")
-    if len(left_points) != len(right_points):
-        raise InputError(
-            f"left_points and right_points must have the same length, got {len(left_points)} and {len(right_points)}"
-        )
-    obj = board_object_points(board, square_mm)
-    N = obj.shape[0]
+    obj, L, Rt = _view_points(left_points, right_points, board, square_mm)
     size = (int(image_size[0]), int(image_size[1]))
-    V = len(left_points)
+    V = len(L)
     srcs = list(sources) if sources is not None else [f"view {i}" for i in range(V)]
-    L: list[NDArray | None] = []
-    Rt: list[NDArray | None] = []
-    for side, pts, out in (("left", left_points, L), ("right", right_points, Rt)):
-        for i, p in enumerate(pts):
-            if p is None:
-                out.append(None)
-                continue
-            a = (
-                check_array(p, f"{side}_points[{i}]", dtype_kind="fiu")
-                .astype(np.float64)
-                .reshape(-1, 2)
-            )
-            if a.shape[0] != N:
-                raise InputError(
-                    f"{side}_points[{i}]: expected {N} corners for a {board[0]}x{board[1]} board, got {a.shape[0]}"
-                )
-            out.append(a)
     both = [i for i in range(V) if L[i] is not None and Rt[i] is not None]
     if len(both) < MIN_VIEWS:
         raise CalibrationError(
             f"calibration needs the board in both views of at least {MIN_VIEWS} shots, got {len(both)}"
         )
-
-    # --- per-camera initialisation (Zhang) ---------------------------------------------
-    init = {}
-    for name, pts in (("left", L), ("right", Rt)):
-        idx = [i for i in range(V) if pts[i] is not None]
-        K, d, poses = _zhang_init(
-            [obj] * len(idx),
-            [pts[i] for i in idx],
-            size,
-            tangential=tangential,
-            k3=k3,
-            who=f"{name} camera",
-        )
-        init[name] = (K, d, dict(zip(idx, poses, strict=True)))
-    (K1, D1, P1), (K2, D2, P2) = init["left"], init["right"]
-
-    # --- consistent corner order between the views -------------------------------------
-    rel = {i: P2[i] @ np.linalg.inv(P1[i]) for i in both}
-    support = {i: sum(_pose_close(rel[j], rel[i]) for j in both) for i in both}
-    ref = rel[max(both, key=lambda i: support[i])]
-    perms = grid_symmetries(board)
-    dropped: list[int] = []
-    for i in both:
-        if _pose_close(rel[i], ref):
-            continue
-        best = None
-        for p in perms[1:]:
-            T = _solve_pnp(obj, Rt[i][p], K2, D2)
-            cand = T @ np.linalg.inv(P1[i])
-            if _pose_close(cand, ref):
-                best = (p, T, cand)
-                break
-        if best is None:
-            log.warning(
-                "%s: the two views disagree with the rig geometry; right view dropped", srcs[i]
-            )
-            Rt[i] = None
-            dropped.append(i)
-        else:
-            log.info("%s: right-view corner order corrected by the stereo geometry", srcs[i])
-            Rt[i] = Rt[i][best[0]]
-            P2[i], rel[i] = best[1], best[2]
-    both = [i for i in both if i not in dropped]
+    init = _init_cameras(obj, (L, Rt), size, tangential=tangential, k3=k3)
+    both, rel = _fix_corner_order(obj, board, both, Rt, init[0][2], init[1], srcs)
     if len(both) < MIN_VIEWS:
         raise CalibrationError(
             f"only {len(both)} shots have consistent boards in both views; need {MIN_VIEWS}"
         )
     T_rl0 = _mean_pose([rel[i] for i in both])
-    dets = list(detections)
-    if len(dets) == 2 * V:  # report the corrected right-view order
-        for i in range(V):
-            d = dets[2 * i + 1]
-            if Rt[i] is not None and d.corners is not None and not np.array_equal(d.corners, Rt[i]):
-                dets[2 * i + 1] = dataclasses.replace(d, corners=Rt[i].copy())
+    dets = _reported_detections(detections, Rt, V)
 
-    # --- bundle adjustment ---------------------------------------------------------------
     used = [i for i in range(V) if L[i] is not None or Rt[i] is not None]
-    views = []
-    for i in used:
-        views.append(P1[i] if L[i] is not None else np.linalg.inv(T_rl0) @ P2[i])
-    x0 = np.concatenate(
-        [_cam_vector(K1, D1), _cam_vector(K2, D2), _pose_vec(T_rl0)] + [_pose_vec(T) for T in views]
-    )
     cam_free = _free_mask_cam(skew=skew, tangential=tangential, k3=k3)
-    free = np.concatenate([cam_free, cam_free, np.ones(6 + 6 * len(used), bool)])
-    objs, imgs, cams, vidx = [], [], [], []
-    for k, i in enumerate(used):
-        for c, pts in ((0, L[i]), (1, Rt[i])):
-            if pts is not None:
-                objs.append(obj)
-                imgs.append(pts)
-                cams.append(np.full(N, c, dtype=np.intp))
-                vidx.append(np.full(N, k, dtype=np.intp))
-    prob = BundleProblem(
-        object_points=np.concatenate(objs),
-        image_points=np.concatenate(imgs),
-        cam_index=np.concatenate(cams),
-        view_index=np.concatenate(vidx),
-        x0=x0,
-        free=free,
-        n_cams=2,
-        n_views=len(used),
-    )
+    prob = _stereo_problem(obj, L, Rt, used, init, T_rl0, cam_free)
     res = solve_bundle(prob)
-    p = res.params
-    left_cam = _camera_from_vector(p[:N_CAM], size)
-    right_cam = _camera_from_vector(p[N_CAM : 2 * N_CAM], size)
-    T_rl = _pose_matrix(p[2 * N_CAM : 2 * N_CAM + 3], p[2 * N_CAM + 3 : 2 * N_CAM + 6])
-    if split is None:
-        split = PrismSplit.side_by_side((2 * size[0], size[1]))
-    try:
-        rig = StereoRig(left_cam, right_cam, T_rl, split, _rig_frame(T_rl))
-    except InputError as exc:
-        raise CalibrationError(f"calibration produced an invalid rig ({exc})") from exc
-
-    # --- quality figures -----------------------------------------------------------------
+    rig = _calibrated_rig(res.params, size, split)
+    per_view, outliers, std = _stereo_quality(prob, res)
     r = res.residuals
-    per_view = np.full((len(used), 2), np.nan)
-    for k in range(len(used)):
-        for c in (0, 1):
-            m = (prob.view_index == k) & (prob.cam_index == c)
-            if m.any():
-                per_view[k, c] = _rms(r[m])
-    view_rms = np.array([_rms(r[prob.view_index == k]) for k in range(len(used))])
-    med = float(np.median(view_rms))
-    outliers = tuple(int(k) for k in np.flatnonzero(view_rms > OUTLIER_FACTOR * med))
-    std: dict[str, float] = {}
-    for c, cam in ((0, "left"), (1, "right")):
-        for j, n in enumerate(CAM_PARAM_NAMES):
-            std[f"{n}_{cam}"] = float(res.std[c * N_CAM + j])
-    for j, n in enumerate(("rx", "ry", "rz", "tx", "ty", "tz")):
-        std[n] = float(res.std[2 * N_CAM + j])
-    rect_rms = rectification_residual(rig, [L[i] for i in both], [Rt[i] for i in both])
     pinning = _check_pinning(prob, res, rig, obj, [L[i] for i in used], [Rt[i] for i in used])
     return Calibration(
         rig=rig,
@@ -1045,106 +993,62 @@ def calibrate_stereo_points(
         rms_right_px=_rms(r[prob.cam_index == 1]),
         per_view_rms_px=per_view,
         std=std,
-        rectification_rms_px=rect_rms,
+        rectification_rms_px=rectification_residual(rig, [L[i] for i in both], [Rt[i] for i in both]),
         n_views=len(used),
         board=(int(board[0]), int(board[1])),
         square_mm=float(square_mm),
         flags={"skew": bool(skew), "tangential": bool(tangential), "k3": bool(k3)},
         outlier_views=outliers,
         sources=tuple(srcs[i] for i in used),
-        detections=tuple(dets),
+        detections=dets,
         precision=pinning.precision,
         needs=pinning.needs,
         warnings=pinning.warnings,
     )
 
 
-@_one_opencv_thread
-def calibrate_stereo(
-    images: Sequence[str | Path | NDArray],
-    *,
-    board: tuple[int, int] = (9, 6),
-    square_mm: float = 25.0,
-    pairs: bool = False,
-    split: PrismSplit | None = None,
-    skew: bool = False,
-    tangential: bool = True,
-    k3: bool = False,
-    method: str = "xjunction",
-    window: int | None = DEFAULT_WINDOW,
-    progress: Callable[[int, int], None] | None = None,
-) -> Calibration:
-    """Calibrate a prism (or ordinary) stereo rig from chessboard images.
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Options of :func:`calibrate_stereo` (the ``prism3d calibrate`` flags)."""
 
-    This is what ``prism3d calibrate IMAGES... -o calib.yaml --board 9x6 --square 25
-    [--pairs] [--skew] [--no-tangential]`` calls.
+    board: tuple[int, int] = (9, 6)
+    """Inner corners ``(cols, rows)`` of the chessboard (OpenCV ``patternSize``)."""
+    square_mm: float = 25.0
+    """Square size, mm; sets the unit of ``T``."""
+    pairs: bool = False
+    """Images are separate views alternating left, right (an ordinary rig), not prism shots."""
+    split: PrismSplit | None = None
+    """Where the views sit on the sensor; None: the left and right halves."""
+    skew: bool = False
+    """Estimate the skew ``K[0, 1]``; off, as Bouguet recommends (square pixels)."""
+    tangential: bool = True
+    """Estimate p1 p2; on, since real adapters decentre the lenses (docs/calibration.md)."""
+    k3: bool = False
+    """Estimate k3; off, since board shots rarely reach the image corners that pin it."""
+    method: str = "xjunction"
+    """Corner detector (:data:`~prism3d.reconstruct.corners.DETECTORS`); the X-junction fit is
+    the most accurate measured (docs/calibration.md)."""
+    window: int | None = DEFAULT_WINDOW
+    """``cornerSubPix`` half-window, px; None: a fraction of the square size."""
 
-    Parameters
-    ----------
-    images : list of paths or (H, W[, 3]) uint8 arrays
-        Side-by-side prism shots, or with ``pairs=True`` separate images alternating
-        left, right, left, right...
-    board : (cols, rows)
-        Inner corners of the chessboard.
-    square_mm : float
-        Square size in millimetres.
-    pairs : bool
-        Images are separate left/right views (an ordinary stereo rig).
-    split : PrismSplit, optional
-        Where the views sit on the sensor; default: left and right halves.
-    skew, tangential, k3 : bool
-        Model options (default: no skew, p1 p2 on, no k3).
-    method, window
-        Corner detector (default ``"xjunction"``; see :mod:`prism3d.reconstruct.corners`).
-    progress : callable(done, total), optional
-        Called after each image's detection.
+    def __post_init__(self) -> None:
+        check_positive(self.square_mm, "square_mm")
+        check_choice(self.method, "method", DETECTORS)
+        if self.window is not None and int(self.window) < 1:
+            raise InputError(f"window: expected a half-window >= 1 pixel, got {self.window}")
+        if self.split is not None and not isinstance(self.split, PrismSplit):
+            raise InputError(f"split: expected a PrismSplit, got {type(self.split).__name__}")
 
-    Returns
-    -------
-    Calibration
 
-    Notes
-    -----
-    Measured with the defaults (X-junction corners): on the virtual paper rig
-    (``prism3d simulate calib``, 5 shots, seed 0) with the paper's k1 k2 model
-    (``tangential=False``): fx, fy within 0.005 %, cx within 0.43 / 1.26 px (left /
-    right), cy within 0.16 / 0.09 px, k1 within 0.0032, baseline within 0.002 %, rig
-    rotation 0.009 deg, RMS 0.019 px, rectification residual 0.025 px (0.002 px on
-    the true corners); with the classic cornerSubPix corners: cx, cy within 2.5 /
-    3.2 px, k1 0.015, rotation 0.027 deg, rectification 0.089 px. The principal point
-    is the weak parameter with 5 poses (std ~0.6 px at this corner noise). On OpenCV's
-    9x6 stereo set (13 pairs): default model RMS 0.172 / 0.168 px, rectification
-    residual 0.095 px (classic corners: 0.147); k1 k2 model: RMS 0.181 / 0.174 joint,
-    0.164 / 0.156 each camera alone, rectification 0.137 px; baseline 83.18 mm.
-
-    Raises
-    ------
-    CalibrationError
-        An image in which the board is found in neither view (named), no board found
-        at all (wrong ``board``), fewer than 3 usable shots.
-    InputError
-        Unreadable or missing files, mixed image sizes, bad arguments.
-    """
-    check_positive(square_mm, "square_mm")
-    dets, view_size = detect_views(
-        images,
-        board=board,
-        pairs=pairs,
-        split=split,
-        method=method,
-        window=window,
-        progress=progress,
-    )
-    bx, by = int(board[0]), int(board[1])
+def _check_boards_found(dets: list[tuple[CornerDetection, CornerDetection]], bx: int, by: int) -> None:
+    """Raise when no image, or some image, shows the board in neither view."""
     if not any(d.found for pair in dets for d in pair):
         raise CalibrationError(
             f"no {bx}x{by} chessboard found in any image; check the board size "
             "(inner corners, e.g. 9x6) and the images"
         )
     empty = [
-        pair[0].source
-        if pair[0].source == pair[1].source
-        else f"{pair[0].source} / {pair[1].source}"
+        pair[0].source if pair[0].source == pair[1].source else f"{pair[0].source} / {pair[1].source}"
         for pair in dets
         if not (pair[0].found or pair[1].found)
     ]
@@ -1152,23 +1056,46 @@ def calibrate_stereo(
         raise CalibrationError(
             f"no {bx}x{by} chessboard found in {', '.join(empty)}; remove the image(s) or check --board"
         )
+
+
+@_one_opencv_thread
+def calibrate_stereo(
+    images: Sequence[str | Path | NDArray],
+    *,
+    options: CalibrationOptions | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Calibration:
+    """Calibrate a prism (or ordinary) stereo rig from chessboard images (``prism3d
+    calibrate``): side-by-side shots, or with ``options.pairs`` separate views alternating
+    left, right (paths or ``(H, W[, 3])`` uint8). ``options``: None for the defaults;
+    ``progress(done, total)`` after each image. Raises CalibrationError for an image with
+    the board in neither view (named), no board at all, fewer than ``MIN_VIEWS`` shots;
+    InputError for unreadable files or mixed sizes. Accuracy: docs/calibration.md."""
+    o = CalibrationOptions() if options is None else options
+    if not isinstance(o, CalibrationOptions):
+        raise InputError(f"options: expected CalibrationOptions, got {type(o).__name__}")
+    dets, view_size = detect_views(
+        images, board=o.board, pairs=o.pairs, split=o.split, method=o.method, window=o.window,
+        progress=progress,
+    )
+    bx, by = int(o.board[0]), int(o.board[1])
+    _check_boards_found(dets, bx, by)
     sources = [
         p[0].source if p[0].source == p[1].source else f"{p[0].source} + {Path(p[1].source).name}"
         for p in dets
     ]
-    flat = tuple(d for pair in dets for d in pair)
     return calibrate_stereo_points(
         [p[0].corners for p in dets],
         [p[1].corners for p in dets],
         view_size,
         board=(bx, by),
-        square_mm=square_mm,
-        split=split,
-        skew=skew,
-        tangential=tangential,
-        k3=k3,
+        square_mm=o.square_mm,
+        split=o.split,
+        skew=o.skew,
+        tangential=o.tangential,
+        k3=o.k3,
         sources=sources,
-        detections=flat,
+        detections=tuple(d for pair in dets for d in pair),
     )
 
 
@@ -1206,14 +1133,7 @@ def calibrate_to_file(
     if out.is_dir():
         raise InputError(f"{out}: is a folder; give a file name such as calib.yaml")
     b = parse_board(board) if isinstance(board, str) else board
-    cal = calibrate_stereo(
-        images,
-        board=b,
-        square_mm=square_mm,
-        pairs=pairs,
-        skew=skew,
-        tangential=tangential,
-        progress=progress,
-    )
+    options = CalibrationOptions(board=b, square_mm=square_mm, pairs=pairs, skew=skew, tangential=tangential)
+    cal = calibrate_stereo(images, options=options, progress=progress)
     cal.save(out)
     return cal

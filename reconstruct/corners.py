@@ -1,46 +1,10 @@
 """Chessboard corner detection with a canonical, view-consistent corner order.
 
-Corners are found in each view of a side-by-side prism shot (cut with a
-:class:`~prism3d.capture.rig.PrismSplit`) or in separate left/right images.
-Three detectors are available:
-
-``"xjunction"`` (default)
-    ``"classic"`` followed by :func:`refine_xjunction`: a blurred X-junction model
-    (two free edge directions, blur, contrast, linear shading) fitted by
-    Levenberg-Marquardt to the float grey levels within 0.6 x the corner spacing
-    (at most 32 px) of every corner.
-``"classic"``
-    ``cv2.findChessboardCorners`` (falling back to ``FILTER_QUADS`` and to the
-    sector-based detector for finding only) followed by ``cv2.cornerSubPix`` with a
-    search window of half-size ``window`` pixels (``winSize=(window, window)``, a
-    ``2 window + 1`` square); by default the half-window is 0.2 x the board's square
-    size in pixels (7 px for 35 px squares), clipped to below half a square.
-``"sb"``
-    ``cv2.findChessboardCornersSB`` (sector-based, with ``CALIB_CB_ACCURACY``).
-
-Measured (``benchmarks/bench_calibrate.py``, numbers from one run):
-
-* Virtual paper rig (``prism3d simulate calib``, 5 shots, 10 views, squares ~80 px),
-  RMS corner error against the true corners: xjunction 0.019 px (radius fraction
-  0.4: 0.019, 0.6 capped at 16 px: 0.027, 24 px: 0.022); classic half-window 3:
-  0.142 px, 5: 0.110, 7: 0.094, 11: 0.083, 0.2 x square (~16): 0.077 px (the same on
-  float grey); a quadratic saddle-point fit to the (smoothed) grey levels: 0.039 px;
-  SB: 0.145 px and it missed 7 of the 10 views.
-* OpenCV's real 9x6 stereo set (13 pairs, 640x480, squares 31-45 px), RMS of each
-  camera calibrated alone with k1 k2 (left / right): xjunction 0.164 / 0.156
-  (radius fraction 0.4: 0.166 / 0.159, 0.7: worse in the joint adjustment); classic
-  0.2 x square 0.189 / 0.195 (half-window 3: 0.240 / 0.297, 5: 0.204 / 0.212, 7:
-  0.191 / 0.194, 11: 0.418 / 0.461); saddle point 0.175 / 0.167; SB 0.254 / 0.247.
-  Rectification residual with the default k1 k2 p1 p2 model: xjunction 0.095 px,
-  classic 0.147 px (k1 k2 only: 0.137 / 0.183).
-
-Corner order: OpenCV may return the grid in any of its symmetric orders (reversed
-for a board turned by 180 degrees; for square boards also transposed). We
-canonicalise: corner 0 is the grid corner from which rows run along +x and
-columns along +y in the image (first corner nearest the image top-left for an
-upright board), the same rule in both views. Where the rule is ambiguous (board
-near 45 or 90 degrees), :func:`grid_symmetries` lists the alternatives and the
-calibration resolves the order between views by the stereo geometry.
+Detectors (:data:`DETECTORS`): ``"xjunction"`` (default: ``"classic"`` refined by
+:func:`refine_xjunction`), ``"classic"`` (``cv2.findChessboardCorners`` + ``cornerSubPix``),
+``"sb"`` (``cv2.findChessboardCornersSB``); accuracies in docs/calibration.md. Corner 0
+is the grid corner from which rows run along +x and columns along +y in the image; where
+that is ambiguous, :func:`grid_symmetries` lists the alternatives.
 
 References
 ----------
@@ -86,35 +50,32 @@ log = logging.getLogger(__name__)
 #: Available detector names.
 DETECTORS = ("xjunction", "classic", "sb")
 #: Default cornerSubPix half-window as a fraction of the board's square size in
-#: pixels (see the module docstring for the numbers); ``window=None`` uses it.
+#: pixels (the best measured, docs/calibration.md); ``window=None`` uses it.
 WINDOW_FRACTION = 0.2
 DEFAULT_WINDOW: int | None = None
 #: X-junction fit window radius as a fraction of the corner spacing (``"xjunction"``).
 XJ_RADIUS_FRACTION = 0.6
 #: Largest X-junction fit window radius, pixels.
 XJ_MAX_RADIUS = 32.0
+#: OpenCV's detectors fail on views smaller than this (px).
+_MIN_IMAGE_PX = 16
+#: cornerSubPix stops after this many iterations or a move below this (px).
+_SUBPIX_MAX_ITER = 100
+_SUBPIX_EPS = 1e-4
+
+
+def _subpix_criteria() -> tuple[int, int, float]:
+    import cv2
+
+    return (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, _SUBPIX_MAX_ITER, _SUBPIX_EPS)
 
 
 @dataclass(frozen=True, eq=False)
 class CornerDetection:
-    """What was found in one view of one image.
-
-    Attributes
-    ----------
-    source : str
-        Image path (or ``"<array i>"`` for in-memory images).
-    view : str
-        ``"left"`` or ``"right"``.
-    found : bool
-        Whether the full board was found.
-    n_corners : int
-        Number of corners returned (``board[0] * board[1]`` when found, else 0).
-    sharpness : float
-        Mean edge width around the corners in pixels
-        (``cv2.estimateChessboardSharpness``; lower is sharper; NaN when not found).
-    corners : (N, 2) float64 or None
-        Sub-pixel corners in canonical order, view-image pixels.
-    """
+    """What was found in one view (``"left"``/``"right"``) of one image (path or
+    ``"<array i>"``): whether the full board was, the corner count, the mean edge width in
+    px (``cv2.estimateChessboardSharpness``, NaN when not found) and the ``(N, 2)`` float64
+    corners in canonical order, or None."""
 
     source: str
     view: str
@@ -172,20 +133,8 @@ def _order_score(corners: NDArray[np.float64], board: tuple[int, int]) -> float:
 
 
 def canonical_order(corners: NDArray, board: tuple[int, int]) -> NDArray[np.float64]:
-    """Reorder a detected grid so rows run along +x and columns along +y.
-
-    Parameters
-    ----------
-    corners : (N, 2) float
-        Corners in any of the grid's symmetric orders (OpenCV output).
-    board : (cols, rows)
-        Inner-corner counts.
-
-    Returns
-    -------
-    (N, 2) float64
-        The same corners in canonical order.
-    """
+    """Reorder ``(N, 2)`` corners in any of the grid's symmetric orders so rows run along
+    +x and columns along +y; ``board`` = ``(cols, rows)`` inner corners."""
     cols, rows = _check_board(board)
     c = check_array(corners, "corners", dtype_kind="fiu").reshape(-1, 2).astype(np.float64)
     if c.shape[0] != cols * rows:
@@ -269,72 +218,45 @@ def _grid_directions(
     return d_row, d_col, spacing
 
 
-def refine_xjunction(
-    gray: NDArray,
-    corners: NDArray,
-    board: tuple[int, int],
-    *,
-    radius_fraction: float = XJ_RADIUS_FRACTION,
-    max_radius: float = XJ_MAX_RADIUS,
-    max_iter: int = 40,
-) -> NDArray[np.float64]:
-    """Refine chessboard corners by fitting a blurred X-junction model to the grey levels.
+#: Model constants of the X-junction fit: erf argument scale and d erf / dx factor.
+_K_ERF = 1.0 / math.sqrt(2.0)
+_K_DER = 2.0 / math.sqrt(math.pi)
+#: Smallest fit window radius, px: fewer pixels leave the 9 model parameters unpinned.
+_XJ_MIN_RADIUS = 2.0
+#: Ridge on the linear start solve, keeping a blank window's 4x4 system regular.
+_XJ_LINEAR_RIDGE = 1e-9
+#: Levenberg-Marquardt damping: start, factor on success and on failure, give-up level.
+_LM_LAMBDA0 = 1e-3
+_LM_DOWN = 0.3
+_LM_UP = 10.0
+_LM_LAMBDA_MAX = 1e8
+_LM_DIAG_FLOOR = 1e-12  # keeps the damping of a parameter without gradient non-zero
+#: A corner has converged when its step is below this, px.
+_XJ_STEP_TOL = 1e-5
+#: Smallest blur width (px) during the fit: a narrower edge is below pixel sampling.
+_XJ_MIN_BLUR = 0.2
+#: Fit accepted only when the corner moved less than this fraction of the corner spacing
+#: (a larger move means the fit locked on another corner) ...
+_XJ_MAX_MOVE = 0.25
+#: ... and the contrast |A| (grey levels) exceeds this (else there is no corner).
+_XJ_MIN_CONTRAST = 1.0
 
-    Around every corner, the pixels within ``radius_fraction`` x the distance to the
-    nearest grid neighbour are fitted (Levenberg-Marquardt, all corners at once) with
 
-    ``I(p) = m + A erf(n1 . (p - c) / (sqrt(2) s)) erf(n2 . (p - c) / (sqrt(2) s))
-    + g . (p - p0)``
+@dataclass(frozen=True, eq=False)
+class _XJWindows:
+    """The pixels around every corner: coordinates ``(N, M)``, offsets from the rounded
+    corner, in-window weights (0 outside the radius or the image) and grey levels."""
 
-    an ideal chessboard corner at ``c`` whose two edges have normals ``n1``, ``n2``
-    (angles free: perspective makes them non-orthogonal), blurred by a Gaussian of
-    width ``s`` (optics + pixel integration), with contrast ``A``, mean ``m`` and a
-    linear shading ``g``. The model is point-symmetric about ``c`` like the image of
-    a real corner, so it does not pull the corner towards either square, and it uses
-    every pixel of the window (not only the gradient directions like
-    ``cv2.cornerSubPix``). Corners whose fit fails (moved more than a quarter of the
-    spacing, no contrast, blur out of range) keep their input position.
+    px: NDArray[np.float64]
+    py: NDArray[np.float64]
+    rel_x: NDArray[np.float64]
+    rel_y: NDArray[np.float64]
+    wgt: NDArray[np.float64]
+    img: NDArray[np.float64]
 
-    Parameters
-    ----------
-    gray : (H, W) float or uint8
-        Grey image (:func:`to_gray_float`; do not round it to 8 bits first).
-    corners : (N, 2) float
-        Initial corners, pixels, in OpenCV's grid order (``rows`` rows of ``cols``).
-    board : (cols, rows)
-        Inner corners.
-    radius_fraction : float
-        Window radius as a fraction of the nearest-neighbour corner spacing.
-    max_radius : float
-        Upper limit of the window radius, pixels (bounds the cost on large boards).
-    max_iter : int
-        Levenberg-Marquardt iterations.
 
-    Returns
-    -------
-    (N, 2) float64
-        Refined corners, same order.
-
-    References
-    ----------
-    .. [1] S. Placht, P. Fürsattel, E. A. Mengue, H. Hofmann, C. Schaller, M. Balda,
-       E. Angelopoulou, "ROCHADE: Robust Checkerboard Advanced Detection for Camera
-       Calibration", ECCV 2014 (saddle-point refinement of smoothed corners).
-    .. [2] D. Chen, G. Zhang, "A new sub-pixel detector for X-corners in camera
-       calibration targets", WSCG 2005.
-    """
-    from scipy.special import erf
-
-    cols, rows = _check_board(board)
-    g = check_array(gray, "gray", ndim=2, dtype_kind="fu").astype(np.float64)
-    c0 = check_array(corners, "corners", dtype_kind="fiu").reshape(-1, 2).astype(np.float64)
-    if c0.shape[0] != cols * rows:
-        raise InputError(
-            f"corners: expected {cols * rows} corners for a {cols}x{rows} board, got {c0.shape[0]}"
-        )
+def _xj_windows(g: NDArray[np.float64], c0: NDArray[np.float64], radius: NDArray[np.float64]) -> _XJWindows:
     H, W = g.shape
-    d_row, d_col, spacing = _grid_directions(c0, (cols, rows))
-    radius = np.clip(float(radius_fraction) * spacing, 2.0, max(float(max_radius), 2.0))
     ri = int(np.ceil(radius.max()))
     oy, ox = np.mgrid[-ri : ri + 1, -ri : ri + 1]
     ox, oy = ox.ravel().astype(np.float64), oy.ravel().astype(np.float64)
@@ -346,50 +268,60 @@ def refine_xjunction(
         np.float64
     )
     img = g[np.clip(py, 0, H - 1).astype(np.intp), np.clip(px, 0, W - 1).astype(np.intp)]
-    rel_x, rel_y = px - base[:, :1], py - base[:, 1:]
-    k_erf = 1.0 / math.sqrt(2.0)
-    k_der = 2.0 / math.sqrt(math.pi)
+    return _XJWindows(px, py, px - base[:, :1], py - base[:, 1:], wgt, img)
 
-    def model(p: NDArray[np.float64], sel: NDArray[np.intp]) -> tuple[NDArray, NDArray]:
-        u = px[sel] - p[:, 0:1]
-        v = py[sel] - p[:, 1:2]
-        c1, s1 = np.cos(p[:, 2:3]), np.sin(p[:, 2:3])
-        c2, s2 = np.cos(p[:, 3:4]), np.sin(p[:, 3:4])
-        sig = p[:, 4:5]
-        a1 = (c1 * u + s1 * v) * (k_erf / sig)
-        a2 = (c2 * u + s2 * v) * (k_erf / sig)
-        e1, e2 = erf(a1), erf(a2)
-        g1 = k_der * np.exp(-a1 * a1) * (k_erf / sig)
-        g2 = k_der * np.exp(-a2 * a2) * (k_erf / sig)
-        A = p[:, 6:7]
-        f = p[:, 5:6] + A * e1 * e2 + p[:, 7:8] * rel_x[sel] + p[:, 8:9] * rel_y[sel]
-        J = np.empty(u.shape + (9,))
-        J[..., 0] = -A * (g1 * c1 * e2 + e1 * g2 * c2)
-        J[..., 1] = -A * (g1 * s1 * e2 + e1 * g2 * s2)
-        J[..., 2] = A * g1 * (-s1 * u + c1 * v) * e2
-        J[..., 3] = A * e1 * g2 * (-s2 * u + c2 * v)
-        J[..., 4] = -A * (e1 * g2 * a2 + g1 * a1 * e2) / (k_erf / sig) / sig
-        J[..., 5] = 1.0
-        J[..., 6] = e1 * e2
-        J[..., 7] = rel_x[sel]
-        J[..., 8] = rel_y[sel]
-        return f, J
 
-    # start: edges along the grid lines, 1 px blur, linear terms by least squares
+def _xj_model(p: NDArray[np.float64], sel: NDArray[np.intp], win: _XJWindows) -> tuple[NDArray, NDArray]:
+    """Model grey levels ``(n, M)`` and Jacobian ``(n, M, 9)`` of the corners ``sel`` with
+    parameters ``p (n, 9)``: x y, edge normal angles, blur, mean, contrast, shading."""
+    from scipy.special import erf
+
+    u = win.px[sel] - p[:, 0:1]
+    v = win.py[sel] - p[:, 1:2]
+    c1, s1 = np.cos(p[:, 2:3]), np.sin(p[:, 2:3])
+    c2, s2 = np.cos(p[:, 3:4]), np.sin(p[:, 3:4])
+    sig = p[:, 4:5]
+    a1 = (c1 * u + s1 * v) * (_K_ERF / sig)
+    a2 = (c2 * u + s2 * v) * (_K_ERF / sig)
+    e1, e2 = erf(a1), erf(a2)
+    g1 = _K_DER * np.exp(-a1 * a1) * (_K_ERF / sig)
+    g2 = _K_DER * np.exp(-a2 * a2) * (_K_ERF / sig)
+    A = p[:, 6:7]
+    f = p[:, 5:6] + A * e1 * e2 + p[:, 7:8] * win.rel_x[sel] + p[:, 8:9] * win.rel_y[sel]
+    J = np.empty(u.shape + (9,))
+    J[..., 0] = -A * (g1 * c1 * e2 + e1 * g2 * c2)
+    J[..., 1] = -A * (g1 * s1 * e2 + e1 * g2 * s2)
+    J[..., 2] = A * g1 * (-s1 * u + c1 * v) * e2
+    J[..., 3] = A * e1 * g2 * (-s2 * u + c2 * v)
+    J[..., 4] = -A * (e1 * g2 * a2 + g1 * a1 * e2) / (_K_ERF / sig) / sig
+    J[..., 5] = 1.0
+    J[..., 6] = e1 * e2
+    J[..., 7] = win.rel_x[sel]
+    J[..., 8] = win.rel_y[sel]
+    return f, J
+
+
+def _xj_start(c0: NDArray, d_row: NDArray, d_col: NDArray, win: _XJWindows) -> NDArray[np.float64]:
+    """Start: edges along the grid lines, 1 px blur, the linear terms by least squares."""
     n1 = np.arctan2(d_row[:, 0], -d_row[:, 1])  # normal of the edge along the row
     n2 = np.arctan2(d_col[:, 0], -d_col[:, 1])
     p = np.zeros((c0.shape[0], 9))
     p[:, 0:2], p[:, 2], p[:, 3], p[:, 4] = c0, n1, n2, 1.0
-    every = np.arange(c0.shape[0])
-    _, J = model(p, every)
-    lin = J[..., 5:9] * wgt[..., None]
-    lhs = np.einsum("nmi,nmj->nij", lin, J[..., 5:9]) + 1e-9 * np.eye(4)
-    p[:, 5:9] = np.linalg.solve(lhs, np.einsum("nmi,nm->ni", lin, img)[..., None])[..., 0]
-    f, J = model(p, every)
+    _, J = _xj_model(p, np.arange(c0.shape[0]), win)
+    lin = J[..., 5:9] * win.wgt[..., None]
+    lhs = np.einsum("nmi,nmj->nij", lin, J[..., 5:9]) + _XJ_LINEAR_RIDGE * np.eye(4)
+    p[:, 5:9] = np.linalg.solve(lhs, np.einsum("nmi,nm->ni", lin, win.img)[..., None])[..., 0]
+    return p
+
+
+def _xj_levenberg_marquardt(p: NDArray[np.float64], win: _XJWindows, max_iter: int) -> NDArray[np.float64]:
+    """Levenberg-Marquardt on all corners at once, each with its own damping (``p`` updated)."""
+    wgt, img = win.wgt, win.img
+    f, J = _xj_model(p, np.arange(p.shape[0]), win)
     r = (f - img) * wgt
     cost = np.einsum("nm,nm->n", r, r)
-    lam = np.full(c0.shape[0], 1e-3)
-    active = np.ones(c0.shape[0], dtype=bool)
+    lam = np.full(p.shape[0], _LM_LAMBDA0)
+    active = np.ones(p.shape[0], dtype=bool)
     for _ in range(int(max_iter)):
         idx = np.flatnonzero(active)
         if idx.size == 0:
@@ -397,36 +329,67 @@ def refine_xjunction(
         Jw = J[idx] * wgt[idx, :, None]
         JtJ = np.einsum("nmi,nmj->nij", Jw, J[idx])
         grad = np.einsum("nmi,nm->ni", Jw, r[idx])
-        diag = np.einsum("nii->ni", JtJ) + 1e-12
+        diag = np.einsum("nii->ni", JtJ) + _LM_DIAG_FLOOR
         lhs = JtJ + (lam[idx, None] * diag)[:, :, None] * np.eye(9)[None]
         try:
             step = -np.linalg.solve(lhs, grad[..., None])[..., 0]
         except np.linalg.LinAlgError:  # pragma: no cover - damped systems are regular
             break
         trial = p[idx] + step
-        trial[:, 4] = np.maximum(trial[:, 4], 0.2)
-        ft, Jt = model(trial, idx)
+        trial[:, 4] = np.maximum(trial[:, 4], _XJ_MIN_BLUR)
+        ft, Jt = _xj_model(trial, idx, win)
         rt = (ft - img[idx]) * wgt[idx]
         ct = np.einsum("nm,nm->n", rt, rt)
         better = ct < cost[idx]
         acc = idx[better]
-        p[acc], f[acc], J[acc], r[acc], cost[acc] = (
-            trial[better],
-            ft[better],
-            Jt[better],
-            rt[better],
-            ct[better],
+        p[acc], f[acc], J[acc] = trial[better], ft[better], Jt[better]
+        r[acc], cost[acc] = rt[better], ct[better]
+        lam[acc] *= _LM_DOWN
+        lam[idx[~better]] *= _LM_UP
+        small = np.max(np.abs(step[:, :2]), axis=1) < _XJ_STEP_TOL
+        active[idx[(better & small) | (lam[idx] > _LM_LAMBDA_MAX)]] = False
+    return p
+
+
+def refine_xjunction(
+    gray: NDArray,
+    corners: NDArray,
+    board: tuple[int, int],
+    *,
+    radius_fraction: float = XJ_RADIUS_FRACTION,
+    max_radius: float = XJ_MAX_RADIUS,
+    max_iter: int = 40,
+) -> NDArray[np.float64]:
+    """Refine chessboard corners ``(N, 2)`` (OpenCV grid order) by fitting a blurred
+    X-junction to the float grey levels ``gray`` (:func:`to_gray_float`): within
+    ``radius_fraction`` x the corner spacing (<= ``max_radius`` px), ``I(p) = m + A erf(n1.(p
+    - c) / (sqrt(2) s)) erf(n2.(p - c) / (sqrt(2) s)) + g.(p - p0)`` by Levenberg-Marquardt.
+    Corners whose fit fails keep their input position.
+
+    References
+    ----------
+    .. [1] S. Placht et al., "ROCHADE: Robust Checkerboard Advanced Detection for Camera
+       Calibration", ECCV 2014 (saddle-point refinement of smoothed corners).
+    .. [2] D. Chen, G. Zhang, "A new sub-pixel detector for X-corners in camera
+       calibration targets", WSCG 2005.
+    """
+    cols, rows = _check_board(board)
+    g = check_array(gray, "gray", ndim=2, dtype_kind="fu").astype(np.float64)
+    c0 = check_array(corners, "corners", dtype_kind="fiu").reshape(-1, 2).astype(np.float64)
+    if c0.shape[0] != cols * rows:
+        raise InputError(
+            f"corners: expected {cols * rows} corners for a {cols}x{rows} board, got {c0.shape[0]}"
         )
-        lam[acc] *= 0.3
-        lam[idx[~better]] *= 10.0
-        small = np.max(np.abs(step[:, :2]), axis=1) < 1e-5
-        active[idx[(better & small) | (lam[idx] > 1e8)]] = False
+    d_row, d_col, spacing = _grid_directions(c0, (cols, rows))
+    radius = np.clip(float(radius_fraction) * spacing, _XJ_MIN_RADIUS, max(float(max_radius), _XJ_MIN_RADIUS))
+    win = _xj_windows(g, c0, radius)
+    p = _xj_levenberg_marquardt(_xj_start(c0, d_row, d_col, win), win, max_iter)
     moved = np.linalg.norm(p[:, :2] - c0, axis=1)
     ok = (
         np.all(np.isfinite(p), axis=1)
-        & (moved < 0.25 * spacing)
+        & (moved < _XJ_MAX_MOVE * spacing)
         & (p[:, 4] < radius)
-        & (np.abs(p[:, 6]) > 1.0)
+        & (np.abs(p[:, 6]) > _XJ_MIN_CONTRAST)
     )
     if not ok.all():
         log.debug("x-junction fit failed for %d of %d corners", int((~ok).sum()), ok.size)
@@ -452,24 +415,13 @@ def detect_corners(
     method: str = "xjunction",
     window: int | None = DEFAULT_WINDOW,
 ) -> NDArray[np.float64] | None:
-    """Find a chessboard's inner corners to sub-pixel accuracy.
+    """A chessboard's inner corners ``(N, 2)`` float64 to sub-pixel accuracy, in canonical
+    order, or None when the full board is not found.
 
-    Parameters
-    ----------
-    image : (H, W[, 3]) uint8 or float32
-        One view (RGB or grey).
-    board : (cols, rows)
-        Inner corners per row and per column (OpenCV ``patternSize``).
-    method : {"xjunction", "classic", "sb"}
-        Detector (see the module docstring for measured accuracy).
-    window : int, optional
-        ``cornerSubPix`` half-window for ``"classic"`` and ``"xjunction"``; default 0.2 x the square size
-        in pixels. Always clipped to below half a square.
-
-    Returns
-    -------
-    (N, 2) float64 or None
-        Corners in canonical order, or None when the full board is not found.
+    ``image``: one view ``(H, W[, 3])`` uint8 or float; ``board``: ``(cols, rows)`` inner
+    corners (OpenCV ``patternSize``); ``method``: one of :data:`DETECTORS`; ``window``:
+    ``cornerSubPix`` half-window, px (default ``WINDOW_FRACTION`` x the square size),
+    always clipped to below half a square.
     """
     import cv2
 
@@ -478,7 +430,7 @@ def detect_corners(
     if window is not None and int(window) < 1:
         raise InputError(f"window: expected a half-window >= 1 pixel, got {window}")
     gray = to_gray(image)
-    if min(gray.shape) < 16:  # OpenCV's detectors fail on tiny images
+    if min(gray.shape) < _MIN_IMAGE_PX:
         return None
     try:
         return _detect(
@@ -526,8 +478,7 @@ def _detect(
             )
             want = WINDOW_FRACTION * sq if window is None else window
             w = max(1, min(round(want), int(sq / 2) - 1))
-            crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
-            corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (w, w), (-1, -1), crit)
+            corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (w, w), (-1, -1), _subpix_criteria())
             if method == "xjunction" and fgray is not None:
                 corners = refine_xjunction(fgray, corners.reshape(-1, 2), (cols, rows))
     if not ok or corners is None or corners.reshape(-1, 2).shape[0] != cols * rows:
@@ -547,6 +498,41 @@ def _sharpness(gray: NDArray[np.uint8], board: tuple[int, int], corners: NDArray
         return float("nan")
 
 
+def _shot_views(img: NDArray, name: str, split: object | None) -> list[tuple[NDArray, str]]:
+    """The (left, right) views of a side-by-side shot (default split: the two halves)."""
+    from prism3d.capture.rig import PrismSplit
+
+    check_array(img, name, ndim=(2, 3))
+    sp = split
+    if sp is None:
+        h, w = img.shape[:2]
+        if w % 2:
+            raise InputError(f"{name}: width {w} is odd; give a PrismSplit for this sensor")
+        sp = PrismSplit.side_by_side((w, h))
+    if not isinstance(sp, PrismSplit):
+        raise InputError(f"split: expected a PrismSplit, got {type(sp).__name__}")
+    try:
+        lv, rv = sp.split(img)
+    except InputError as exc:
+        raise InputError(f"{name}: {exc}") from exc
+    return [(lv, name), (rv, name)]
+
+
+def _detect_view(img: NDArray, name: str, view: str, board: tuple[int, int], method: str,
+                 window: int | None) -> CornerDetection:
+    corners = detect_corners(img, board, method=method, window=window)
+    sharp = float("nan") if corners is None else _sharpness(to_gray(img), tuple(board), corners)
+    log.debug("%s (%s): found=%s", name, view, corners is not None)
+    return CornerDetection(
+        source=name,
+        view=view,
+        found=corners is not None,
+        n_corners=0 if corners is None else int(corners.shape[0]),
+        sharpness=sharp,
+        corners=corners,
+    )
+
+
 def detect_views(
     images: Sequence[str | Path | NDArray],
     *,
@@ -559,36 +545,13 @@ def detect_views(
 ) -> tuple[list[tuple[CornerDetection, CornerDetection]], tuple[int, int]]:
     """Detect the board in both views of every shot.
 
-    Parameters
-    ----------
-    images : sequence of paths or (H, W[, 3]) arrays
-        Side-by-side prism shots, or (``pairs=True``) separate images alternating
-        left, right, left, right... (OpenCV's ``stereo_calib.xml`` order).
-    board : (cols, rows)
-        Inner corners.
-    pairs : bool
-        Separate left/right images instead of side-by-side shots.
-    split : PrismSplit, optional
-        Where the views sit on the sensor (shots only); default: left and right halves.
-    method, window
-        See :func:`detect_corners`.
-    progress : callable(done, total), optional
-        Called after each image.
-
-    Returns
-    -------
-    detections : list of (left, right) CornerDetection
-        One pair per shot.
-    view_size : (int, int)
-        ``(width, height)`` of each view.
-
-    Raises
-    ------
-    InputError
-        Unreadable files, an odd number of images in pairs mode, mixed image sizes.
+    ``images``: side-by-side prism shots (cut by ``split``, a PrismSplit; default the two
+    halves) or, with ``pairs``, separate views alternating left, right (OpenCV's
+    ``stereo_calib.xml`` order); ``method``, ``window`` as :func:`detect_corners`;
+    ``progress(done, total)`` after each shot. Returns one ``(left, right)`` detection
+    per shot and the view size ``(width, height)``. Raises InputError for unreadable
+    files, an odd count in pairs mode, or mixed view sizes.
     """
-    from prism3d.capture.rig import PrismSplit
-
     _check_board(board)
     items = list(images)
     if not items:
@@ -597,9 +560,7 @@ def detect_views(
         raise InputError(
             f"images: pairs mode expects left, right, left, right..., got an odd count ({len(items)})"
         )
-    names = [
-        str(it) if isinstance(it, str | Path) else f"<array {i}>" for i, it in enumerate(items)
-    ]
+    names = [str(it) if isinstance(it, str | Path) else f"<array {i}>" for i, it in enumerate(items)]
 
     def get(i: int) -> NDArray:
         it = items[i]
@@ -613,23 +574,7 @@ def detect_views(
         if pairs:
             views = [(get(2 * s), names[2 * s]), (get(2 * s + 1), names[2 * s + 1])]
         else:
-            img = get(s)
-            check_array(img, names[s], ndim=(2, 3))
-            sp = split
-            if sp is None:
-                h, w = img.shape[:2]
-                if w % 2:
-                    raise InputError(
-                        f"{names[s]}: width {w} is odd; give a PrismSplit for this sensor"
-                    )
-                sp = PrismSplit.side_by_side((w, h))
-            if not isinstance(sp, PrismSplit):
-                raise InputError(f"split: expected a PrismSplit, got {type(sp).__name__}")
-            try:
-                lv, rv = sp.split(img)
-            except InputError as exc:
-                raise InputError(f"{names[s]}: {exc}") from exc
-            views = [(lv, names[s]), (rv, names[s])]
+            views = _shot_views(get(s), names[s], split)
         pair = []
         for (img, name), view in zip(views, ("left", "right"), strict=True):
             check_array(img, name, ndim=(2, 3))
@@ -641,21 +586,7 @@ def detect_views(
                     f"{name}: view size {size[0]}x{size[1]} differs from {first_name} "
                     f"({view_size[0]}x{view_size[1]}); all images must have the same size"
                 )
-            corners = detect_corners(img, board, method=method, window=window)
-            sharp = (
-                float("nan") if corners is None else _sharpness(to_gray(img), tuple(board), corners)
-            )
-            pair.append(
-                CornerDetection(
-                    source=name,
-                    view=view,
-                    found=corners is not None,
-                    n_corners=0 if corners is None else int(corners.shape[0]),
-                    sharpness=sharp,
-                    corners=corners,
-                )
-            )
-            log.debug("%s (%s): found=%s", name, view, corners is not None)
+            pair.append(_detect_view(img, name, view, board, method, window))
         out.append((pair[0], pair[1]))
         if progress is not None:
             progress(s + 1, n_shots)
@@ -664,50 +595,23 @@ def detect_views(
     return out, view_size
 
 
-def detect_square_grid(
-    image: NDArray,
-    grid: tuple[int, int] = (8, 8),
-    *,
-    window: int = 5,
-) -> NDArray[np.float64] | None:
-    """Corners of a target made of separate dark squares (Zhang's calibration pattern).
+#: Square-grid target: contours smaller than this (px^2) are noise, not squares.
+_MIN_QUAD_AREA = 16
+#: Polygon approximation tolerance, fraction of the perimeter: keeps a blurred square's
+#: 4 corners while merging the pixel steps of its edges.
+_QUAD_APPROX = 0.08
+_HULL_APPROX = 0.05
+#: A square's area may differ from the median of the largest ones by this factor either
+#: way (perspective), and no more (text, specks, the page border).
+_QUAD_AREA_RATIO = (0.3, 3.0)
+#: Where a square's corners sit around its centre in grid units (squares half a cell wide).
+_SQUARE_CORNER_OFFSETS = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]) * 0.5
 
-    Threshold (Otsu) -> contours -> convex quadrilaterals of similar area -> the
-    ``cols x rows`` squares ordered by a homography fitted to their centres ->
-    ``cv2.cornerSubPix`` on every square corner.
 
-    Parameters
-    ----------
-    image : (H, W[, 3]) uint8
-        The view.
-    grid : (cols, rows)
-        Squares per row and per column.
-    window : int
-        ``cornerSubPix`` half-window (keep it below half the gap between squares).
-        On Zhang's five images (squares ~30 px, gaps ~23 px), calibrating from these
-        corners gives alpha 831.43, beta 831.79, k1 -0.2299, RMS 0.41 px with 5
-        (2: 831.25 / RMS 0.51; 4: 831.66 / 0.42; 6: 831.38 / 0.40), against Zhang's
-        832.50, 832.53, -0.2286 from his own corners (RMS 0.34); our corners differ
-        from his by 0.25-0.33 px RMS.
-
-    Returns
-    -------
-    (4 * cols * rows, 2) float64 or None
-        Square by square, rows from the image top, squares left to right, and for each
-        square its corners top-left, top-right, bottom-right, bottom-left (the target
-        is assumed roughly upright: no more than 45 degrees of in-plane rotation).
-        None when the grid is not found.
-
-    References
-    ----------
-    .. [1] Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11)
-       (2000): the pattern of separate squares used there.
-    """
+def _dark_quads(gray: NDArray[np.uint8], n: int) -> list[NDArray[np.float64]] | None:
+    """The ``n`` dark convex quadrilaterals of similar area (Otsu threshold), or None."""
     import cv2
 
-    cols, rows = _check_board(grid)
-    gray = to_gray(image)
-    n = cols * rows
     _, bw = cv2.threshold(
         cv2.GaussianBlur(gray, (3, 3), 0), 0, 255, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU
     )
@@ -715,21 +619,28 @@ def detect_square_grid(
     quads = []
     for c in contours:
         area = cv2.contourArea(c)
-        if area < 16:
+        if area < _MIN_QUAD_AREA:
             continue
-        approx = cv2.approxPolyDP(c, 0.08 * cv2.arcLength(c, True), True)
+        approx = cv2.approxPolyDP(c, _QUAD_APPROX * cv2.arcLength(c, True), True)
         if len(approx) == 4 and cv2.isContourConvex(approx):
             quads.append((area, approx.reshape(4, 2).astype(np.float64)))
     if len(quads) < n:
         return None
     areas = np.array([a for a, _ in quads])
     med = np.median(np.sort(areas)[-n:])
-    keep = [q for a, q in quads if 0.3 * med < a < 3.0 * med]
-    if len(keep) != n:
-        return None
-    centres = np.array([q.mean(axis=0) for q in keep])
+    keep = [q for a, q in quads if _QUAD_AREA_RATIO[0] * med < a < _QUAD_AREA_RATIO[1] * med]
+    return keep if len(keep) == n else None
+
+
+def _grid_match(
+    centres: NDArray[np.float64], cols: int, rows: int
+) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]] | None:
+    """Square index per grid cell (row-major), the cells' grid coordinates and the
+    grid-to-image homography refined on all centres; None when ambiguous."""
+    import cv2
+
     hull = cv2.convexHull(centres.astype(np.float32)).reshape(-1, 2)
-    box = cv2.approxPolyDP(hull, 0.05 * cv2.arcLength(hull, True), True).reshape(-1, 2)
+    box = cv2.approxPolyDP(hull, _HULL_APPROX * cv2.arcLength(hull, True), True).reshape(-1, 2)
     if box.shape[0] != 4:
         return None
     # image corners of the grid: top-left, top-right, bottom-right, bottom-left
@@ -747,23 +658,52 @@ def detect_square_grid(
     gc, gr = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
     g = np.stack([gc.ravel(), gr.ravel()], axis=1)
     pred = cv2.perspectiveTransform(g[None], H)[0]
-    dist = np.linalg.norm(pred[:, None] - centres[None], axis=2)
-    match = np.argmin(dist, axis=1)
-    if len(set(match.tolist())) != n:
+    match = np.argmin(np.linalg.norm(pred[:, None] - centres[None], axis=2), axis=1)
+    if len(set(match.tolist())) != cols * rows:
         return None
     H, _ = cv2.findHomography(g, centres[match])  # refine with all centres
+    return match, g, H
+
+
+def detect_square_grid(
+    image: NDArray,
+    grid: tuple[int, int] = (8, 8),
+    *,
+    window: int = 5,
+) -> NDArray[np.float64] | None:
+    """Corners ``(4 * cols * rows, 2)`` float64 of a target of separate dark squares
+    (Zhang's pattern, ``grid = (cols, rows)``), square by square from the image top, each
+    TL, TR, BR, BL (target within 45 deg of upright), refined by ``cornerSubPix`` with
+    half-window ``window`` (below half the gap); None when not found.
+
+    References
+    ----------
+    .. [1] Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11)
+       (2000): the pattern of separate squares used there.
+    """
+    import cv2
+
+    cols, rows = _check_board(grid)
+    gray = to_gray(image)
+    n = cols * rows
+    keep = _dark_quads(gray, n)
+    if keep is None:
+        return None
+    centres = np.array([q.mean(axis=0) for q in keep])
+    found = _grid_match(centres, cols, rows)
+    if found is None:
+        return None
+    match, g, H = found
     out = np.zeros((n, 4, 2))
-    offs = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]) * 0.5
     for k in range(n):
         quad = keep[match[k]]
         # order the quad's corners like the grid directions (TL, TR, BR, BL)
-        want = cv2.perspectiveTransform((g[k] + offs)[None], H)[0]
+        want = cv2.perspectiveTransform((g[k] + _SQUARE_CORNER_OFFSETS)[None], H)[0]
         idx = np.argmin(np.linalg.norm(want[:, None] - quad[None], axis=2), axis=1)
         if len(set(idx.tolist())) != 4:
             return None
         out[k] = quad[idx]
     pts = out.reshape(-1, 1, 2).astype(np.float32)
-    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
     w = max(1, int(window))
-    pts = cv2.cornerSubPix(gray, pts, (w, w), (-1, -1), crit)
+    pts = cv2.cornerSubPix(gray, pts, (w, w), (-1, -1), _subpix_criteria())
     return pts.reshape(-1, 2).astype(np.float64)

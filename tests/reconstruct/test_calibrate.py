@@ -8,10 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from prism3d.capture.rig import StereoRig, paper_rig, rotation_angle_deg
-from prism3d.reconstruct._bundle import rodrigues
+from prism3d.capture.rig import StereoRig, paper_rig
+from prism3d.geometry import matrix_from_rotvec, rotation_angle_deg
 from prism3d.reconstruct.calibrate import (
     Calibration,
+    CalibrationOptions,
     calibrate_camera,
     calibrate_stereo,
     calibrate_stereo_points,
@@ -47,7 +48,7 @@ def paper_corners(rig: StereoRig, noise: float, seed: int = 0):
     for ax, ay, az, ox, oy in PAPER_POSES:
         T = np.eye(4)
         T[:3, :3] = (
-            rodrigues(np.radians([ax, ay, 0.0]))[0] @ rodrigues(np.radians([0.0, 0.0, az]))[0]
+            matrix_from_rotvec(np.radians([ax, ay, 0.0])) @ matrix_from_rotvec(np.radians([0.0, 0.0, az]))
         )
         T[:3, 3] = np.array([ox, oy, 1250.0]) - T[:3, :3] @ np.array([100.0, 62.5, 0.0])
         for cam, Tc, noisy, true in (
@@ -107,14 +108,16 @@ SQUARE_MM = {(9, 6): 25.0, (19, 13): 12.0}
 
 
 def _simulator_pose_corners(board, noise_seed, pose_seed=0):
-    from prism3d.capture.scenes import calibration_board_poses
+    from prism3d.capture.scenes import BoardPoseOptions, calibration_board_poses
 
     rig = paper_rig()
     sq = SQUARE_MM[board]
     obj = board_object_points(board, sq)
     rng = np.random.default_rng(noise_seed)
     L, R, Lt, Rt = [], [], [], []
-    for T in calibration_board_poses(rig, 5, cols=board[0], rows=board[1], square_mm=sq, seed=pose_seed):
+    for T in calibration_board_poses(
+        rig, 5, options=BoardPoseOptions(cols=board[0], rows=board[1], square_mm=sq, seed=pose_seed)
+    ):
         for cam, T_cam_rig, noisy, true in (
             (rig.left, np.linalg.inv(rig.T_rig_left), L, Lt),
             (rig.right, np.linalg.inv(rig.T_rig_right), R, Rt),
@@ -228,7 +231,7 @@ def test_calibrate_stereo_from_rendered_images(tmp_path: Path) -> None:
 
     cam = small_camera(480, 360, 520.0)
     T_rl = np.eye(4)
-    T_rl[:3, :3] = rodrigues(np.radians([0.0, -4.0, 0.5]))[0]
+    T_rl[:3, :3] = matrix_from_rotvec(np.radians([0.0, -4.0, 0.5]))
     T_rl[:3, 3] = [-60.0, 0.5, 2.0]
     images = []
     poses = [
@@ -246,11 +249,11 @@ def test_calibrate_stereo_from_rendered_images(tmp_path: Path) -> None:
             images.append(p)
     calls = []
     n_threads = cv2.getNumThreads()
-    cal = calibrate_stereo(images, pairs=True, progress=lambda d, n: calls.append((d, n)))
+    cal = calibrate_stereo(images, options=CalibrationOptions(pairs=True), progress=lambda d, n: calls.append((d, n)))
     assert calls[-1] == (4, 4)
     # reproducible to the last bit (OpenCV runs single-threaded inside, then is restored)
     assert cv2.getNumThreads() == n_threads
-    again = calibrate_stereo(images, pairs=True)
+    again = calibrate_stereo(images, options=CalibrationOptions(pairs=True))
     assert again.rig == cal.rig and again.rms_px == cal.rms_px
     assert cal.rms_px < 0.25 and cal.rectification_rms_px < 0.25
     np.testing.assert_allclose(cal.rig.T, T_rl[:3, 3], atol=1.5)
@@ -334,14 +337,14 @@ def test_simulated_calibration_shots(tmp_path: Path, seed: int) -> None:
     (``prism3d simulate calib --board 19x13 --square 12``, noise on; ~1 min per seed),
     the paper's k1 k2 model. Measured (seeds 0, 1, 2): cx, cy within 0.32 px, fx
     within 0.007 %, baseline within 0.004 %, rotation within 0.003 deg."""
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
 
     board, sq = (19, 13), 12.0
-    simulate_to_folder("calib", tmp_path, seed=seed, noise=True, board=board, square_mm=sq)
+    simulate_to_folder("calib", tmp_path, SimulateOptions(seed=seed, noise=True, board=board, square_mm=sq))
     rig = StereoRig.load(tmp_path / "rig.yaml")
     images = sorted(tmp_path.glob("calib_*.png"))
     truth = [np.load(p, allow_pickle=False) for p in sorted(tmp_path.glob("truth_*.npz"))]
-    cal = calibrate_stereo(images, board=board, square_mm=sq, tangential=False)
+    cal = calibrate_stereo(images, options=CalibrationOptions(board=board, square_mm=sq, tangential=False))
     assert cal.n_views == len(images) == 5
     for est, ref in ((cal.rig.left, rig.left), (cal.rig.right, rig.right)):
         assert abs(est.fx / ref.fx - 1) < 1e-3 and abs(est.fy / ref.fy - 1) < 1e-3
@@ -371,7 +374,7 @@ def test_opencv_stereo_set(shared_data: Path) -> None:
     images = []
     for i in (1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14):
         images += [d / f"left{i:02d}.jpg", d / f"right{i:02d}.jpg"]
-    cal = calibrate_stereo(images, pairs=True)  # default model: k1 k2 p1 p2
+    cal = calibrate_stereo(images, options=CalibrationOptions(pairs=True))  # default model: k1 k2 p1 p2
     assert cal.n_views == 13 and all(dt.found for dt in cal.detections)
     assert abs(cal.rig.baseline_mm - 83.2) < 0.3
     # vertical disparity of the detected corners after rectification: measured 0.095
@@ -437,9 +440,9 @@ def _board_corners(poses, noise: float, seed: int, board=(19, 13)):
 
 
 def _seed7_poses():
-    from prism3d.capture.scenes import calibration_board_poses
+    from prism3d.capture.scenes import BoardPoseOptions, calibration_board_poses
 
-    return calibration_board_poses(paper_rig(), 5, cols=19, rows=13, square_mm=12.0, seed=7)
+    return calibration_board_poses(paper_rig(), 5, options=BoardPoseOptions(cols=19, rows=13, square_mm=12.0, seed=7))
 
 
 def test_five_shots_do_not_pin_the_rig(caplog) -> None:
@@ -528,7 +531,7 @@ def test_well_posed_shots_give_no_warning() -> None:
         for i, (ox, oy) in enumerate(offsets):
             ax, ay = tilts[(i + 3 * rep) % 9]
             T = np.eye(4)
-            T[:3, :3] = rodrigues(np.radians([ax, ay, 0.0]))[0] @ rodrigues(np.radians([0.0, 0.0, 90.0]))[0]
+            T[:3, :3] = matrix_from_rotvec(np.radians([ax, ay, 0.0])) @ matrix_from_rotvec(np.radians([0.0, 0.0, 90.0]))
             T[:3, 3] = np.array([ox * z / 1250.0, oy * z / 1250.0, z]) - T[:3, :3] @ centre
             poses.append(T)
     rig, L, R = _board_corners(poses, SEED7_RESIDUAL_NOISE, 0)
@@ -610,22 +613,37 @@ def test_errors(tmp_path: Path) -> None:
         calibrate_camera([obj] * 3, L[:3], (0, 10))
 
     # image-level errors, and no output written
+    PAIRS = CalibrationOptions(pairs=True)
     blank = np.full((360, 480), 128, np.uint8)
     cam = small_camera(480, 360, 520.0)
     board_img, _ = render_board(cam, board_pose((0, 0, 0), 420.0, (20, 0)), ss=2)
     with pytest.raises(CalibrationError, match="no 9x6 chessboard found in any image"):
-        calibrate_stereo([blank, blank, blank, blank], pairs=True)
+        calibrate_stereo([blank, blank, blank, blank], options=PAIRS)
     with pytest.raises(CalibrationError, match=r"no 9x6 chessboard found in <array 2> / <array 3>"):
-        calibrate_stereo([board_img, board_img, blank, blank], pairs=True)
+        calibrate_stereo([board_img, board_img, blank, blank], options=PAIRS)
     with pytest.raises(CalibrationError, match="no 8x6 chessboard found in any image"):
-        calibrate_stereo([board_img, board_img], pairs=True, board=(8, 6))
+        calibrate_stereo([board_img, board_img], options=CalibrationOptions(pairs=True, board=(8, 6)))
     with pytest.raises(CalibrationError, match="at least 3 shots, got 1"):
-        calibrate_stereo([board_img, board_img], pairs=True)
+        calibrate_stereo([board_img, board_img], options=PAIRS)
     with pytest.raises(InputError, match="same size"):
-        calibrate_stereo([board_img, board_img[:, :400]], pairs=True)
+        calibrate_stereo([board_img, board_img[:, :400]], options=PAIRS)
     with pytest.raises(InputError, match="not found"):
-        calibrate_stereo([tmp_path / "nope.png", tmp_path / "nope2.png"], pairs=True)
+        calibrate_stereo([tmp_path / "nope.png", tmp_path / "nope2.png"], options=PAIRS)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_calibration_options_validation() -> None:
+    assert CalibrationOptions().board == (9, 6) and CalibrationOptions().tangential
+    with pytest.raises(InputError, match="square_mm: expected a finite number > 0"):
+        CalibrationOptions(square_mm=0)
+    with pytest.raises(InputError, match="method: expected one of xjunction, classic, sb"):
+        CalibrationOptions(method="harris")
+    with pytest.raises(InputError, match="window: expected a half-window >= 1 pixel"):
+        CalibrationOptions(window=0)
+    with pytest.raises(InputError, match="split: expected a PrismSplit"):
+        CalibrationOptions(split=(1, 2))
+    with pytest.raises(InputError, match="options: expected CalibrationOptions"):
+        calibrate_stereo([], options={"pairs": True})
 
 
 def test_calibrate_to_file_and_parse_board(tmp_path: Path) -> None:

@@ -71,9 +71,9 @@ def small_camera(
 def board_pose(
     angles_deg=(20.0, -15.0, 5.0), dist_mm: float = 500.0, shift=(0.0, 0.0)
 ) -> np.ndarray:
-    from prism3d.reconstruct._bundle import rodrigues
+    from prism3d.geometry import matrix_from_rotvec
 
-    R = rodrigues(np.radians(angles_deg))[0]
+    R = matrix_from_rotvec(np.radians(angles_deg))
     T = np.eye(4)
     T[:3, :3] = R
     centre = np.array([100.0, 62.5, 0.0])
