@@ -155,14 +155,14 @@ _COMPILE = r"""
 import time
 t0 = time.perf_counter()
 import numpy as np
-from prism3d.reconstruct.match import match_stereo
+from prism3d.reconstruct.match import MatchOptions, match_stereo
 rng = np.random.default_rng(0)
 L = (rng.random((40, 80)) * 255).astype(np.uint8)
 R = np.roll(L, -4, axis=1)
 t1 = time.perf_counter()
 match_stereo(L, R, min_disp=0, num_disp=8)
 t2 = time.perf_counter()
-match_stereo(L, R, min_disp=0, num_disp=8, coarse_to_fine=True)
+match_stereo(L, R, min_disp=0, num_disp=8, options=MatchOptions(coarse_to_fine=True))
 t3 = time.perf_counter()
 print(t1 - t0, t2 - t1, t3 - t2)
 """

@@ -1,33 +1,14 @@
 """Numba kernels of the semi-global stereo matcher (private; see :mod:`.match`).
 
-Every kernel works on a *per-pixel disparity window*: pixel ``(y, x)`` searches the
-``K`` disparities ``dlo[y, x] + k`` for ``k = 0 .. K-1``. A full search is the special
-case ``dlo == min_disp`` everywhere and ``K == num_disp``; the coarse-to-fine path
-gives every pixel a narrow window around the upsampled coarse disparity. Costs are
-stored compactly as ``(H, W, K)`` uint8 (matching cost) and uint16 (aggregated cost).
+Pixel ``(y, x)`` searches the ``K`` disparities ``dlo[y, x] + k``, ``k = 0 .. K-1``
+(a full search: ``dlo == min_disp``). Costs are (H, W, K) uint8 (matching) and uint16
+(aggregated), K padded to whole 16-level vectors; census codes are planar (C, H, W)
+with the right view's rows mirrored, so a pixel's candidates are contiguous. Hot
+loops use the 16-lane vectors of :mod:`._simd`. Layout and why: docs/matching.md.
 
-Speed: census codes are planar ``(C, H, W)`` uint32 (5x5 windows) and the right
-view's rows are stored mirrored, so the candidates of one left pixel are contiguous;
-the levels are padded to whole 16-level vectors and the hot loops (census, matching
-cost, SGM step, winner-take-all, left-right check) are written with the explicit
-16-lane vectors of :mod:`._simd` -- LLVM's own vectoriser takes 64 uint16 elements a
-trip on AVX-512 and left searches of 16-48 levels scalar. The SGM kernels index the
-volumes flat: a per-pixel view costs more than a 16-level step.
-
-References
-----------
-.. [1] R. Zabih and J. Woodfill, "Non-parametric local transforms for computing
-   visual correspondence", ECCV 1994 (census transform).
-.. [2] H. Hirschmüller, "Stereo processing by semiglobal matching and mutual
-   information", IEEE TPAMI 30(2), 2008 (SGM, left-right check, adaptive P2).
-.. [3] M. Rothermel, K. Wenzel, D. Fritsch, N. Haala, "SURE: Photogrammetric surface
-   reconstruction from imagery", LC3D Workshop 2012 (tSGM: per-pixel search ranges
-   from a coarser pyramid level).
-.. [4] M. Shimizu and M. Okutomi, "Sub-pixel estimation error cancellation on
-   area-based matching", IJCV 63(3), 2005 (pixel-locking of parabola fits); the
-   equiangular (symmetric V) fit follows their analysis.
-.. [5] B. D. Lucas and T. Kanade, "An iterative image registration technique with an
-   application to stereo vision", IJCAI 1981 (1-D iterative warping refinement).
+References: Zabih & Woodfill, ECCV 1994 (census); Hirschmüller, TPAMI 2008 (SGM);
+Rothermel et al., LC3D 2012 (tSGM); Shimizu & Okutomi, IJCV 2005 (sub-pixel);
+Lucas & Kanade, IJCAI 1981.
 """
 
 from __future__ import annotations
@@ -76,7 +57,7 @@ INF16 = 0x3FFF  # "no such disparity" in uint16 path costs; sums of 8 stay < 655
 # numba's on-disk cache is keyed by the hash of *this* file only, yet the kernels inline
 # the intrinsics of _simd.py: its hash is recorded here, so that editing _simd.py (and
 # updating this line, which a test demands) recompiles the kernels
-_SIMD_SHA256 = "8df23886d3f2e27a2d46cdb58f4e29dd57dabaf7f3fc5e4e298c2c2cf64c54ac"
+_SIMD_SHA256 = "fe05b1efce54937f3dabe3a7084421f174182ee22b51896f53240b4aa2998b70"
 
 
 @intrinsic
@@ -101,21 +82,10 @@ def _popcount(typingctx, x):  # pragma: no cover - compiled by numba
 @njit(cache=True, nogil=True, parallel=True)
 def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, k_levels,
                   oob_cost, out):
-    """Census Hamming distance summed over channels plus a truncated absolute
-    difference of per-pixel features.
-
-    census_l : (C, H, W) uint32/uint64 left census; census_rr : the right census with
-    mirrored rows (``census_hwc(..., reverse=True)``); feat_l, feat_rr : (F, H, W)
-    uint8 features, the right one mirrored likewise (F may be 0). The AD term of a
-    summed absolute feature difference ``a`` is ``floor(ad_scale * min(a, ad_clip) +
-    0.5)``. dlo : (H, W) int32; out : (H, W, K) uint8, ``out[y, x, k]`` = cost of
-    disparity ``dlo[y, x] + k`` saturated at 255; ``oob_cost`` where the right pixel
-    ``x - d`` falls outside the image.
-
-    With mirrored right rows, the right pixel ``x - dlo - k`` of candidate ``k`` sits
-    at index ``W - 1 - x + dlo + k``: consecutive candidates are consecutive in
-    memory, so the loops over ``k`` vectorise (SIMD popcount). Per-candidate sums are
-    uint16 (narrow vector lanes); a full search is the case of a constant ``dlo``.
+    """out (H, W, K) uint8: census Hamming distance over channels + truncated feature
+    difference ``floor(ad_scale * min(a, ad_clip) + 0.5)`` of disparity ``dlo + k``,
+    saturated at 255; ``oob_cost`` outside the right view. census (C, H, W) uint32/64,
+    feat (F, H, W) uint8 (F may be 0); the right ones with mirrored rows.
     """
     h, w = census_l.shape[1:]
     clip = np.float32(ad_clip)
@@ -152,33 +122,9 @@ def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, 
                 continue
             # whole 16-candidate vectors first, then the scalar remainder
             jb = w - 1 - x + d0
-            k_v = k_lo
             if rgb:
-                c0 = census_l[0, y, x]
-                c1 = census_l[1, y, x]
-                c2 = census_l[2, y, x]
-                p0 = v16_broadcast(z, feat_l[0, y, x])
-                p1 = v16_broadcast(z, feat_l[1, y, x])
-                p2 = v16_broadcast(z, feat_l[2, y, x])
-                ob = x * k_levels
-                while k_v + 16 <= k_hi:
-                    j = jb + k_v
-                    e0 = v16_load(r0, j)
-                    e1 = v16_load(r1, j)
-                    e2 = v16_load(r2, j)
-                    a = v16_add(v16_add(v16_narrow(v16_popcount(v16_xor(e0, v16_broadcast(e0, c0)))),
-                                        v16_narrow(v16_popcount(v16_xor(e1, v16_broadcast(e1, c1))))),
-                                v16_narrow(v16_popcount(v16_xor(e2, v16_broadcast(e2, c2)))))
-                    g0 = v16_load_u8(q0, j)
-                    g1 = v16_load_u8(q1, j)
-                    g2 = v16_load_u8(q2, j)
-                    v = v16_add(v16_add(v16_sub(v16_max(p0, g0), v16_min(p0, g0)),
-                                        v16_sub(v16_max(p1, g1), v16_min(p1, g1))),
-                                v16_sub(v16_max(p2, g2), v16_min(p2, g2)))
-                    t = v16_to_u16(v16_min(v16_add(v16_mul(v16_min(v16_to_f32(v), vclip),
-                                                           vscale), half), vsat))
-                    v16_store_u8(orow, ob + k_v, v16_min(v16_add(a, t), u255))
-                    k_v += 16
+                k_v = _cost16_rgb(census_l, feat_l, r0, r1, r2, q0, q1, q2, y, x, jb, k_lo,
+                                  k_hi, orow, x * k_levels, z, half, vsat, vclip, vscale, u255)
             else:
                 k_v = _cost16(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x, jb,
                               k_lo, k_hi, o)
@@ -192,10 +138,41 @@ def matching_cost(census_l, census_rr, feat_l, feat_rr, ad_scale, ad_clip, dlo, 
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _cost16_rgb(census_l, feat_l, r0, r1, r2, q0, q1, q2, y, x, jb, k_v, k_hi, orow, ob, z,
+                half, vsat, vclip, vscale, u255):
+    """:func:`_cost16` for 3 channels and 3 features on the right rows ``r*``, ``q*``."""
+    c0 = census_l[0, y, x]
+    c1 = census_l[1, y, x]
+    c2 = census_l[2, y, x]
+    p0 = v16_broadcast(z, feat_l[0, y, x])
+    p1 = v16_broadcast(z, feat_l[1, y, x])
+    p2 = v16_broadcast(z, feat_l[2, y, x])
+    while k_v + 16 <= k_hi:
+        j = jb + k_v
+        e0 = v16_load(r0, j)
+        e1 = v16_load(r1, j)
+        e2 = v16_load(r2, j)
+        a = v16_add(v16_add(v16_narrow(v16_popcount(v16_xor(e0, v16_broadcast(e0, c0)))),
+                            v16_narrow(v16_popcount(v16_xor(e1, v16_broadcast(e1, c1))))),
+                    v16_narrow(v16_popcount(v16_xor(e2, v16_broadcast(e2, c2)))))
+        g0 = v16_load_u8(q0, j)
+        g1 = v16_load_u8(q1, j)
+        g2 = v16_load_u8(q2, j)
+        v = v16_add(v16_add(v16_sub(v16_max(p0, g0), v16_min(p0, g0)),
+                            v16_sub(v16_max(p1, g1), v16_min(p1, g1))),
+                    v16_sub(v16_max(p2, g2), v16_min(p2, g2)))
+        t = v16_to_u16(v16_min(v16_add(v16_mul(v16_min(v16_to_f32(v), vclip),
+                                               vscale), half), vsat))
+        v16_store_u8(orow, ob + k_v, v16_min(v16_add(a, t), u255))
+        k_v += 16
+    return k_v
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _cost16(census_l, census_rr, feat_l, feat_rr, scale, clip, y, x, jb, k_lo, k_hi, o):
-    """Costs of candidates ``k_lo, k_lo + 16, ...`` in whole 16-lane vectors (see
-    :func:`matching_cost`; the right pixel of candidate ``k`` is ``jb + k`` in the
-    mirrored rows); returns the first candidate left for the scalar loop."""
+    """Costs of candidates ``k_lo ..`` in whole 16-lane vectors (right pixel ``jb + k``);
+    returns the first candidate left for the scalar loop.
+    """
     nc = census_l.shape[0]
     nf = feat_l.shape[0]
     k = k_lo
@@ -279,17 +256,11 @@ def _p2_eff(p1, p2, ia, ib, gamma):
 
 @njit(cache=True, nogil=True, inline="always")
 def _step(costf, coff, lp, minprev, shift, lc, aggf, kl, p1, p2, pad, k_levels):
-    """One SGM recursion on flat arrays, summed into the aggregated costs.
+    """One SGM recursion on flat arrays, summed into ``aggf``; returns min_k L[k].
 
-    ``L[k] = C[k] + min(Lq[j], Lq[j-1] + P1, Lq[j+1] + P1, min Lq + P2) - min Lq`` with
-    ``j = k + shift`` (shift = dlo_p - dlo_q, clamped to +-k_levels, the searched
-    levels; ``kl >= k_levels`` includes the padding). Path buffers
-    ``lp`` (previous pixel) and ``lc`` (current pixel, distinct uint16 arrays so the
-    loop vectorises; values stay below ``INF16 + P1``) hold ``3 * kl + 2`` values:
-    level ``k`` sits at ``kl + 1 + k`` and every other entry stays ``INF16``, so the
-    shifted read needs no branch. ``costf[coff + k]`` is the matching cost and
-    ``aggf[coff + k]`` the sum over paths; levels whose ``pad`` is INF16 (padding past
-    the searched window) are held at INF16. Returns min_k L[k].
+    ``L[k] = C[k] + min(Lq[j], Lq[j-1] + P1, Lq[j+1] + P1, min Lq + P2) - min Lq``,
+    ``j = k + shift``; the path buffers hold level ``k`` at ``kl + 1 + k``, INF16
+    elsewhere (branch-free shifted reads); padded levels stay INF16.
     """
     shift = _clamp_shift(shift, k_levels)
     src = kl + 1 + shift
@@ -328,13 +299,8 @@ def _start(costf, coff, lc, aggf, kl, pad):
 
 @njit(cache=True, nogil=True, parallel=True)
 def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, k_levels, agg):
-    """Add one horizontal or diagonal SGM path direction ``(dy, dx)`` into ``agg``.
-
-    cost : (H, W, Kp) uint8 (levels ``>= k_levels`` are padding); agg : (H, W, Kp)
-    uint16 (C-contiguous). The image is cut into independent scanlines that start
-    where the previous pixel ``p - (dy, dx)`` would leave the image; scanlines run in
-    parallel (no two of one direction share a pixel, so the in-place sum is race
-    free).
+    """Add the SGM path direction ``(dy, dx)`` into ``agg`` (H, W, Kp) uint16 from
+    ``cost`` (H, W, Kp) uint8; independent scanlines run in parallel (race free).
     """
     h, w, kl = cost.shape
     costf = cost.reshape(-1)
@@ -372,9 +338,9 @@ def aggregate_path(cost, dlo, guide, p1, p2, gamma, dy, dx, k_levels, agg):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _speckle_runs(disp, max_diff, run, parent, size):
-    """Rows in parallel: ``run[y, x]`` = flat index of the first pixel of the run of
-    horizontally connected pixels that holds (y, x), -1 for NaN; every run start gets
-    ``parent[r] = r`` and ``size[r]`` = its length."""
+    """``run[y, x]``: flat index of the start of (y, x)'s horizontal run (-1 for
+    NaN); run starts get ``parent[r] = r`` and ``size[r]`` = length. Rows in parallel.
+    """
     h, w = disp.shape
     for y in prange(h):
         start = -1
@@ -405,8 +371,7 @@ def _uf_root(parent, a):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _speckle_mark(disp, run, parent, size, max_size):
-    """Rows in parallel: NaN every pixel whose region (``parent`` of its run, already
-    the root) has fewer than ``max_size`` pixels."""
+    """NaN every pixel whose region has fewer than ``max_size`` pixels."""
     h, w = disp.shape
     for y in prange(h):
         for x in range(w):
@@ -417,13 +382,8 @@ def _speckle_mark(disp, run, parent, size, max_size):
 
 @njit(cache=True, nogil=True)
 def remove_speckles(disp, max_size, max_diff):
-    """Set to NaN 4-connected regions (neighbours differing <= max_diff) smaller than
-    ``max_size`` pixels.
-
-    Union-find over row runs: the runs of horizontally connected pixels are found row
-    by row in parallel; a vertical pair of connected pixels joins their runs' sets
-    (once per pair of runs met side by side), region sizes are summed at the roots,
-    and the pixels of small regions are cleared in parallel.
+    """NaN the 4-connected regions (neighbours within ``max_diff``) smaller than
+    ``max_size`` px: union-find over row runs, sizes summed at the roots.
     """
     h, w = disp.shape
     run = np.empty((h, w), np.int32)
@@ -463,12 +423,8 @@ def remove_speckles(disp, max_size, max_diff):
 
 @njit(cache=True, nogil=True, parallel=True)
 def bspline_rows(img, out):
-    """Cubic B-spline interpolation coefficients of every row (mirror boundaries).
-
-    img, out : (H, W) float32. Causal + anti-causal recursive prefilter with pole
-    ``z = sqrt(3) - 2`` (Unser 1999, "Splines: a perfect fit for signal and image
-    processing", IEEE SPM 16(6)); ``out`` sampled with the cubic B-spline kernel
-    reproduces ``img`` at integer positions.
+    """Cubic B-spline coefficients of every row of ``img`` into ``out`` (H, W) float32,
+    mirror boundaries (recursive prefilter, pole ``sqrt(3) - 2``; Unser 1999).
     """
     h, w = img.shape
     z = np.sqrt(3.0) - 2.0
@@ -492,9 +448,9 @@ def bspline_rows(img, out):
 
 @njit(cache=True, nogil=True, parallel=True)
 def fill_holes(disp, out):
-    """Dense fill: every NaN takes the smaller (farther, background) of the nearest
-    valid disparities to its left and right on the same row; a row without any valid
-    pixel stays NaN (filled vertically afterwards by :func:`fill_columns`)."""
+    """Every NaN takes the smaller (background) of the nearest valid disparities left
+    and right on its row; rows without any stay NaN (:func:`fill_columns`).
+    """
     h, w = disp.shape
     for y in prange(h):
         last = np.nan
@@ -544,9 +500,7 @@ def fill_columns(out):
 
 @njit(cache=True, nogil=True, inline="always")
 def _median9(a0, a1, a2, a3, a4, a5, a6, a7, a8):  # pragma: no cover - compiled
-    """Median of nine values by a branch-free selection network of 19
-    compare-exchanges (the classic 3x3 median network; unused halves are dropped by
-    the compiler)."""
+    """Median of nine values (3x3 selection network, 19 compare-exchanges)."""
     a1, a2 = min(a1, a2), max(a1, a2)
     a4, a5 = min(a4, a5), max(a4, a5)
     a7, a8 = min(a7, a8), max(a7, a8)
@@ -571,9 +525,9 @@ def _median9(a0, a1, a2, a3, a4, a5, a6, a7, a8):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True, inline="always")
 def _window_median(filled, y, x, r, buf):  # pragma: no cover - compiled
-    """Median of the non-NaN values of ``filled`` in the (2r+1)^2 window at (y, x)
-    (borders replicated); ``filled[y, x]`` when there is none. ``buf`` is scratch.
-    A full 3x3 window inside the image (the usual case) takes :func:`_median9`."""
+    """Median of the non-NaN ``filled`` values in the (2r+1)^2 window at (y, x),
+    else ``filled[y, x]``; ``buf`` is scratch.
+    """
     h, w = filled.shape
     if r == 1 and 0 < y < h - 1 and 0 < x < w - 1:
         a0 = filled[y - 1, x - 1]
@@ -628,13 +582,9 @@ def median_filled(filled, valid, r, out):
 
 @njit(cache=True, nogil=True, parallel=True)
 def fine_ranges(coarse, scale, radius, k_levels, dmin, dmax, dlo):
-    """Per-pixel search windows for the full-resolution pass.
-
-    coarse : (h, w) float32 dense disparity of the coarse level (in coarse pixels);
-    dlo : (H, W) int32 out, the first disparity of each pixel's ``k_levels`` window,
-    chosen to cover ``[min, max]`` of the upsampled 3x3 coarse neighbourhood widened
-    by ``radius`` when that fits, else centred on the pixel's own coarse value;
-    always inside ``[dmin, dmax - k_levels + 1]``.
+    """dlo (H, W) int32: first level of each pixel's ``k_levels`` window, covering the
+    upsampled 3x3 ``coarse`` (h, w) float32 neighbourhood +- ``radius`` when it fits,
+    else centred on the pixel's coarse value; within ``[dmin, dmax - k_levels + 1]``.
     """
     hc, wc = coarse.shape
     h, w = dlo.shape
@@ -695,12 +645,9 @@ def channels_equal(img):
 
 @njit(cache=True, nogil=True, parallel=True)
 def census_hwc(img, ry, rx, reverse, out):
-    """Census transform of an interleaved ``(H, W, C)`` image (uint8 or float32).
-
-    Census codes of the channel planes, borders replicated: bit set
-    when the neighbour is darker than the centre, neighbours in row-major order,
-    centre skipped; out : (C, H, W) uint32 or uint64, rows mirrored with ``reverse``.
-    Interior pixels go 16 at a time in vector registers; borders clamp coordinates.
+    """Census codes out (C, H, W) uint32/uint64 of an (H, W, C) uint8/float32 image:
+    bit set when the neighbour is darker (row-major, centre skipped), borders
+    replicated, rows mirrored with ``reverse``.
     """
     h, w, nc = img.shape
     one = out.dtype.type(1)
@@ -753,11 +700,9 @@ def census_hwc(img, ry, rx, reverse, out):
 
 @njit(cache=True, nogil=True, parallel=True)
 def features_hwc(left, right, gain, offset, reverse, feat_l, feat_r):
-    """uint8 planar features of the AD term from interleaved images.
-
-    ``feat_l[c] = sat(rint(left[..., c]))``; ``feat_r[c] = sat(rint(max(right[..., c]
-    * gain[c] + offset[c], 0)))`` (float32 arithmetic, as ``cv2.convertScaleAbs``);
-    the right rows mirrored with ``reverse``.
+    """Planar uint8 AD features: ``sat(rint(left))`` and ``sat(rint(max(right * gain
+    + offset, 0)))`` per channel (float32, as cv2.convertScaleAbs), right rows mirrored
+    with ``reverse``.
     """
     h, w, nc = left.shape
     for y in prange(h):
@@ -809,17 +754,10 @@ def _p2_row(p1, p2, gamma, ga, gb, out):
 
 @njit(cache=True, nogil=True, inline="always")
 def _sgm_step(costf, co, buf, src, dst, aggf, kp, p1u, big, mp, pad, assign):
-    """One SGM recursion (see :func:`_step`) of the pixel whose levels start at flat
-    offset ``co`` of the cost and aggregated volumes: reads the previous pixel's path
-    costs at ``buf[src - 1 .. src + kp]`` (``src`` includes the window shift; entries
-    outside the levels hold INF16), writes ``buf[dst .. dst + kp - 1]``; levels whose
-    ``pad`` is INF16 are held at INF16 (padding past the searched window). The path
-    cost is assigned to (first path) or added into ``aggf``. Returns the new min.
-
-    Flat arrays and offsets, not per-pixel views (a view costs more than the 16-level
-    step). Whole 16-level vectors (``kp % 16 == 0``, always so with 4 paths) run in
-    explicit 16-lane vectors (the loop vectoriser takes 64 uint16 elements a trip on
-    AVX-512 and would leave 16-48 levels scalar); other ``kp`` in one fused loop.
+    """One SGM recursion (:func:`_step`) of the pixel at flat offset ``co``: reads the
+    previous path costs at ``buf[src - 1 .. src + kp]``, writes ``buf[dst ..]``,
+    assigns or adds into ``aggf``; returns the new min. Whole 16-level vectors when
+    ``kp % 16 == 0``, else one fused loop.
     """
     kv = kp - kp % 16
     m = np.uint16(INF16)
@@ -855,8 +793,9 @@ def _sgm_step(costf, co, buf, src, dst, aggf, kp, p1u, big, mp, pad, assign):
 
 @njit(cache=True, nogil=True, inline="always")
 def _sgm_start(costf, co, buf, dst, aggf, kp, pad, assign):
-    """First pixel of a path: ``L = C`` (padding held at INF16), into ``buf[dst..]``
-    and assigned / added to ``aggf[co..]``; returns its minimum."""
+    """First pixel of a path: ``L = C`` into ``buf[dst..]`` and ``aggf[co..]``; returns
+    its minimum.
+    """
     m = np.uint16(INF16)
     for k in range(kp):
         c = max(np.uint16(costf[co + k]), pad[k])
@@ -887,12 +826,8 @@ def _padding(kp, k_levels):
 
 @njit(cache=True, nogil=True, parallel=True)
 def sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg):
-    """Left-to-right plus right-to-left SGM paths, *assigned* to ``agg``.
-
-    cost : (H, W, Kp) uint8 (levels ``>= k_levels`` are padding); agg : (H, W, Kp)
-    uint16 out, both C-contiguous. Both directions of a row run in the same loop (two
-    independent recursions overlap in the CPU); rows in parallel. Each direction
-    keeps its previous and current path costs in one buffer, alternating halves.
+    """Left-to-right plus right-to-left SGM paths *assigned* to ``agg`` (H, W, Kp)
+    uint16 from ``cost`` (H, W, Kp) uint8; both directions of a row in one loop.
     """
     h, w, kp = cost.shape
     costf = cost.reshape(-1)
@@ -935,8 +870,7 @@ def _three_lanes(s):
 
 @njit(cache=True, nogil=True, inline="always")
 def _wta(aggf, o, kp, k_levels, d0, uniqueness, disp, conf, y, x):
-    """Winner-take-all of one pixel (levels at ``aggf[o .. o + kp - 1]``): best level,
-    uniqueness, confidence, equiangular fit."""
+    """Winner-take-all of one pixel: best level, uniqueness, confidence, equiangular fit."""
     kl = k_levels
     big = np.uint16(0xFFFF)
     if kp % 16 == 0:
@@ -993,12 +927,9 @@ def _wta(aggf, o, kp, k_levels, d0, uniqueness, disp, conf, y, x):
 @njit(cache=True, nogil=True, parallel=True)
 def sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block, uniqueness, agg,
                      disp, conf):
-    """Bottom-up then top-down SGM paths added into ``agg``, then winner-take-all.
-
-    Columns in blocks of ``block`` that walk the rows together; once the top-down
-    path has passed row ``y`` the block's aggregated costs there are final, and the
-    winner-take-all (uniqueness, confidence, equiangular
-    fit) runs while they are in cache. disp, conf : (H, W) float32 out.
+    """Bottom-up then top-down SGM paths added into ``agg``, then winner-take-all into
+    ``disp``, ``conf`` (H, W) float32 while the final costs are in cache; columns in
+    blocks of ``block``.
     """
     h, w, kp = cost.shape
     costf = cost.reshape(-1)
@@ -1051,13 +982,9 @@ def sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block, uniquenes
 
 @njit(cache=True, nogil=True, inline="always")
 def _lr_row_sliding(aggf, y, w, kp, d0, dbase, k_levels, key):
-    """Right-view keys of row ``y`` when every pixel of the row searches from ``d0``
-    (a full search) and ``kp`` is 16..64 in whole vectors: the window of right pixels
-    that the current left pixel sees, ``key[jb .. jb + kp - 1]`` with ``jb = W - 1 - x
-    + d0``, moves down by one pixel per step, so it stays in (up to four) vector
-    registers; a right pixel's key is final, and stored, when it leaves the window.
-    (Reading the window back from memory instead stalled on the store of the step
-    before.)"""
+    """Right-view keys of row ``y`` for a full search with ``kp`` 16..64: the window
+    ``key[jb .. jb + kp - 1]`` slides one pixel a step, kept in vector registers.
+    """
     none = np.uint32(0xFFFFFFFF)
     nonev = v16_broadcast(v16_zero(key), none)
     nv = kp // 16
@@ -1104,16 +1031,9 @@ def _lr_row_sliding(aggf, y, w, kp, d0, dbase, k_levels, key):
 
 @njit(cache=True, nogil=True, parallel=True)
 def right_lr_check(agg, dlo, k_levels, max_diff, disp):
-    """Right-view winner-take-all from the same aggregated volume and the left-right
-    check of ``disp`` in place, one row at a time.
-
-    Right pixel ``xr`` takes the smallest cost among the left pixels that see it
-    (``x - dlo[y, x] - k == xr``), the smallest disparity among equal costs: the
-    minimum of uint32 keys ``(cost << 16) | (disparity - min dlo)``, kept per mirrored
-    right pixel ``W - 1 - xr``, where the candidates of one left pixel are contiguous.
-    Rows with one window start and 16..64 levels in whole vectors slide the window
-    through registers (:func:`_lr_row_sliding`); others (coarse-to-fine windows) take
-    a vector min per left pixel.
+    """Left-right check of ``disp`` in place: each right pixel's winner from the same
+    volume (min of keys ``(cost << 16) | (d - min dlo)``, smallest d on ties); NaN
+    where the disparities differ by more than ``max_diff``.
     """
     h, w, kp = agg.shape
     aggf = agg.reshape(-1)
@@ -1161,10 +1081,9 @@ def right_lr_check(agg, dlo, k_levels, max_diff, disp):
 
 @njit(cache=True, nogil=True, inline="always")
 def _lk_row_products(lrow, qrow, x, xb, wx, sign, esf):
-    """esf[8x + m] += sign * sum_u L(x + u) q(xb - 2 + m + u), m = 0..5, u = -wx..wx,
-    for one window row (``lrow`` a left row, ``qrow`` a padded coefficient row: one
-    spare column on the left, three on the right). The six sums run as lanes of one
-    8-float vector (fused multiply-adds over u; lanes 6 and 7 are unused)."""
+    """esf[8x + m] += sign * sum_u L(x + u) q(xb - 2 + m + u), m = 0..5, |u| <= wx,
+    for one window row (six 8-lane fused multiply-adds; lanes 6, 7 unused).
+    """
     q0 = xb - 1 - wx
     l0 = x - wx
     f = v8f_zero()
@@ -1183,6 +1102,173 @@ def _gram_row(qpad, v, w, sign, cs):
             c[p] += sign * (np.float64(q[p]) * np.float64(q[p + dl]))
 
 
+_NO_RUN = -(1 << 30)  # xb_run of a column without running P sums
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_any_valid(disp, y, w):
+    for x in range(w):
+        if not np.isnan(disp[y, x]):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _gram_box_sums(cs, sm, w, wx):
+    """sm[dl, p] = sum of cs[dl, p - wx .. p + wx] (lags dl = 0..3) along the row: four
+    independent running sums in one loop, so that their add chains overlap."""
+    nu = 2 * wx + 1
+    a0 = a1 = a2 = a3 = 0.0
+    for u in range(nu - 1):
+        a0 += cs[0, u]
+        a1 += cs[1, u]
+        a2 += cs[2, u]
+        a3 += cs[3, u]
+    p_end = w - wx - 3  # every lag has p < w - wx - dl
+    for p in range(wx, p_end):
+        a0 += cs[0, p + wx]
+        a1 += cs[1, p + wx]
+        a2 += cs[2, p + wx]
+        a3 += cs[3, p + wx]
+        sm[0, p] = a0
+        sm[1, p] = a1
+        sm[2, p] = a2
+        sm[3, p] = a3
+        a0 -= cs[0, p - wx]
+        a1 -= cs[1, p - wx]
+        a2 -= cs[2, p - wx]
+        a3 -= cs[3, p - wx]
+    for p in range(max(wx, p_end), w - wx):  # the lags' last few columns
+        a0 += cs[0, p + wx]
+        sm[0, p] = a0
+        a0 -= cs[0, p - wx]
+        if p < w - wx - 1:
+            a1 += cs[1, p + wx]
+            sm[1, p] = a1
+            a1 -= cs[1, p - wx]
+        if p < w - wx - 2:
+            a2 += cs[2, p + wx]
+            sm[2, p] = a2
+            a2 -= cs[2, p - wx]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lk_start_row(left, qpad, disp, y, w, wx, wy, esf, xb_run, state, dcur):
+    """Row ``y``'s P sums ``esf[8x + m] = sum_window L(v, x + u) q(v, xb - 2 + m + u)``,
+    slid down from the row above when its integer part ``xb`` is the same, else summed
+    afresh; ``state`` 1 and ``dcur`` = disparity where a pixel can be refined."""
+    state[:] = 0
+    l_in = left[y + wy]
+    q_in = qpad[y + wy]
+    l_out = left[max(y - wy - 1, 0)]
+    q_out = qpad[max(y - wy - 1, 0)]
+    for x in range(w):
+        if x < wx or x >= w - wx:
+            continue
+        d_in = disp[y, x]
+        if np.isnan(d_in):
+            xb_run[x] = _NO_RUN
+            continue
+        d = np.float64(d_in)
+        xb = int(np.floor(x - d))
+        if xb - wx - 1 < 0 or xb + wx + 2 >= w:
+            xb_run[x] = _NO_RUN
+            continue
+        if xb_run[x] == xb:
+            _lk_row_products(l_in, q_in, x, xb, wx, 1.0, esf)
+            _lk_row_products(l_out, q_out, x, xb, wx, -1.0, esf)
+        else:
+            for m in range(8):
+                esf[8 * x + m] = 0.0
+            for v in range(y - wy, y + wy + 1):
+                _lk_row_products(left[v], qpad[v], x, xb, wx, 1.0, esf)
+            xb_run[x] = xb
+        state[x] = 1
+        dcur[x] = d
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bspline_weights(t, sixth, one):
+    """Cubic B-spline weights a0..a3 (value) and g0..g3 (derivative) at fraction t.
+    ``sixth`` and ``one`` come from outside the parallel loop: as constants LLVM's
+    fast-math would refold the products (results 1 ulp apart)."""
+    omt = one - t
+    t2 = t * t
+    a0 = np.float64(omt * omt * omt * sixth)
+    a1 = np.float64((np.float32(3.0) * t2 * t - np.float32(6.0) * t2 + np.float32(4.0)) * sixth)
+    a2 = np.float64((np.float32(-3.0) * t2 * t + np.float32(3.0) * t2 + np.float32(3.0) * t
+                     + one) * sixth)
+    a3 = np.float64(t2 * t * sixth)
+    g0 = np.float64(np.float32(-0.5) * omt * omt)
+    g1 = np.float64(np.float32(1.5) * t2 - np.float32(2.0) * t)
+    g2 = np.float64(np.float32(-1.5) * t2 + t + np.float32(0.5))
+    g3 = np.float64(np.float32(0.5) * t2)
+    return a0, a1, a2, a3, g0, g1, g2, g3
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _gn_num_den(esf, s0, s1, s2, s3, e0, x0, t, sixth, one):
+    """Gauss-Newton ``sum r g`` and ``sum g^2`` at integer part x0, fraction t."""
+    pp0 = esf[e0]
+    pp1 = esf[e0 + 1]
+    pp2 = esf[e0 + 2]
+    pp3 = esf[e0 + 3]
+    m00 = s0[x0 - 1]
+    m11 = s0[x0]
+    m22 = s0[x0 + 1]
+    m33 = s0[x0 + 2]
+    m01 = s1[x0 - 1]
+    m12 = s1[x0]
+    m23 = s1[x0 + 1]
+    m02 = s2[x0 - 1]
+    m13 = s2[x0]
+    m03 = s3[x0 - 1]
+    a0, a1, a2, a3, g0, g1, g2, g3 = _bspline_weights(t, sixth, one)
+    mg0 = m00 * g0 + m01 * g1 + m02 * g2 + m03 * g3
+    mg1 = m01 * g0 + m11 * g1 + m12 * g2 + m13 * g3
+    mg2 = m02 * g0 + m12 * g1 + m22 * g2 + m23 * g3
+    mg3 = m03 * g0 + m13 * g1 + m23 * g2 + m33 * g3
+    den = g0 * mg0 + g1 * mg1 + g2 * mg2 + g3 * mg3
+    num = (g0 * pp0 + g1 * pp1 + g2 * pp2 + g3 * pp3
+           - (a0 * mg0 + a1 * mg1 + a2 * mg2 + a3 * mg3))
+    return num, den
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lk_iterate_row(disp, y, w, wx, iters, max_step, esf, sm, xb_run, state, dcur, sixth, one):
+    """Gauss-Newton steps, one sweep of the row per iteration (independent pixels: their
+    dependency chains overlap). state: 0 idle, 1 iterating, 2 converged, 3 failed."""
+    s0 = sm[0]
+    s1 = sm[1]
+    s2 = sm[2]
+    s3 = sm[3]
+    for _ in range(iters):
+        for x in range(wx, w - wx):
+            if state[x] != 1:
+                continue
+            d = dcur[x]
+            xs = x - d
+            x0 = int(np.floor(xs))
+            if x0 - wx - 1 < 0 or x0 + wx + 2 >= w:
+                state[x] = 3
+                continue
+            e0 = 8 * x + 1 + (0 if x0 == xb_run[x] else (-1 if x0 < xb_run[x] else 1))
+            num, den = _gn_num_den(esf, s0, s1, s2, s3, e0, x0, np.float32(xs - x0), sixth, one)
+            if den <= _MIN_GRAM:
+                state[x] = 3
+                continue
+            step = -num / den
+            d += step
+            dcur[x] = d
+            if abs(d - np.float64(disp[y, x])) > max_step:
+                state[x] = 3
+            elif abs(step) < _LK_CONVERGED:
+                state[x] = 2
+
+
+_MIN_GRAM = 1e-6  # sum g^2 below this: no texture to refine on
+_LK_CONVERGED = 2e-3  # px: a smaller step ends the iterations
+
 # fast-math without "nnan"/"ninf": LLVM may otherwise fold the NaN tests away (measured:
 # every invalid pixel then ran the whole iteration on a NaN disparity)
 _FAST_FINITE = {"nsz", "arcp", "contract", "reassoc"}
@@ -1190,29 +1276,16 @@ _FAST_FINITE = {"nsz", "arcp", "contract", "reassoc"}
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=_FAST_FINITE, error_model="numpy")
 def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripes):
-    """1-D Lucas-Kanade refinement computed from window sums.
+    """1-D Lucas-Kanade refinement of ``disp`` (H, W) float32 in place, from window sums.
 
-    right_coef_pad : (H, W + 4) float32, the B-spline coefficients of the right view
-    (:func:`bspline_rows`) in columns ``1 .. W``, the spare columns (one on the left,
-    three on the right, read by the 8-lane products) zero. With the
-    B-spline weights ``a_j`` (value) and ``g_j`` (derivative) of the fractional
-    shift and the coefficients ``q`` under the 4-tap footprint, the sums of one
-    Gauss-Newton step are ``sum r g = g.P - a^T M g`` and ``sum g^2 = g^T M g`` with
-    ``P_j = sum L q_j`` and the 4x4 Gram matrix ``M_jk = sum q_j q_k``; both depend
-    only on the integer part ``x0`` of ``x - d``. ``M`` comes from per-row box sums of
-    coefficient products at lags 0..3; ``P`` for ``x0`` and its two neighbours (a step
-    never moves farther: ``max_step <= 1``) from six window sums per pixel, so every
-    iteration costs O(1).
-
-    Rows run top to bottom in ``n_stripes`` parallel stripes, with the window sums
-    slid down a column: the Gram sums always (one row in, one out), a pixel's six
-    ``P`` sums when the pixel above had the same integer part ``x - d`` (the usual
-    case on a smooth surface), else summed afresh. Running sums are float64.
+    right_coef_pad (H, W + 4) float32: the right view's B-spline coefficients in
+    columns 1..W, the rest zero. A Gauss-Newton step needs ``g.P - a^T M g`` and
+    ``g^T M g`` (``P_j = sum L q_j``, Gram ``M_jk = sum q_j q_k``), which depend only on
+    the integer part of ``x - d``: O(1) per iteration (docs/matching.md).
     """
     h, w = disp.shape
     sixth = np.float32(1.0 / 6.0)
     one = np.float32(1.0)
-    nu = 2 * wx + 1
     y_lo = wy
     y_hi = h - wy  # rows y_lo .. y_hi - 1 have a full window
     n_rows = y_hi - y_lo
@@ -1225,7 +1298,7 @@ def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripe
         cs = np.zeros((4, w), np.float64)
         sm = np.zeros((4, w), np.float64)
         esf = np.zeros(8 * w, np.float64)  # running P sums per column (6 of 8 used)
-        xb_run = np.full(w, -(1 << 30), np.int64)  # their integer part, or invalid
+        xb_run = np.full(w, _NO_RUN, np.int64)  # their integer part, or none
         state = np.zeros(w, np.uint8)
         dcur = np.zeros(w, np.float64)
         for v in range(ya - wy, ya + wy + 1):
@@ -1234,139 +1307,14 @@ def refine_lk_gram(left, right_coef_pad, disp, wy, wx, iters, max_step, n_stripe
             if y > ya:
                 _gram_row(right_coef_pad, y + wy, w, 1.0, cs)
                 _gram_row(right_coef_pad, y - wy - 1, w, -1.0, cs)
-            any_valid = False
-            for x in range(w):
-                if not np.isnan(disp[y, x]):
-                    any_valid = True
-                    break
-            if not any_valid:
+            if not _row_any_valid(disp, y, w):
                 for x in range(w):
-                    xb_run[x] = -(1 << 30)
+                    xb_run[x] = _NO_RUN
                 continue
-            # box sums of the four lags along the row: four independent running sums
-            # in one loop (each is a chain of dependent adds; side by side they overlap)
-            a0 = a1 = a2 = a3 = 0.0
-            for u in range(nu - 1):
-                a0 += cs[0, u]
-                a1 += cs[1, u]
-                a2 += cs[2, u]
-                a3 += cs[3, u]
-            p_end = w - wx - 3  # every lag has p < w - wx - dl
-            for p in range(wx, p_end):
-                a0 += cs[0, p + wx]
-                a1 += cs[1, p + wx]
-                a2 += cs[2, p + wx]
-                a3 += cs[3, p + wx]
-                sm[0, p] = a0
-                sm[1, p] = a1
-                sm[2, p] = a2
-                sm[3, p] = a3
-                a0 -= cs[0, p - wx]
-                a1 -= cs[1, p - wx]
-                a2 -= cs[2, p - wx]
-                a3 -= cs[3, p - wx]
-            for p in range(max(wx, p_end), w - wx):  # the lags' last few columns
-                a0 += cs[0, p + wx]
-                sm[0, p] = a0
-                a0 -= cs[0, p - wx]
-                if p < w - wx - 1:
-                    a1 += cs[1, p + wx]
-                    sm[1, p] = a1
-                    a1 -= cs[1, p - wx]
-                if p < w - wx - 2:
-                    a2 += cs[2, p + wx]
-                    sm[2, p] = a2
-                    a2 -= cs[2, p - wx]
-            s0 = sm[0]
-            s1 = sm[1]
-            s2 = sm[2]
-            s3 = sm[3]
-            state[:] = 0
-            l_in = left[y + wy]
-            q_in = right_coef_pad[y + wy]
-            l_out = left[max(y - wy - 1, 0)]
-            q_out = right_coef_pad[max(y - wy - 1, 0)]
-            for x in range(w):
-                if x < wx or x >= w - wx:
-                    continue
-                d_in = disp[y, x]
-                if np.isnan(d_in):
-                    xb_run[x] = -(1 << 30)
-                    continue
-                d = np.float64(d_in)
-                xb = int(np.floor(x - d))
-                if xb - wx - 1 < 0 or xb + wx + 2 >= w:
-                    xb_run[x] = -(1 << 30)
-                    continue
-                # E_m = sum_window L(v, x + u) q(v, xb - 2 + m + u), m = 0..5
-                if xb_run[x] == xb:
-                    _lk_row_products(l_in, q_in, x, xb, wx, 1.0, esf)
-                    _lk_row_products(l_out, q_out, x, xb, wx, -1.0, esf)
-                else:
-                    for m in range(8):
-                        esf[8 * x + m] = 0.0
-                    for v in range(y - wy, y + wy + 1):
-                        _lk_row_products(left[v], right_coef_pad[v], x, xb, wx, 1.0, esf)
-                    xb_run[x] = xb
-                state[x] = 1
-                dcur[x] = d
-            # Gauss-Newton steps, one sweep over the row per iteration: the pixels
-            # are independent, so their long dependency chains overlap in the CPU
-            # (state: 0 idle, 1 iterating, 2 converged, 3 failed)
-            for _ in range(iters):
-                for x in range(wx, w - wx):
-                    if state[x] != 1:
-                        continue
-                    d = dcur[x]
-                    xs = x - d
-                    x0 = int(np.floor(xs))
-                    if x0 - wx - 1 < 0 or x0 + wx + 2 >= w:
-                        state[x] = 3
-                        continue
-                    e0 = 8 * x + 1 + (0 if x0 == xb_run[x] else (-1 if x0 < xb_run[x] else 1))
-                    pp0 = esf[e0]
-                    pp1 = esf[e0 + 1]
-                    pp2 = esf[e0 + 2]
-                    pp3 = esf[e0 + 3]
-                    m00 = s0[x0 - 1]
-                    m11 = s0[x0]
-                    m22 = s0[x0 + 1]
-                    m33 = s0[x0 + 2]
-                    m01 = s1[x0 - 1]
-                    m12 = s1[x0]
-                    m23 = s1[x0 + 1]
-                    m02 = s2[x0 - 1]
-                    m13 = s2[x0]
-                    m03 = s3[x0 - 1]
-                    t = np.float32(xs - x0)
-                    omt = one - t
-                    t2 = t * t
-                    a0 = np.float64(omt * omt * omt * sixth)
-                    a1 = np.float64((np.float32(3.0) * t2 * t - np.float32(6.0) * t2 + np.float32(4.0)) * sixth)
-                    a2 = np.float64((np.float32(-3.0) * t2 * t + np.float32(3.0) * t2 + np.float32(3.0) * t
-                                     + one) * sixth)
-                    a3 = np.float64(t2 * t * sixth)
-                    g0 = np.float64(np.float32(-0.5) * omt * omt)
-                    g1 = np.float64(np.float32(1.5) * t2 - np.float32(2.0) * t)
-                    g2 = np.float64(np.float32(-1.5) * t2 + t + np.float32(0.5))
-                    g3 = np.float64(np.float32(0.5) * t2)
-                    mg0 = m00 * g0 + m01 * g1 + m02 * g2 + m03 * g3
-                    mg1 = m01 * g0 + m11 * g1 + m12 * g2 + m13 * g3
-                    mg2 = m02 * g0 + m12 * g1 + m22 * g2 + m23 * g3
-                    mg3 = m03 * g0 + m13 * g1 + m23 * g2 + m33 * g3
-                    den = g0 * mg0 + g1 * mg1 + g2 * mg2 + g3 * mg3
-                    num = (g0 * pp0 + g1 * pp1 + g2 * pp2 + g3 * pp3
-                           - (a0 * mg0 + a1 * mg1 + a2 * mg2 + a3 * mg3))
-                    if den <= 1e-6:
-                        state[x] = 3
-                        continue
-                    step = -num / den
-                    d += step
-                    dcur[x] = d
-                    if abs(d - np.float64(disp[y, x])) > max_step:
-                        state[x] = 3
-                    elif abs(step) < 2e-3:
-                        state[x] = 2
+            _gram_box_sums(cs, sm, w, wx)
+            _lk_start_row(left, right_coef_pad, disp, y, w, wx, wy, esf, xb_run, state, dcur)
+            _lk_iterate_row(disp, y, w, wx, iters, max_step, esf, sm, xb_run, state, dcur,
+                            sixth, one)
             for x in range(wx, w - wx):
                 if state[x] == 1 or state[x] == 2:
                     disp[y, x] = np.float32(dcur[x])

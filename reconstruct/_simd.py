@@ -1,26 +1,12 @@
 """16-lane vectors for numba kernels (private).
 
-LLVM's loop vectoriser picks its vector width from the element type and the CPU
-(on AVX-512 machines 32 uint16 lanes, interleaved twice: 64 elements a trip), so a
-loop over the 16-48 disparity levels of a small search never enters its vector body
-and runs in its scalar remainder. These intrinsics give the kernels explicit
-16-lane vectors instead: ``U16x16``, ``U32x16`` and ``F32x16`` values live in SIMD
-registers (LLVM ``<16 x i16>``, ``<16 x i32>``, ``<16 x float>``), so one step over
-16 disparity levels is a handful of vector instructions on any x86-64 (LLVM splits
-them to the register width the CPU has).
-
-Integer arithmetic wraps like numpy's fixed-width integers; ``v16_min`` /
-``v16_max`` compare unsigned; float operations are plain IEEE (no fast-math), so a
-kernel written with them gives bit-identical results to its scalar loop.
-
-Loads and stores take a C-contiguous 1-D array and an element index; they are
-unaligned and unchecked, like numba's own indexing (callers keep ``i + 16 <=
-len``).
-
-Numba's on-disk cache is keyed by the hash of a cached function's own source file:
-after editing this module, update _SIMD_SHA256 in _match_kernels.py (a test
-fails until then), which makes numba recompile the kernels that inline these
-intrinsics.
+``U16x16``, ``U32x16``, ``F32x16`` (and 8-lane float) values in SIMD registers, so a
+step over 16 disparity levels is a few vector instructions (LLVM's vectoriser would
+leave short searches scalar: docs/matching.md). Integers wrap like numpy's, min/max
+compare unsigned, floats are plain IEEE (bit-identical to the scalar loop). Loads
+and stores take a C-contiguous 1-D array and an element index, unaligned and
+unchecked (callers keep ``i + 16 <= len``). After editing this module update
+_SIMD_SHA256 in _match_kernels.py (a test demands it) so numba recompiles the kernels.
 """
 
 from __future__ import annotations

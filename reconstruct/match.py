@@ -1,48 +1,17 @@
 """Dense stereo matching: census cost, semi-global aggregation, sub-pixel refinement.
 
-:func:`match_stereo` is the entry point other tools call; :func:`match_stereo_full`
-also returns the validity and confidence maps. Inputs are a *rectified* pair
-(rows are epipolar lines); the output follows the project convention
-``d = x_left - x_right`` in pixels, float32.
+:func:`match_stereo_full` matches a *rectified* pair (``d = x_left - x_right``, px,
+float32): census of every channel + truncated colour difference (AD-Census [2, 6]);
+SGM along 4 or 8 paths, gradient-adaptive P2 [1]; winner-take-all, uniqueness,
+left-right check, speckle removal; equiangular sub-pixel fit [4], then 1-D
+Lucas-Kanade [5] on a cubic B-spline of the right view [7]; background-favouring
+hole fill. Above :data:`C2F_AUTO_CELLS` cells it runs coarse-to-fine (tSGM [3]).
+Why and measurements: docs/matching.md.
 
-Pipeline (numba kernels in :mod:`._match_kernels`):
-
-1. census transform (5x5 window by default) of every colour channel; matching cost
-   = Hamming distance summed over channels (the projector grating is colour coded,
-   so each channel carries its own texture) plus a truncated absolute colour
-   difference (after matching the right view's per-channel mean and spread to the
-   left's), as in AD-Census [6];
-2. semi-global aggregation along 4 (default) or 8 paths with P2 adaptive to the
-   image gradient;
-3. winner-take-all, uniqueness ratio, left-right check with the right disparity taken
-   from the same aggregated volume, small-segment (speckle) removal;
-4. sub-pixel: equiangular fit on the aggregated costs [4], then 1-D Lucas-Kanade
-   warping [5] on band-passed intensities, the right view interpolated with cubic
-   B-splines [7] (no pile-up at integers: RMS ~0.01 px on a textured shift sweep);
-5. dense fill: background-favouring horizontal fill followed by a median on the
-   filled pixels only.
-
-Large searches (``W * H * num_disp`` above :data:`C2F_AUTO_CELLS`) take a
-coarse-to-fine path: full SGM on a 2^n-times smaller pyramid level, then at full
-resolution each pixel searches only a narrow window (``fine_window`` levels) around
-the upsampled coarse disparity, so memory is ``H * W * fine_window * 3`` bytes.
-
-References
-----------
-.. [1] H. Hirschmüller, "Stereo processing by semiglobal matching and mutual
-   information", IEEE TPAMI 30(2), 2008.
-.. [2] R. Zabih and J. Woodfill, "Non-parametric local transforms for computing
-   visual correspondence", ECCV 1994.
-.. [3] M. Rothermel et al., "SURE: Photogrammetric surface reconstruction from
-   imagery", LC3D Workshop 2012 (tSGM).
-.. [4] M. Shimizu and M. Okutomi, "Sub-pixel estimation error cancellation on
-   area-based matching", IJCV 63(3), 2005.
-.. [5] B. D. Lucas and T. Kanade, "An iterative image registration technique with an
-   application to stereo vision", IJCAI 1981.
-.. [6] X. Mei et al., "On building an accurate stereo matching system on graphics
-   hardware", ICCV Workshops 2011 (AD-Census).
-.. [7] M. Unser, "Splines: a perfect fit for signal and image processing", IEEE Signal
-   Processing Magazine 16(6), 1999.
+References: [1] Hirschmüller, TPAMI 2008 (SGM). [2] Zabih, Woodfill, ECCV 1994
+(census). [3] Rothermel et al., LC3D 2012 (SURE/tSGM). [4] Shimizu, Okutomi, IJCV
+2005. [5] Lucas, Kanade, IJCAI 1981. [6] Mei et al., ICCVW 2011 (AD-Census).
+[7] Unser, IEEE SPM 16(6), 1999 (splines).
 """
 
 from __future__ import annotations
@@ -74,29 +43,45 @@ log = logging.getLogger(__name__)
 C2F_AUTO_CELLS = 48_000_000
 #: Target size (cells) of the coarse level's full cost volume.
 _COARSE_CELLS = 12_000_000
+#: Largest pyramid factor of the coarse level.
+_MAX_SCALE = 16
+#: A coarse level (matching or gain fit) needs at least this many rows and columns.
+_MIN_COARSE_SIDE = 8
+#: The gain fit runs on a level at least this many times smaller (its field is smooth) ...
+_GAIN_SCALE = 4
+#: ... that keeps this many pixels on its short side (docs/matching.md).
+_GAIN_MIN_SIDE = 128
+#: Default speckle size: this many pixels at the reference area, scaled with the area ...
+_SPECKLE_PX, _SPECKLE_REF_AREA = 100, 450 * 375
+#: ... and clamped to this range.
+_SPECKLE_MIN, _SPECKLE_MAX = 4, 400
+#: Fine-search half-window beyond the coarse neighbourhood's +-scale (levels).
+_FINE_MARGIN = 4
+#: 3 channels x 8 paths x p2 must stay within the uint16 path sums' headroom.
+_P2_LIMIT = 40000
+#: Side of the box mean the band-pass subtracts before Lucas-Kanade (exposure offsets).
+_BANDPASS_BOX = 11
+#: Channel spread below which the right view's AD features keep gain 1.
+_MIN_SPREAD = 1e-6
+#: SGM vertical pass: columns per parallel block, within [16, 128], ~4 blocks a thread.
+_BLOCK_MIN, _BLOCK_MAX, _BLOCKS_PER_THREAD = 16, 128, 4
+#: Lucas-Kanade stripes: 4 per thread (load balance), each at least 32 rows.
+_LK_STRIPES_PER_THREAD, _LK_MIN_STRIPE_ROWS = 4, 32
+#: Largest Lucas-Kanade correction (px): its window sums cover the start's integer
+#: part +-1 only; a larger move means the match was wrong.
+_LK_MAX_STEP = 1.0
+#: Radius of the median that smooths the filled holes (3x3).
+_FILL_MEDIAN_RADIUS = 1
 
 
 @dataclass(frozen=True)
 class StereoResult:
-    """Result of :func:`match_stereo_full`.
+    """Result of :func:`match_stereo_full`; maps (H, W).
 
-    Attributes
-    ----------
-    disparity : (H, W) float32
-        Dense disparity ``x_left - x_right`` in pixels, holes filled (no NaN).
-    valid : (H, W) bool
-        Pixels that passed the uniqueness and left-right checks and speckle removal
-        (not filled).
-    confidence : (H, W) float32
-        In [0, 1]: relative gap between the best aggregated cost and the best one
-        outside +-1 level of the winner; 0 where not ``valid``.
-    raw : (H, W) float32
-        The unfilled disparity: ``disparity`` where ``valid``, NaN elsewhere.
-    coarse_to_fine : bool
-        Whether the coarse-to-fine path was used.
-    right_gain : GainField or None
-        The gain applied to the right view before matching (``equalize``); ``None``
-        when off.
+    ``disparity`` float32 px, holes filled; ``valid`` bool: passed uniqueness, left-right
+    and speckle checks; ``confidence`` float32 in [0, 1] (relative gap to the best cost
+    outside +-1 level, 0 where not valid); ``raw``: ``disparity`` where valid, else NaN;
+    ``right_gain``: gain applied to the right view (None when ``equalize`` is off).
     """
 
     disparity: NDArray[np.float32]
@@ -109,40 +94,80 @@ class StereoResult:
 
 @dataclass(frozen=True)
 class MatchOptions:
-    """Options of :func:`match_stereo_full` (defaults: docs/matching.md)."""
+    """Options of :func:`match_stereo_full` (why these defaults: docs/matching.md)."""
 
     coarse_to_fine: bool | None = None
+    """Force (True) or forbid (False) coarse-to-fine; None: above C2F_AUTO_CELLS cells."""
     census_window: tuple[int, int] = (5, 5)
+    """Census window (rows, cols), odd sizes >= 3, at most 64 comparisons."""
     p1: int = 10
+    """SGM penalty per colour channel for a 1-level disparity change."""
     p2: int = 120
+    """SGM penalty per colour channel for larger changes (> p1, <= 1600)."""
     p2_gamma: float = 20.0
+    """Intensity step (grey levels) at which the adaptive P2 is halved."""
     paths: int = 4
+    """Aggregation paths, 4 or 8."""
     uniqueness: float = 5.0
+    """Minimum margin (percent) between the best cost and the best outside +-1 level."""
     lr_max_diff: float = 1.0
+    """Maximum left-right disagreement (px)."""
     speckle_size: int | None = None
+    """Valid regions smaller than this (px) are dropped; None: 100 px at 450x375, scaled by area."""
     speckle_range: float = 2.0
+    """Disparity step (px) that separates speckle regions."""
     subpixel: str = "lk"
+    """Sub-pixel: "lk" (equiangular fit, then Lucas-Kanade) or "equiangular" (fit alone)."""
     lk_window: int = 5
+    """Odd side (px) of the square Lucas-Kanade window."""
     lk_iters: int = 1
+    """Maximum Gauss-Newton iterations (one suffices from the equiangular start)."""
     fine_window: int | None = None
+    """Levels searched per pixel coarse-to-fine (>= 3); None: 2 * (scale + 4) + 1, or more."""
     ad_weight: float = 1.0
+    """Weight (>= 0) of the colour-difference term added to the census cost; 0: census only."""
     ad_trunc: float = 15.0
+    """Truncation (> 0, grey levels per channel) of the colour-difference term."""
     ad_mode: str = "intensity"
+    """What the colour-difference term compares: "intensity" (after equalisation) or "gradient"."""
     equalize: bool = True
+    """Bring the right view's exposure, colour balance and vignetting to the left's first."""
+
+    def __post_init__(self) -> None:
+        check_choice(self.paths, "paths", (4, 8))
+        check_choice(self.subpixel, "subpixel", ("lk", "equiangular"))
+        check_choice(self.ad_mode, "ad_mode", ("intensity", "gradient"))
+        if not (np.isfinite(self.ad_weight) and self.ad_weight >= 0):
+            raise InputError(f"ad_weight: expected a finite number >= 0, got {self.ad_weight!r}")
+        if not (np.isfinite(self.ad_trunc) and self.ad_trunc > 0):
+            raise InputError(f"ad_trunc: expected a finite number > 0, got {self.ad_trunc!r}")
+        if self.fine_window is not None and _as_int(self.fine_window, "fine_window") < 3:
+            raise InputError(f"fine_window: expected an integer >= 3, got {self.fine_window}")
+        _check_census_window(self.census_window)
+        if _as_int(self.lk_window, "lk_window") < 3 or self.lk_window % 2 == 0:
+            raise InputError(f"lk_window: expected an odd integer >= 3, got {self.lk_window}")
+        for nm, v in (("p1", self.p1), ("p2", self.p2)):
+            if _as_int(v, nm) <= 0:
+                raise InputError(f"{nm}: expected an integer > 0, got {v}")
+        if self.p2 <= self.p1:
+            raise InputError(f"p2: expected p2 > p1, got p1={self.p1}, p2={self.p2}")
+        if self.p2 * 3 * 8 > _P2_LIMIT:
+            raise InputError(f"p2: expected at most 1600, got {self.p2}")
+
+
+def _check_census_window(cw: Any) -> None:
+    if (
+        len(cw) != 2
+        or any(_as_int(c, "census_window") % 2 == 0 or c < 3 for c in cw)
+        or cw[0] * cw[1] - 1 > 64
+    ):
+        raise InputError(
+            f"census_window: expected two odd sizes >= 3 with rows*cols <= 65, got {cw!r}")
 
 
 class _Workspace(threading.local):
-    """Scratch volumes (census codes, features, costs, path sums) kept between calls,
-    one set per thread, at most ``CAP`` bytes in all.
-
-    A fresh multi-megabyte array is handed out by ``mmap`` once glibc's dynamic
-    threshold says so and its pages are faulted in and zeroed on first touch: on a
-    384x288 pair that was ~1900 page faults and ~4 ms of system time per call, a
-    quarter of the match (measured). Reusing the arrays, as OpenCV's matchers reuse
-    their buffer, avoids it. Every kernel overwrites the whole scratch array, so
-    nothing leaks from one call into the next; larger requests are allocated and
-    dropped as usual (a 5 MP coarse-to-fine match keeps at most ``CAP``).
-    """
+    """Per-thread scratch volumes reused between calls, at most ``CAP`` bytes (fresh
+    large arrays cost page faults: docs/matching.md). Kernels overwrite them whole."""
 
     CAP = 64 << 20
 
@@ -151,11 +176,8 @@ class _Workspace(threading.local):
 
     def take(self, name: str, shape: tuple[int, ...], dtype: Any, keep: bool = True
              ) -> np.ndarray:
-        """An uninitialised C-contiguous array for ``name`` (the previous one when its
-        shape and dtype match; the caller must not keep it past its call). With
-        ``keep`` False (a large problem) the array is neither reused nor kept, so
-        that it is freed as soon as the caller drops it (peak memory as without the
-        workspace)."""
+        """Uninitialised C-contiguous array for ``name`` (reused when shape and dtype
+        match); ``keep`` False: neither reused nor kept (large problems)."""
         dtype = np.dtype(dtype)
         old = self.arrays.pop(name, None)
         if keep and old is not None and old.shape == tuple(shape) and old.dtype == dtype:
@@ -169,8 +191,7 @@ class _Workspace(threading.local):
 
     @classmethod
     def small(cls, h: int, w: int, levels: int) -> bool:
-        """True when a match of ``levels`` levels at ``h x w`` is small enough to keep
-        its scratch (cost and path-sum volumes, 3 bytes a cell, within ``CAP``)."""
+        """Whether an ``h x w`` match of ``levels`` levels (3 bytes a cell) fits ``CAP``."""
         return 3 * h * w * levels <= cls.CAP
 
 
@@ -184,8 +205,8 @@ def _as_int(value: Any, name: str) -> int:
 
 
 def _prepare(img: Any, name: str) -> NDArray[np.uint8] | NDArray[np.float32]:
-    """(H, W, C) C-contiguous image: uint8 kept as is (no copy when possible), float
-    scaled to [0, 255] float32."""
+    """(H, W, C) C-contiguous image: uint8 as is (no copy when possible), float scaled
+    to [0, 255] float32."""
     arr = check_array(img, name, ndim=(2, 3), dtype_kind="uf", min_size=1)
     if arr.dtype.kind == "u" and arr.dtype != np.uint8:
         raise InputError(f"{name}: expected uint8 or float image, got {arr.dtype}")
@@ -204,13 +225,18 @@ def _prepare(img: Any, name: str) -> NDArray[np.uint8] | NDArray[np.float32]:
     return np.ascontiguousarray(out)
 
 
-def _census(img: NDArray[Any], ry: int, rx: int, reverse: bool) -> NDArray[np.unsignedinteger]:
-    """(C, H, W) census codes (uint32 up to 32 comparisons, else uint64) of an
-    (H, W, C) image, borders replicated; rows mirrored when ``reverse`` (the right
-    view's layout for :func:`._match_kernels.matching_cost`)."""
+def _census_dtype(ry: int, rx: int) -> type:
+    """uint32 codes up to 32 comparisons, else uint64."""
+    return np.uint32 if (2 * ry + 1) * (2 * rx + 1) - 1 <= 32 else np.uint64
+
+
+def _census(img: NDArray[Any], ry: int, rx: int, reverse: bool,
+            out: NDArray[np.unsignedinteger] | None = None) -> NDArray[np.unsignedinteger]:
+    """(C, H, W) census codes of an (H, W, C) image (into ``out`` when given), borders
+    replicated; rows mirrored when ``reverse`` (the right view's layout)."""
     h, w, c = img.shape
-    nbits = (2 * ry + 1) * (2 * rx + 1) - 1
-    out = np.empty((c, h, w), np.uint32 if nbits <= 32 else np.uint64)
+    if out is None:
+        out = np.empty((c, h, w), _census_dtype(ry, rx))
     _k.census_hwc(np.ascontiguousarray(img), ry, rx, bool(reverse), out)
     return out
 
@@ -225,9 +251,8 @@ def _grey(img: NDArray[Any], out: NDArray[np.float32] | None = None) -> NDArray[
 
 def _bandpass(grey: NDArray[np.float32], out: NDArray[np.float32] | None = None,
               tmp: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
-    """Grey minus its 11x11 box mean: removes exposure offsets before LK refinement
-    (into ``out``, with scratch ``tmp``, when given)."""
-    box = cv2.blur(grey, (11, 11), dst=tmp, borderType=cv2.BORDER_REFLECT)
+    """Grey minus its box mean (exposure offsets out before Lucas-Kanade)."""
+    box = cv2.blur(grey, (_BANDPASS_BOX, _BANDPASS_BOX), dst=tmp, borderType=cv2.BORDER_REFLECT)
     return np.subtract(grey, box, out=out)
 
 
@@ -245,13 +270,10 @@ def _to_u8(img: NDArray[np.float32]) -> NDArray[np.uint8]:
 
 def _features(left: NDArray[Any], right: NDArray[Any], mode: str, reverse: bool,
               keep: bool = False) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-    """Per-pixel uint8 features of the AD term for both views, planar (C, H, W), the
-    right view's rows mirrored when ``reverse``.
-
-    ``"intensity"``: the colour values, the right view's channels first matched in
-    mean and standard deviation to the left's (global exposure / gain compensation);
-    ``"gradient"``: horizontal central differences, offset by 128.
-    """
+    """(C, H, W) uint8 features of the AD term for both views, the right view's rows
+    mirrored when ``reverse``: "intensity" the colours, the right view's channels
+    matched in mean and spread to the left's; "gradient" horizontal central
+    differences + 128."""
     h, w, nc = left.shape
     if mode == "gradient":
         out = []
@@ -270,7 +292,7 @@ def _features(left: NDArray[Any], right: NDArray[Any], mode: str, reverse: bool,
     for c in range(nc):
         s_i, s_l = float(si[c][0]), float(sl[c][0])
         m_i, m_l = float(mi[c][0]), float(ml[c][0])
-        g = s_l / s_i if s_i > 1e-6 else 1.0
+        g = s_l / s_i if s_i > _MIN_SPREAD else 1.0
         gain[c] = np.float32(g)
         offset[c] = np.float32(m_l - m_i * g)
     fl = _WS.take("feat_l", (nc, h, w), np.uint8, keep)
@@ -281,6 +303,8 @@ def _features(left: NDArray[Any], right: NDArray[Any], mode: str, reverse: bool,
 
 @dataclass(frozen=True)
 class _Params:
+    """:class:`MatchOptions` resolved for one image size (the kernels' arguments)."""
+
     census_ry: int
     census_rx: int
     p1: int
@@ -299,6 +323,72 @@ class _Params:
     ad_mode: str
 
 
+def _resolve(opts: MatchOptions, h: int, w: int) -> _Params:
+    speckle_size = opts.speckle_size
+    if speckle_size is None:
+        speckle_size = max(_SPECKLE_MIN, round(_SPECKLE_PX * h * w / _SPECKLE_REF_AREA))
+        speckle_size = min(speckle_size, _SPECKLE_MAX)
+    return _Params(
+        census_ry=opts.census_window[0] // 2,
+        census_rx=opts.census_window[1] // 2,
+        p1=int(opts.p1),
+        p2=int(opts.p2),
+        p2_gamma=float(opts.p2_gamma),
+        paths=int(opts.paths),
+        uniqueness=float(opts.uniqueness),
+        lr_max_diff=float(opts.lr_max_diff),
+        speckle_size=int(speckle_size),
+        speckle_range=float(opts.speckle_range),
+        subpixel=opts.subpixel,
+        lk_window=int(opts.lk_window),
+        lk_iters=int(opts.lk_iters),
+        ad_weight=float(opts.ad_weight),
+        ad_trunc=float(opts.ad_trunc),
+        ad_mode=opts.ad_mode,
+    )
+
+
+def _match_cost(left: NDArray[Any], right: NDArray[Any], dlo: NDArray[np.int32], kp: int,
+                prm: _Params, keep: bool) -> NDArray[np.uint8]:
+    """(H, W, kp) uint8 census + AD cost of disparities ``dlo + k``."""
+    h, w, nc = left.shape
+    ry, rx = prm.census_ry, prm.census_rx
+    nbits = (2 * ry + 1) * (2 * rx + 1) - 1
+    ctype = _census_dtype(ry, rx)
+    cl = _census(left, ry, rx, False, _WS.take("census_l", (nc, h, w), ctype, keep))
+    cr = _census(right, ry, rx, True, _WS.take("census_r", (nc, h, w), ctype, keep))
+    oob = np.uint8(min(255, (nbits * nc) // 2))  # a candidate outside the right view
+    if prm.ad_weight > 0:
+        fl, fr = _features(left, right, prm.ad_mode, True, keep)
+    else:
+        fl = fr = np.zeros((0, h, w), np.uint8)
+    nf = max(fl.shape[0], 1)
+    # AD cost of a summed |difference| a: weight * nc * min(a / nf, trunc)
+    ad_scale = prm.ad_weight * nc / nf
+    ad_clip = prm.ad_trunc * nf
+    cost = _WS.take("cost", (h, w, kp), np.uint8, keep)
+    _k.matching_cost(cl, cr, fl, fr, ad_scale, ad_clip, dlo, kp, oob, cost)
+    return cost
+
+
+def _refine_lk(left: NDArray[Any], right: NDArray[Any], guide: NDArray[np.float32],
+               disp: NDArray[np.float32], prm: _Params, keep: bool) -> None:
+    """Lucas-Kanade sub-pixel refinement of ``disp`` in place, on band-passed greys."""
+    h, w = disp.shape
+    tmp = _WS.take("box", (h, w), np.float32, keep)
+    lg = _bandpass(guide, _WS.take("band_l", (h, w), np.float32, keep), tmp)
+    rg = _bandpass(_grey(right, _WS.take("grey_r", (h, w), np.float32, keep)),
+                   _WS.take("band_r", (h, w), np.float32, keep), tmp)
+    # one spare (zero) column on the left, three on the right (8-lane products)
+    rcoef = _WS.take("rcoef", (h, w + 4), np.float32, keep)
+    rcoef[:, 0] = 0.0
+    rcoef[:, w + 1:] = 0.0
+    _k.bspline_rows(rg, rcoef[:, 1:w + 1])
+    del rg
+    r = prm.lk_window // 2
+    _k.refine_lk_gram(lg, rcoef, disp, r, r, prm.lk_iters, _LK_MAX_STEP, _lk_stripes(h))
+
+
 def _match_level(
     left: NDArray[Any],
     right: NDArray[Any],
@@ -310,36 +400,13 @@ def _match_level(
     speckle_size: int,
     dmin: int | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """One SGM pass with per-pixel windows; returns (raw disparity NaN=invalid, conf).
-
-    ``dmin`` set: a full search (``dlo == dmin`` everywhere). With 4 paths the levels
-    are padded to a multiple of 16 in the cost volumes (whole vectors in the SGM
-    kernels; the padded levels are never selected).
-    """
+    """One SGM pass over the per-pixel windows ``dlo + 0 .. k_levels - 1``; returns
+    (raw disparity, NaN = invalid; confidence)."""
     h, w, nc = left.shape
-    ry, rx = prm.census_ry, prm.census_rx
-    nbits = (2 * ry + 1) * (2 * rx + 1) - 1
-    ctype = np.uint32 if nbits <= 32 else np.uint64
     keep = _Workspace.small(h, w, _volume_levels(k_levels))
-    cl = _WS.take("census_l", (nc, h, w), ctype, keep)
-    cr = _WS.take("census_r", (nc, h, w), ctype, keep)
-    _k.census_hwc(left, ry, rx, False, cl)
-    _k.census_hwc(right, ry, rx, True, cr)
-    oob = np.uint8(min(255, (nbits * nc) // 2))
-    # levels padded to a multiple of 16 (vector width) in the volumes; padded levels
-    # are held at "infinite" cost by the SGM kernels, never selected
+    # levels padded to whole 16-level vectors; the SGM kernels never select the padding
     kp = _volume_levels(k_levels)
-    if prm.ad_weight > 0:
-        fl, fr = _features(left, right, prm.ad_mode, True, keep)
-    else:
-        fl = fr = np.zeros((0, h, w), np.uint8)
-    nf = max(fl.shape[0], 1)
-    # AD cost of a summed |difference| a: weight * nc * min(a / nf, trunc)
-    ad_scale = prm.ad_weight * nc / nf
-    ad_clip = prm.ad_trunc * nf
-    cost = _WS.take("cost", (h, w, kp), np.uint8, keep)
-    _k.matching_cost(cl, cr, fl, fr, ad_scale, ad_clip, dlo, kp, oob, cost)
-    del cl, cr, fl, fr
+    cost = _match_cost(left, right, dlo, kp, prm, keep)
     guide = _grey(left, _WS.take("guide", (h, w), np.float32, keep))
     p1 = np.int32(prm.p1 * nc)
     p2 = np.int32(prm.p2 * nc)
@@ -352,7 +419,7 @@ def _match_level(
     disp = np.empty((h, w), np.float32)
     conf = _WS.take("conf", (h, w), np.float32, keep)  # internal: the final one is a copy
     nthreads = max(1, numba.get_num_threads())
-    block = int(min(128, max(16, -(-w // (4 * nthreads)))))
+    block = int(min(_BLOCK_MAX, max(_BLOCK_MIN, -(-w // (_BLOCKS_PER_THREAD * nthreads)))))
     _k.sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block,
                         float(prm.uniqueness), agg, disp, conf)
     del cost
@@ -361,31 +428,19 @@ def _match_level(
     if speckle_size > 0:
         _k.remove_speckles(disp, speckle_size, np.float64(prm.speckle_range))
     if subpixel == "lk":
-        tmp = _WS.take("box", (h, w), np.float32, keep)
-        lg = _bandpass(guide, _WS.take("band_l", (h, w), np.float32, keep), tmp)
-        rg = _bandpass(_grey(right, _WS.take("grey_r", (h, w), np.float32, keep)),
-                       _WS.take("band_r", (h, w), np.float32, keep), tmp)
-        # one spare (zero) column on the left, three on the right (8-lane products)
-        rcoef = _WS.take("rcoef", (h, w + 4), np.float32, keep)
-        rcoef[:, 0] = 0.0
-        rcoef[:, w + 1:] = 0.0
-        _k.bspline_rows(rg, rcoef[:, 1:w + 1])
-        del rg
-        r = prm.lk_window // 2
-        _k.refine_lk_gram(lg, rcoef, disp, r, r, prm.lk_iters, 1.0, _lk_stripes(h))
+        _refine_lk(left, right, guide, disp, prm, keep)
     return disp, conf
 
 
 def _volume_levels(k_levels: int) -> int:
-    """Levels held in the cost volumes: ``k_levels`` rounded up to whole 16-level
-    vectors (the padding is held at "infinite" cost by the SGM kernels)."""
+    """``k_levels`` rounded up to whole 16-level vectors (the volumes' depth)."""
     return -(-k_levels // 16) * 16
 
 
 def _lk_stripes(h: int) -> int:
-    """Row stripes of the Lucas-Kanade pass: 4 per thread (load balance), each at
-    least 32 rows (the window sums slide down a stripe; a stripe start sums afresh)."""
-    return max(1, min(4 * max(1, numba.get_num_threads()), h // 32))
+    """Row stripes of the Lucas-Kanade pass (its window sums slide down a stripe)."""
+    return max(1, min(_LK_STRIPES_PER_THREAD * max(1, numba.get_num_threads()),
+                      h // _LK_MIN_STRIPE_ROWS))
 
 
 def _fill(raw: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -393,8 +448,76 @@ def _fill(raw: NDArray[np.float32]) -> NDArray[np.float32]:
     _k.fill_holes(raw, filled)
     _k.fill_columns(filled)
     out = np.empty_like(raw)
-    _k.median_filled(filled, ~np.isnan(raw), 1, out)
+    _k.median_filled(filled, ~np.isnan(raw), _FILL_MEDIAN_RADIUS, out)
     return out
+
+
+def _check_pair(left: Any, right: Any, min_disp: Any, num_disp: Any
+                ) -> tuple[NDArray[Any], NDArray[Any], int, int]:
+    """Validated (H, W, C) views (one channel when all channels are equal) and range."""
+    lf = _prepare(left, "left")
+    rf = _prepare(right, "right")
+    check_same_shape(lf, rf, ("left", "right"))
+    min_disp = _as_int(min_disp, "min_disp")
+    num_disp = _as_int(num_disp, "num_disp")
+    if num_disp <= 0:
+        raise InputError(f"num_disp: expected an integer > 0, got {num_disp}")
+    if lf.shape[2] == 3 and _k.channels_equal(lf) and _k.channels_equal(rf):
+        lf = np.ascontiguousarray(lf[..., :1])
+        rf = np.ascontiguousarray(rf[..., :1])
+    return lf, rf, min_disp, num_disp
+
+
+def _pyramid_scale(h: int, w: int, num_disp: int) -> int:
+    """Factor of the coarse level: the smallest power of 2 that brings its cost volume
+    under ``_COARSE_CELLS``."""
+    scale = 2
+    while (h // scale) * (w // scale) * (num_disp / scale) > _COARSE_CELLS and scale < _MAX_SCALE:
+        scale *= 2
+    return scale
+
+
+def _equalize(lf: NDArray[Any], rf: NDArray[Any], min_disp: int, num_disp: int, scale: int,
+              prm: _Params) -> tuple[NDArray[Any], GainField | None]:
+    """The right view with the left's exposure, and the gain applied (None: too small)."""
+    h, w, _ = lf.shape
+    g_scale = scale
+    while g_scale < _GAIN_SCALE and min(h, w) // (2 * g_scale) >= _GAIN_MIN_SIDE:
+        g_scale *= 2
+    if h // g_scale < _MIN_COARSE_SIDE or w // g_scale < _MIN_COARSE_SIDE:
+        return rf, None
+    gain = _right_gain(lf, rf, min_disp, num_disp, g_scale, prm)
+    return np.ascontiguousarray(gain.apply(rf)), gain
+
+
+def _match_full(lf: NDArray[Any], rf: NDArray[Any], min_disp: int, num_disp: int,
+                prm: _Params) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Raw disparity and confidence of a full search ``min_disp + 0 .. num_disp - 1``."""
+    h, w, _ = lf.shape
+    dlo = _WS.take("dlo", (h, w), np.int32, _Workspace.small(h, w, num_disp))
+    dlo.fill(min_disp)
+    return _match_level(lf, rf, dlo, num_disp, prm, subpixel=prm.subpixel,
+                        speckle_size=prm.speckle_size, dmin=min_disp)
+
+
+def _assemble(raw: NDArray[np.float32], conf: NDArray[np.float32], keep: bool, use_c2f: bool,
+              gain: GainField | None, dmin: int, dmax: int) -> StereoResult:
+    """Fill the holes of ``raw`` (background first, then a median) into a StereoResult."""
+    filled = _WS.take("filled", raw.shape, np.float32, keep)
+    _k.fill_holes(raw, filled)
+    _k.fill_columns(filled)
+    dense = np.empty_like(raw)
+    valid = np.empty(raw.shape, np.bool_)
+    conf_out = np.empty(raw.shape, np.float32)
+    _k.median_fill_final(filled, raw, conf, _FILL_MEDIAN_RADIUS, dense, valid, conf_out)
+    del filled
+    if not valid.any():
+        raise ReconstructionError(
+            "match_stereo: no pixel passed the consistency checks; check that the pair "
+            f"is rectified and that disparities lie in [{dmin}, {dmax}]"
+        )
+    return StereoResult(disparity=dense, valid=valid, confidence=conf_out, raw=raw,
+                        coarse_to_fine=use_c2f, right_gain=gain)
 
 
 def match_stereo_full(
@@ -403,204 +526,36 @@ def match_stereo_full(
     *,
     min_disp: int,
     num_disp: int,
-    coarse_to_fine: bool | None = None,
-    census_window: tuple[int, int] = (5, 5),
-    p1: int = 10,
-    p2: int = 120,
-    p2_gamma: float = 20.0,
-    paths: int = 4,
-    uniqueness: float = 5.0,
-    lr_max_diff: float = 1.0,
-    speckle_size: int | None = None,
-    speckle_range: float = 2.0,
-    subpixel: str = "lk",
-    lk_window: int = 5,
-    lk_iters: int = 1,
-    fine_window: int | None = None,
-    ad_weight: float = 1.0,
-    ad_trunc: float = 15.0,
-    ad_mode: str = "intensity",
-    equalize: bool = True,
     options: MatchOptions | None = None,
 ) -> StereoResult:
-    """Match a rectified pair; return dense disparity plus validity and confidence.
+    """Match a rectified pair; dense disparity plus validity and confidence.
 
-    Parameters
-    ----------
-    left, right : (H, W) or (H, W, 3) uint8, or float in [0, 1]
-        Rectified grey or RGB views of the same shape. Colour is used: one census
-        per channel, costs summed (a pair whose channels are all equal is treated
-        as grey).
-    min_disp : int
-        Smallest disparity searched (may be negative or large, e.g. ~700 px).
-    num_disp : int
-        Number of disparity levels searched, ``> 0``: ``min_disp .. min_disp +
-        num_disp - 1``.
-    coarse_to_fine : bool, optional
-        Force (True) or forbid (False) the coarse-to-fine path; by default it is used
-        when ``W * H * num_disp > C2F_AUTO_CELLS``.
-    census_window : (int, int)
-        Census window (rows, cols), odd, at most 64 comparisons.
-    p1, p2 : int
-        SGM penalties per colour channel for 1-level and larger disparity changes.
-    p2_gamma : float
-        Intensity step (grey levels) at which the adaptive P2 is halved.
-    paths : {4, 8}
-        Number of aggregation paths.
-    uniqueness : float
-        Minimum margin in percent between the best cost and the best cost outside
-        +-1 level of the winner.
-    lr_max_diff : float
-        Maximum left-right disagreement in pixels.
-    speckle_size : int, optional
-        Valid regions smaller than this (pixels) are invalidated; default scales
-        with the image area (100 px at 450x375).
-    speckle_range : float
-        Disparity step (px) that separates speckle regions.
-    subpixel : {"lk", "equiangular"}
-        Sub-pixel method: equiangular fit then Lucas-Kanade refinement (default),
-        or the equiangular fit alone (faster, some pixel-locking).
-    lk_window : int
-        Odd side of the square Lucas-Kanade window.
-    lk_iters : int
-        Maximum Gauss-Newton iterations. One is the default: the equiangular start
-        is already within ~0.1 px, and on the sub-pixel shift sweep one step gives
-        RMS 0.0105 px with a flatter histogram of fractional parts than two
-        (0.0078 px), for ~15 % less refinement time; bad-1/bad-2 on the real pairs
-        change by < 0.003.
-    fine_window : int, optional
-        Levels searched per pixel in the coarse-to-fine pass (default: ``2 * (scale
-        + 4) + 1`` for pyramid factor ``scale``, rounded up to a multiple of 16 with
-        4 paths -- 32 at the paper's geometry).
-    ad_weight, ad_trunc : float
-        Weight and truncation (grey levels per channel) of the colour-difference term
-        added to the census cost.
-    ad_mode : {"intensity", "gradient"}
-        What the colour-difference term compares: the colour values (after
-        ``equalize`` and a global mean/spread match) or horizontal gradients.
-    equalize : bool
-        Before matching, bring the right view's exposure, colour balance and
-        vignetting to the left's: a census-only pass on a coarse level, then a smooth
-        per-channel gain fitted to the matched pixels
-        (:func:`~prism3d.reconstruct.photometric.fit_gain_field`). Views that already
-        agree get a gain of ~1.
-
-    Returns
-    -------
-    StereoResult
-
-    Raises
-    ------
-    InputError
-        Arrays of different shapes, wrong ndim/dtype, non-integer ``min_disp`` or
-        ``num_disp``, ``num_disp <= 0``, or an out-of-range option.
-    ReconstructionError
-        No pixel passed the consistency checks.
+    ``left``, ``right``: (H, W) or (H, W, 3) uint8, or float in [0, 1], same shape
+    (channels used separately; equal channels count as grey). Searches ``min_disp ..
+    min_disp + num_disp - 1`` (``num_disp > 0``). ``options`` None: the defaults.
+    Raises InputError for bad arrays or range, ReconstructionError when no pixel passed
+    the consistency checks.
     """
-    if options is not None:  # transitional: the keywords go once callers pass options
-        return match_stereo_full(left, right, min_disp=min_disp, num_disp=num_disp,
-                                 **dataclasses.asdict(options))
-    lf = _prepare(left, "left")
-    rf = _prepare(right, "right")
-    check_same_shape(lf, rf, ("left", "right"))
-    min_disp = _as_int(min_disp, "min_disp")
-    num_disp = _as_int(num_disp, "num_disp")
-    if num_disp <= 0:
-        raise InputError(f"num_disp: expected an integer > 0, got {num_disp}")
-    check_choice(paths, "paths", (4, 8))
-    check_choice(subpixel, "subpixel", ("lk", "equiangular"))
-    check_choice(ad_mode, "ad_mode", ("intensity", "gradient"))
-    if not (np.isfinite(ad_weight) and ad_weight >= 0):
-        raise InputError(f"ad_weight: expected a finite number >= 0, got {ad_weight!r}")
-    if not (np.isfinite(ad_trunc) and ad_trunc > 0):
-        raise InputError(f"ad_trunc: expected a finite number > 0, got {ad_trunc!r}")
-    if fine_window is not None and _as_int(fine_window, "fine_window") < 3:
-        raise InputError(f"fine_window: expected an integer >= 3, got {fine_window}")
-    if (
-        len(census_window) != 2
-        or any(_as_int(c, "census_window") % 2 == 0 or c < 3 for c in census_window)
-        or census_window[0] * census_window[1] - 1 > 64
-    ):
-        raise InputError(
-            f"census_window: expected two odd sizes >= 3 with rows*cols <= 65, "
-            f"got {census_window!r}"
-        )
-    if _as_int(lk_window, "lk_window") < 3 or lk_window % 2 == 0:
-        raise InputError(f"lk_window: expected an odd integer >= 3, got {lk_window}")
-    for nm, v in (("p1", p1), ("p2", p2)):
-        if _as_int(v, nm) <= 0:
-            raise InputError(f"{nm}: expected an integer > 0, got {v}")
-    if p2 <= p1:
-        raise InputError(f"p2: expected p2 > p1, got p1={p1}, p2={p2}")
-    if p2 * 3 * 8 > 40000:
-        raise InputError(f"p2: expected at most 1600, got {p2}")
-
-    if lf.shape[2] == 3 and _k.channels_equal(lf) and _k.channels_equal(rf):
-        lf = np.ascontiguousarray(lf[..., :1])
-        rf = np.ascontiguousarray(rf[..., :1])
-
+    opts = MatchOptions() if options is None else options
+    if not isinstance(opts, MatchOptions):
+        raise InputError(f"options: expected a MatchOptions, got {type(opts).__name__}")
+    lf, rf, min_disp, num_disp = _check_pair(left, right, min_disp, num_disp)
     h, w, _ = lf.shape
-    if speckle_size is None:
-        speckle_size = max(4, round(100 * h * w / (450 * 375)))
-        speckle_size = min(speckle_size, 400)
-    prm = _Params(
-        census_ry=census_window[0] // 2,
-        census_rx=census_window[1] // 2,
-        p1=int(p1),
-        p2=int(p2),
-        p2_gamma=float(p2_gamma),
-        paths=int(paths),
-        uniqueness=float(uniqueness),
-        lr_max_diff=float(lr_max_diff),
-        speckle_size=int(speckle_size),
-        speckle_range=float(speckle_range),
-        subpixel=subpixel,
-        lk_window=int(lk_window),
-        lk_iters=int(lk_iters),
-        ad_weight=float(ad_weight),
-        ad_trunc=float(ad_trunc),
-        ad_mode=ad_mode,
-    )
-    cells = h * w * num_disp
+    prm = _resolve(opts, h, w)
     keep = _Workspace.small(h, w, num_disp)  # scratch kept between calls (small problems)
-    use_c2f = cells > C2F_AUTO_CELLS if coarse_to_fine is None else bool(coarse_to_fine)
-    scale = 2
-    while (h // scale) * (w // scale) * (num_disp / scale) > _COARSE_CELLS and scale < 16:
-        scale *= 2
-    if use_c2f and (h // scale < 8 or w // scale < 8):
+    use_c2f = (h * w * num_disp > C2F_AUTO_CELLS if opts.coarse_to_fine is None
+               else bool(opts.coarse_to_fine))
+    scale = _pyramid_scale(h, w, num_disp)
+    if use_c2f and (h // scale < _MIN_COARSE_SIDE or w // scale < _MIN_COARSE_SIDE):
         use_c2f = False
     gain = None
-    # the gain field is smooth: a level 4x smaller holds thousands of samples for its 15
-    # terms at 1/64 of the full match's cost, when it keeps 128 px on its short side
-    # (tsukuba's 384x288 at 1/4 fitted a field worse: bad-2 1.01 -> 1.22x under vignetting)
-    g_scale = scale
-    while g_scale < 4 and min(h, w) // (2 * g_scale) >= 128:
-        g_scale *= 2
-    if equalize and h // g_scale >= 8 and w // g_scale >= 8:
-        gain = _right_gain(lf, rf, min_disp, num_disp, g_scale, prm)
-        rf = np.ascontiguousarray(gain.apply(rf))
-    if not use_c2f:
-        dlo = _WS.take("dlo", (h, w), np.int32, keep)
-        dlo.fill(min_disp)
-        raw, conf = _match_level(lf, rf, dlo, num_disp, prm, subpixel=subpixel,
-                                 speckle_size=speckle_size, dmin=min_disp)
+    if opts.equalize:
+        rf, gain = _equalize(lf, rf, min_disp, num_disp, scale, prm)
+    if use_c2f:
+        raw, conf = _match_c2f(lf, rf, min_disp, num_disp, scale, prm, opts.fine_window)
     else:
-        raw, conf = _match_c2f(lf, rf, min_disp, num_disp, scale, prm, fine_window)
-    filled = _WS.take("filled", raw.shape, np.float32, keep)
-    _k.fill_holes(raw, filled)
-    _k.fill_columns(filled)
-    dense = np.empty_like(raw)
-    valid = np.empty(raw.shape, np.bool_)
-    conf_out = np.empty(raw.shape, np.float32)
-    _k.median_fill_final(filled, raw, conf, 1, dense, valid, conf_out)
-    del filled
-    if not valid.any():
-        raise ReconstructionError(
-            "match_stereo: no pixel passed the consistency checks; check that the pair "
-            f"is rectified and that disparities lie in [{min_disp}, {min_disp + num_disp - 1}]"
-        )
-    return StereoResult(disparity=dense, valid=valid, confidence=conf_out, raw=raw,
-                        coarse_to_fine=use_c2f, right_gain=gain)
+        raw, conf = _match_full(lf, rf, min_disp, num_disp, prm)
+    return _assemble(raw, conf, keep, use_c2f, gain, min_disp, min_disp + num_disp - 1)
 
 
 def _downsample(img: NDArray[Any], scale: int) -> NDArray[Any]:
@@ -612,20 +567,24 @@ def _downsample(img: NDArray[Any], scale: int) -> NDArray[Any]:
     return np.ascontiguousarray(small.reshape(hc, wc, nc))
 
 
+def _coarse_range(min_disp: int, num_disp: int, scale: int) -> tuple[int, int]:
+    """Disparity range of the ``1/scale`` level, one level of margin each side."""
+    return (math.floor(min_disp / scale) - 1,
+            math.ceil((min_disp + num_disp - 1) / scale) + 1)
+
+
 def _right_gain(lf: NDArray[Any], rf: NDArray[Any], min_disp: int, num_disp: int, scale: int,
                 prm: _Params) -> GainField:
     """The right view's gain field, fitted at pixels a census-only (gain-blind) match
     finds on the ``1/scale`` level."""
-    import dataclasses
-
     h, w, nc = lf.shape
     lc, rc = _downsample(lf, scale), _downsample(rf, scale)
-    dmin_c = math.floor(min_disp / scale) - 1
-    dmax_c = math.ceil((min_disp + num_disp - 1) / scale) + 1
+    dmin_c, dmax_c = _coarse_range(min_disp, num_disp, scale)
     dlo_c = np.full(lc.shape[:2], dmin_c, np.int32)
     blind = dataclasses.replace(prm, ad_weight=0.0)
     raw_c, _ = _match_level(lc, rc, dlo_c, dmax_c - dmin_c + 1, blind, subpixel="equiangular",
-                            speckle_size=max(4, prm.speckle_size // (scale * scale)), dmin=dmin_c)
+                            speckle_size=max(_SPECKLE_MIN, prm.speckle_size // (scale * scale)),
+                            dmin=dmin_c)
     ok = np.isfinite(raw_c)
     if not ok.any():
         return GainField.identity(nc, (w, h))
@@ -641,13 +600,14 @@ def _match_c2f(
     prm: _Params,
     fine_window: int | None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Full SGM on the ``1/scale`` level, then a ``fine_window``-level search per pixel
+    around the upsampled coarse disparity; returns (raw disparity, confidence)."""
     h, w, nc = lf.shape
     hc, wc = h // scale, w // scale
     lc, rc = (_downsample(np.asarray(v, dtype=np.float32), scale) for v in (lf, rf))
-    dmin_c = math.floor(min_disp / scale) - 1
-    dmax_c = math.ceil((min_disp + num_disp - 1) / scale) + 1
+    dmin_c, dmax_c = _coarse_range(min_disp, num_disp, scale)
     dlo_c = np.full((hc, wc), dmin_c, np.int32)
-    sp_c = max(4, prm.speckle_size // (scale * scale))
+    sp_c = max(_SPECKLE_MIN, prm.speckle_size // (scale * scale))
     raw_c, _ = _match_level(lc, rc, dlo_c, dmax_c - dmin_c + 1, prm, subpixel="equiangular",
                             speckle_size=sp_c, dmin=dmin_c)
     if not np.any(~np.isnan(raw_c)):
@@ -659,14 +619,15 @@ def _match_c2f(
     if fine_window is not None:
         k_levels = fine_window
     else:
-        # cover the coarse neighbourhood's range (+-scale) and +-4 levels; with 4 paths
-        # the volumes are padded to whole 16-level vectors anyway, so search them all
-        k_levels = 2 * (scale + 4) + 1
+        # the coarse neighbourhood's range (+-scale) and a margin; with 4 paths the
+        # volumes are padded to whole 16-level vectors anyway, so search them all
+        k_levels = 2 * (scale + _FINE_MARGIN) + 1
         if prm.paths == 4:
             k_levels = _volume_levels(k_levels)
     k_levels = int(min(max(k_levels, 3), num_disp))
     dlo = np.empty((h, w), np.int32)
-    _k.fine_ranges(coarse, float(scale), 4, k_levels, min_disp, min_disp + num_disp - 1, dlo)
+    _k.fine_ranges(coarse, float(scale), _FINE_MARGIN, k_levels, min_disp,
+                   min_disp + num_disp - 1, dlo)
     log.debug("coarse-to-fine: scale %d, fine window %d levels", scale, k_levels)
     return _match_level(lf, rf, dlo, k_levels, prm, subpixel=prm.subpixel,
                         speckle_size=prm.speckle_size)
@@ -678,37 +639,12 @@ def match_stereo(
     *,
     min_disp: int,
     num_disp: int,
-    **options: Any,
+    options: MatchOptions | None = None,
 ) -> NDArray[np.float32]:
-    """Dense disparity of a rectified pair (holes filled).
-
-    Parameters
-    ----------
-    left, right : (H, W) or (H, W, 3) uint8, or float in [0, 1]
-        Rectified views of the same shape.
-    min_disp : int
-        Smallest disparity searched.
-    num_disp : int
-        Number of levels searched (> 0).
-    **options
-        Any keyword option of :func:`match_stereo_full`.
-
-    Returns
-    -------
-    (H, W) float32
-        ``d = x_left - x_right`` in pixels. Dense (no NaN): pixels that failed the
-        consistency checks are filled from their background neighbours; use
-        :func:`match_stereo_full` for the validity mask.
-
-    Raises
-    ------
-    InputError
-        Invalid arrays or options (see :func:`match_stereo_full`).
-    ReconstructionError
-        No pixel passed the consistency checks (nothing to fill from).
-    """
+    """Dense (H, W) float32 disparity ``x_left - x_right`` (px) of a rectified pair,
+    holes filled: :func:`match_stereo_full` (same arguments and errors) ``.disparity``."""
     return match_stereo_full(left, right, min_disp=min_disp, num_disp=num_disp,
-                             **options).disparity
+                             options=options).disparity
 
 
 def match_files(
@@ -718,36 +654,16 @@ def match_files(
     *,
     num_disp: int,
     min_disp: int = 0,
-    **options: Any,
+    options: MatchOptions | None = None,
+    dense: bool = True,
+    valid_out: str | Path | None = None,
 ) -> StereoResult:
-    """Match two rectified image files and write the dense disparity as PFM.
-
-    The entry point of ``prism3d match LEFT RIGHT -o disp.pfm --num-disp N
-    [--min-disp M]``.
-
-    Parameters
-    ----------
-    left_path, right_path : str or Path
-        Rectified views (any 8/16-bit format OpenCV reads; colour is used).
-    out_path : str or Path
-        PFM file to write (Middlebury layout), atomically.
-    num_disp, min_disp : int
-        Search range ``min_disp .. min_disp + num_disp - 1``.
-    **options
-        Any keyword option of :func:`match_stereo_full`.
-
-    Returns
-    -------
-    StereoResult
-
-    Raises
-    ------
-    InputError
-        Missing or unreadable files, images of different sizes, bad options.
-    ReconstructionError
-        Nothing could be matched.
+    """``prism3d match``: match two rectified image files (8/16-bit, colour used), write
+    the disparity as PFM (atomic; NaN where not valid unless ``dense``) and, with
+    ``valid_out``, the validity mask image. InputError: missing or unreadable files,
+    different sizes, bad options; ReconstructionError: nothing matched.
     """
-    from prism3d.io.images import read_image
+    from prism3d.io.images import read_image, write_image
     from prism3d.io.pfm import write_pfm
 
     left = read_image(left_path)
@@ -757,6 +673,9 @@ def match_files(
             f"{left_path} and {right_path}: rectified views must have the same size, got "
             f"{left.shape[1]}x{left.shape[0]} and {right.shape[1]}x{right.shape[0]}"
         )
-    res = match_stereo_full(left, right, min_disp=min_disp, num_disp=num_disp, **options)
-    write_pfm(out_path, res.disparity)
+    res = match_stereo_full(left, right, min_disp=min_disp, num_disp=num_disp, options=options)
+    disp = res.disparity if dense else np.where(res.valid, res.disparity, np.nan).astype(np.float32)
+    write_pfm(out_path, disp)
+    if valid_out is not None:
+        write_image(valid_out, res.valid)
     return res

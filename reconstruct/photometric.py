@@ -1,20 +1,11 @@
 """Photometric equalisation of a stereo pair: the right view's gain field.
 
-The two views of a real rig differ in more than viewpoint. Behind a prism adapter the
-halves of one sensor see the scene through different glass and mirrors (exposure and
-colour balance differ by a few per cent, each view vignettes about its own optical
-centre); two cameras differ in gain and white balance. These are smooth multiplicative
-fields, per colour channel. Census costs are blind to them, but a colour-difference
-cost, the Lucas-Kanade step and the slanted-plane refinement are not: 40 % of
-vignetting at the corners doubled the matcher's bad-2 rate on Middlebury pairs
-(docs/reconstruction.md).
-
-:func:`fit_gain_field` measures the field from the pair itself: at pixels matched by
-a gain-blind (census-only) pass, the per-channel log ratio ``log L(x, y) - log R(x - d,
-y)`` is sampled and a low-order 2-D polynomial in the right view's coordinates is fitted
-by iteratively re-weighted least squares (Tukey's biweight on a MAD scale), so
-highlights, occlusions and wrong matches do not pull on it. ``right * field``
-then has the left view's exposure, colour balance and vignetting.
+The views of a real rig differ in exposure, colour balance and vignetting: smooth
+multiplicative fields per channel that census ignores but the colour-difference
+cost and Lucas-Kanade do not (docs/matching.md). :func:`fit_gain_field` samples the
+log ratio ``log L(x, y) - log R(x - d, y)`` at matched pixels and fits a low-order
+2-D polynomial by IRLS (Tukey's biweight on a MAD scale); ``right * field`` then
+has the left view's exposure.
 """
 
 from __future__ import annotations
@@ -43,20 +34,24 @@ _GRID = 8
 #: A field within this of 1 everywhere changes no 8-bit value by more than ~0.5 level:
 #: applying it is skipped.
 _NEGLIGIBLE = 0.002
+#: Highest polynomial degree accepted (a higher one over-fits the smooth field).
+_MAX_DEGREE = 6
+#: Ridge on the shape terms, per sample: keeps the fit tame where samples are sparse.
+_RIDGE_PER_SAMPLE = 1e-4
+#: Iteratively re-weighted least-squares passes (the weights settle within a few).
+_IRLS_ITERS = 6
+#: MAD -> standard deviation for Gaussian residuals.
+_MAD_TO_SIGMA = 1.4826
+#: Floor of the robust scale (log-gain units) so that a perfect fit does not divide by 0.
+_MIN_SCALE = 1e-4
 
 
 @dataclass(frozen=True)
 class GainField:
-    """A per-channel multiplicative field over an image, ``exp(poly(x, y))``.
+    """A per-channel multiplicative field ``exp(poly(x, y))`` over an image.
 
-    Attributes
-    ----------
-    coef : (C, T) float64
-        Polynomial coefficients per channel (terms ``x^i y^j``, ``i + j <= degree``,
-        in coordinates normalised to [-1, 1] over ``size``).
-    degree : int
-    size : (int, int)
-        Image ``(width, height)`` the field is defined on.
+    ``coef`` (C, T) float64: coefficients of the terms ``x^i y^j``, ``i + j <= degree``,
+    in coordinates normalised to [-1, 1] over ``size`` = image ``(width, height)``.
     """
 
     coef: NDArray[np.float64]
@@ -74,10 +69,8 @@ class GainField:
         return not np.any(self.coef)
 
     def evaluate(self, rows: slice | None = None) -> NDArray[np.float32]:
-        """The gain ``(H, W, C)`` float32 (or the rows ``rows`` of it).
-
-        The polynomial is evaluated on a grid every ``_GRID`` px and interpolated
-        bilinearly (a low-degree polynomial over that step is linear to ~1e-5).
+        """The gain (H, W, C) float32 (or rows ``rows`` of it), evaluated every ``_GRID`` px
+        and interpolated bilinearly (linear to ~1e-5 over that step).
         """
         import cv2
 
@@ -144,29 +137,14 @@ def fit_gain_field(
     size: tuple[int, int] | None = None,
     max_degree: int = 4,
 ) -> GainField:
-    """Fit the gain that maps the right view's values onto the left's.
+    """The gain that maps the right view's values onto the left's (``right * field``).
 
-    Parameters
-    ----------
-    left, right : (h, w) or (h, w, C) uint8
-        The (possibly downsampled) rectified views the disparity belongs to.
-    disparity : (h, w) float
-        ``x_left - x_right`` at ``valid`` pixels.
-    valid : (h, w) bool
-        Matched pixels to sample.
-    scale : float
-        Full-resolution pixels per pixel of these views (the field is defined on the
-        full-resolution grid ``size``).
-    size : (width, height), optional
-        Full-resolution grid; default ``(w * scale, h * scale)``.
-    max_degree : int
-        Highest polynomial degree (4 holds a cos^4-like vignetting; fewer samples
-        lower it, ``_SAMPLES_PER_TERM`` per term).
-
-    Returns
-    -------
-    GainField
-        ``right * field`` matches ``left`` (identity when too few samples).
+    left, right: (h, w[, C]) uint8 views, possibly downsampled, of ``disparity`` (h, w)
+    (``x_left - x_right``, used at ``valid``). ``scale``: full-resolution pixels per
+    pixel here; ``size``: the full-resolution ``(width, height)`` the field is defined
+    on (default ``(w, h) * scale``). ``max_degree`` (<= 6; 4 holds cos^4 vignetting)
+    drops with fewer than ``_SAMPLES_PER_TERM`` samples per term. Identity when too
+    few samples.
     """
     L = check_array(left, "left", ndim=(2, 3)).astype(np.float32)
     R = check_array(right, "right", ndim=(2, 3)).astype(np.float32)
@@ -177,9 +155,28 @@ def fit_gain_field(
     h, w, nc = L.shape
     d = check_array(disparity, "disparity", shape=(h, w), dtype_kind="f")
     m = check_array(valid, "valid", shape=(h, w)).astype(bool) & np.isfinite(d)
-    if not (isinstance(max_degree, int) and 0 <= max_degree <= 6):
+    if not (isinstance(max_degree, int) and 0 <= max_degree <= _MAX_DEGREE):
         raise InputError(f"max_degree: expected an integer in [0, 6], got {max_degree!r}")
     full = (int(round(w * scale)), int(round(h * scale))) if size is None else (int(size[0]), int(size[1]))
+    lv, rv, ys, xr = _samples(L, R, d, m)
+    n = len(ys)
+    degree = max_degree
+    while degree > 0 and n < _SAMPLES_PER_TERM * len(_terms(degree)):
+        degree -= 1
+    if n < _SAMPLES_PER_TERM:
+        return GainField.identity(nc, full)
+    g = np.log(lv.astype(np.float64)) - np.log(rv.astype(np.float64))
+    # sample positions on the full-resolution grid of the right view, normalised
+    xn = _normalised((xr + 0.5) * scale - 0.5, full[0])
+    yn = _normalised((ys + 0.5) * scale - 0.5, full[1])
+    A = np.stack([xn**i * yn**j for i, j in _terms(degree)], axis=1)
+    return GainField(np.stack([_irls(A, g[:, c]) for c in range(nc)]), degree, full)
+
+
+def _samples(L: NDArray[np.float32], R: NDArray[np.float32], d: NDArray, m: NDArray[np.bool_]
+             ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Left and right values (N, C), rows and right-view columns of the usable matches."""
+    h, w, _ = L.shape
     ys, xs = np.nonzero(m)
     if len(ys) > _MAX_SAMPLES:  # an even subset: a few thousand samples pin 15 terms
         step = -(-len(ys) // _MAX_SAMPLES)
@@ -193,30 +190,20 @@ def fit_gain_field(
     rv = R[ys, x0] * (1 - t) + R[ys, x1] * t
     lv = L[ys, xs]
     usable = np.all((lv > _DARK) & (lv < _BRIGHT) & (rv > _DARK) & (rv < _BRIGHT), axis=1)
-    lv, rv, ys, xr = lv[usable], rv[usable], ys[usable], xr[usable]
-    n = len(ys)
-    degree = max_degree
-    while degree > 0 and n < _SAMPLES_PER_TERM * len(_terms(degree)):
-        degree -= 1
-    if n < _SAMPLES_PER_TERM:
-        return GainField.identity(nc, full)
-    g = np.log(lv.astype(np.float64)) - np.log(rv.astype(np.float64))
-    # sample positions on the full-resolution grid of the right view, normalised
-    xn = _normalised((xr + 0.5) * scale - 0.5, full[0])
-    yn = _normalised((ys + 0.5) * scale - 0.5, full[1])
-    A = np.stack([xn**i * yn**j for i, j in _terms(degree)], axis=1)
-    # a light ridge on the shape terms keeps the fit tame where samples are sparse
-    ridge = np.full(A.shape[1], 1e-4 * n)
+    return lv[usable], rv[usable], ys[usable], xr[usable]
+
+
+def _irls(A: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Coefficients of ``A @ beta ~ g`` by Tukey-biweight IRLS on a MAD scale."""
+    n = A.shape[0]
+    ridge = np.full(A.shape[1], _RIDGE_PER_SAMPLE * n)
     ridge[0] = 0.0
-    coef = np.zeros((nc, A.shape[1]))
-    for c in range(nc):
-        wgt = np.ones(n)
-        for _ in range(6):
-            Aw = A * wgt[:, None]
-            beta = np.linalg.solve(Aw.T @ A + np.diag(ridge), Aw.T @ g[:, c])
-            r = g[:, c] - A @ beta
-            s = 1.4826 * float(np.median(np.abs(r))) + 1e-4
-            u = r / (_TUKEY_C * s)
-            wgt = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-        coef[c] = beta
-    return GainField(coef, degree, full)
+    wgt = np.ones(n)
+    for _ in range(_IRLS_ITERS):
+        Aw = A * wgt[:, None]
+        beta = np.linalg.solve(Aw.T @ A + np.diag(ridge), Aw.T @ g)
+        r = g - A @ beta
+        s = _MAD_TO_SIGMA * float(np.median(np.abs(r))) + _MIN_SCALE
+        u = r / (_TUKEY_C * s)
+        wgt = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+    return beta

@@ -1,14 +1,10 @@
 """Undistort + rectify the two views of a calibrated (prism) stereo rig.
 
-The rectifying rotations and projections come from
-:func:`prism3d.capture.rig.compute_rectification` (zero-disparity rectification:
-equal principal points, ``d = x_left - x_right = f B / z``). This module turns them
-into remap tables and applies them to a pair or to a whole side-by-side shot.
+Remap tables from :func:`prism3d.capture.rig.compute_rectification` (equal principal
+points: ``d = x_left - x_right = f B / z``), applied to a pair or a side-by-side shot.
 
-References
-----------
-.. [1] A. Fusiello, E. Trucco, A. Verri, "A compact algorithm for rectification of
-   stereo pairs", Machine Vision and Applications 12 (2000).
+References: Fusiello, Trucco, Verri, "A compact algorithm for rectification of stereo
+pairs", Machine Vision and Applications 12, 2000.
 """
 
 from __future__ import annotations
@@ -36,19 +32,11 @@ __all__ = [
 
 @dataclass(frozen=True, eq=False)
 class RectifyMaps:
-    """Remap tables of both views (``cv2.remap`` inputs).
+    """Remap tables of both views (``cv2.remap`` inputs) implementing ``rect``.
 
-    Attributes
-    ----------
-    rect : Rectification
-        The rectification the maps implement.
-    left_x, left_y, right_x, right_y : (H, W) float32
-        For each rectified pixel, the source pixel (x, y) in the original view;
-        ``(H, W)`` is ``rect.size`` reversed. With ``fixed_point`` the x arrays hold
-        OpenCV's ``CV_16SC2`` map ``(H, W, 2) int16`` and the y arrays the
-        ``CV_16UC1`` interpolation table ``(H, W) uint16``.
-    fixed_point : bool
-        Whether the maps are OpenCV fixed-point (faster remap, 1/32 px).
+    ``left_x, left_y, right_x, right_y``: (H, W) float32 source pixel of each rectified
+    pixel; with ``fixed_point`` (OpenCV, 1/32 px) the x arrays are ``CV_16SC2`` (H, W, 2)
+    int16 maps and the y arrays (H, W) uint16 interpolation tables.
     """
 
     rect: Rectification
@@ -61,24 +49,11 @@ class RectifyMaps:
     def remap(
         self, left: NDArray, right: NDArray, *, interpolation: int | str | None = None
     ) -> tuple[NDArray, NDArray]:
-        """Rectify a pair of view images ``(h, w[, C])`` into ``rect.size`` images.
+        """Rectify a pair of ``(h, w[, C])`` views into ``rect.size`` images (unmapped = 0).
 
-        Pixels that no source pixel maps to are 0.
-
-        Parameters
-        ----------
-        interpolation : int or "bspline", optional
-            An OpenCV flag (default ``cv2.INTER_LINEAR``; output of the input's
-            dtype), or ``"bspline"``: exact cubic B-spline interpolation (both axes
-            prefiltered, float64 weights at the maps' full precision), float32
-            output clipped to the input's own value range. OpenCV's kernels are
-            position-dependent low-pass filters (linear averages neighbours fully
-            at half-pixel offsets and not at all at whole ones; its cubic does not
-            even reproduce a linear ramp, +-0.05 px) and, on uint8, round the
-            weights to 1/32 px and the result to whole grey levels; the left and
-            right views are resampled at different offsets, so every edge comes out
-            a little differently in each. Sub-pixel work (the slanted-plane
-            refinement) wants the B-spline; the integer matcher does not need it.
+        ``interpolation``: an OpenCV flag (default linear; the input's dtype) or "bspline":
+        exact cubic B-spline, float32 clipped to the input's range, for sub-pixel work
+        (OpenCV's kernels shift edges differently in each view: docs/matching.md).
         """
         import cv2
 
@@ -155,20 +130,8 @@ def _map_for(
 
 
 def rectify_maps(rig: StereoRig, rect: Rectification, *, fixed_point: bool = False) -> RectifyMaps:
-    """Remap tables taking each original view to its rectified image.
-
-    Parameters
-    ----------
-    rig : StereoRig
-        The calibrated rig (intrinsics and distortion of both views).
-    rect : Rectification
-        From :func:`~prism3d.capture.rig.compute_rectification` on ``rig``.
-    fixed_point : bool
-        Return OpenCV fixed-point maps (``cv2.convertMaps`` to ``CV_16SC2``).
-
-    Returns
-    -------
-    RectifyMaps
+    """Remap tables taking each view of ``rig`` to its rectified image under ``rect``
+    (``fixed_point``: OpenCV ``CV_16SC2`` maps).
     """
     import cv2
 
@@ -192,23 +155,12 @@ def rectify_pair(
     alpha: float = 1.0,
     size: tuple[int, int] | None = None,
 ) -> tuple[NDArray, NDArray, Rectification]:
-    """Undistort and rectify two view images.
+    """Undistort and rectify two views ``(h, w[, C])`` uint8/float32 (``rig.split.split``
+    output, each ``rig.left.size``); ``alpha``, ``size`` as in
+    :func:`~prism3d.capture.rig.compute_rectification`.
 
-    Parameters
-    ----------
-    left, right : (h, w[, C]) uint8 or float32
-        The un-flipped views (``rig.split.split`` output), each ``rig.left.size``.
-    rig : StereoRig
-        Calibrated rig.
-    alpha, size
-        See :func:`~prism3d.capture.rig.compute_rectification`.
-
-    Returns
-    -------
-    left_rect, right_rect : (H, W[, C]) same dtype as the input
-        Rectified images; corresponding points share a row and
-        ``d = x_left - x_right = f B / z``.
-    rect : Rectification
+    Returns ``(left_rect, right_rect, rect)``: (H, W[, C]) images of the input dtype whose
+    corresponding points share a row, and the Rectification.
     """
     la = check_array(left, "left", ndim=(2, 3))
     ra = check_array(right, "right", ndim=(2, 3))
@@ -226,27 +178,16 @@ def rectify_pair(
 def rectify_shot(
     shot_image: NDArray, rig: StereoRig, *, alpha: float = 1.0, size: tuple[int, int] | None = None
 ) -> tuple[NDArray, NDArray, Rectification]:
-    """Split a side-by-side sensor image with ``rig.split`` and rectify both views.
-
-    Parameters
-    ----------
-    shot_image : (H, W[, C]) uint8 or float32
-        The full sensor image (``rig.split.sensor_size``).
-
-    Returns
-    -------
-    left_rect, right_rect, rect
-        As :func:`rectify_pair`.
+    """Split a side-by-side sensor image with ``rig.split`` and rectify both views
+    (returns as :func:`rectify_pair`).
     """
     left, right = rig.split.split(shot_image)
     return rectify_pair(left, right, rig, alpha=alpha, size=size)
 
 
 def save_rectification(path: str | Path, rect: Rectification, rig: StereoRig | None = None) -> None:
-    """Write ``R1 R2 P1 P2 Q`` and the rectified ``image_size`` as FileStorage YAML (atomic).
-
-    With ``rig`` the calibration (``K1 D1 K2 D2 R T``) is stored alongside, like
-    OpenCV's ``extrinsics.yml``.
+    """Write ``R1 R2 P1 P2 Q`` and ``image_size`` as FileStorage YAML (atomic), with
+    the calibration (``K1 D1 K2 D2 R T``) when ``rig`` is given.
     """
     from prism3d.io.opencv_yaml import write_filestorage
 
@@ -301,23 +242,12 @@ def rectify_to_folder(
     alpha: float = 1.0,
     image_size: tuple[int, int] | None = None,
 ) -> dict[str, Path]:
-    """What ``prism3d rectify`` calls: a side-by-side shot, or two view files
-    (``left_path``, ``right_path``), rectified with a calibration in any format
-    :func:`~prism3d.capture.calib_formats.load_stereo_calibration` reads.
+    """``prism3d rectify``: rectify a side-by-side shot (or ``left_path``/``right_path``)
+    with a calibration file, write ``left.png``, ``right.png``, ``rectification.yaml``
+    into ``out_dir`` together (temporary names, then moved); returns their paths by key.
 
-    Writes ``left.png``, ``right.png`` (RGB, rectified) and ``rectification.yaml``
-    (``R1 R2 P1 P2 Q rectified_size`` plus the calibration) into ``out_dir``: all
-    computed first, then written to temporary names and moved into place together.
-
-    Returns
-    -------
-    dict
-        ``{"left": path, "right": path, "rectification": path}``.
-
-    Raises
-    ------
-    InputError
-        Missing or unreadable files, views whose size does not match the calibration.
+    Raises InputError for missing or unreadable files or views that do not fit the
+    calibration.
     """
     import contextlib
 

@@ -1,15 +1,11 @@
 """Score a disparity map against ground truth (Middlebury-style error rates).
 
-Conventions: a pixel is *scored* where the ground truth is known (finite and > 0, or
-as told by ``gt_valid``) and inside the optional evaluation ``mask`` (e.g. Middlebury
-``nonocc.png == 255``). A scored pixel without an estimate (NaN, inf, or negative
-when ``negative_invalid``) counts as a bad pixel in the dense rates; the
-``*_valid`` rates use only pixels with an estimate.
+A pixel is *scored* where the ground truth is known (finite and > 0, or ``gt_valid``)
+and inside ``mask``; a scored pixel without an estimate counts as bad in the dense
+rates, the ``*_valid`` rates use only pixels with one.
 
-References
-----------
-.. [1] D. Scharstein and R. Szeliski, "A taxonomy and evaluation of dense two-frame
-   stereo correspondence algorithms", IJCV 47(1-3), 2002 (bad-pixel rate).
+References: Scharstein, Szeliski, "A taxonomy and evaluation of dense two-frame stereo
+correspondence algorithms", IJCV 47, 2002.
 """
 
 from __future__ import annotations
@@ -29,23 +25,11 @@ __all__ = ["DisparityScore", "score_disparity"]
 
 @dataclass(frozen=True)
 class DisparityScore:
-    """Error rates of one disparity map.
+    """Error rates of one disparity map (fractions 0..1, errors in px).
 
-    Attributes
-    ----------
-    bad1, bad2 : float
-        Fraction (0..1) of scored pixels with ``|d - gt| > 1`` (resp. ``> 2``) px or
-        no estimate.
-    bad1_valid, bad2_valid : float
-        The same over scored pixels that have an estimate.
-    avg_err : float
-        Mean ``|d - gt|`` (px) over scored pixels with an estimate.
-    rms_err : float
-        Root-mean-square error (px) over the same pixels.
-    density : float
-        Fraction of scored pixels that have an estimate.
-    n_scored : int
-        Number of scored pixels.
+    ``bad1``/``bad2``: scored pixels with ``|d - gt|`` above the thresholds or no
+    estimate; ``*_valid``: the same over pixels with an estimate; ``avg_err``,
+    ``rms_err`` over those; ``density``: share with an estimate; ``n_scored``.
     """
 
     bad1: float
@@ -71,32 +55,12 @@ def score_disparity(
     negative_invalid: bool = False,
     thresholds: tuple[float, float] = (1.0, 2.0),
 ) -> DisparityScore:
-    """Compare ``disparity`` with ``gt``.
+    """Score ``disparity`` (H, W) px (NaN/inf = no estimate) against ``gt`` (H, W) px.
 
-    Parameters
-    ----------
-    disparity : (H, W) float
-        Estimate in pixels; NaN/inf = no estimate.
-    gt : (H, W) float
-        Ground truth in pixels; non-finite or ``<= 0`` = unknown unless ``gt_valid``
-        is given.
-    mask : (H, W) bool, optional
-        Evaluation region (e.g. non-occluded pixels).
-    gt_valid : (H, W) bool, optional
-        Where the ground truth is known (overrides the ``> 0`` rule).
-    negative_invalid : bool
-        Treat negative estimates as missing (OpenCV's invalid marker).
-    thresholds : (float, float)
-        Error thresholds (px) of ``bad1`` and ``bad2``.
-
-    Returns
-    -------
-    DisparityScore
-
-    Raises
-    ------
-    InputError
-        Shapes differ, arrays are not 2-D, or no pixel is scored.
+    ``gt`` non-finite or <= 0 is unknown unless ``gt_valid`` is given; ``mask`` limits
+    the region; ``negative_invalid`` treats negative estimates as missing (OpenCV);
+    ``thresholds`` of bad1, bad2. Raises InputError for unequal or non-2-D shapes or
+    when no pixel is scored.
     """
     d = check_array(disparity, "disparity", ndim=2, dtype_kind="fiu").astype(np.float64)
     g = check_array(gt, "gt", ndim=2, dtype_kind="fiu").astype(np.float64)
@@ -142,12 +106,9 @@ BENCHMARK_SCENES = ("tsukuba", "venus", "teddy", "cones", "aloe", "playground", 
 
 
 def load_benchmark_pair(data_root: str | Path, name: str) -> tuple[NDArray, NDArray, NDArray[np.float32], NDArray | None]:
-    """Load one real benchmark pair: ``(left RGB, right RGB, gt disparity (0 = unknown), mask)``.
-
-    ``data_root`` is the shared data folder (holding ``stereo/``); ``mask`` is the
-    Middlebury non-occluded mask (``None`` where the data set has none). Middlebury
-    2001/2003 ground truth is stored scaled (x16 tsukuba, x8 venus, x4 teddy/cones);
-    ETH3D's PFM marks unknown with inf; KITTI's 16-bit PNG is disparity x 256.
+    """``(left RGB, right RGB, gt disparity (0 = unknown), non-occluded mask or None)``
+    of the pair ``name`` under ``data_root/stereo`` (Middlebury's scaled PNG, ETH3D's
+    PFM with inf, KITTI's PNG x 256 decoded).
     """
     import cv2
 

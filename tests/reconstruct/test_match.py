@@ -10,7 +10,8 @@ import numpy as np
 
 from prism3d.reconstruct.stereo_eval import load_benchmark_pair
 import pytest
-from prism3d.reconstruct.match import StereoResult, match_files, match_stereo, match_stereo_full
+from prism3d.reconstruct.match import (MatchOptions, StereoResult, match_files, match_stereo,
+                                       match_stereo_full)
 from prism3d.reconstruct.stereo_eval import score_disparity
 
 from prism3d.errors import InputError, ReconstructionError
@@ -79,7 +80,7 @@ def test_reused_scratch_changes_nothing() -> None:
     match_stereo_full(b_l, b_r, min_disp=-4, num_disp=40)
     match_stereo_full(np.dstack([a_l, a_r, a_l]), np.dstack([a_r, a_l, a_r]), min_disp=0,
                       num_disp=16)
-    match_stereo_full(a_l, a_r, min_disp=0, num_disp=16, coarse_to_fine=True)
+    match_stereo_full(a_l, a_r, min_disp=0, num_disp=16, options=MatchOptions(coarse_to_fine=True))
     again = match_stereo_full(a_l, a_r, min_disp=0, num_disp=16)
     for k, v in keep.items():
         assert np.array_equal(getattr(first, k), v, equal_nan=True), k  # not overwritten
@@ -107,7 +108,7 @@ def test_census_only_and_gradient_features() -> None:
     colour = (np.dstack([p[0] for p in pairs]), np.dstack([p[1] for p in pairs]))
     for lv, rv in (pairs[0], colour):
         for kw in ({"ad_weight": 0.0}, {"ad_mode": "gradient"}):
-            res = match_stereo_full(lv, rv, min_disp=0, num_disp=20, **kw)
+            res = match_stereo_full(lv, rv, min_disp=0, num_disp=20, options=MatchOptions(**kw))
             inner = res.disparity[6:-6, 24:-6]
             assert np.abs(inner - 7.0).max() < 0.1, kw
 
@@ -184,13 +185,15 @@ def _relief_pair(h: int, w: int, dmin: float, dmax: float) -> tuple[np.ndarray, 
 
 def test_coarse_to_fine_large_offset() -> None:
     left, right, gt = _relief_pair(160, 520, 140.0, 190.0)
-    res = match_stereo_full(left, right, min_disp=136, num_disp=64, coarse_to_fine=True)
+    res = match_stereo_full(left, right, min_disp=136, num_disp=64,
+                            options=MatchOptions(coarse_to_fine=True))
     assert res.coarse_to_fine
     region = (slice(8, -8), slice(200, -8))  # left part has no counterpart in the right view
     e = (res.disparity - gt)[region]
     assert np.mean(np.abs(e) > 1.0) < 0.01
     assert float(np.sqrt(np.mean(e**2))) < 0.15
-    full = match_stereo_full(left, right, min_disp=136, num_disp=64, coarse_to_fine=False)
+    full = match_stereo_full(left, right, min_disp=136, num_disp=64,
+                             options=MatchOptions(coarse_to_fine=False))
     assert not full.coarse_to_fine
     assert np.mean(np.abs(full.disparity - res.disparity)[region] > 0.5) < 0.01
 
@@ -222,28 +225,39 @@ def test_bad_input() -> None:
         match_stereo(np.zeros((20, 30, 4), np.uint8), a, min_disp=0, num_disp=8)
     with pytest.raises(InputError, match="right: expected finite values"):
         match_stereo(a / 255.0, np.full((20, 30), np.nan), min_disp=0, num_disp=8)
+    with pytest.raises(InputError, match="options: expected a MatchOptions, got dict"):
+        match_stereo(a, a, min_disp=0, num_disp=8, options={"paths": 4})  # type: ignore[arg-type]
+
+
+def test_match_options_validation() -> None:
+    """MatchOptions checks its fields when built (same messages as the old keywords)."""
     with pytest.raises(InputError, match="paths: expected one of 4, 8"):
-        match_stereo(a, a, min_disp=0, num_disp=8, paths=6)
+        MatchOptions(paths=6)
     with pytest.raises(InputError, match="subpixel: expected one of"):
-        match_stereo(a, a, min_disp=0, num_disp=8, subpixel="parabola")
+        MatchOptions(subpixel="parabola")
     with pytest.raises(InputError, match="ad_mode: expected one of"):
-        match_stereo(a, a, min_disp=0, num_disp=8, ad_mode="mi")
+        MatchOptions(ad_mode="mi")
     with pytest.raises(InputError, match="census_window"):
-        match_stereo(a, a, min_disp=0, num_disp=8, census_window=(4, 5))
+        MatchOptions(census_window=(4, 5))
     with pytest.raises(InputError, match="census_window"):
-        match_stereo(a, a, min_disp=0, num_disp=8, census_window=(9, 9))
+        MatchOptions(census_window=(9, 9))
     with pytest.raises(InputError, match="lk_window"):
-        match_stereo(a, a, min_disp=0, num_disp=8, lk_window=4)
+        MatchOptions(lk_window=4)
     with pytest.raises(InputError, match="p2: expected p2 > p1"):
-        match_stereo(a, a, min_disp=0, num_disp=8, p1=10, p2=10)
+        MatchOptions(p1=10, p2=10)
     with pytest.raises(InputError, match="p1: expected an integer > 0"):
-        match_stereo(a, a, min_disp=0, num_disp=8, p1=0)
+        MatchOptions(p1=0)
     with pytest.raises(InputError, match="p2: expected at most"):
-        match_stereo(a, a, min_disp=0, num_disp=8, p2=5000)
+        MatchOptions(p2=5000)
     with pytest.raises(InputError, match="ad_weight"):
-        match_stereo(a, a, min_disp=0, num_disp=8, ad_weight=-1.0)
+        MatchOptions(ad_weight=-1.0)
     with pytest.raises(InputError, match="fine_window"):
-        match_stereo(a, a, min_disp=0, num_disp=8, fine_window=2)
+        MatchOptions(fine_window=2)
+    with pytest.raises(InputError, match="ad_trunc: expected a finite number > 0"):
+        MatchOptions(ad_trunc=0.0)
+    with pytest.raises(InputError, match="fine_window: expected an integer, got 3.0"):
+        MatchOptions(fine_window=3.0)  # type: ignore[arg-type]
+    assert MatchOptions(p1=8, p2=100).p2 == 100 and MatchOptions().speckle_size is None
 
 
 def test_match_files_writes_pfm(tmp_path: Path) -> None:

@@ -84,7 +84,7 @@ def test_matcher_equalizes_a_vignetted_darker_right_view() -> None:
     vignetted 40 % at the corners (a heavy colour-difference weight, so the views'
     values matter): with ``equalize`` the error rate stays that of the untouched
     pair; without it, it grows."""
-    from prism3d.reconstruct.match import match_stereo_full
+    from prism3d.reconstruct.match import MatchOptions, match_stereo_full
 
     h, w, d = 180, 240, 9
     scene = _scene(h, w + 40, 5)
@@ -96,7 +96,8 @@ def test_matcher_equalizes_a_vignetted_darker_right_view() -> None:
     dark = np.clip(right * gain, 0, 255).astype(np.uint8)
 
     def bad(r: np.ndarray, equalize: bool) -> float:
-        res = match_stereo_full(left, r, min_disp=0, num_disp=32, equalize=equalize, ad_weight=3.0)
+        res = match_stereo_full(left, r, min_disp=0, num_disp=32,
+                                options=MatchOptions(equalize=equalize, ad_weight=3.0))
         return float(np.mean(np.abs(res.disparity[:, 20:-20] - truth[:, 20:-20]) > 0.5))
 
     base = bad(clean, True)
