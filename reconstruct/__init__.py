@@ -1,9 +1,5 @@
 """prism3d.reconstruct: calibration, rectification, stereo matching, triangulation,
-meshing, ICP stitching and the accuracy test.
-
-Submodules are imported lazily (``prism3d.reconstruct.calibrate`` ...) so that
-``import prism3d.reconstruct`` stays cheap; the names below load on first use.
-"""
+meshing, ICP stitching and the accuracy test (names below load lazily, on first use)."""
 
 from __future__ import annotations
 
@@ -23,6 +19,8 @@ _LAZY = {
     "StereoResult": "match",
     "score_disparity": "stereo_eval",
     "reconstruct_shot": "pipeline",
+    "reconstruct_pair": "pipeline",
+    "ReconstructOptions": "pipeline",
     "triangulate": "triangulate",
     "fit_plane": "flatness",
     "flatness_test": "flatness",

@@ -1,5 +1,4 @@
-"""Defaults of the reconstruction that the command line shows in its help; no heavy
-imports, so that ``prism3d --help`` stays instant."""
+"""Reconstruction defaults the CLI help shows (no heavy imports: ``--help`` stays instant)."""
 
 from __future__ import annotations
 

@@ -1,11 +1,6 @@
-"""The paper's accuracy test: plane fits on a flat plate (Table I, eq. 9-16).
-
-A flat plate is scanned; in each of five regions (upper left, upper right, centre,
-lower left, lower right) the plane ``z = a x + b y + c`` is fitted by least squares
-(eq. 9-13) and the RMS of the residuals ``z_i - (a x_i + b y_i + c)`` is the
-accuracy figure (eq. 14-15). The depth resolution of the rig at the plate's
-distance, ``z^2 / (f B)`` per pixel of disparity (eq. 16), is reported beside it.
-"""
+"""The paper's accuracy test (Table I, eq. 9-16): least-squares planes ``z = a x + b y
++ c`` in five regions of a scanned flat plate, their residual RMS, and the rig's depth
+resolution ``z^2 / (f B)`` per pixel of disparity beside it."""
 
 from __future__ import annotations
 
@@ -30,6 +25,10 @@ REGIONS: dict[str, tuple[float, float]] = {
 }
 
 
+#: The plate's extent: these percentiles of the points (stray points do not count).
+_EXTENT_PERCENTILES = (1, 99)
+
+
 @dataclass(frozen=True)
 class PlaneFit:
     """Least-squares plane ``z = a x + b y + c`` and its residuals (mm)."""
@@ -46,12 +45,7 @@ class PlaneFit:
 
 
 def fit_plane(points: NDArray) -> PlaneFit:
-    """Fit ``z = a x + b y + c`` to ``(N, 3)`` points by least squares (eq. 9-13).
-
-    References
-    ----------
-    .. [1] The paper's eq. 9-14: normal equations of the plane fit and the RMS residual.
-    """
+    """Fit ``z = a x + b y + c`` to ``(N, 3)`` points by least squares (the paper's eq. 9-14)."""
     p = check_array(points, "points", shape=(None, 3), dtype_kind="fiu").astype(np.float64)
     p = p[np.all(np.isfinite(p), axis=1)]
     if len(p) < 3:
@@ -113,11 +107,8 @@ def flatness_test(
     baseline_mm: float | None = None,
     min_points: int = 50,
 ) -> FlatnessReport:
-    """Table I: plane fits in the five regions of a scanned flat plate.
-
-    The plate's extent is the 1st-99th percentile box of the points in x and y (the
-    scan's camera frame); each region is a square of ``region_fraction`` of that
-    extent around the centres in :data:`REGIONS`.
+    """Table I: plane fits in squares of ``region_fraction`` of the plate's extent (the
+    points' 1st-99th percentile box in x, y) around the centres in :data:`REGIONS`.
 
     Raises
     ------
@@ -129,8 +120,8 @@ def flatness_test(
     check_in_range(region_fraction, "region_fraction", 0.01, 0.5)
     if len(p) < 5 * min_points:
         raise ReconstructionError(f"too few points for the flatness test: {len(p)}")
-    x0, x1 = np.percentile(p[:, 0], [1, 99])
-    y0, y1 = np.percentile(p[:, 1], [1, 99])
+    x0, x1 = np.percentile(p[:, 0], list(_EXTENT_PERCENTILES))
+    y0, y1 = np.percentile(p[:, 1], list(_EXTENT_PERCENTILES))
     hx = 0.5 * region_fraction * (x1 - x0)
     hy = 0.5 * region_fraction * (y1 - y0)
     regions = {}

@@ -1,10 +1,5 @@
-"""Meshes from organised scans, and depth smoothing.
-
-A scan keeps one point per rectified pixel, so neighbouring pixels give triangles
-without any search. Triangles are dropped where they would bridge a depth jump
-(an occlusion edge): an edge whose depth change is more than ``max_slope`` times
-its footprint on the image (about 80 degrees of surface slant at the default).
-"""
+"""Meshes from organised scans (neighbouring pixels give triangles without a search;
+none bridges a depth jump), and edge-preserving depth smoothing."""
 
 from __future__ import annotations
 
@@ -15,29 +10,22 @@ from prism3d.checks import check_array, check_positive, check_same_shape
 
 __all__ = ["mesh_from_grid", "smooth_depth", "smoothing_resolution_mm"]
 
+#: Default depth jump smoothing does not cross, in pixels of disparity (15 mm at the
+#: paper's 1250 mm): well above the noise, well below an occlusion's step.
+_JUMP_DISPARITY_PX = 10.0
+#: Without the rig's focal length and baseline: this share of the depth.
+_JUMP_DEPTH_SHARE = 0.01
+#: Gaussian kernel half-width, in sigmas.
+_KERNEL_SIGMAS = 3
+
 
 def mesh_from_grid(
     points: NDArray, valid: NDArray, *, focal_px: float, max_slope: float = 6.0
 ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
-    """Triangulate an organised point grid without bridging depth jumps.
-
-    Parameters
-    ----------
-    points : (H, W, 3) float
-        Points in a camera frame (the camera at the origin looking along +z).
-    valid : (H, W) bool
-    focal_px : float
-        Focal length of the grid, to convert pixel spacing to millimetres.
-    max_slope : float
-        Largest ``|dz| / footprint`` of an edge kept (6 ~ 80 degrees of slant).
-
-    Returns
-    -------
-    vertices : (N, 3) float32
-        The valid points (row-major order).
-    faces : (M, 3) int64
-        Triangles facing the camera.
-    """
+    """Triangulate an organised point grid ``(H, W, 3)`` (camera frame) at its ``valid``
+    pixels, dropping edges whose ``|dz|`` exceeds ``max_slope`` times their footprint
+    ``z / focal_px`` (6 ~ 80 degrees of slant): vertices ``(N, 3)`` float32 (row-major)
+    and faces ``(M, 3)`` int64 facing the camera."""
     p = check_array(points, "points", ndim=3)
     m = check_array(valid, "valid", ndim=2).astype(bool)
     check_same_shape(p, m, ("points", "valid"), dims=2)
@@ -79,31 +67,23 @@ def smooth_depth(
     focal_px: float | None = None,
     baseline_mm: float | None = None,
 ) -> NDArray[np.float32]:
-    """Edge-preserving Gaussian smoothing of a depth map with holes (NaN).
-
-    Each pixel becomes the Gaussian-weighted mean of its neighbours whose depth is
-    within ``jump_mm`` of its own: holes do not pull the surface and nothing is
-    averaged across a depth step. ``jump_mm`` defaults to 10 pixels of disparity
-    (``10 z^2 / (f B)``, 15 mm at the paper's 1250 mm) when ``focal_px`` and
-    ``baseline_mm`` are given, else to 1% of the depth.
-
-    The cost in lateral resolution is the kernel's full width at half maximum,
-    :func:`smoothing_resolution_mm`.
-    """
+    """Edge-preserving Gaussian smoothing of a depth map (mm, NaN = hole) over neighbours
+    within ``jump_mm`` (default 10 px of disparity with ``focal_px`` and ``baseline_mm``,
+    else 1 % of the depth); resolution lost: :func:`smoothing_resolution_mm`."""
     from prism3d.reconstruct._mesh_kernels import range_limited_gaussian
 
     d = check_array(depth_mm, "depth_mm", ndim=2, dtype_kind="f").astype(np.float64)
     s = check_positive(sigma_px, "sigma_px")
-    r = int(np.ceil(3 * s))
+    r = int(np.ceil(_KERNEL_SIGMAS * s))
     x = np.arange(-r, r + 1, dtype=np.float64)
     g = np.exp(-0.5 * (x / s) ** 2)
     weights = np.outer(g, g)
     if jump_mm is not None:
         jump = np.full_like(d, check_positive(jump_mm, "jump_mm"))
     elif focal_px is not None and baseline_mm is not None:
-        jump = 10.0 * d**2 / (check_positive(focal_px, "focal_px") * check_positive(baseline_mm, "baseline_mm"))
+        jump = _JUMP_DISPARITY_PX * d**2 / (check_positive(focal_px, "focal_px") * check_positive(baseline_mm, "baseline_mm"))
     else:
-        jump = 0.01 * d
+        jump = _JUMP_DEPTH_SHARE * d
     jump = np.where(np.isfinite(jump), jump, 0.0)
     out = np.empty_like(d)
     range_limited_gaussian(np.ascontiguousarray(d), weights, np.ascontiguousarray(jump), out)

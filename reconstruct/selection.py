@@ -1,15 +1,6 @@
-"""Which pixels of a matched pair become points, and how sure each one is.
-
-Every rule here is stated against what the images themselves show, never against
-constants of a particular camera: the shot's noise is estimated from the shot
-(:func:`estimate_noise`), texture is gradient energy above what that noise alone
-would give (:func:`textured`), a surface is visible where the image rises above the
-shot's own black level (:func:`unlit`), occlusions follow from the disparity map
-itself (:func:`occlusions`), and pixels the matcher could not measure are estimated
-from the measured surface around them with the variance of that estimate
-(:func:`fill_from_planes`). The result is a disparity with a predicted standard
-deviation per pixel; the caller keeps the pixels whose deviation it can accept.
-"""
+"""Which pixels of a matched pair become points, and how sure each one is, by rules
+stated against the shot itself (its noise, black level, disparity map); the rules and
+their reasons: docs/reconstruction.md."""
 
 from __future__ import annotations
 
@@ -41,16 +32,26 @@ __all__ = [
 #: Why a pixel gave no point, in the order the checks apply.
 REASONS = ("outside depth range", "no texture", "silhouette", "occluded", "inconsistent", "low confidence")
 
+#: Immerkaer's operator responds to noise of std sigma with std 6 sigma; a median
+#: absolute response is 0.6745 std of a Gaussian.
+_IMMERKAER_GAIN = 0.6745 * 6.0
+#: Noise blocks (px): small enough that some are smooth, large enough for a median.
+_NOISE_BLOCK = 16
+#: The smoothest tenth of the blocks estimates the noise (texture only adds).
+_NOISE_PERCENTILE = 10.0
+#: The 8-bit quantisation step's own noise, 1 / sqrt(12) levels.
+_MIN_NOISE = 0.29
+#: Blocks wholly inside the mask needed before the mask is used.
+_MIN_NOISE_BLOCKS = 4
+#: Percentiles of the brightest channel taken as the shot's black level and top.
+_BLACK_PERCENTILE, _TOP_PERCENTILE = 0.5, 99.5
+#: Fill windows are made of square cells of about radius / 6 px (at most 13 x 13 cells).
+_CELLS_PER_RADIUS = 6
+
 
 def estimate_noise(image: NDArray, mask: NDArray | None = None) -> float:
-    """Standard deviation of the image noise (8-bit levels), from the image itself.
-
-    Immerkaer's operator (the difference of two Laplacians, blind to planes and
-    linear ramps) responds to noise with standard deviation ``6 sigma``; its
-    median absolute response, taken per 16x16 block, estimates ``sigma`` where the
-    block is smooth and overestimates it on texture, so the estimate is the 10th
-    percentile over the blocks (the smoothest tenth of the image). At least 0.29
-    levels (the quantisation step's own noise).
+    """Noise std (8-bit levels) of the image: 10th percentile over 16x16 blocks (inside
+    ``mask``) of Immerkaer's operator's median absolute response.
 
     References
     ----------
@@ -62,41 +63,30 @@ def estimate_noise(image: NDArray, mask: NDArray | None = None) -> float:
     resp = sum(np.abs(cv2.filter2D(np.ascontiguousarray(c), -1, kern, borderType=cv2.BORDER_REFLECT))
                for c in chans) / len(chans)
     h, w = resp.shape
-    b = 16
+    b = _NOISE_BLOCK
     hb, wb = h // b, w // b
     if hb == 0 or wb == 0:
-        est = float(np.median(resp)) / (0.6745 * 6.0)
-        return max(est, 0.29)
+        est = float(np.median(resp)) / _IMMERKAER_GAIN
+        return max(est, _MIN_NOISE)
     blocks = resp[: hb * b, : wb * b].reshape(hb, b, wb, b).transpose(0, 2, 1, 3).reshape(hb * wb, b * b)
     if mask is not None:
         m = check_array(mask, "mask", shape=(h, w)).astype(bool)
         keep = m[: hb * b, : wb * b].reshape(hb, b, wb, b).transpose(0, 2, 1, 3).reshape(hb * wb, -1).all(axis=1)
-        if keep.sum() >= 4:
+        if keep.sum() >= _MIN_NOISE_BLOCKS:
             blocks = blocks[keep]
-    per_block = np.median(blocks, axis=1) / (0.6745 * 6.0)
-    return max(float(np.percentile(per_block, 10.0)), 0.29)
+    per_block = np.median(blocks, axis=1) / _IMMERKAER_GAIN
+    return max(float(np.percentile(per_block, _NOISE_PERCENTILE)), _MIN_NOISE)
 
 
 def unlit(image: NDArray, noise: float, textured_mask: NDArray, *, k_sigma: float = 5.0,
           spill: float = 0.04, min_share: float = 0.1) -> NDArray[np.bool_]:
-    """Unlit background: pixels that show no lit surface of their own.
-
-    A pixel is dark when it rises above the shot's black level (the 0.5th
-    percentile of the brightest channel) by no more than ``k_sigma`` noise
-    deviations or ``spill`` of the shot's range (black level to 99.5th percentile):
-    the light a lens spreads beside a bright edge and a JPEG coder's ringing stay
-    below a few per cent of the edge's step. Dark pixels are unlit background when
-    their connected dark region holds untextured pixels (``~textured_mask``): a
-    floor of nothing but noise, such as the unlit space behind a flash-lit object,
-    where the matcher carries the object's disparity outwards. Such a background is
-    taken to exist only when it covers at least ``min_share`` of the image (a
-    flash shot against the dark); a dark, flat patch of an ordinary photograph (a
-    shadow under a table) is a surface and stays.
-    """
+    """Unlit background ``(H, W)`` bool: connected dark regions (within ``k_sigma`` noise
+    or ``spill`` of the range above the black level) holding untextured pixels, when
+    they cover ``min_share`` of the image (a flash shot against the dark)."""
     img = check_array(image, "image", ndim=(2, 3))
     v = (img.max(axis=2) if img.ndim == 3 else img).astype(np.float32)
     t = check_array(textured_mask, "textured_mask", shape=v.shape).astype(bool)
-    floor, top = (float(p) for p in np.percentile(v, [0.5, 99.5]))
+    floor, top = (float(p) for p in np.percentile(v, [_BLACK_PERCENTILE, _TOP_PERCENTILE]))
     dark = v <= floor + max(float(k_sigma) * float(noise), float(spill) * (top - floor))
     n, labels = cv2.connectedComponents(dark.astype(np.uint8), connectivity=8)
     floor_region = np.zeros(n, bool)
@@ -134,16 +124,9 @@ def enclosed(region: NDArray, outside: NDArray) -> NDArray[np.bool_]:
 
 def textured(image: NDArray, noise: float, *, window: tuple[int, int] = (7, 19),
              k_sigma: float = 3.0) -> NDArray[np.bool_]:
-    """Pixels whose window holds more horizontal-gradient energy than noise would.
-
-    The gradient is the central difference ``(I(x+1) - I(x-1)) / 2`` per channel,
-    whose noise variance is ``sigma^2 / 2``; over ``n`` samples (window pixels times
-    channels) noise alone gives an energy of ``n sigma^2 / 2`` with relative spread
-    ``sqrt(3 / n)`` (``sqrt(2 / n)`` for independent samples, times ``sqrt(1.5)``:
-    gradients two pixels apart share a pixel, their squares correlate by 1/4). A
-    window is textured when its energy exceeds that by ``k_sigma`` spreads: then the
-    disparity is measured by the scene, not the noise.
-    """
+    """Pixels whose ``window`` (rows, cols) holds more horizontal-gradient energy than
+    noise alone would: ``n sigma^2 / 2`` over ``n`` samples, exceeded by ``k_sigma``
+    relative spreads ``sqrt(3 / n)``."""
     img = check_array(image, "image", ndim=(2, 3)).astype(np.float32)
     img = img[..., None] if img.ndim == 2 else img
     nc = img.shape[2]
@@ -159,13 +142,9 @@ def textured(image: NDArray, noise: float, *, window: tuple[int, int] = (7, 19),
 
 
 def occlusions(disparity: NDArray, *, margin: float = 1.0) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """``(occluded, outside)`` masks of a dense left-view disparity map.
-
-    ``outside``: the match ``x - d`` lies left of the right view's first column.
-    ``occluded``: a nearer pixel further right on the row (by more than ``margin``
-    px of disparity) lands on the same right-view column or left of it, so the
-    right camera sees that nearer surface instead.
-    """
+    """``(occluded, outside)`` masks of a dense left-view disparity map: ``outside``, the
+    match lies left of the right view; ``occluded``, a pixel nearer by more than
+    ``margin`` px further right on the row lands on or left of the same column."""
     d = check_array(disparity, "disparity", ndim=2, dtype_kind="f").astype(np.float32)
     occ = np.empty(d.shape, np.bool_)
     out = np.empty(d.shape, np.bool_)
@@ -182,25 +161,10 @@ def fill_from_planes(
     sides: tuple[str, ...] = ("centre",),
     min_fraction: float = 0.25,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Predict ``targets`` from local planes through the ``known`` disparities.
-
-    For each target pixel and each window (radius about ``radii``; ``sides``: centred
-    on the pixel, or reaching only to its ``"left"`` or ``"right"``, e.g. the
-    background side of an occlusion), the least-squares plane through the known
-    pixels is evaluated at the pixel. The prediction with the smallest variance ``s^2
-    (1 + (M^-1)_00)`` wins (``s^2`` the known pixels' scatter about the plane, ``M``
-    their moment matrix): a window across a depth edge scatters and loses; a far
-    window is taken only when nothing near is known. Windows are made of square
-    cells (about ``radius / 6`` px, so a window sums at most 13 x 13 cells); the
-    fit itself is exact over the known pixels they hold.
-
-    Returns
-    -------
-    estimate, std : (H, W) float32
-        Disparity and its predicted standard deviation (px) at the target pixels
-        that a window could serve (at least ``min_fraction`` of it known); NaN
-        elsewhere.
-    """
+    """Predict ``targets`` from local planes through the ``known`` disparities: per
+    window (each of ``radii``; centred or reaching to the ``"left"``/``"right"`` only)
+    with ``min_fraction`` known, the plane's prediction of smallest variance wins.
+    Returns the estimate and its std (px), ``(H, W)`` float32, NaN where none served."""
     d = check_array(disparity, "disparity", ndim=2, dtype_kind="f")
     k = check_array(known, "known", shape=d.shape).astype(bool) & np.isfinite(d)
     t = check_array(targets, "targets", shape=d.shape).astype(bool)
@@ -222,7 +186,7 @@ def fill_from_planes(
     var = np.full(len(ys), np.inf)
     ys32, xs32 = ys.astype(np.int64), xs.astype(np.int64)
     for r in radii:
-        s = max(1, int(r) // 6)
+        s = max(1, int(r) // _CELLS_PER_RADIUS)
         kc = max(1, int(round(r / s)))
         cells = np.empty((10, -(-d.shape[0] // s), -(-d.shape[1] // s)))
         _k.cell_sums(dk, km, s, ref, cells)
@@ -260,13 +224,8 @@ def std_from_confidence(confidence: float) -> float:
 
 @dataclass
 class Coverage:
-    """How the pixels of a view were accounted for.
-
-    ``considered`` counts the rectified-left pixels the left view covers; ``kept``
-    those that became points (``measured``: matched and refined; ``estimated``:
-    filled from the planes around them); ``dropped`` maps each of :data:`REASONS`
-    to a count.
-    """
+    """Pixel counts of a view: ``considered`` (covered by the left view), ``measured``,
+    ``estimated`` (filled from planes), and ``dropped`` per each of :data:`REASONS`."""
 
     considered: int
     measured: int

@@ -1,17 +1,5 @@
-"""Disparity -> metric depth -> coloured point cloud with normals (a *scan*).
-
-With the zero-disparity rectification of :func:`prism3d.capture.rig.compute_rectification`
-a rectified-left pixel ``(u, v)`` with disparity ``d`` is the point
-
-    z = f B / d,   x = (u - cx) z / f,   y = (v - cy) z / f
-
-in the rectified-left frame; ``R1^T`` turns it into the original left camera frame,
-which is the frame of every scan prism3d writes (OpenCV axes, millimetres).
-
-Only valid, confident pixels become points: filled holes and background are never
-triangulated. The organised grid (one point per rectified pixel) is kept alongside,
-so meshing can connect neighbours without a search.
-"""
+"""Disparity -> metric depth (``z = f B / d``) -> coloured point cloud with normals (a
+*scan*, in the left camera frame, mm), with its organised grid for meshing."""
 
 from __future__ import annotations
 
@@ -24,6 +12,7 @@ from numpy.typing import NDArray
 from prism3d.capture.rig import Rectification, StereoRig
 from prism3d.checks import check_array, check_same_shape
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.geometry import backproject
 
 __all__ = [
     "Scan",
@@ -39,11 +28,7 @@ __all__ = [
 
 
 def depth_resolution_mm(z_mm: float | NDArray, focal_px: float, baseline_mm: float) -> float | NDArray:
-    """Depth change per pixel of disparity, ``|dz/dd| = z^2 / (f B)`` (the paper's eq. 16).
-
-    1.546 mm per pixel at z = 1250 mm for the paper's rig (f = 5107 px, B = 197.9 mm);
-    a matcher with 1/10 px sub-pixel accuracy resolves ~0.15 mm there.
-    """
+    """Depth change (mm) per pixel of disparity, ``|dz/dd| = z^2 / (f B)`` (the paper's eq. 16)."""
     return np.asarray(z_mm, dtype=np.float64) ** 2 / (float(focal_px) * float(baseline_mm))
 
 
@@ -54,24 +39,12 @@ def disparity_to_depth(disparity: NDArray, rect: Rectification) -> NDArray[np.fl
 
 
 def depth_to_points(depth_mm: NDArray, rect: Rectification, *, frame: str = "left") -> NDArray[np.float32]:
-    """Organised points ``(H, W, 3)`` float32 mm from a rectified-left depth map.
-
-    Parameters
-    ----------
-    frame : {"left", "rectified"}
-        ``left``: the original left camera frame (default; the frame of scans);
-        ``rectified``: the rectified-left frame.
-    """
+    """Organised points ``(H, W, 3)`` float32 mm from a rectified-left depth map, in the
+    ``"left"`` camera frame (the frame of scans) or the ``"rectified"``-left frame."""
     z = check_array(depth_mm, "depth_mm", ndim=2, dtype_kind="f").astype(np.float64)
-    h, w = z.shape
     P = rect.P1
     f, cx, cy = P[0, 0], P[0, 2], P[1, 2]
-    u = np.arange(w, dtype=np.float64)[None, :]
-    v = np.arange(h, dtype=np.float64)[:, None]
-    pts = np.empty((h, w, 3), dtype=np.float64)
-    pts[..., 0] = (u - cx) * z / f
-    pts[..., 1] = (v - cy) * z / f
-    pts[..., 2] = z
+    pts = backproject(z, f, f, cx, cy)
     if frame == "left":
         pts = pts @ rect.R1  # x_left = R1^T x_rect  <=>  row-vector form x_rect @ R1
     elif frame != "rectified":
@@ -80,11 +53,8 @@ def depth_to_points(depth_mm: NDArray, rect: Rectification, *, frame: str = "lef
 
 
 def grid_normals(points: NDArray, valid: NDArray) -> NDArray[np.float32]:
-    """Unit normals ``(H, W, 3)`` of an organised point grid, facing the camera.
-
-    Central differences where both neighbours are valid, one-sided otherwise; NaN
-    where no normal can be formed. The camera is at the origin of the points' frame.
-    """
+    """Unit normals ``(H, W, 3)`` of an organised point grid, facing the camera at the
+    origin: central differences, one-sided at gaps; NaN where none can be formed."""
     from ._mesh_kernels import grid_normals as _grid_normals_kernel
 
     p = check_array(points, "points", ndim=3)
@@ -101,27 +71,10 @@ def grid_normals(points: NDArray, valid: NDArray) -> NDArray[np.float32]:
 
 @dataclass
 class Scan:
-    """One view's reconstruction.
-
-    Attributes
-    ----------
-    points : (N, 3) float32
-        Valid surface points, left camera frame, mm.
-    colors : (N, 3) uint8
-    normals : (N, 3) float32
-        Unit normals facing the camera.
-    confidence : (N,) float32
-        In [0, 1]: the chance the point's disparity is within 1 px of the truth
-        (:func:`~prism3d.reconstruct.selection.confidence_from_std`).
-    pixels : (N, 2) int32
-        ``(row, col)`` of each point on the rectified-left grid.
-    grid_shape : (int, int)
-        Rectified image ``(H, W)``.
-    depth_mm : (H, W) float32
-        Rectified-left depth of the valid points (NaN elsewhere).
-    disparity_std : (N,) float32, optional
-        Predicted disparity standard deviation of each point (px; NaN = unknown).
-    """
+    """One view's reconstruction: points ``(N, 3)`` float32 (left camera frame, mm) with
+    colours, unit normals facing the camera, ``confidence`` (chance the disparity is
+    within 1 px of the truth), ``pixels`` ``(row, col)`` on the rectified-left grid of
+    ``grid_shape``, its ``depth_mm`` (NaN where no point) and ``disparity_std`` (px)."""
 
     points: NDArray[np.float32]
     colors: NDArray[np.uint8]
@@ -175,22 +128,9 @@ def triangulate(
     disparity_std: NDArray | None = None,
     min_confidence: float = 0.0,
 ) -> Scan:
-    """Turn a rectified disparity map into a :class:`Scan` of valid surface points.
-
-    Parameters
-    ----------
-    disparity : (H, W) float32
-        Rectified-left disparity ``d = x_left - x_right``, NaN = invalid.
-    valid : (H, W) bool
-        Pixels to triangulate.
-    rect : Rectification
-    image : (H, W, 3) uint8 or (H, W) uint8
-        Rectified left image (colours).
-    disparity_std : (H, W) float32, optional
-        Predicted disparity std (px) of each pixel.
-    min_confidence : float
-        Drop points whose confidence (from ``disparity_std``) is below this.
-    """
+    """A :class:`Scan` of the ``valid`` pixels of a rectified-left disparity ``(H, W)``
+    float32 (NaN = invalid) with colours from the rectified left ``image``; points whose
+    confidence (from ``disparity_std``, px) is below ``min_confidence`` are dropped."""
     from prism3d.reconstruct.selection import confidence_from_std
 
     d = check_array(disparity, "disparity", ndim=2, dtype_kind="f")
@@ -213,12 +153,9 @@ def triangulate(
 def scan_from_depth(
     depth_mm: NDArray, rect: Rectification, image: NDArray, disparity_std: NDArray | None = None
 ) -> Scan:
-    """A :class:`Scan` from a rectified-left depth map (NaN = no point) and its image.
-
-    ``disparity_std`` (H, W) px is each point's predicted disparity standard deviation
-    (NaN or absent: unknown, confidence 1). A point without valid neighbours to form
-    a normal gets the normal facing the camera along its ray.
-    """
+    """A :class:`Scan` from a rectified-left depth map (mm, NaN = no point), its image and
+    ``disparity_std`` (px; NaN or absent: confidence 1). A point without neighbours
+    gets the normal along its ray."""
     from prism3d.reconstruct.selection import confidence_from_std
 
     depth = check_array(depth_mm, "depth_mm", ndim=2, dtype_kind="f").astype(np.float32)
@@ -268,13 +205,8 @@ def _already_rectified(rig: StereoRig) -> bool:
 
 def disparity_to_rectified(disparity: NDArray, rig: StereoRig, rect: Rectification
                            ) -> NDArray[np.float32]:
-    """Place a disparity map on ``rect``'s rectified-left grid.
-
-    A map already of the rectified size is returned as is. A map of the left view's
-    size from an already-rectified pair (Middlebury ``calib.txt``: ``d`` in the images
-    as given, ``z = f B / (d + doffs)``) is shifted onto the grid: rectification moves
-    each view by whole principal-point offsets, so ``d_rect = d + cx_right - cx_left``.
-    """
+    """A disparity map on ``rect``'s rectified-left grid: as is, or from an already-rectified
+    pair's left view (Middlebury) shifted: ``d_rect = d + cx_right - cx_left``."""
     d = check_array(disparity, "disparity", ndim=2, dtype_kind="f").astype(np.float32)
     w, h = rect.size
     if d.shape == (h, w):
@@ -308,16 +240,9 @@ def triangulate_to_file(
     image_size: tuple[int, int] | None = None,
     max_depth_mm: float | None = None,
 ) -> Scan:
-    """What ``prism3d triangulate DISP.pfm --calib C --left L -o cloud.ply`` calls: a
-    disparity map (PFM; NaN, inf or <= 0 = no value) to a coloured cloud with normals
-    (mm, left camera frame), like OpenCV's ``reprojectImageTo3D``.
-
-    The disparity is on the rectified-left grid of ``compute_rectification(rig,
-    alpha)`` (what ``prism3d rectify``/``match``/``reconstruct`` produce), or, for an
-    already-rectified pair (Middlebury/ETH3D ``calib.txt``), on the left image as
-    given. ``left_path`` gives the colours: the rectified left view, or the original
-    left view (then rectified here). Points beyond ``max_depth_mm`` are dropped.
-    """
+    """What ``prism3d triangulate`` calls: a disparity PFM (see :func:`disparity_to_rectified`)
+    and the (rectified or original) left view to a coloured cloud PLY, like OpenCV's
+    ``reprojectImageTo3D``; points beyond ``max_depth_mm`` are dropped."""
     from prism3d.capture.calib_formats import load_stereo_calibration
     from prism3d.capture.rig import compute_rectification
     from prism3d.io.images import read_image

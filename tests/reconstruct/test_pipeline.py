@@ -13,13 +13,13 @@ import pytest
 @pytest.fixture(scope="module")
 def tank_scene(tmp_path_factory):
     from prism3d.capture.rig import paper_rig
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
 
     out = tmp_path_factory.mktemp("tank")
     rig = paper_rig(sensor_size=(1296, 972), focal_px=5107.0 / 2)
     target = builtin_target("tank_t1", seed=0)
-    simulate_to_folder("scene", out, rig=rig, target=target, views=8, seed=0, supersample=1)
+    simulate_to_folder("scene", out, SimulateOptions(views=8, seed=0, supersample=1), rig=rig, target=target)
     return out, rig, target
 
 
@@ -69,14 +69,14 @@ def test_refinement_local_bias_under_the_real_camera(tank_scene, view: int) -> N
     import cv2
 
     from prism3d.io.images import read_image
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
 
     out, rig, _ = tank_scene
     truth = np.load(out / f"truth_{view:02d}.npz")["disparity_rect"]
     shot = read_image(out / f"shot_{view:02d}.png")
 
     def local_bias(interp: str) -> float:
-        rec = reconstruct_shot(shot, rig, refine_interpolation=interp)
+        rec = reconstruct_shot(shot, rig, ReconstructOptions(refine_interpolation=interp))
         e = rec.disparity - truth
         ok = rec.measured & np.isfinite(e) & (np.abs(e) < 1.0)
         w = ok.astype(np.float32)
@@ -92,10 +92,33 @@ def test_refinement_local_bias_under_the_real_camera(tank_scene, view: int) -> N
 
 
 def test_refine_interpolation_is_checked() -> None:
-    from prism3d.capture.rig import paper_rig
     from prism3d.errors import InputError
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.pipeline import ReconstructOptions
 
-    rig = paper_rig(sensor_size=(320, 120), focal_px=5107.0 / 10.8)
     with pytest.raises(InputError, match="refine_interpolation: expected one of bspline, linear"):
-        reconstruct_shot(np.zeros((120, 320, 3), np.uint8), rig, refine_interpolation="cubic")
+        ReconstructOptions(refine_interpolation="cubic")
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(min_confidence=1.0), r"min_confidence: expected a value in \[0, 1\), got 1.0"),
+    (dict(min_confidence=-0.1), r"min_confidence: expected a value in \[0, 1\)"),
+    (dict(min_disp=0), "give both min_disp and num_disp, or neither"),
+    (dict(num_disp=64), "give both min_disp and num_disp, or neither"),
+])
+def test_reconstruct_options_are_checked(kwargs: dict, match: str) -> None:
+    from prism3d.errors import InputError
+    from prism3d.reconstruct.pipeline import ReconstructOptions
+
+    with pytest.raises(InputError, match=match):
+        ReconstructOptions(**kwargs)
+
+
+def test_reconstruct_options_default_lk_window() -> None:
+    """The pipeline's matcher options differ from the matcher's own in lk_window only."""
+    import dataclasses
+
+    from prism3d.reconstruct.match import MatchOptions
+    from prism3d.reconstruct.pipeline import ReconstructOptions
+
+    m = ReconstructOptions().match
+    assert m == dataclasses.replace(MatchOptions(), lk_window=9)
