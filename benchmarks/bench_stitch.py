@@ -53,7 +53,7 @@ def load_scans(folder: Path, samples_per_pixel: int = 2, noise_mm: float = 0.15,
 
 
 def errors(Ts, poses, V):
-    from prism3d.reconstruct.registration import rotation_angle_deg
+    from prism3d.geometry import rotation_angle_deg
 
     out = []
     for k, T in enumerate(Ts):
@@ -127,12 +127,12 @@ def main() -> None:
 
     folder = Path(sys.argv[1] if len(sys.argv) > 1 else "/tmp/stitch_sets/tank8")
     if not (folder / "poses.json").exists():
-        from prism3d.capture.simulate import simulate_to_folder
+        from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
         from prism3d.datasets.targets import builtin_target
 
-        simulate_to_folder("scene", folder, target=builtin_target("tank_t1"), views=8, seed=1, supersample=1)
+        simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=1, supersample=1), target=builtin_target("tank_t1"))
     from prism3d.reconstruct.fusion import mesh_is_closed
-    from prism3d.reconstruct.stitch import stitch_scans
+    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
 
     from prism3d.io.ply import read_ply
 
@@ -143,7 +143,7 @@ def main() -> None:
     rows = []
     for hint in (45.0, None):
         c0, t0 = time.process_time(), time.perf_counter()
-        res = stitch_scans(scans, turntable_step_deg=hint, mesh=True)
+        res = stitch_scans(scans, StitchOptions(turntable_step_deg=hint, mesh=True))
         t_ours, c_ours = time.perf_counter() - t0, time.process_time() - c0
         e = errors(res.T_model_scan, poses, V)
         d = surface_rms(res.points, poses, V, F)

@@ -27,7 +27,7 @@ import prism3d  # noqa: F401
 
 def pose_errors(T_model_scan, poses, V):
     """Per view: rotation error (deg) and RMS motion (mm) of the true surface."""
-    from prism3d.reconstruct.registration import rotation_angle_deg
+    from prism3d.geometry import rotation_angle_deg
 
     T0_inv = np.linalg.inv(poses[0])
     out = []
@@ -41,28 +41,29 @@ def pose_errors(T_model_scan, poses, V):
 
 def render(name: str, folder: Path, *, ideal: bool, supersample: int) -> None:
     from prism3d.capture.camera_effects import CameraEffects
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
 
     if (folder / "poses.json").exists():
         return
-    simulate_to_folder("scene", folder, target=builtin_target(name, seed=0), views=8, seed=0,
-                       supersample=supersample, effects=CameraEffects.ideal() if ideal else CameraEffects())
+    simulate_to_folder("scene", folder, SimulateOptions(
+        views=8, seed=0, supersample=supersample, effects=CameraEffects.ideal() if ideal else CameraEffects(),
+    ), target=builtin_target(name, seed=0))
 
 
 def run(name: str, folder: Path, options: dict) -> dict:
     from prism3d.capture.rig import StereoRig
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
-    from prism3d.reconstruct.pipeline import reconstruct_shot
-    from prism3d.reconstruct.stitch import stitch_scans
+    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
+    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
 
     rig = StereoRig.load(folder / "rig.yaml")
     views = json.loads((folder / "poses.json").read_text())["views"]
     t0 = time.perf_counter()
     scans, poses = [], []
     for v in views:
-        s = reconstruct_shot(read_image(folder / v["image"]), rig, **options).scan
+        s = reconstruct_shot(read_image(folder / v["image"]), rig, ReconstructOptions(**options)).scan
         scans.append((s.points, s.colors, s.normals))
         poses.append(np.array(v["T_world_cam"]))
     t_rec = time.perf_counter() - t0
@@ -70,7 +71,7 @@ def run(name: str, folder: Path, options: dict) -> dict:
     out = {"target": name, "reconstruct_s": t_rec, "points": int(np.mean([len(s[0]) for s in scans]))}
     for hint in (45.0, None):
         try:
-            res = stitch_scans(scans, turntable_step_deg=hint, mesh=False)
+            res = stitch_scans(scans, StitchOptions(turntable_step_deg=hint, mesh=False))
         except Exception as exc:  # a failed registration is a result too
             out["hint" if hint else "nohint"] = {"worst_deg": float("nan"), "worst_motion_mm": float("nan"),
                                                  "worst_view": -1, "warnings": [f"failed: {exc}"]}

@@ -1,31 +1,10 @@
-"""Joint multi-view ICP: refine all view poses together against all their overlaps.
-
-Pairwise registration followed by a pose graph treats each pair's result as a
-measurement; when the scans carry view-dependent errors (a stereo scan's depth
-noise, a partial overlap), each pair's optimum is biased a little differently and
-the pose graph can only distribute the disagreement. Here every view is instead
-moved so that, *simultaneously*, its points lie on the surfaces of every view it
-overlaps (point-to-plane, Tukey-weighted), with all poses as unknowns (the first
-view fixed). This is the simultaneous registration of Bergevin et al. [1]_ and
-Pulli [2]_, solved by Gauss-Newton on a ``6 (n - 1)`` parameter system with
-correspondences re-found at every iteration.
-
-Measured on 8 matcher-reconstructed turntable views of a camouflaged tank (paper
-rig, grating on): the pose graph's view poses 0.04-0.47 deg from the truth, after
-this step 0.01-0.05 deg -- the same as when it is started from the true poses (on
-four targets, 0.05-0.07 deg at worst: the scans' own depth errors are the limit).
-On scans of the true depth with 0.15 mm noise: 0.053 -> 0.018 deg.
-
-Views of an object on a turntable are further constrained: they differ only by
-rotations about one axis. :func:`refine_turntable` fits the axis and one angle per
-view to the same residuals, removing the tilts that view-dependent depth errors
-leave in the free solution (worst view pose on six targets' stereo scans
-0.026-0.177 -> 0.026-0.096 deg).
+"""Joint multi-view ICP: every view moved so that its points lie on the surfaces of every
+view it overlaps (point-to-plane, Tukey-weighted, Gauss-Newton, the first view fixed), free
+or on one turntable axis. Measurements: ``docs/stitching.md``.
 
 References
 ----------
-.. [1] R. Bergevin, M. Soucy, H. Gagnon, D. Laurendeau, "Towards a general
-   multi-view registration technique", IEEE TPAMI 18(5), 1996.
+.. [1] R. Bergevin et al., "Towards a general multi-view registration technique", TPAMI 1996.
 .. [2] K. Pulli, "Multiview registration for large data sets", 3DIM 1999.
 """
 
@@ -40,10 +19,23 @@ from scipy.spatial import cKDTree
 
 from prism3d.checks import check_array, check_positive
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.geometry import rotation_angle_deg, rotvec_from_matrix
 
 __all__ = ["fit_turntable", "overlapping_pairs", "refine_multiview", "refine_turntable"]
 
 log = logging.getLogger(__name__)
+
+# Correspondences are searched within this many spacings (Tukey's constant is one spacing).
+_SEARCH_SPACINGS = 3.0
+# A view pair direction with fewer weighted correspondences than this adds nothing (6 unknowns).
+_MIN_CORRESPONDENCES = 6
+# The initial poses are close (pose graph): a step turning a view by more than this is a
+# weakly constrained direction (a smooth, symmetric surface sliding), so it is scaled down.
+_MAX_STEP_DEG = 1.0
+# Levenberg damping of the normal equations, relative to their mean diagonal.
+_DAMPING = 1e-9
+# Step of the numerical Jacobian of the view twists in the turntable parameters (rad, units).
+_JACOBIAN_STEP = 1e-6
 
 
 def _expmap(w: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -81,12 +73,11 @@ class _Problem:
         self.Q = [p[::st] for p, st in zip(self.P, stride, strict=True)]
         self.QN = [v[::st] for v, st in zip(self.N, stride, strict=True)]
         self.k_tukey = float(spacing)
-        self.dist = 3.0 * self.k_tukey
+        self.dist = _SEARCH_SPACINGS * self.k_tukey
         self.min_normal_cos = float(min_normal_cos)
         # perturbations about the centroid keep rotation and translation decoupled
         self.c = np.mean([t[:3, :3] @ p.mean(axis=0) + t[:3, 3] for p, t in zip(self.P, self.T0, strict=True)],
                          axis=0)
-
     def normal_equations(self, T: Sequence[NDArray]) -> tuple[NDArray, NDArray, float, float, int]:
         """Gauss-Newton system ``H x = -g`` in the left twists (about the centroid) of
         all views, with the weighted squared residual, the weight sum and the
@@ -114,7 +105,7 @@ class _Problem:
                 r = np.einsum("ij,ij->i", nb, pa - qb)
                 w = np.where(np.abs(r) < k_tukey, (1.0 - (r / k_tukey) ** 2) ** 2, 0.0)
                 keep = w > 0
-                if keep.sum() < 6:
+                if keep.sum() < _MIN_CORRESPONDENCES:
                     continue
                 pa, qb, nb, r, w = pa[keep], qb[keep], nb[keep], r[keep], w[keep]
                 # to the model frame, centred
@@ -136,18 +127,8 @@ class _Problem:
 
 
 def _view_levers(H: NDArray, n: int, twist: NDArray | None = None) -> list[float]:
-    """How firmly each view's correspondences fix its rotation, as a length.
-
-    From view ``k``'s diagonal 6x6 block of the normal equations (every
-    Tukey-weighted correspondence it takes part in): ``sqrt(info / W)``, ``W`` the
-    sum of the weights (the trace of the block's translation part) and ``info`` the
-    information of ``twist`` (turning about a turntable axis, as a left twist about
-    the centroid), or without one the weakest rotation with the translation free.
-    A face of width ``w`` facing a turntable axis squarely gives ``w / sqrt(12)``;
-    surfaces whose normals lie along the axis give 0. A depth error that tilts the
-    holding surfaces by ``e`` across them turns the view by about ``e / lever``
-    radians.
-    """
+    """Per view, ``sqrt(info / W)`` from its 6x6 block of ``H`` (``W`` the weight sum, ``info``
+    that of ``twist``, else of the weakest rotation): how firmly it is held, as a length."""
     out = []
     for k in range(n):
         B = H[6 * k: 6 * k + 6, 6 * k: 6 * k + 6]
@@ -175,25 +156,10 @@ def overlapping_pairs(
     sample: int = 2000,
     min_normal_cos: float = 0.7,
 ) -> list[tuple[int, int]]:
-    """Every pair of views whose surfaces overlap at the given poses.
-
-    An evenly strided sample of at most ``sample`` points of each view is moved into
-    the other view's frame; a point overlaps when the other view has a point within
-    ``3 * spacing`` whose normal agrees (cosine above ``min_normal_cos``) -- the
-    correspondence test of the refinements. A pair is returned when, in either
-    direction, at least ``min_fraction`` of the sample overlaps.
-
-    The pose graph keeps only the loop closures its registration accepted; on a
-    turntable the views 90 deg and more apart still share surfaces (tops, ends,
-    whatever both see). Handing those pairs to the joint refinement ties the views
-    on either side of a weakly overlapping step (an object's ends seen end-on)
-    together: worst view pose on 10 built-in targets' stereo scans 0.009-0.081 ->
-    0.010-0.068 deg, mean 0.042 -> 0.036 deg.
-
-    Returns
-    -------
-    list of (i, j) with i < j
-    """
+    """Every pair ``(i, j)``, ``i < j``, of views whose surfaces overlap at the given poses: in
+    either direction at least ``min_fraction`` of a strided ``sample`` of one view's points has
+    a point of the other within ``3 * spacing`` whose normal agrees (cosine above
+    ``min_normal_cos``), the refinements' correspondence test."""
     n = len(points)
     if len(normals) != n or len(T_model_scan) != n:
         raise InputError("overlapping_pairs: need points, normals and a pose for every view")
@@ -202,7 +168,7 @@ def overlapping_pairs(
     N = [np.asarray(v, dtype=np.float64) for v in normals]
     T = [np.asarray(t, dtype=np.float64) for t in T_model_scan]
     trees = [cKDTree(p) if len(p) else None for p in P]
-    dist = 3.0 * float(spacing)
+    dist = _SEARCH_SPACINGS * float(spacing)
     out = []
     for i in range(n):
         for j in range(i + 1, n):
@@ -227,10 +193,7 @@ def overlapping_pairs(
 
 def _max_rotation_deg(A: Sequence[NDArray], B: Sequence[NDArray]) -> float:
     """Largest rotation between corresponding poses, degrees."""
-    return max(
-        float(np.degrees(np.arccos(np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1, 1))))
-        for a, b in zip(A, B, strict=True)
-    )
+    return max(rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) for a, b in zip(A, B, strict=True))
 
 
 def _apply_twist(T: NDArray, x6: NDArray, c: NDArray) -> NDArray:
@@ -239,6 +202,23 @@ def _apply_twist(T: NDArray, x6: NDArray, c: NDArray) -> NDArray:
     E[:3, :3] = _expmap(x6[:3])
     E[:3, 3] = x6[3:] + c - E[:3, :3] @ c
     return E @ T
+
+
+def _rms(cost: float, wsum: float) -> float:
+    return float(np.sqrt(cost / max(wsum, 1e-12)))
+
+
+def _damped_solve(Hr: NDArray, g: NDArray, what: str) -> NDArray:
+    """``-Hr^-1 g`` with a tiny Levenberg damping; a view without correspondences fails."""
+    if np.min(np.abs(np.diag(Hr))) <= 0:
+        raise ReconstructionError(f"{what}: a view has no correspondences with its neighbours")
+    m = len(Hr)
+    return -np.linalg.solve(Hr + _DAMPING * np.trace(Hr) / m * np.eye(m), g)
+
+
+def _largest_turn(x: NDArray, views: int) -> float:
+    """Largest rotation (rad) among ``views`` stacked 6-vectors."""
+    return float(np.max(np.linalg.norm(x.reshape(views, 6)[:, :3], axis=1)))
 
 
 def refine_multiview(
@@ -253,49 +233,12 @@ def refine_multiview(
     min_normal_cos: float = 0.7,
     max_query_points: int = 10000,
 ) -> tuple[list[NDArray[np.float64]], dict[str, float]]:
-    """Refine all view poses jointly (the first view stays fixed).
-
-    Parameters
-    ----------
-    points, normals : list of (N_k, 3) float
-        Each view's (down-sampled) points and unit normals in its own frame.
-    T_model_scan : list of (4, 4) float
-        Initial poses (e.g. from a pose graph), accurate to about ``spacing``.
-    pairs : list of (i, j)
-        Views that overlap; each pair contributes both ways (points of i on the
-        surface of j and of j on i).
-    spacing : float
-        Point spacing of the clouds: Tukey's constant is ``spacing``,
-        correspondences are searched within ``3 * spacing``.
-    max_iterations : int
-        Gauss-Newton iterations (correspondences re-found at each).
-    tolerance_deg : float
-        Stop when no view rotates by more than this in an iteration.
-    min_normal_cos : float
-        Correspondences whose normals disagree more than this are dropped.
-    max_query_points : int
-        Each view's points are matched against the others' full clouds through an
-        evenly strided subset of at most this many (the estimate needs thousands of
-        correspondences, not hundreds of thousands).
-
-    Returns
-    -------
-    poses : list of (4, 4) float64
-        Refined ``T_model_scan``.
-    info : dict
-        ``iterations``, ``rms`` (weighted point-to-plane RMS at the end, cloud
-        units), ``max_change_deg`` (largest rotation of a view from its initial
-        pose), ``correspondences``, ``levers`` (per view, how firmly its
-        correspondences fix its weakest rotation, as a length: see
-        :func:`refine_turntable`).
-
-    Raises
-    ------
-    InputError
-        Inconsistent inputs.
-    ReconstructionError
-        Too few correspondences to fix a view.
-    """
+    """Refine all poses ``T_model_scan`` (4, 4), accurate to about ``spacing``, jointly (the
+    first view fixed) over the overlapping ``pairs`` of views with ``points``, ``normals``
+    (N_k, 3) in their own frames. Tukey's constant is ``spacing``; correspondences within
+    ``3 * spacing``, normals' cosine above ``min_normal_cos``, from ``max_query_points`` per
+    view; stops after ``max_iterations`` or a step below ``tolerance_deg``. Returns the poses
+    and ``info``: ``iterations``, ``rms``, ``max_change_deg``, ``correspondences``, ``levers``."""
     prob = _Problem(points, normals, T_model_scan, pairs, spacing, min_normal_cos, max_query_points,
                     "refine_multiview")
     n, c = prob.n, prob.c
@@ -307,18 +250,11 @@ def refine_multiview(
     H = np.zeros((6 * n, 6 * n))
     for it in range(1, int(max_iterations) + 1):
         H, g, cost, wsum, n_corr = prob.normal_equations(T)
-        Hr = H[6:, 6:]
-        if np.min(np.abs(np.diag(Hr))) <= 0:
-            raise ReconstructionError(
-                "multi-view refinement: a view has no correspondences with its neighbours"
-            )
-        x = np.r_[np.zeros(6), -np.linalg.solve(Hr + 1e-9 * np.trace(Hr) / len(Hr) * np.eye(len(Hr)), g[6:])]
-        # the initial poses are close (pose graph): a step larger than ~1 deg is a
-        # weakly constrained direction (a smooth, symmetric surface sliding), damp it
-        big = np.max(np.linalg.norm(x.reshape(n, 6)[:, :3], axis=1))
-        if big > np.radians(1.0):
-            x *= np.radians(1.0) / big
-        rms = float(np.sqrt(cost / max(wsum, 1e-12)))
+        x = np.r_[np.zeros(6), _damped_solve(H[6:, 6:], g[6:], "multi-view refinement")]
+        big = _largest_turn(x, n)
+        if big > np.radians(_MAX_STEP_DEG):
+            x *= np.radians(_MAX_STEP_DEG) / big
+        rms = _rms(cost, wsum)
         step = 0.0
         for k in range(1, n):
             T[k] = _apply_twist(T[k], x[6 * k: 6 * k + 6], c)
@@ -330,18 +266,6 @@ def refine_multiview(
     # the last iteration's system (the poses moved by < tolerance_deg since, or by its step)
     return T, {"iterations": float(it), "rms": rms, "max_change_deg": change, "correspondences": float(n_corr),
                "levers": _view_levers(H, n)}
-
-
-def _rotvec(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vector of ``R`` (any angle up to 180 deg). SciPy's quaternion route
-    stays accurate at both ends, which the arccos-of-trace form in
-    :mod:`~prism3d.reconstruct.registration` does not: here it differentiates 1e-6 rad
-    twists and splits 180-deg turns."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_rotvec()
-
-
 def _basis(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Two unit vectors completing ``u`` to a right-handed orthonormal basis."""
     a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -359,15 +283,10 @@ def _turntable_pose(u: NDArray, p: NDArray, theta: float) -> NDArray[np.float64]
 
 
 def fit_turntable(T_model_scan: Sequence[NDArray]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """The turntable (axis direction ``u``, a point ``p`` on the axis, and each
-    view's angle) closest to poses ``T_model_scan`` whose first view is the identity.
-
-    ``u`` is the angle-weighted mean of the views' rotation axes (sign-aligned),
-    each angle is the rotation of the view about ``u``, and ``p`` the least-squares
-    solution of ``(I - R_k) p = t_k`` across views, moved along ``u`` to the point
-    nearest the origin.
-    """
-    rv = [_rotvec(np.asarray(T, float)[:3, :3]) for T in T_model_scan[1:]]
+    """The turntable closest to poses whose first is the identity: axis direction ``u`` (the
+    angle-weighted mean axis), a point ``p`` on it (least squares ``(I - R_k) p = t_k``,
+    nearest the origin) and each view's angle about ``u``."""
+    rv = [rotvec_from_matrix(np.asarray(T, float)[:3, :3]) for T in T_model_scan[1:]]
     ref = max(rv, key=np.linalg.norm)
     u = np.sum([v if v @ ref >= 0 else -v for v in rv], axis=0)
     u /= max(np.linalg.norm(u), 1e-300)
@@ -383,6 +302,43 @@ def fit_turntable(T_model_scan: Sequence[NDArray]) -> tuple[NDArray[np.float64],
     return u, p, np.asarray(theta)
 
 
+def _turntable_poses(u: NDArray, p: NDArray, theta: NDArray) -> list[NDArray[np.float64]]:
+    """Poses of all views (the first the identity) on the axis ``(u, p)`` at angles ``theta``."""
+    return [np.eye(4)] + [_turntable_pose(u, p, float(t)) for t in theta[1:]]
+
+
+def _perturb_turntable(delta: NDArray, u: NDArray, p: NDArray, theta: NDArray,
+                       n: int) -> tuple[NDArray, NDArray, NDArray]:
+    """Turntable moved by ``delta``: ``n - 1`` angles, then two axis tilts and two axis shifts."""
+    e1, e2 = _basis(u)
+    un = u + delta[n - 1] * e1 + delta[n] * e2
+    un /= np.linalg.norm(un)
+    pn = p + delta[n + 1] * e1 + delta[n + 2] * e2
+    thn = theta.copy()
+    thn[1:] += delta[: n - 1]
+    return un, pn - (pn @ un) * un, thn
+
+
+def _twist(E: NDArray, c: NDArray) -> NDArray:
+    """Left twist (6,) about ``c`` of a small motion ``E``."""
+    return np.r_[rotvec_from_matrix(E[:3, :3]), E[:3, 3] - c + E[:3, :3] @ c]
+
+
+def _turntable_jacobian(u: NDArray, p: NDArray, theta: NDArray, T: list[NDArray], c: NDArray) -> NDArray:
+    """``d(view twists) / d(turntable parameters)``, (6 (n - 1), n + 3), numerically."""
+    n = len(T)
+    m = (n - 1) + 4
+    h = _JACOBIAN_STEP
+    J = np.zeros((6 * (n - 1), m))
+    for j in range(m):
+        d = np.zeros(m)
+        d[j] = h
+        Tp = _turntable_poses(*_perturb_turntable(d, u, p, theta, n))
+        for k in range(1, n):
+            J[6 * (k - 1): 6 * k, j] = _twist(Tp[k] @ np.linalg.inv(T[k]), c) / h
+    return J
+
+
 def refine_turntable(
     points: Sequence[NDArray],
     normals: Sequence[NDArray],
@@ -395,46 +351,12 @@ def refine_turntable(
     min_normal_cos: float = 0.7,
     max_query_points: int = 10000,
 ) -> tuple[list[NDArray[np.float64]], dict[str, float]]:
-    """Joint multi-view ICP with every view on one turntable.
-
-    Views of an object turned on a turntable in front of a fixed camera differ by
-    rotations about one fixed axis. :func:`refine_multiview` lets each view move
-    freely (6 parameters), so the scans' view-dependent depth errors tilt the views
-    against each other; here the unknowns are the axis (direction and position, 4
-    parameters) and one angle per view, ``n + 3`` in all, fitted to the same
-    point-to-plane residuals (Gauss-Newton, the free problem's normal equations
-    reduced through the numerical Jacobian of the view twists with respect to the
-    turntable parameters). The first view is the model frame.
-
-    Measured on 8 matcher-reconstructed views of each of the six built-in targets
-    (paper rig, grating on), started from :func:`refine_multiview`'s poses: the
-    worst view pose went 0.062 -> 0.026 deg (truck_k1), 0.177 -> 0.035 (truck_k2),
-    0.058 -> 0.040 (tank_t1), 0.097 -> 0.049 (tank_t2), 0.107 -> 0.096 (jet_j1) and
-    0.026 -> 0.052 (jet_j2). With 5000 query points per view instead of 10000 the
-    figures move by up to 0.015 deg either way (0.020, 0.038, 0.048, 0.042, 0.093,
-    0.043): at this level they are sampling noise. The free refinement's errors were tilts about
-    horizontal axes (up to 0.16 deg on truck_k2); what remains are the angles
-    about the axis (the jets seen nose- or tail-on). The point-to-plane RMS rises
-    by 0.2-1 %.
-
-    Parameters and returns as :func:`refine_multiview`; ``info`` also holds
-    ``rms_input`` (the weighted point-to-plane RMS at the input poses, to compare
-    with ``rms``: a much larger ``rms`` says the views do not share one axis),
-    ``axis`` (unit direction, model frame), ``axis_point``, ``angles_deg`` and
-    ``levers``.
-
-    ``levers[k]`` says how firmly view ``k``'s correspondences fix its angle about
-    the axis, as a length (cloud units): ``sqrt(info / W)``, with ``info`` the
-    angle's information in the view's block of the normal equations and ``W`` its
-    correspondences' weight sum. A face of width ``w`` facing the axis squarely
-    gives ``w / sqrt(12)``; surfaces whose normals lie along the axis (a deck, a
-    roof) give 0. A depth error that tilts the holding surfaces by ``e`` across
-    them turns the view by about ``e / lever`` radians. A narrow object seen
-    end-on from a low camera is the weak case: a built-in ship (250 x 35 mm) seen
-    end-on is held by its 35 mm transom alone, 0.16-0.18 of the median view's
-    lever on stereo scans (every other view of the twelve built-in targets: 0.25
-    or more).
-    """
+    """Joint multi-view ICP with every view on one turntable axis (the first view the model
+    frame, its pose the identity): the axis (4 parameters) and one angle per view, fitted to
+    :func:`refine_multiview`'s residuals by Gauss-Newton through the numerical Jacobian of the
+    view twists. Parameters and returns as :func:`refine_multiview`; ``info`` also holds
+    ``rms_input`` (at the input poses: a much larger ``rms`` says the views do not share an
+    axis), ``axis``, ``axis_point``, ``angles_deg`` and ``levers`` (about the axis)."""
     prob = _Problem(points, normals, T_model_scan, pairs, spacing, min_normal_cos, max_query_points,
                     "refine_turntable")
     n, c = prob.n, prob.c
@@ -442,59 +364,26 @@ def refine_turntable(
     if not np.allclose(T_in[0], np.eye(4), atol=1e-9):
         raise InputError("refine_turntable: the first view's pose must be the identity (the model frame)")
     u, p, theta = fit_turntable(T_in)
-    m = (n - 1) + 4
     _, _, cost0, wsum0, _ = prob.normal_equations(T_in)
-
-    def poses(u_: NDArray, p_: NDArray, th: NDArray) -> list[NDArray[np.float64]]:
-        return [np.eye(4)] + [_turntable_pose(u_, p_, float(t)) for t in th[1:]]
-
-    def perturbed(delta: NDArray, u_: NDArray, p_: NDArray, th: NDArray):
-        e1, e2 = _basis(u_)
-        un = u_ + delta[n - 1] * e1 + delta[n] * e2
-        un /= np.linalg.norm(un)
-        pn = p_ + delta[n + 1] * e1 + delta[n + 2] * e2
-        thn = th.copy()
-        thn[1:] += delta[: n - 1]
-        return un, pn - (pn @ un) * un, thn
-
-    def twist(E: NDArray) -> NDArray:
-        w = _rotvec(E[:3, :3])
-        return np.r_[w, E[:3, 3] - c + E[:3, :3] @ c]
-
-    T = poses(u, p, theta)
+    T = _turntable_poses(u, p, theta)
     it = 0
-    rms = float("nan")
-    n_corr = 0
-    h = 1e-6
     for it in range(1, int(max_iterations) + 1):
         H, g, cost, wsum, n_corr = prob.normal_equations(T)
-        rms = float(np.sqrt(cost / max(wsum, 1e-12)))
-        # d(view twists)/d(turntable parameters), numerically
-        J = np.zeros((6 * (n - 1), m))
-        for j in range(m):
-            d = np.zeros(m)
-            d[j] = h
-            Tp = poses(*perturbed(d, u, p, theta))
-            for k in range(1, n):
-                J[6 * (k - 1): 6 * k, j] = twist(Tp[k] @ np.linalg.inv(T[k])) / h
-        Hr = J.T @ H[6:, 6:] @ J
-        if np.min(np.abs(np.diag(Hr))) <= 0:
-            raise ReconstructionError("turntable refinement: a view has no correspondences with its neighbours")
-        delta = -np.linalg.solve(Hr + 1e-9 * np.trace(Hr) / m * np.eye(m), J.T @ g[6:])
+        J = _turntable_jacobian(u, p, theta, T, c)
+        delta = _damped_solve(J.T @ H[6:, 6:] @ J, J.T @ g[6:], "turntable refinement")
         x = J @ delta
-        big = np.max(np.linalg.norm(x.reshape(n - 1, 6)[:, :3], axis=1))
-        if big > np.radians(1.0):
-            delta *= np.radians(1.0) / big
+        big = _largest_turn(x, n - 1)
+        if big > np.radians(_MAX_STEP_DEG):
+            delta *= np.radians(_MAX_STEP_DEG) / big
             x = J @ delta
-        u, p, theta = perturbed(delta, u, p, theta)
-        T = poses(u, p, theta)
-        step = float(np.degrees(np.max(np.linalg.norm(x.reshape(n - 1, 6)[:, :3], axis=1))))
-        log.debug("turntable ICP iteration %d: rms %.4g, largest rotation step %.2e deg", it, rms, step)
+        u, p, theta = _perturb_turntable(delta, u, p, theta, n)
+        T = _turntable_poses(u, p, theta)
+        step = float(np.degrees(_largest_turn(x, n - 1)))
+        log.debug("turntable ICP iteration %d: rms %.4g, largest rotation step %.2e deg", it, _rms(cost, wsum), step)
         if step < tolerance_deg:
             break
     H, g, cost, wsum, n_corr = prob.normal_equations(T)
-    rms = float(np.sqrt(cost / max(wsum, 1e-12)))
-    change = _max_rotation_deg(T, T_in)
-    return T, {"iterations": float(it), "rms": rms, "rms_input": float(np.sqrt(cost0 / max(wsum0, 1e-12))),
-               "max_change_deg": change, "correspondences": float(n_corr), "axis": u.tolist(), "axis_point": p.tolist(), "angles_deg": np.degrees(theta).tolist(),
+    return T, {"iterations": float(it), "rms": _rms(cost, wsum), "rms_input": _rms(cost0, wsum0),
+               "max_change_deg": _max_rotation_deg(T, T_in), "correspondences": float(n_corr), "axis": u.tolist(),
+               "axis_point": p.tolist(), "angles_deg": np.degrees(theta).tolist(),
                "levers": _view_levers(H, n, np.r_[u, np.cross(u, c - p)])}

@@ -1,27 +1,13 @@
-"""Pairwise rigid registration of point clouds: global (FPFH + RANSAC) and ICP.
-
-Everything here is rigid (rotation + translation: no scale, no reflection; every
-returned rotation has ``det(R) = +1``) and deterministic (the RANSAC stage is our
-own, driven by a seeded :class:`numpy.random.Generator`; Open3D computes normals,
-FPFH descriptors and the ICP steps, which are deterministic).
-
-Scales derive from the data: :func:`point_spacing` (median nearest-neighbour
-distance) sets the ICP voxel and correspondence distances, and the global stage
-picks the voxel that leaves a few thousand points, so clouds in metres and in
-millimetres both work without tuning.
-
-Open3D objects never leave this module's public functions.
+"""Pairwise rigid registration of point clouds: global (FPFH [1]_ + RANSAC [2]_) and ICP [3]_,
+rigid (``det(R) = +1``) and deterministic (seeded RANSAC), scaled by :func:`point_spacing`.
+Open3D objects never leave the public functions. Notes: ``docs/stitching.md``.
 
 References
 ----------
-.. [1] R. B. Rusu, N. Blodow, M. Beetz, "Fast Point Feature Histograms (FPFH) for
-   3D registration", ICRA 2009.
-.. [2] M. A. Fischler, R. C. Bolles, "Random sample consensus", Comm. ACM 24(6),
-   1981.
-.. [3] Y. Chen, G. Medioni, "Object modelling by registration of multiple range
-   images", Image and Vision Computing 10(3), 1992 (point-to-plane ICP).
-.. [4] W. Kabsch, "A solution for the best rotation to relate two sets of
-   vectors", Acta Cryst. A32, 1976.
+.. [1] R. B. Rusu, N. Blodow, M. Beetz, "Fast Point Feature Histograms (FPFH)", ICRA 2009.
+.. [2] M. A. Fischler, R. C. Bolles, "Random sample consensus", Comm. ACM 24(6), 1981.
+.. [3] Y. Chen, G. Medioni, "Object modelling by registration of multiple range images", 1992.
+.. [4] W. Kabsch, "A solution for the best rotation ...", Acta Cryst. A32, 1976.
 """
 
 from __future__ import annotations
@@ -35,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from prism3d.checks import check_array, check_choice, check_positive
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.geometry import invert_transform, rotation_about, rotation_angle_deg, rotvec_from_matrix
 
 __all__ = [
     "RegistrationResult",
@@ -42,6 +29,7 @@ __all__ = [
     "ScanPyramid",
     "evaluate_pyramids",
     "global_register",
+    "global_voxel",
     "icp_pyramids",
     "match_features",
     "match_features_candidates",
@@ -49,39 +37,57 @@ __all__ = [
     "refine_icp",
     "register_pair",
     "rigid_fit",
-    "rotation_angle_deg",
     "surface_noise",
     "turntable_motion",
 ]
 
 log = logging.getLogger(__name__)
 
+# RANSAC: fewer mutual FPFH matches than this and all one-way matches are used instead.
+_MIN_MUTUAL_MATCHES = 30
+# Hypotheses are drawn and scored in batches of this many (vectorised Kabsch).
+_RANSAC_BATCH = 1000
+# Edge-length test: a sampled triple's edges agree within this ratio (rigid motions keep
+# distances) and are longer than _MIN_EDGE_VOXELS feature voxels (short edges fix no rotation).
+_EDGE_RATIO = 0.9
+_MIN_EDGE_VOXELS = 2.0
+# A match is an inlier within this many feature voxels of its target.
+_INLIER_VOXELS = 1.5
+# Stop when a clean sample has been drawn with this failure chance (99.99 % confidence),
+# after at least _MIN_BATCHES batches.
+_RANSAC_FAILURE = 1e-4
+_MIN_BATCHES = 4
+# Each batch keeps this many times max_candidates of its best hypotheses for the pool.
+_POOL_PER_CANDIDATE = 4
+# Inlier refits of a candidate (converges in 2-3).
+_REFITS = 3
+# Candidates are distinct when they differ by more than this rotation or these feature voxels.
+_DISTINCT_DEG = 10.0
+_DISTINCT_VOXELS = 10.0
+# ICP skips a coarse level with fewer points than this (or a quarter of the cloud): a handful
+# of points only misleads it.
+_MIN_LEVEL_POINTS = 1500
+# ICP convergence: relative change of fitness and RMSE.
+_ICP_RELATIVE = 1e-6
+# Feature stage radii, in feature voxels: normals and the FPFH descriptor.
+_NORMAL_VOXELS = 3.0
+_FPFH_VOXELS = 5.0
+
 
 @dataclass(frozen=True)
 class RegistrationResult:
-    """Outcome of registering a source cloud onto a target cloud.
-
-    Attributes
-    ----------
-    T_target_source : (4, 4) float64
-        Rigid transform mapping source points into the target frame.
-    fitness : float
-        Fraction of (down-sampled) source points with a target point within the
-        final correspondence distance.
-    inlier_rmse : float
-        RMS distance of those correspondences (cloud units).
-    information : (6, 6) float64
-        Information matrix of the alignment (Open3D convention, rotation first),
-        used to weight pose-graph edges.
-    max_distance : float
-        Correspondence distance of the final ICP level.
-    """
+    """Outcome of registering a source cloud onto a target cloud."""
 
     T_target_source: NDArray[np.float64]
+    """(4, 4) float64 rigid transform mapping source points into the target frame."""
     fitness: float
+    """Fraction of (down-sampled) source points with a target point within ``max_distance``."""
     inlier_rmse: float
+    """RMS distance of those correspondences (cloud units)."""
     information: NDArray[np.float64]
+    """(6, 6) float64 information matrix (Open3D convention, rotation first) for pose graphs."""
     max_distance: float
+    """Correspondence distance of the final ICP level."""
 
 
 def _o3d():
@@ -101,21 +107,8 @@ def _check_points(points: NDArray, name: str, min_points: int = 10) -> NDArray[n
 
 
 def point_spacing(points: NDArray, *, sample: int = 4000, seed: int = 0) -> float:
-    """Median nearest-neighbour distance of a cloud (its sampling step).
-
-    Parameters
-    ----------
-    points : (N, 3) float
-        At least 2 points.
-    sample : int
-        Number of query points (a seeded random subset when N is larger).
-    seed : int
-
-    Returns
-    -------
-    float
-        Spacing in the cloud's units (> 0).
-    """
+    """Median nearest-neighbour distance (> 0, cloud units) of ``points`` (N >= 2, 3), measured
+    on a seeded subset of ``sample`` query points."""
     pts = _check_points(points, "points", min_points=2)
     tree = cKDTree(pts)
     if len(pts) > sample:
@@ -130,27 +123,9 @@ def point_spacing(points: NDArray, *, sample: int = 4000, seed: int = 0) -> floa
     return float(np.median(nn))
 
 
-def rotation_angle_deg(T: NDArray) -> float:
-    """Rotation angle of a 4x4 (or 3x3) transform, degrees in [0, 180]."""
-    R = np.asarray(T)[:3, :3]
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.arccos(c)))
-
-
 def rigid_fit(src: NDArray, dst: NDArray, weights: NDArray | None = None) -> NDArray[np.float64]:
-    """Least-squares rigid transform (Kabsch) with ``det(R) = +1``.
-
-    Parameters
-    ----------
-    src, dst : (N, 3) float
-        Corresponding points, N >= 3.
-    weights : (N,) float, optional
-
-    Returns
-    -------
-    T_dst_src : (4, 4) float64
-        Minimises ``sum w |R src + t - dst|^2`` over rotations (no reflection).
-    """
+    """Weighted least-squares ``T_dst_src`` (4, 4) of corresponding (N >= 3, 3) points (Kabsch
+    [4]_), ``det(R) = +1``."""
     a = np.asarray(src, dtype=np.float64)
     b = np.asarray(dst, dtype=np.float64)
     w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=np.float64)
@@ -197,7 +172,7 @@ def _prepare(points: NDArray, voxel: float, *, normals: NDArray | None = None, v
     pc = _make_cloud(points, normals)
     down = pc.voxel_down_sample(voxel) if voxel > 0 else pc
     if not down.has_normals():
-        down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3.0 * voxel, max_nn=30))
+        down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=_NORMAL_VOXELS * voxel, max_nn=30))
         vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, dtype=np.float64)
         down.orient_normals_towards_camera_location(vp)
     else:
@@ -207,12 +182,20 @@ def _prepare(points: NDArray, voxel: float, *, normals: NDArray | None = None, v
     return down
 
 
-def _global_voxel(points: NDArray, spacing: float, target_points: int) -> float:
+# The feature voxel search starts at this many spacings, takes at most _VOXEL_TRIES steps and
+# accepts up to _VOXEL_SLACK times the wanted points (the count falls ~ 1 / voxel^2).
+_VOXEL_START = 2.0
+_VOXEL_TRIES = 4
+_VOXEL_SLACK = 1.3
+
+
+def global_voxel(points: NDArray, spacing: float, target_points: int) -> float:
+    """Feature voxel (cloud units) leaving about ``target_points`` of ``points`` (N, 3)."""
     pc = _make_cloud(points)
-    v = max(spacing * 2.0, 1e-12)
-    for _ in range(4):
+    v = max(spacing * _VOXEL_START, 1e-12)
+    for _ in range(_VOXEL_TRIES):
         n = len(pc.voxel_down_sample(v).points)
-        if n <= target_points * 1.3:
+        if n <= target_points * _VOXEL_SLACK:
             break
         v *= np.sqrt(n / target_points)
     return float(v)
@@ -229,41 +212,13 @@ def global_register(
     viewpoint_source: NDArray | None = None,
     viewpoint_target: NDArray | None = None,
 ) -> tuple[NDArray[np.float64], float, float]:
-    """Coarse rigid alignment without an initial guess (FPFH + RANSAC).
-
-    Parameters
-    ----------
-    source, target : (N, 3) float
-        The clouds, any unit.
-    voxel : float, optional
-        Down-sampling voxel of the feature stage; default: the size leaving about
-        ``target_points`` points of the source.
-    target_points : int
-    max_hypotheses : int
-        RANSAC samples (3 mutual feature matches each, pre-filtered by an
-        edge-length test).
-    seed : int
-        Seed of the sampler: the same inputs and seed give the same result.
-    viewpoint_source, viewpoint_target : (3,) float, optional
-        Sensor positions used to orient estimated normals (default the origin,
-        i.e. each scan in its own camera frame).
-
-    Returns
-    -------
-    T_target_source : (4, 4) float64
-    inlier_fraction : float
-        Fraction of feature matches consistent with the result.
-    voxel : float
-        The feature voxel used.
-
-    References
-    ----------
-    .. [1] Rusu et al., ICRA 2009 (FPFH). .. [2] Fischler and Bolles, 1981.
-    """
+    """Coarse alignment without a guess (FPFH [1]_ + RANSAC [2]_ over ``max_hypotheses`` triples)
+    of ``source`` onto ``target`` (N, 3): ``T_target_source`` (4, 4), the consistent fraction
+    of feature matches, and the feature voxel (default: leaving ``target_points`` points)."""
     src = _check_points(source, "source")
     dst = _check_points(target, "target")
     if voxel is None:
-        voxel = _global_voxel(src, point_spacing(src), target_points)
+        voxel = global_voxel(src, point_spacing(src), target_points)
     check_positive(voxel, "voxel")
     fs = ScanFeatures(src, voxel, viewpoint=viewpoint_source)
     fd = ScanFeatures(dst, voxel, viewpoint=viewpoint_target)
@@ -272,24 +227,8 @@ def global_register(
 
 
 class ScanFeatures:
-    """FPFH descriptors of a cloud voxel-down-sampled at ``voxel`` (computed once
-    per scan, matched against any number of other scans by :func:`match_features`).
-
-    Parameters
-    ----------
-    points : (N, 3) float
-    voxel : float
-        Feature voxel (cloud units); normals use a ``3 * voxel`` radius and the
-        descriptor a ``5 * voxel`` radius.
-    viewpoint : (3,) float, optional
-        Sensor position orienting normals (default the origin).
-
-    Attributes
-    ----------
-    points : (M, 3) float64
-    features : (M, 33) float64
-    voxel : float
-    """
+    """FPFH descriptors of ``points`` (N, 3) down-sampled at ``voxel``, computed once per scan:
+    ``points`` (M, 3), ``features`` (M, 33), ``voxel``; ``viewpoint`` orients the normals."""
 
     def __init__(self, points: NDArray, voxel: float, *, viewpoint: NDArray | None = None) -> None:
         o3d = _o3d()
@@ -298,7 +237,7 @@ class ScanFeatures:
         down = _prepare(pts, voxel, viewpoint=viewpoint)
         if len(down.points) < 10:
             raise ReconstructionError("global registration: too few points after down-sampling")
-        param = o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100)
+        param = o3d.geometry.KDTreeSearchParamHybrid(radius=_FPFH_VOXELS * voxel, max_nn=100)
         self.features = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(down, param).data).T.copy()
         self.points = np.asarray(down.points, dtype=np.float64).copy()
         self.voxel = float(voxel)
@@ -312,81 +251,53 @@ def match_features(
     max_hypotheses: int = 40000,
     seed: int = 0,
 ) -> tuple[NDArray[np.float64], float]:
-    """RANSAC over mutual FPFH matches: coarse ``T_target_source``.
-
-    Hypotheses are 3 matches passing an edge-length test (rigid motions keep
-    distances); the one with most matches within ``1.5 * voxel`` wins and is
-    refitted on its inliers. Deterministic for a given ``seed``. See
-    :func:`match_features_candidates` for the runners-up.
-
-    Returns
-    -------
-    T_target_source : (4, 4) float64
-    inlier_fraction : float
-
-    References
-    ----------
-    .. [1] Rusu et al., ICRA 2009. .. [2] Fischler and Bolles, 1981.
-    """
+    """The best RANSAC alignment ``(T_target_source, inlier_fraction)`` of
+    :func:`match_features_candidates`."""
     return match_features_candidates(source, target, max_hypotheses=max_hypotheses, seed=seed,
                                       max_candidates=1)[0]
 
 
-def match_features_candidates(
-    source: ScanFeatures,
-    target: ScanFeatures,
-    *,
-    max_hypotheses: int = 40000,
-    seed: int = 0,
-    max_candidates: int = 5,
-) -> list[tuple[NDArray[np.float64], float]]:
-    """The best *distinct* RANSAC alignments, most feature inliers first.
-
-    On objects with repeated or symmetric parts (a box-shaped truck seen end-on),
-    the alignment with the most FPFH inliers can be wrong while the right one is
-    a close runner-up; refining a few distinct candidates by ICP and keeping the
-    best-fitting one (as :func:`~prism3d.reconstruct.stitch.stitch_scans` does)
-    recovers it. Candidates differ by more than 10 deg or 10 feature voxels.
-
-    Returns
-    -------
-    list of (T_target_source (4, 4) float64, inlier_fraction)
-        At least one, at most ``max_candidates``.
-    """
-    voxel = max(source.voxel, target.voxel)
-    ps, pd = source.points, target.points
-    fs, fd = source.features, target.features
+def _feature_matches(source: ScanFeatures, target: ScanFeatures) -> tuple[NDArray, NDArray]:
+    """Matched points ``a`` (source) and ``b`` (target), mutual nearest descriptors when enough."""
+    fs = source.features
     _, s2d = target._tree.query(fs, k=1)
-    _, d2s = source._tree.query(fd, k=1)
+    _, d2s = source._tree.query(target.features, k=1)
     mutual = d2s[s2d] == np.arange(len(fs))
     si = np.nonzero(mutual)[0]
-    if len(si) < 30:
+    if len(si) < _MIN_MUTUAL_MATCHES:
         si = np.arange(len(fs))
-    a = ps[si]
-    b = pd[s2d[si]]
-    nc = len(a)
-    if nc < 3:
+    a = source.points[si]
+    b = target.points[s2d[si]]
+    if len(a) < 3:
         raise ReconstructionError("global registration: fewer than 3 feature matches")
+    return a, b
+
+
+def _sample_triples(a: NDArray, b: NDArray, voxel: float, rng: np.random.Generator) -> tuple[NDArray, NDArray]:
+    """Up to a batch of match triples passing the edge-length test."""
+    idx = rng.integers(0, len(a), size=(_RANSAC_BATCH * 3, 3))
+    A = a[idx]
+    B = b[idx]
+    la = np.linalg.norm(A - np.roll(A, 1, axis=1), axis=2)
+    lb = np.linalg.norm(B - np.roll(B, 1, axis=1), axis=2)
+    ok = (np.minimum(la, lb) > _EDGE_RATIO * np.maximum(la, lb)).all(axis=1) & (la.min(axis=1) > _MIN_EDGE_VOXELS * voxel)
+    return A[ok][:_RANSAC_BATCH], B[ok][:_RANSAC_BATCH]
+
+
+def _ransac_pool(a: NDArray, b: NDArray, voxel: float, max_hypotheses: int, seed: int,
+                 max_candidates: int) -> tuple[NDArray, NDArray, NDArray]:
+    """Each batch's best hypotheses ``(R, t, inlier counts)``, sampled until the standard
+    stopping rule (counted in triples; deterministic: it depends on counts only)."""
     rng = np.random.default_rng(seed)
-    thr = 1.5 * voxel
+    thr = _INLIER_VOXELS * voxel
+    nc = len(a)
     best_count = -1
-    pool_R: list[NDArray] = []
-    pool_t: list[NDArray] = []
-    pool_c: list[NDArray] = []
-    batch = 1000
-    keep_per_batch = 4 * max(1, int(max_candidates))
+    pool_R, pool_t, pool_c = [], [], []
+    keep_per_batch = _POOL_PER_CANDIDATE * max(1, int(max_candidates))
     done = 0
     while done < max_hypotheses:
-        idx = rng.integers(0, nc, size=(batch * 3, 3))
-        A = a[idx]
-        B = b[idx]
-        # Edge-length (tuple) test: rigid motions preserve pairwise distances.
-        la = np.linalg.norm(A - np.roll(A, 1, axis=1), axis=2)
-        lb = np.linalg.norm(B - np.roll(B, 1, axis=1), axis=2)
-        ok = (np.minimum(la, lb) > 0.9 * np.maximum(la, lb)).all(axis=1) & (la.min(axis=1) > 2 * voxel)
-        A = A[ok][:batch]
-        B = B[ok][:batch]
-        done += batch
+        A, B = _sample_triples(a, b, voxel, rng)
+        done += _RANSAC_BATCH
         if len(A) == 0:
             continue
         R, t = _batched_kabsch(A, B)
@@ -397,35 +308,40 @@ def match_features_candidates(
         pool_t.append(t[top])
         pool_c.append(counts[top])
         best_count = max(best_count, int(counts[top[0]]))
-        # Standard RANSAC stopping rule (99.99 % confidence of one clean sample),
-        # counted in sampled triples; deterministic because it depends on counts only.
         w = best_count / nc
-        if w > 0 and done >= 4 * batch:
-            need = np.log(1e-4) / np.log(max(1e-12, 1.0 - min(w, 0.999) ** 3))
+        if w > 0 and done >= _MIN_BATCHES * _RANSAC_BATCH:
+            need = np.log(_RANSAC_FAILURE) / np.log(max(1e-12, 1.0 - min(w, 0.999) ** 3))
             if done >= need:
                 break
     if best_count < 3:
         raise ReconstructionError("global registration: RANSAC found no consistent feature matches")
-    Rs = np.concatenate(pool_R)
-    ts = np.concatenate(pool_t)
-    cs = np.concatenate(pool_c)
-    order = np.argsort(-cs, kind="stable")
+    return np.concatenate(pool_R), np.concatenate(pool_t), np.concatenate(pool_c)
+
+
+def match_features_candidates(
+    source: ScanFeatures,
+    target: ScanFeatures,
+    *,
+    max_hypotheses: int = 40000,
+    seed: int = 0,
+    max_candidates: int = 5,
+) -> list[tuple[NDArray[np.float64], float]]:
+    """The best *distinct* RANSAC alignments over FPFH matches, most inliers first: 1 to
+    ``max_candidates`` of ``(T_target_source (4, 4), inlier_fraction)``. On symmetric objects the
+    best can be wrong and a runner-up right; candidates differ by > 10 deg or 10 voxels."""
+    voxel = max(source.voxel, target.voxel)
+    a, b = _feature_matches(source, target)
+    Rs, ts, cs = _ransac_pool(a, b, voxel, max_hypotheses, seed, max_candidates)
+    thr = _INLIER_VOXELS * voxel
     out: list[tuple[NDArray[np.float64], float]] = []
     chosen: list[NDArray] = []
-    for k in order:
+    for k in np.argsort(-cs, kind="stable"):
         if cs[k] < 3 or len(out) >= max_candidates:
             break
-        T = np.eye(4)
-        T[:3, :3] = Rs[k]
-        T[:3, 3] = ts[k]
-        for _ in range(3):
-            r = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1)
-            inl = r < thr
-            if inl.sum() < 3:
-                break
-            T = rigid_fit(a[inl], b[inl])
+        T = _refit_inliers(a, b, Rs[k], ts[k], thr)
         if any(
-            rotation_angle_deg(_rigid_inv(C) @ T) < 10.0 and np.linalg.norm(C[:3, 3] - T[:3, 3]) < 10 * voxel
+            rotation_angle_deg(invert_transform(C) @ T) < _DISTINCT_DEG
+            and np.linalg.norm(C[:3, 3] - T[:3, 3]) < _DISTINCT_VOXELS * voxel
             for C in chosen
         ):
             continue
@@ -435,33 +351,25 @@ def match_features_candidates(
     return out
 
 
-def _rigid_inv(T: NDArray) -> NDArray[np.float64]:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
+def _refit_inliers(a: NDArray, b: NDArray, R: NDArray, t: NDArray, thr: float) -> NDArray[np.float64]:
+    """A hypothesis refitted (Kabsch) on its inliers, a few times."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    for _ in range(_REFITS):
+        r = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1)
+        inl = r < thr
+        if inl.sum() < 3:
+            break
+        T = rigid_fit(a[inl], b[inl])
+    return T
 
 
 class ScanPyramid:
-    """A cloud prepared for repeated ICP: voxel levels with oriented normals.
-
-    Built once per scan (down-sampling and normal estimation dominate the cost of
-    a well-initialised ICP), then used as source or target of any number of
-    :func:`icp_pyramids` calls. Level ``i`` is the cloud voxel-averaged at
-    ``scales[i] * spacing`` (``scales[i] <= 1``: the points as given).
-
-    Parameters
-    ----------
-    points : (N, 3) float
-    spacing : float
-        Point spacing of ``points`` (cloud units).
-    scales : tuple of float
-        Coarse to fine; a final ``1.0`` is appended when missing.
-    normals : (N, 3) float, optional
-        Used at the finest level instead of estimated normals.
-    viewpoint : (3,) float, optional
-        Sensor position orienting estimated normals (default the origin).
-    """
+    """A cloud prepared once for many :func:`icp_pyramids` calls: level ``i`` voxel-averaged at
+    ``scales[i] * spacing`` (coarse to fine, ending at 1: the points as given) with oriented
+    normals (``normals`` used at the finest level when given, else estimated and oriented
+    toward ``viewpoint``, default the origin)."""
 
     def __init__(
         self,
@@ -496,9 +404,9 @@ class ScanPyramid:
             self._levels.append(pc)
         self._trees: dict[int, cKDTree] = {}
 
-    def level_sizes(self) -> list[int]:
-        """Number of points per level, coarse to fine."""
-        return [len(pc.points) for pc in self._levels]
+    def finest(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Points and unit normals (M, 3) of the finest level."""
+        return np.asarray(self._levels[-1].points), np.asarray(self._levels[-1].normals)
 
     def _level(self, scale: float) -> int:
         """Index of the level at ``scale`` (levels at or below 1 are the same)."""
@@ -514,6 +422,19 @@ class ScanPyramid:
         return np.asarray(self._levels[i].points), np.asarray(self._levels[i].normals), self._trees[i]
 
 
+def _icp_levels(source: ScanPyramid, first_scale: float | None, last_scale: float | None,
+                max_iterations: int | tuple[int, ...]) -> list[tuple[int, int]]:
+    """``(level, iterations)`` pairs from ``first_scale`` down to ``last_scale``."""
+    levels = [i for i, sc in enumerate(source.scales)
+              if (first_scale is None or sc <= first_scale) and (last_scale is None or sc >= last_scale)]
+    if not levels:
+        levels = [len(source.scales) - 1]
+    its = (max_iterations,) * len(levels) if isinstance(max_iterations, int) else tuple(max_iterations)
+    if len(its) != len(levels):
+        raise InputError(f"max_iterations: expected {len(levels)} values (one per level), got {len(its)}")
+    return list(zip(levels, its, strict=True))
+
+
 def icp_pyramids(
     source: ScanPyramid,
     target: ScanPyramid,
@@ -524,108 +445,49 @@ def icp_pyramids(
     max_iterations: int | tuple[int, ...] = 30,
     method: str = "point_to_plane",
 ) -> RegistrationResult:
-    """Multi-scale rigid ICP between two prepared clouds.
-
-    At each level (coarse to fine, starting at ``first_scale``) correspondences
-    are searched within ``2 * max(scale, 1) * spacing`` and weighted by Tukey's
-    biweight (``k = max(scale, 1) * spacing``), which discounts boundary and
-    non-overlap pairs; the point-to-plane step is solved by Gauss-Newton.
-
-    Parameters
-    ----------
-    source, target : ScanPyramid
-        Built with the same ``scales`` and ``spacing``.
-    T_init : (4, 4) float
-        Initial ``T_target_source``.
-    first_scale : float, optional
-        Skip the levels coarser than this (a good ``T_init`` needs only the fine
-        levels).
-    last_scale : float, optional
-        Stop after the level at this scale (a cheap coarse evaluation, e.g. to
-        rank several initial guesses).
-    max_iterations : int or tuple of int
-        Per level.
-    method : {"point_to_plane", "point_to_point"}
-
-    Returns
-    -------
-    RegistrationResult
-
-    References
-    ----------
-    .. [3] Chen and Medioni, 1992.
-    """
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
+    """Multi-scale rigid ICP [3]_ from ``T_init`` (4, 4) ``T_target_source``, between pyramids
+    of the same scales and spacing, over the levels from ``first_scale`` to ``last_scale``
+    (``max_iterations`` per level). Each level matches within ``2 v`` and weights by Tukey's
+    biweight ``k = v`` (``v = max(scale, 1) * spacing``); ``method`` point_to_plane or
+    point_to_point."""
+    reg = _o3d().pipelines.registration
     check_choice(method, "method", ("point_to_plane", "point_to_point"))
     if source.scales != target.scales or source.spacing != target.spacing:
         raise InputError("source/target pyramids: built with different scales or spacing")
     T = np.asarray(check_array(T_init, "T_init", shape=(4, 4), dtype_kind="fiu"), dtype=np.float64)
-    spacing = source.spacing
-    levels = [i for i, sc in enumerate(source.scales)
-              if (first_scale is None or sc <= first_scale) and (last_scale is None or sc >= last_scale)]
-    if not levels:
-        levels = [len(source.scales) - 1]
-    its = (max_iterations,) * len(levels) if isinstance(max_iterations, int) else tuple(max_iterations)
-    if len(its) != len(levels):
-        raise InputError(f"max_iterations: expected {len(levels)} values (one per level), got {len(its)}")
-    dist = 2.0 * spacing
-    s_l = d_l = None
-    ran = False
-    for i, it in zip(levels, its, strict=True):
-        sc = source.scales[i]
+    levels = _icp_levels(source, first_scale, last_scale, max_iterations)
+    dist = 2.0 * source.spacing
+    res = d_l = None
+    for i, it in levels:
         s_l, d_l = source._levels[i], target._levels[i]
-        last = i == levels[-1]
-        if not last and min(len(s_l.points), len(d_l.points)) < min(1500, source.n_points // 4):
-            continue  # too coarse for this cloud: a handful of points only misleads ICP
-        v = max(sc, 1.0) * spacing
+        if i != levels[-1][0] and min(len(s_l.points), len(d_l.points)) < min(_MIN_LEVEL_POINTS,
+                                                                              source.n_points // 4):
+            continue
+        v = max(source.scales[i], 1.0) * source.spacing
         dist = 2.0 * v
         if method == "point_to_plane":
             est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=v))
         else:
             est = reg.TransformationEstimationPointToPoint(False)
-        res = reg.registration_icp(
-            s_l, d_l, dist, T, est,
-            reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(it)),
-        )
+        crit = reg.ICPConvergenceCriteria(relative_fitness=_ICP_RELATIVE, relative_rmse=_ICP_RELATIVE,
+                                          max_iteration=int(it))
+        res = reg.registration_icp(s_l, d_l, dist, T, est, crit)
         T = np.asarray(res.transformation, dtype=np.float64).copy()
-        ran = True
-    if not ran or s_l is None:
+    if res is None:
         raise ReconstructionError("ICP: no usable level")
     if np.linalg.det(T[:3, :3]) <= 0:  # cannot happen with a rigid estimator; never return one
         raise ReconstructionError("ICP returned a non-rotation")
-    # registration_icp evaluates its result (fitness, RMSE, correspondences) at
-    # the returned transform.
+    # registration_icp evaluates its result at the returned transform
     corr = np.asarray(res.correspondence_set)
     info = _information(np.asarray(d_l.points)[corr[:, 1]] if len(corr) else np.zeros((0, 3)))
     return RegistrationResult(T, float(res.fitness), float(res.inlier_rmse), info, float(dist))
 
 
 def surface_noise(pyramid: ScanPyramid, *, scale: float = 1.0, sample: int = 3000, seed: int = 0) -> float:
-    """Noise of a prepared cloud's surface along its normals.
-
-    Two independent samples of one surface with noise ``sigma`` along the normal lie
-    ``sqrt(2) * sigma`` apart along it; within one scan, a point and its nearest
-    neighbour are such a pair. So ``sigma`` is the spread (``1.4826 * median(|d|)``, like
-    ``plane_sigma`` of :func:`evaluate_pyramids`) of (a seeded sample of) the level's
-    points' distances from the tangent plane at their nearest neighbour within the
-    level's correspondence distance, over ``sqrt(2)``. Two correctly aligned scans with
-    noises ``s1`` and ``s2`` have a ``plane_sigma`` of about ``hypot(s1, s2)``.
-
-    Parameters
-    ----------
-    pyramid : ScanPyramid
-    scale : float
-        Level, one of the pyramid's ``scales`` (1: the finest).
-    sample : int
-        Number of query points (all when the level is smaller).
-    seed : int
-
-    Returns
-    -------
-    float
-        Cloud units; 0 when no point has a neighbour within reach.
-    """
+    """Noise sigma (cloud units) of a prepared cloud's surface along its normals, on the level
+    at ``scale``: the robust spread of (a seeded ``sample`` of) its points' distances from the
+    tangent plane at their nearest neighbour, over sqrt(2); 0 without neighbours. Two aligned
+    scans have a ``plane_sigma`` of about ``hypot(s1, s2)``."""
     x, n, tree = pyramid._level_arrays(pyramid._level(scale))
     q = np.random.default_rng(seed).choice(len(x), min(int(sample), len(x)), replace=False)
     d, idx = tree.query(x[q], k=2, distance_upper_bound=2.0 * max(float(scale), 1.0) * pyramid.spacing)
@@ -647,42 +509,10 @@ def evaluate_pyramids(
     sample: int | None = None,
     seed: int = 0,
 ) -> tuple[float, float, float]:
-    """Overlap and residuals of two prepared clouds at a given alignment (no ICP step).
-
-    Measures what :func:`icp_pyramids` reports for its result at any transform, e.g.
-    a pair at the poses of a global optimisation. The point-to-point RMSE of correctly
-    aligned scans is dominated by their sampling (the nearest target point lies up to
-    half a voxel away sideways) and is bounded by ``max_distance``, so it barely grows
-    with a misalignment; the spread along the target's normals is the surfaces'
-    separation: their noise when aligned (:func:`surface_noise`), more when not.
-
-    Parameters
-    ----------
-    source, target : ScanPyramid
-        Built with the same ``scales`` and ``spacing``.
-    T_target_source : (4, 4) float
-    max_distance : float
-        Correspondence distance (cloud units).
-    scale : float
-        Level to measure on, one of the pyramids' ``scales`` (1: the finest, where
-        :func:`icp_pyramids` ends unless given ``last_scale``).
-    sample : int, optional
-        Measure on this many of the source level's points (a seeded random subset,
-        the same for every call with the same source and ``seed``); default all.
-    seed : int
-
-    Returns
-    -------
-    fitness : float
-        Fraction of the source level's points with a target point within
-        ``max_distance`` (Open3D's ``fitness``; as :func:`icp_pyramids` reports).
-    inlier_rmse : float
-        RMS distance of those correspondences (cloud units; Open3D's ``inlier_rmse``,
-        0 when there are none).
-    plane_sigma : float
-        ``1.4826 * median(|d|)`` of the same source points' distances ``d`` from their
-        target points' tangent planes (cloud units; 0 when there are none).
-    """
+    """``(fitness, inlier_rmse, plane_sigma)`` of two prepared clouds at ``T_target_source`` (no
+    ICP step) within ``max_distance``, on the level at ``scale`` and a seeded ``sample`` of
+    source points; ``plane_sigma`` is ``1.4826 * median(|d|)`` of the distances from the
+    target's tangent planes (the surfaces' separation)."""
     if source.scales != target.scales or source.spacing != target.spacing:
         raise InputError("source/target pyramids: built with different scales or spacing")
     T = np.asarray(check_array(T_target_source, "T_target_source", shape=(4, 4), dtype_kind="fiu"),
@@ -727,41 +557,10 @@ def refine_icp(
     viewpoint_target: NDArray | None = None,
     method: str = "point_to_plane",
 ) -> RegistrationResult:
-    """Multi-scale point-to-plane ICP (rigid).
-
-    Level ``i`` down-samples both clouds at ``scales[i] * spacing`` and matches
-    within ``2 * max(scales[i], 1) * spacing``, with Tukey's robust loss
-    (``k = max(scales[i], 1) * spacing``). See :class:`ScanPyramid` and
-    :func:`icp_pyramids` to prepare each cloud once for many registrations.
-
-    Parameters
-    ----------
-    source, target : (N, 3) float
-    T_init : (4, 4) float
-        Initial ``T_target_source``.
-    spacing : float, optional
-        Point spacing; default :func:`point_spacing` of the source.
-    scales : tuple of float
-        Voxel sizes in units of ``spacing``, coarse to fine (``<= 1``: no
-        down-sampling at the last level).
-    max_iterations : tuple of int
-        Per level.
-    source_normals, target_normals : (N, 3) float, optional
-        Used instead of estimated normals where given.
-    viewpoint_target : (3,) float, optional
-        Sensor position orienting estimated target normals.
-    method : {"point_to_plane", "point_to_point"}
-        ``point_to_point`` (plain least squares, no robust loss) reproduces the
-        classic ICP of PCL; the default is more accurate on dense scans.
-
-    Returns
-    -------
-    RegistrationResult
-
-    References
-    ----------
-    .. [3] Chen and Medioni, 1992.
-    """
+    """Multi-scale rigid ICP [3]_ of ``source`` onto ``target`` (N, 3) from ``T_init``: both
+    clouds as :class:`ScanPyramid` at ``scales`` of ``spacing`` (default :func:`point_spacing`
+    of the source), then :func:`icp_pyramids`. ``point_to_point`` (no robust loss) is PCL's
+    classic ICP; the default is more accurate on dense scans."""
     src = _check_points(source, "source")
     dst = _check_points(target, "target")
     check_array(T_init, "T_init", shape=(4, 4), dtype_kind="fiu")
@@ -780,59 +579,22 @@ def refine_icp(
     return icp_pyramids(ps, pd, T_init, max_iterations=max_iterations, method=method)
 
 
-def _rotvec(R: NDArray) -> NDArray[np.float64]:
-    angle = np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
-    if angle < 1e-12:
-        return np.zeros(3)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if np.pi - angle < 1e-6:
-        # Near 180 deg: axis from the symmetric part.
-        M = (R + np.eye(3)) / 2.0
-        ax = M[np.argmax(np.diag(M))]
-        return ax / np.linalg.norm(ax) * angle
-    return w / (2.0 * np.sin(angle)) * angle
-
-
-def _rotation(axis: NDArray, angle_rad: float) -> NDArray[np.float64]:
-    u = np.asarray(axis, dtype=np.float64)
-    u = u / np.linalg.norm(u)
-    K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
-    return np.eye(3) + np.sin(angle_rad) * K + (1 - np.cos(angle_rad)) * K @ K
-
-
 def turntable_motion(T: NDArray, step_deg: float, *, tolerance_deg: float = 8.0) -> NDArray[np.float64] | None:
-    """Project a measured view-to-view motion onto an exact turntable step.
-
-    A turntable step is a pure rotation by ``step_deg`` about a fixed axis (no
-    translation along it). From a measured ``T`` (e.g. a global registration of two
-    consecutive scans) take the rotation axis direction, set the angle to exactly
-    ``+-step_deg`` (sign of the measurement) and the axis position to the least-
-    squares fit of ``t = (I - R) c`` with ``t``'s along-axis part removed.
-
-    Parameters
-    ----------
-    T : (4, 4) float
-    step_deg : float
-        The known step, degrees (its sign is taken from ``T``).
-    tolerance_deg : float
-        ``None`` is returned when ``T``'s angle differs from ``|step_deg|`` by more.
-
-    Returns
-    -------
-    (4, 4) float64 or None
-    """
+    """Project a measured view-to-view motion ``T`` (4, 4) onto an exact turntable step: its
+    rotation axis, the angle exactly ``+-step_deg`` (sign of the measurement) and the axis
+    position fitted to ``t = (I - R) c`` without ``t``'s along-axis part. None when ``T``'s
+    angle is off ``|step_deg|`` by more than ``tolerance_deg``."""
     T = np.asarray(T, dtype=np.float64)
-    rv = _rotvec(T[:3, :3])
+    rv = rotvec_from_matrix(T[:3, :3])
     ang = np.linalg.norm(rv)
     step = abs(np.radians(step_deg))
     if ang < 1e-9 or abs(np.degrees(ang - step)) > tolerance_deg:
         return None
     u = rv / ang
-    R = _rotation(u, step)
+    R = rotation_about(u, step)
     t = T[:3, 3]
     t_perp = t - (t @ u) * u
-    # Axis point from the measured rotation (exact for a pure rotation), then
-    # re-built with the exact step angle.
+    # axis point from the measured rotation (exact for a pure rotation), rebuilt at the step
     c, *_ = np.linalg.lstsq(np.eye(3) - T[:3, :3], t_perp, rcond=None)
     out = np.eye(4)
     out[:3, :3] = R
@@ -848,24 +610,8 @@ def register_pair(
     spacing: float | None = None,
     seed: int = 0,
 ) -> RegistrationResult:
-    """Register ``source`` onto ``target``: global registration (unless ``init``
-    is given) followed by multi-scale point-to-plane ICP.
-
-    Parameters
-    ----------
-    source, target : (N, 3) float
-        Clouds in any unit; each in its sensor frame (normals are oriented toward
-        the origin).
-    init : (4, 4) float, optional
-        Initial ``T_target_source``; skips the global stage.
-    spacing : float, optional
-        Default: :func:`point_spacing` of the source.
-    seed : int
-
-    Returns
-    -------
-    RegistrationResult
-    """
+    """Register ``source`` onto ``target`` (N, 3, each in its sensor frame): global registration
+    (unless ``init`` is given) then :func:`refine_icp`."""
     src = _check_points(source, "source")
     dst = _check_points(target, "target")
     if spacing is None:

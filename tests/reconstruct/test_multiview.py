@@ -11,7 +11,7 @@ from prism3d.reconstruct.multiview import (
     refine_turntable,
     _view_levers,
 )
-from prism3d.reconstruct.registration import rotation_angle_deg
+from prism3d.geometry import rotation_angle_deg
 
 from prism3d.errors import InputError
 

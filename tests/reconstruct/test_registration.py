@@ -10,11 +10,11 @@ from prism3d.reconstruct.registration import (
     refine_icp,
     register_pair,
     rigid_fit,
-    rotation_angle_deg,
     turntable_motion,
 )
 
 from prism3d.errors import InputError
+from prism3d.geometry import rotation_angle_deg
 
 BUNNY_REF = np.array(
     [

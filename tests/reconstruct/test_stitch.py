@@ -9,8 +9,8 @@ import json
 
 import numpy as np
 import pytest
-from prism3d.reconstruct.registration import rotation_angle_deg
-from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE, stitch_scans, stitch_to_files
+from prism3d.geometry import rotation_angle_deg
+from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE, StitchOptions, stitch_scans, stitch_to_files
 
 from prism3d.errors import InputError, ReconstructionError
 
@@ -138,8 +138,8 @@ def test_eight_views_with_turntable_hint(tank_views):
 
     scans, poses, V, F = tank_views
     calls = []
-    res = stitch_scans(scans, turntable_step_deg=45.0, mesh=True, mesh_depth=7,
-                       max_registration_points=20000, progress=lambda d, t, s: calls.append(d))
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=True, mesh_depth=7,
+                                            max_registration_points=20000), progress=lambda d, t, s: calls.append(d))
     _check(res, poses, V, F)
     assert res.mesh_faces is not None and len(res.mesh_faces) > 1000
     assert mesh_is_closed(res.mesh_faces) and res.diagnostics["mesh_closed"]
@@ -160,7 +160,7 @@ def test_eight_views_with_turntable_hint(tank_views):
 
 def test_eight_views_without_hint(tank_views):
     scans, poses, V, F = tank_views
-    res = stitch_scans(scans, mesh=False, max_registration_points=20000)
+    res = stitch_scans(scans, StitchOptions(mesh=False, max_registration_points=20000))
     _check(res, poses, V, F)
     assert res.mesh_vertices is None and res.diagnostics["turntable_motion"] is None
 
@@ -170,7 +170,7 @@ def test_eight_views_in_metres_without_hint(tank_views):
     follows the point spacing, so the targets hold at 1/1000 of the size."""
     scans, poses, V, F = tank_views
     metres = [(p / 1000.0, c, n) for p, c, n in scans]
-    res = stitch_scans(metres, mesh=False, max_registration_points=20000)
+    res = stitch_scans(metres, StitchOptions(mesh=False, max_registration_points=20000))
     poses_m = []
     for T in poses:
         T = T.copy()
@@ -191,10 +191,10 @@ def _rig_set():
 
     folder = Path(os.environ.get("PRISM3D_STITCH_SET", "/tmp/prism3d_stitch_tank8"))
     if not (folder / "poses.json").exists():
-        from prism3d.capture.simulate import simulate_to_folder
+        from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
         from prism3d.datasets.targets import builtin_target
 
-        simulate_to_folder("scene", folder, target=builtin_target("tank_t1"), views=8, seed=1, supersample=1)
+        simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=1, supersample=1), target=builtin_target("tank_t1"))
     return folder
 
 
@@ -229,7 +229,7 @@ def _truth_scans(folder, stride=1, noise_mm=0.15, dropout=0.1, seed=0):
 def test_virtual_rig_eight_views_full_density(hint):
     folder = _rig_set()
     scans, poses, V, F = _truth_scans(folder)
-    res = stitch_scans(scans, turntable_step_deg=hint, mesh=False)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=hint, mesh=False))
     _check(res, poses, V, F)
 
 
@@ -243,20 +243,20 @@ def test_ship_stereo_coverage_with_true_depth(tmp_path, hint):
     surface motion), so the stitching copes with that coverage and the gap is the
     stereo depth."""
     from prism3d.capture.rig import StereoRig
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
 
     folder = tmp_path / "ship"
-    simulate_to_folder("scene", folder, target=builtin_target("ship_s3", seed=0), views=8, seed=0, supersample=1)
+    simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=0, supersample=1), target=builtin_target("ship_s3", seed=0))
     rig = StereoRig.load(folder / "rig.yaml")
     views = json.loads((folder / "poses.json").read_text())["views"]
     rng = np.random.default_rng(0)
     scans, poses = [], []
     for v in views:
-        scan = reconstruct_shot(read_image(folder / v["image"]), rig, min_confidence=STITCH_MIN_CONFIDENCE).scan
+        scan = reconstruct_shot(read_image(folder / v["image"]), rig, ReconstructOptions(min_confidence=STITCH_MIN_CONFIDENCE)).scan
         t = np.load(folder / v["truth"], allow_pickle=False)
         z_true = t["depth_rect_mm"][scan.pixels[:, 0], scan.pixels[:, 1]].astype(np.float64)
         ok = np.isfinite(z_true)
@@ -265,7 +265,7 @@ def test_ship_stereo_coverage_with_true_depth(tmp_path, hint):
         q += q / np.linalg.norm(q, axis=1, keepdims=True) * rng.normal(0, 0.1, ok.sum())[:, None]
         scans.append((q @ t["R1"], None, None))
         poses.append(np.array(v["T_world_cam"]))
-    res = stitch_scans(scans, turntable_step_deg=hint, mesh=False)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=hint, mesh=False))
     target = read_ply(folder / "target.ply")
     _check(res, poses, target.points, target.faces)
     # with the stereo scans' coverage the end-on view is held by its transom alone
@@ -281,22 +281,23 @@ def test_ship_stereo_scans_stitch_within_the_targets(tmp_path):
     defaults, stitched with and without the hint. Measured 0.026 deg, 0.062 mm surface
     motion, 0.161 mm fused (on bilinear views 0.109 deg, 0.170 mm)."""
     from prism3d.capture.rig import StereoRig
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
 
     folder = tmp_path / "ship"
-    simulate_to_folder("scene", folder, target=builtin_target("ship_s2", seed=0), views=8, seed=0, supersample=1)
+    simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=0, supersample=1), target=builtin_target("ship_s2", seed=0))
     rig = StereoRig.load(folder / "rig.yaml")
     views = json.loads((folder / "poses.json").read_text())["views"]
-    scans = [reconstruct_shot(read_image(folder / v["image"]), rig, min_confidence=STITCH_MIN_CONFIDENCE).scan
+    scans = [reconstruct_shot(read_image(folder / v["image"]), rig, ReconstructOptions(min_confidence=STITCH_MIN_CONFIDENCE)).scan
              for v in views]
     poses = [np.array(v["T_world_cam"]) for v in views]
     target = read_ply(folder / "target.ply")
     for hint in (45.0, None):
-        res = stitch_scans([(s.points, s.colors, s.normals) for s in scans], turntable_step_deg=hint, mesh=False)
+        res = stitch_scans([(s.points, s.colors, s.normals) for s in scans],
+                           StitchOptions(turntable_step_deg=hint, mesh=False))
         _check(res, poses, target.points, target.faces)
         assert res.diagnostics["warnings"] == []
 
@@ -310,8 +311,9 @@ def test_stitch_to_files_writes_model_mesh_and_poses(tank_views, tmp_path):
         p = tmp_path / f"scan_{k}.ply"
         write_ply(p, scans[k][0], colors=scans[k][1])
         paths.append(p)
-    res = stitch_to_files(paths, tmp_path / "out" / "model.ply", mesh_out=tmp_path / "out" / "mesh.ply",
-                          turntable_step_deg=45.0, mesh_depth=6, max_registration_points=8000)
+    res = stitch_to_files(paths, tmp_path / "out" / "model.ply",
+                          StitchOptions(turntable_step_deg=45.0, mesh_depth=6, max_registration_points=8000),
+                          mesh_out=tmp_path / "out" / "mesh.ply")
     model = read_ply(tmp_path / "out" / "model.ply")
     mesh = read_ply(tmp_path / "out" / "mesh.ply")
     assert len(model.points) == len(res.points) and mesh.faces is not None
@@ -349,8 +351,8 @@ def test_pcd_and_ply_inputs_mixed(tank_views, tmp_path):
             pc.colors = o3d.utility.Vector3dVector(col / 255.0)
             assert o3d.io.write_point_cloud(str(p), pc, write_ascii=(k % 3 == 0))
         paths.append(p)
-    res = stitch_to_files(paths, tmp_path / "out" / "model.ply", turntable_step_deg=45.0,
-                          max_registration_points=20000)
+    res = stitch_to_files(paths, tmp_path / "out" / "model.ply",
+                          StitchOptions(turntable_step_deg=45.0, max_registration_points=20000))
     _check(res, poses, V, F)
     doc = json.loads((tmp_path / "out" / "poses.json").read_text())
     assert [s["path"] for s in doc["scans"]] == [str(p) for p in paths]
@@ -409,7 +411,7 @@ def test_a_wrong_scan_is_marked_in_the_pair_report(tank_views):
     views fit at their noise (0.88-1.3x) and are not marked."""
     scans = list(tank_views[0][:5])
     scans[3] = _raycast_views(target="truck_k1", views=4)[0][3]
-    res = stitch_scans(scans, mesh=False, max_registration_points=8000, on_failure="warn")
+    res = stitch_scans(scans, StitchOptions(mesh=False, max_registration_points=8000, on_failure="warn"))
     marks = {(p["i"], p["j"]): p["check"] for p in res.diagnostics["pairs"]}
     assert set(marks) == {(0, 1), (1, 2), (2, 3), (3, 4), (0, 2)}
     assert marks[(0, 1)] == marks[(1, 2)] == marks[(0, 2)] == []
@@ -494,7 +496,7 @@ def test_non_overlapping_scans_raise_naming_views(tank_views):
     scans = tank_views[0]
     far = (scans[4][0] + [5000.0, 0, 0], None, None)  # a different place entirely
     with pytest.raises(ReconstructionError, match="scan 0 and scan 1"):
-        stitch_scans([scans[0], far], mesh=False, max_registration_points=8000)
+        stitch_scans([scans[0], far], StitchOptions(mesh=False, max_registration_points=8000))
 
 
 def test_turntable_motion_accepts_small_overlap(tank_views):
@@ -510,7 +512,8 @@ def test_turntable_motion_accepts_small_overlap(tank_views):
     for hint in (45.0, None):
         # without a hint the pair 1-2 moves like the well-fitting pair 0-1, which
         # corroborates its small overlap as a known motion would
-        res = stitch_scans(three, turntable_step_deg=hint, mesh=False, max_registration_points=30000)
+        res = stitch_scans(three, StitchOptions(turntable_step_deg=hint, mesh=False,
+                                                max_registration_points=30000))
         fit = {(e["source"], e["target"]): e["fitness"] for e in res.diagnostics["edges"]}
         assert 0.1 <= fit[(2, 1)] < 0.2, fit
         assert res.diagnostics["warnings"] == []
@@ -518,13 +521,15 @@ def test_turntable_motion_accepts_small_overlap(tank_views):
         assert max(err) < 0.05, (hint, err)
     # the pair alone: nothing corroborates the small overlap
     with pytest.raises(ReconstructionError, match="scan 0 and scan 1"):
-        stitch_scans(three[1:], turntable_step_deg=None, mesh=False, max_registration_points=30000)
+        stitch_scans(three[1:], StitchOptions(turntable_step_deg=None, mesh=False,
+                                              max_registration_points=30000))
     # a pair that moves unlike its neighbour (90 deg after 45 deg, overlap 0.09-0.12)
     # is not corroborated by it
     p3 = scans[3][0]
     uneven = [scans[0], scans[1], (np.concatenate([p3, p3 + [8000.0, 0, 0]]), None, None)]
     with pytest.raises(ReconstructionError, match="scan 1 and scan 2"):
-        stitch_scans(uneven, turntable_step_deg=None, mesh=False, max_registration_points=30000)
+        stitch_scans(uneven, StitchOptions(turntable_step_deg=None, mesh=False,
+                                           max_registration_points=30000))
 
 
 def test_turntable_constraint_auto_and_rejected(tank_views):
@@ -532,7 +537,7 @@ def test_turntable_constraint_auto_and_rejected(tank_views):
     it; when the object is tilted 2 deg between shots 3 and 4, the hinted run finds
     the views off one axis, says so, and keeps the free poses (which are right)."""
     scans, poses, V = tank_views[0], tank_views[1], tank_views[2]
-    res = stitch_scans(scans, turntable_step_deg=None, mesh=False)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=None, mesh=False))
     assert "turntable" in res.diagnostics["multiview"]
     assert max(e for e, _ in _pose_errors(res, poses, V)) < 0.05
     # object tilted about a horizontal axis through it: views 4-7 see M x
@@ -549,7 +554,7 @@ def test_turntable_constraint_auto_and_rejected(tank_views):
         S = np.linalg.inv(T) @ M @ T
         moved.append((s[0] @ S[:3, :3].T + S[:3, 3], s[1], s[2]))
         truth.append(np.linalg.inv(M) @ T)
-    res = stitch_scans(moved, turntable_step_deg=45.0, mesh=False, on_failure="warn")
+    res = stitch_scans(moved, StitchOptions(turntable_step_deg=45.0, mesh=False, on_failure="warn"))
     assert any("turntable axis" in w for w in res.diagnostics["warnings"]), res.diagnostics["warnings"]
     assert "turntable" not in res.diagnostics["multiview"]
     assert max(e for e, _ in _pose_errors(res, truth, V)) < 0.05
@@ -565,10 +570,30 @@ def test_bad_input():
     with pytest.raises(InputError, match="unknown point-cloud format"):
         stitch_scans(["a.xyz", "b.xyz"])
     with pytest.raises(InputError, match="on_failure"):
-        stitch_scans([(p, None, None), (p, None, None)], on_failure="ignore")
+        StitchOptions(on_failure="ignore")
     with pytest.raises(InputError, match="turntable_step_deg"):
-        stitch_scans([(p, None, None), (p, None, None)], turntable_step_deg=200)
+        StitchOptions(turntable_step_deg=200)
 
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("on_failure", "ignore", "on_failure"),
+    ("turntable_constraint", "always", "turntable_constraint"),
+    ("max_turntable_rms_ratio", 0.0, "max_turntable_rms_ratio"),
+    ("min_fitness", -0.1, "min_fitness"),
+    ("min_turntable_fitness", 0.0, "min_turntable_fitness"),
+    ("max_residual_deg", 0.0, "max_residual_deg"),
+    ("min_rotation_lever_ratio", 1.0, "min_rotation_lever_ratio"),
+    ("turntable_step_deg", -180.0, "turntable_step_deg"),
+    ("turntable_step_deg", 0.0, "turntable_step_deg"),
+    ("min_confidence", 1.5, "min_confidence"),
+    ("voxel", 0.0, "voxel"),
+])
+def test_stitch_options_validation(field, value, message):
+    """Every option check fires when the options are made, naming the option."""
+    with pytest.raises(InputError, match=message):
+        StitchOptions(**{field: value})
+    assert StitchOptions().min_confidence == STITCH_MIN_CONFIDENCE
 
 def test_small_overlap_without_hint_is_corroborated_by_neighbours():
     """Stereo loses surfaces seen at grazing incidence, so reconstructed end-on views
@@ -577,7 +602,7 @@ def test_small_overlap_without_hint_is_corroborated_by_neighbours():
     min_fitness; each moves like a neighbouring well-fitting pair, which corroborates
     it, and every pose is found without a hint (measured 0.020 deg)."""
     scans, poses, _, _ = _raycast_views(target="truck_k3", max_incidence_deg=50.0)
-    res = stitch_scans(scans, turntable_step_deg=None, mesh=False)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=None, mesh=False))
     odometry = [e["fitness"] for e in res.diagnostics["edges"] if e["kind"] == "odometry"]
     assert min(odometry) < 0.2, odometry  # the case the corroboration is for
     err = _rotation_errors(res, poses)
@@ -593,7 +618,7 @@ def test_other_targets_without_hint(target):
     several candidates and the neighbours' motion finds every pose (measured 0.018,
     0.007 and 0.012 deg)."""
     scans, poses, _, _ = _raycast_views(target=target)
-    res = stitch_scans(scans, turntable_step_deg=None, mesh=False)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=None, mesh=False))
     err = _rotation_errors(res, poses)
     assert max(err) < 0.05, err
     assert res.diagnostics["warnings"] == []
@@ -610,19 +635,21 @@ def test_rotation_lever_check(tank_views):
     nothing is flagged; a threshold above the three weakest flags exactly those, 0
     turns the check off, and a ratio outside [0, 1) is refused."""
     scans, _, _, _ = tank_views
-    res = stitch_scans(scans, turntable_step_deg=45.0, mesh=False)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False))
     lev = np.asarray(res.diagnostics["rotation_levers"])
     assert lev.shape == (len(scans),) and np.all(lev > 0)
     assert _lever_warnings(res) == []
     ratio = lev / np.median(lev)
     cut = float(np.sort(ratio)[2]) + 1e-3  # the three weakest views
-    res = stitch_scans(scans, turntable_step_deg=45.0, mesh=False, min_rotation_lever_ratio=cut)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False,
+                                            min_rotation_lever_ratio=cut))
     assert sorted(_lever_warnings(res)) == sorted(f"scan {k}" for k in np.argsort(ratio)[:3])
-    res = stitch_scans(scans, turntable_step_deg=45.0, mesh=False, min_rotation_lever_ratio=0)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False,
+                                            min_rotation_lever_ratio=0))
     assert _lever_warnings(res) == []
     for bad in (-0.1, 1.0, float("nan")):
         with pytest.raises(InputError, match="min_rotation_lever_ratio"):
-            stitch_scans(scans, turntable_step_deg=45.0, mesh=False, min_rotation_lever_ratio=bad)
+            StitchOptions(turntable_step_deg=45.0, mesh=False, min_rotation_lever_ratio=bad)
 
 
 def test_rotation_lever_warning_for_an_unheld_view(tank_views, monkeypatch):
@@ -640,7 +667,7 @@ def test_rotation_lever_warning_for_an_unheld_view(tank_views, monkeypatch):
         return T, info
 
     monkeypatch.setattr(mv, "refine_turntable", zero_lever)
-    res = stitch_scans(scans, turntable_step_deg=45.0, mesh=False)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False))
     assert _lever_warnings(res) == ["scan 3"]
     (msg,) = [w for w in res.diagnostics["warnings"] if "rotation lever" in w]
     assert "rotation lever 0," in msg and "over 100x more" in msg, msg
@@ -694,7 +721,7 @@ def test_match_against_both_agreeing_neighbours_yields_to_their_motion(tank_view
     monkeypatch.setattr(st, "match_features_candidates", candidates)
     monkeypatch.setattr(st, "icp_pyramids", icp)
     with caplog.at_level(logging.INFO, logger="prism3d.reconstruct.stitch"):
-        res = stitch_scans(scans, mesh=False, max_registration_points=20000)
+        res = stitch_scans(scans, StitchOptions(mesh=False, max_registration_points=20000))
     assert any("disagrees with both neighbours" in m for m in caplog.messages)  # the case was made
     _check(res, poses, V, F)
     assert res.diagnostics["warnings"] == []
@@ -706,7 +733,8 @@ def test_uneven_step_between_agreeing_neighbours_is_kept_and_flagged(tank_views)
     stays (every pose right), and a warning names the pair."""
     scans, poses, _, _ = tank_views
     keep = [0, 1, 2, 4, 5, 6, 7]
-    res = stitch_scans([scans[k] for k in keep], mesh=False, max_registration_points=20000, on_failure="raise")
+    res = stitch_scans([scans[k] for k in keep],
+                       StitchOptions(mesh=False, max_registration_points=20000, on_failure="raise"))
     err = _rotation_errors(res, [poses[k] for k in keep])
     assert max(err) < 0.05, err
     assert len(res.diagnostics["warnings"]) == 1
