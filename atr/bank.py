@@ -1,36 +1,16 @@
 """Correlation filter banks: one OT-MACH filter per target class and azimuth bin.
 
-:func:`train_bank` renders every class's meshes at training poses
-(:func:`~prism3d.atr.chips.render_chips`), groups the chips into azimuth bins
-(``bin_deg`` wide, centred on multiples of ``bin_deg``) and trains one filter per
-(class, bin). OT-MACH weights ``(alpha, beta, gamma)`` are chosen automatically on HELD-OUT
-views (azimuths interleaved half-way between the training ones): a grid search over
-``param_grid`` maximises the number of held-out views whose own class's best score
-beats every other class's (among the filters of the view's azimuth bin and its two
-neighbours; score = the bank's metric, PCE by default), ties broken by the median
-margin. One triple serves the whole bank (a per-filter choice was measured to hurt:
-scores of differently tuned filters are not comparable; 83% vs 96% Pcc on the
-built-in targets), in the spirit of JPL's
-automated OT-MACH filter generator [1]_.
-
-:class:`FilterBank` classifies a chip by the largest PSR over all filters (class
-and aspect from the winning filter; PCE by default, PSR or peak height on request) and detects targets in a larger scene by PSR
-peaks with non-maximum suppression. Banks are saved as ``.npz`` without pickle
-(arrays + a JSON metadata string with ``schema_version``).
-
-Chip preprocessing before correlation (:func:`prepare_chips`): ``intensity`` and
-``shape`` are used as they are; ``depth`` becomes a relief map
-``clip((z_c + h - depth) / 2h, 0, 1)`` (0 = background/far), with ``z_c`` the
-median depth of the chip's central quarter and ``h`` the chip half-width in mm at
-``z_c`` (so relief is range- and framing-consistent); ``mask`` as 0/1. Then every
-chip is made zero-mean with unit energy.
+:func:`train_bank` renders each class at the training poses, bins the chips by azimuth
+and trains one filter per (class, bin), with ``(alpha, beta, gamma)`` chosen on
+held-out views; :class:`FilterBank` classifies chips by the best peak metric and
+detects targets in scenes; banks are saved as ``.npz`` without pickle. Parameter
+search and chip preprocessing: docs/atr.md "Filter banks".
 
 References
 ----------
-.. [1] O. Johnson, W. Edens, T. Lu, T.-H. Chao, "Optimization of OT-MACH filter
-   generation for target recognition", Proc. SPIE 7340 (2009).
-.. [2] B. V. K. Vijaya Kumar, A. Mahalanobis, R. D. Juday, *Correlation Pattern
-   Recognition*, Cambridge University Press (2005).
+.. [1] Johnson, Edens, Lu, Chao, "Optimization of OT-MACH filter generation for
+   target recognition", Proc. SPIE 7340 (2009).
+.. [2] Kumar, Mahalanobis, Juday, *Correlation Pattern Recognition*, CUP (2005).
 """
 
 from __future__ import annotations
@@ -39,12 +19,12 @@ import json
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from prism3d.atr.chips import ChipSet, _bounding_sphere, chip_poses, render_chips
+from prism3d.atr.chips import ChipSet, ChipSpec, as_chip_spec, render_chips, spec_poses
 from prism3d.atr.filters import PSR_EXCLUDE, PSR_WINDOW, otmach_from_moments, peak_metrics
 from prism3d.atr.poses import parse_range
 from prism3d.capture.mesh import SceneMesh
@@ -53,10 +33,12 @@ from prism3d.checks import check_array, check_choice
 from prism3d.errors import InputError
 
 __all__ = [
+    "BANK_CHIP_SPEC",
     "BANK_SCHEMA_VERSION",
     "DEFAULT_PARAM_GRID",
     "Detection",
     "FilterBank",
+    "check_bank_command",
     "check_targets",
     "prepare_chips",
     "render_class_chips",
@@ -78,6 +60,12 @@ DEFAULT_PARAM_GRID: tuple[tuple[float, float, float], ...] = (
 )
 #: Peak metrics a bank can score with.
 METRICS = ("pce", "psr", "peak")
+#: Default training chips: 64 px resolve the targets' aspects and keep a bank small.
+BANK_CHIP_SPEC = ChipSpec(size=64)
+#: Seed stride between classes (a prime): no two classes share lighting/noise draws.
+_CLASS_SEED_STRIDE = 1009
+#: Seed offset of the held-out views: their noise differs from the training chips'.
+_HELDOUT_SEED_OFFSET = 7
 
 
 def check_targets(targets: Sequence[tuple[str, SceneMesh]]) -> list[tuple[str, SceneMesh]]:
@@ -96,6 +84,15 @@ def check_targets(targets: Sequence[tuple[str, SceneMesh]]) -> list[tuple[str, S
         if not c:
             raise InputError("targets: empty class name")
     return items
+
+
+def check_bank_command(action: str, *, output: str | Path | None, bank: str | Path | None) -> None:
+    """Check a ``bank train`` (needs ``output``) or ``bank eval`` (needs ``bank``) request."""
+    check_choice(action, "action", ("train", "eval"))
+    if action == "train" and output is None:
+        raise InputError("bank train: give -o BANK.npz")
+    if action == "eval" and bank is None:
+        raise InputError("bank eval: give the bank file (bank eval BANK.npz ...)")
 
 
 def prepare_chips(
@@ -148,28 +145,9 @@ class Detection:
 class FilterBank:
     """One correlation filter per (class, azimuth bin).
 
-    Attributes
-    ----------
-    classes : list of str
-    channel : str
-        ``intensity``, ``depth``, ``shape`` or ``mask``.
-    size : int
-        Chip side, pixels.
-    bin_deg : float
-        Azimuth bin width, degrees.
-    freqs : (K, S, S) complex128
-        Filters (frequency domain, :mod:`prism3d.atr.filters` convention).
-    filter_class : (K,) int64
-        Index into ``classes``.
-    filter_az_deg : (K,) float64
-        Bin centre azimuth.
-    params : (K, 3) float64
-        OT-MACH ``(alpha, beta, gamma)`` of each filter.
-    metadata : dict
-        Training settings (JSON-serialisable).
-    metric : {"pce", "psr", "peak"}
-        Peak metric that decides classification (default PCE, which separated
-        classes best in our measurements; PSR is always reported too).
+    ``freqs`` (K, S, S) complex128 filters, ``filter_class`` (K,) index into ``classes``,
+    ``filter_az_deg`` (K,) bin centres, ``params`` (K, 3) OT-MACH weights, ``metadata``
+    (training settings, JSON), ``metric`` (pce, psr or peak) deciding classification.
     """
 
     classes: list[str]
@@ -430,23 +408,21 @@ def render_class_chips(
     azimuth: str | Sequence[float],
     elevation: str | Sequence[float],
     range_mm: str | float | Sequence[float] | None = None,
-    size: int = 64,
-    framing: str = "fit",
-    **render_kwargs,
+    chip_spec: ChipSpec | None = None,
 ) -> tuple[NDArray, list[str], NDArray, NDArray, NDArray, NDArray]:
     """Chips of all targets: ``(images (N,S,S), labels, az_deg, el_deg, range_mm, fx)``.
 
-    ``range_mm`` default: 4 bounding-sphere radii of each mesh. ``render_kwargs``
-    go to :func:`~prism3d.atr.chips.render_chips` (camouflage, clutter, noise...).
+    ``range_mm`` None: :func:`~prism3d.atr.chips.default_range_mm` of each mesh;
+    ``chip_spec`` (None = :data:`BANK_CHIP_SPEC`): its channels are replaced by
+    ``(channel, "mask")`` and target ``i`` renders with seed ``seed + 1009 i``.
     """
+    spec = as_chip_spec(chip_spec, BANK_CHIP_SPEC)
     items = check_targets(targets)
     imgs, labels, az, el, rng_, fx = [], [], [], [], [], []
     for i, (cls, mesh) in enumerate(items):
-        rmm = range_mm if range_mm is not None else 4.0 * _bounding_sphere(mesh)[1]
-        poses = chip_poses(mesh, azimuth, elevation, rmm, size=size, framing=framing)
-        kw = dict(render_kwargs)
-        kw["seed"] = int(kw.get("seed", 0)) + 1009 * i
-        cs = render_chips(mesh, poses, size=size, channels=(channel, "mask"), **kw)
+        poses = spec_poses(mesh, azimuth, elevation, range_mm, spec)
+        cspec = replace(spec, channels=(channel, "mask"), seed=spec.seed + _CLASS_SEED_STRIDE * i)
+        cs = render_chips(mesh, poses, chip_spec=cspec)
         imgs.append(cs[channel])
         labels += [cls] * len(cs)
         az.append([p.az_deg for p in cs.poses])
@@ -463,51 +439,10 @@ def render_class_chips(
     )
 
 
-def train_bank(
-    targets: Sequence[tuple[str, SceneMesh]],
-    *,
-    channel: str = "depth",
-    azimuth: str | Sequence[float] = "0:360:10",
-    elevation: str | Sequence[float] = "20",
-    range_mm: str | float | Sequence[float] | None = None,
-    bin_deg: float = 10.0,
-    size: int = 64,
-    framing: str = "fit",
-    metric: str = "pce",
-    params: str | tuple[float, float, float] = "auto",
-    param_grid: Sequence[tuple[float, float, float]] = DEFAULT_PARAM_GRID,
-    camouflage: bool = True,
-    noise_sigma: float = 0.0,
-    depth_noise_mm: float = 0.0,
-    lighting_variation: float = 0.0,
-    seed: int = 0,
-) -> FilterBank:
-    """Train an OT-MACH filter bank from ``[(class_name, SceneMesh), ...]``.
-
-    Parameters
-    ----------
-    targets : list of (str, SceneMesh)
-        Several meshes may share a class (variants); at least two classes.
-    channel : {"depth", "shape", "intensity", "mask"}
-        Chip channel the filters work on.
-    azimuth, elevation : str or sequence
-        Training grid (``"0:360:10"``). Held-out views for the parameter search are
-        rendered half a step away in azimuth.
-    bin_deg : float
-        Azimuth bin width; ``360 / bin_deg`` must be an integer.
-    metric : {"pce", "psr", "peak"}
-        Peak metric for classification and for the parameter search.
-    params : "auto" or (alpha, beta, gamma)
-        Fixed OT-MACH weights, or ``"auto"``: per-filter grid search over
-        ``param_grid`` on the held-out views (module docstring).
-    camouflage, noise_sigma, depth_noise_mm, lighting_variation, seed
-        Passed to :func:`~prism3d.atr.chips.render_chips` for the training chips.
-
-    Returns
-    -------
-    FilterBank
-    """
-    items = check_targets(targets)
+def _check_bank_args(
+    items: list[tuple[str, SceneMesh]], channel: str, metric: str, bin_deg: float, params
+) -> list[str]:
+    """Validate :func:`train_bank`'s arguments; returns the classes in first-seen order."""
     check_choice(channel, "channel", FILTER_CHANNELS)
     check_choice(metric, "metric", METRICS)
     if not (isinstance(bin_deg, (int, float)) and 0 < bin_deg <= 360):
@@ -518,31 +453,19 @@ def train_bank(
     classes = sorted({c for c, _ in items}, key=[c for c, _ in items].index)
     if len(classes) < 2:
         raise InputError(f"targets: a bank needs at least 2 classes, got {classes}")
-    az_train = parse_range(azimuth)
-    kw = {
-        "framing": framing,
-        "camouflage": camouflage,
-        "noise_sigma": noise_sigma,
-        "depth_noise_mm": depth_noise_mm,
-        "lighting_variation": lighting_variation,
-        "seed": seed,
-    }
-    X, labels, az, _, _, fx = render_class_chips(
-        items,
-        channel=channel,
-        azimuth=az_train,
-        elevation=elevation,
-        range_mm=range_mm,
-        size=size,
-        **kw,
-    )
-    lab = np.array([classes.index(c) for c in labels])
-    spectra = np.fft.fft2(prepare_chips(X, channel, fx), axes=(-2, -1))
-    bins = _az_bin(az, bin_deg)
+    if params != "auto" and len(tuple(params)) != 3:
+        raise InputError(f"params: expected 'auto' or (alpha, beta, gamma), got {params!r}")
+    return classes
+
+
+def _group_moments(
+    spectra: NDArray, lab: NDArray, bins: NDArray, n_classes: int, nbins: int
+) -> tuple[list[tuple[int, int]], list[tuple[NDArray, NDArray, NDArray]]]:
+    """Non-empty (class, bin) groups and their OT-MACH spectral moments (mean, ASD, ASM)."""
     groups = [
         (ci, b)
-        for ci in range(len(classes))
-        for b in range(round(nbins))
+        for ci in range(n_classes)
+        for b in range(nbins)
         if np.any((lab == ci) & (bins == b))
     ]
     moments = []
@@ -552,66 +475,119 @@ def train_bank(
         moments.append(
             (m, np.mean(np.abs(sel) ** 2, axis=0), np.mean(np.abs(sel - m) ** 2, axis=0))
         )
+    return groups, moments
+
+
+def _search_params(
+    moments: list, groups: list[tuple[int, int]], heldout: tuple[NDArray, NDArray, NDArray],
+    nbins: int, metric: str,
+) -> tuple[tuple[float, float, float], int]:
+    """Best ``(alpha, beta, gamma)`` of :data:`DEFAULT_PARAM_GRID` on held-out views.
+
+    ``heldout`` = (spectra, class index, azimuth bin). Each view competes among the
+    filters of its bin and the two neighbours; key = (correct views, mean median margin).
+    Returns the triple and its number of correct views.
+    """
+    spec_v, labv, binv = heldout
+    gcls = np.array([g[0] for g in groups])
+    gbin = np.array([g[1] for g in groups])
+    best = (-np.inf, -np.inf)
+    best_prm = tuple(DEFAULT_PARAM_GRID[0])
+    for prm in DEFAULT_PARAM_GRID:
+        freqs = np.stack([otmach_from_moments(*mo, *prm).freq for mo in moments])
+        correct, margins = 0, []
+        for b in range(nbins):
+            vs = np.flatnonzero(binv == b)
+            fs = np.flatnonzero(
+                (gbin == b) | (gbin == (b + 1) % nbins) | (gbin == (b - 1) % nbins)
+            )
+            if vs.size == 0 or fs.size == 0:
+                continue
+            v = _metrics(spec_v[vs], freqs[fs])[metric]
+            own = gcls[fs][None, :] == labv[vs][:, None]
+            s_in = np.where(own, v, -np.inf).max(axis=1)
+            s_out = np.where(~own, v, -np.inf).max(axis=1)
+            correct += int(np.sum(s_in > s_out))
+            margins.append(np.median(s_in - s_out))
+        key = (correct, float(np.mean(margins)) if margins else -np.inf)
+        if key > best:
+            best, best_prm = key, tuple(float(x) for x in prm)
+    return best_prm, best[0]
+
+
+def _heldout_views(
+    items, classes, channel, az_train, elevation, range_mm, bin_deg, spec
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Spectra, class index and bin of views half a training step away in azimuth."""
+    step = float(np.median(np.diff(sorted(az_train)))) if len(az_train) > 1 else bin_deg
+    az_val = [a + step / 2.0 for a in az_train]
+    Xv, lv, azv, _, _, fxv = render_class_chips(
+        items,
+        channel=channel,
+        azimuth=az_val,
+        elevation=elevation,
+        range_mm=range_mm,
+        chip_spec=replace(spec, seed=spec.seed + _HELDOUT_SEED_OFFSET),
+    )
+    labv = np.array([classes.index(c) for c in lv])
+    spec_v = np.fft.fft2(prepare_chips(Xv, channel, fxv), axes=(-2, -1))
+    return spec_v, labv, _az_bin(azv, bin_deg)
+
+
+def train_bank(
+    targets: Sequence[tuple[str, SceneMesh]],
+    *,
+    channel: str = "depth",
+    azimuth: str | Sequence[float] = "0:360:10",
+    elevation: str | Sequence[float] = "20",
+    range_mm: str | float | Sequence[float] | None = None,
+    bin_deg: float = 10.0,
+    metric: str = "pce",
+    params: str | tuple[float, float, float] = "auto",
+    chip_spec: ChipSpec | None = None,
+) -> FilterBank:
+    """Train an OT-MACH filter bank from ``[(class_name, SceneMesh), ...]`` (>= 2 classes).
+
+    ``channel``: chip channel of the filters; ``azimuth``/``elevation``: training grid;
+    ``bin_deg``: azimuth bin width (``360 / bin_deg`` an integer); ``metric``: peak
+    metric of classification and of the search; ``params``: fixed ``(alpha, beta,
+    gamma)`` or ``"auto"`` (search on held-out views, module docstring);
+    ``chip_spec``: training chips (None = :data:`BANK_CHIP_SPEC`).
+    """
+    spec = as_chip_spec(chip_spec, BANK_CHIP_SPEC)
+    items = check_targets(targets)
+    classes = _check_bank_args(items, channel, metric, bin_deg, params)
+    nbins = round(360.0 / bin_deg)
+    az_train = parse_range(azimuth)
+    X, labels, az, _, _, fx = render_class_chips(
+        items, channel=channel, azimuth=az_train, elevation=elevation, range_mm=range_mm,
+        chip_spec=spec,
+    )
+    lab = np.array([classes.index(c) for c in labels])
+    spectra = np.fft.fft2(prepare_chips(X, channel, fx), axes=(-2, -1))
+    groups, moments = _group_moments(spectra, lab, _az_bin(az, bin_deg), len(classes), nbins)
     if params == "auto":
-        step = float(np.median(np.diff(sorted(az_train)))) if len(az_train) > 1 else bin_deg
-        az_val = [a + step / 2.0 for a in az_train]
-        kwv = dict(kw, seed=seed + 7)
-        Xv, lv, azv, _, _, fxv = render_class_chips(
-            items,
-            channel=channel,
-            azimuth=az_val,
-            elevation=elevation,
-            range_mm=range_mm,
-            size=size,
-            **kwv,
+        heldout = _heldout_views(
+            items, classes, channel, az_train, elevation, range_mm, bin_deg, spec
         )
-        labv = np.array([classes.index(c) for c in lv])
-        binv = _az_bin(azv, bin_deg)
-        spec_v = np.fft.fft2(prepare_chips(Xv, channel, fxv), axes=(-2, -1))
-        nb = round(nbins)
-        gcls = np.array([g[0] for g in groups])
-        gbin = np.array([g[1] for g in groups])
-        # each held-out view competes among the filters of its bin and the two neighbours
-        best = (-np.inf, -np.inf)
-        best_prm = tuple(param_grid[0])
-        for prm in param_grid:
-            freqs = np.stack([otmach_from_moments(*mo, *prm).freq for mo in moments])
-            correct, margins = 0, []
-            for b in range(nb):
-                vs = np.flatnonzero(binv == b)
-                fs = np.flatnonzero((gbin == b) | (gbin == (b + 1) % nb) | (gbin == (b - 1) % nb))
-                if vs.size == 0 or fs.size == 0:
-                    continue
-                v = _metrics(spec_v[vs], freqs[fs])[metric]
-                own = gcls[fs][None, :] == labv[vs][:, None]
-                s_in = np.where(own, v, -np.inf).max(axis=1)
-                s_out = np.where(~own, v, -np.inf).max(axis=1)
-                correct += int(np.sum(s_in > s_out))
-                margins.append(np.median(s_in - s_out))
-            key = (correct, float(np.mean(margins)) if margins else -np.inf)
-            if key > best:
-                best, best_prm = key, tuple(float(x) for x in prm)
-        freqs = np.stack([otmach_from_moments(*mo, *best_prm).freq for mo in moments])
-        chosen = np.tile(np.asarray(best_prm), (len(groups), 1))
-        sep = np.full(len(groups), best[0] / max(len(labv), 1))
+        prm, n_correct = _search_params(moments, groups, heldout, nbins, metric)
+        sep = n_correct / max(len(heldout[1]), 1)
     else:
         prm = tuple(float(v) for v in params)
-        if len(prm) != 3:
-            raise InputError(f"params: expected 'auto' or (alpha, beta, gamma), got {params!r}")
-        freqs = np.stack([otmach_from_moments(*mo, *prm).freq for mo in moments])
-        chosen = np.tile(np.asarray(prm), (len(groups), 1))
-        sep = np.full(len(groups), np.nan)
+        sep = float("nan")
+    freqs = np.stack([otmach_from_moments(*mo, *prm).freq for mo in moments])
+    chosen = np.tile(np.asarray(prm), (len(groups), 1))
     meta = {
         "azimuth": [float(a) for a in az_train],
         "elevation": [float(e) for e in parse_range(elevation)],
         "range_mm": None if range_mm is None else [float(r) for r in parse_range(range_mm)],
-        "framing": framing,
-        "camouflage": bool(camouflage),
-        "noise_sigma": float(noise_sigma),
-        "depth_noise_mm": float(depth_noise_mm),
+        "framing": spec.framing,
+        "camouflage": bool(spec.camouflage),
+        "noise_sigma": float(spec.noise_sigma),
+        "depth_noise_mm": float(spec.depth_noise_mm),
         "params": "auto" if params == "auto" else list(params),
         "targets": [[c, m.name] for c, m in items],
-        "heldout_accuracy": None if not math.isfinite(float(sep[0])) else float(sep[0]),
+        "heldout_accuracy": None if not math.isfinite(float(sep)) else float(sep),
         "chosen_params": [float(v) for v in chosen[0]],
         "psr_window": PSR_WINDOW,
         "psr_exclude": PSR_EXCLUDE,
@@ -619,7 +595,7 @@ def train_bank(
     return FilterBank(
         classes,
         channel,
-        int(size),
+        int(spec.size),
         float(bin_deg),
         freqs,
         np.array([g[0] for g in groups], dtype=np.int64),

@@ -1,30 +1,12 @@
 """Training and test chips: a target mesh rendered at many poses.
 
-:func:`render_chips` renders one :class:`~prism3d.capture.mesh.SceneMesh` at a list of
-poses on the shared renderer (:mod:`prism3d.capture.render`) and returns a
-:class:`ChipSet` of ``(N, size, size)`` arrays per channel plus the pose table:
-
-``intensity`` (float32, [0, 1])
-    albedo (grey) x (ambient + (1 - ambient) * max(0, n . l)) under a directional
-    light ``l`` (camera frame), optionally jittered per chip; camouflage paint on or
-    off (off: one uniform grey, the mean paint luminance).
-``depth`` (float32 mm, NaN = no surface)
-    true camera z of the surface seen through each pixel CENTRE (one exact ray per
-    pixel, no anti-aliasing, hence no "flying pixels" at silhouettes).
-``mask`` (bool)
-    pixels that see the target (not the clutter).
-``shape`` (float32, [0, 1])
-    the "shape image": uniform albedo 1 relit by the canonical light (the same for
-    every chip, no jitter) -- what camouflage removal recovers.
-
-Framing: ``"fit"`` scales every chip so the target's bounding sphere fills
-``fill`` of the chip (range-invariant); ``"range"`` keeps one focal length
-(``pixels_per_m`` pixels per metre of target at 1 m range), so the target's
-apparent size follows its range.
-
-Clutter: ``"ground"`` puts the target on a large textured ground plane (it shows in
-intensity, depth and shape, like real terrain); ``"noise"`` fills the intensity
-background with a smooth random texture. Both are deterministic given ``seed``.
+:func:`render_chips` renders a :class:`~prism3d.capture.mesh.SceneMesh` at a list of
+poses on the shared renderer and returns a :class:`ChipSet` of ``(N, size, size)``
+channels: ``intensity`` (float32 [0, 1], Lambert + ambient under a camera-frame light,
+camouflage paint or one uniform grey), ``depth`` (float32 mm, NaN = no surface, one
+exact ray per pixel centre), ``mask`` (bool, target pixels) and ``shape`` (float32
+[0, 1], albedo 1 under the canonical light). Every chip setting is one
+:class:`ChipSpec`. Framing, clutter and lighting models: docs/atr.md.
 """
 
 from __future__ import annotations
@@ -48,11 +30,17 @@ __all__ = [
     "CHANNELS",
     "CHIP_SCHEMA_VERSION",
     "ChipSet",
+    "ChipSpec",
     "TerrainAlbedo",
+    "as_chip_spec",
+    "bounding_sphere",
     "chip_poses",
+    "default_range_mm",
+    "ground_mesh",
     "load_mesh_file",
     "render_chips",
     "render_to_folder",
+    "spec_poses",
 ]
 
 log = logging.getLogger(__name__)
@@ -64,25 +52,93 @@ DEFAULT_LIGHT = (-0.35, -0.55, -1.0)
 _LUMA = np.array([0.299, 0.587, 0.114])
 #: Chips per renderer call (amortises per-call overhead; ~16k rays per 128^2 chip).
 _BATCH = 16
+#: Default camera range, in bounding-sphere radii: the whole target in view, little background.
+DEFAULT_RANGE_RADII = 4.0
+#: A range must exceed the bounding radius by 5 %: the camera stays outside the target.
+_MIN_RANGE_RADII = 1.05
+#: Terrain texture: octaves, plane waves per octave, amplitude decay per octave (1/f-like).
+_TERRAIN_OCTAVES, _TERRAIN_WAVES, _TERRAIN_DECAY = 4, 3, 0.6
+#: Seed offset of the terrain texture, so it never repeats the camouflage pattern's draws.
+_TERRAIN_SEED_OFFSET = 7919
+#: Ground plane half-width in target extents: its edge never shows in a chip.
+_GROUND_HALF_EXTENTS = 15.0
+#: Terrain wavelength, in target extents: patches about the target's size.
+_GROUND_TEXTURE_EXTENTS = 0.6
+#: Gaussian low-pass width (cycles/pixel) of the "noise" background: blobs ~ 1/6 of a chip.
+_NOISE_CUTOFF = 0.06
+
+
+@dataclass(frozen=True)
+class ChipSpec:
+    """How chips are rendered: size, framing, channels, paint, light, clutter, noise.
+
+    One place for the chip settings shared by :func:`render_chips`,
+    :func:`render_to_folder`, the filter banks, evaluation and database render jobs.
+    """
+
+    size: int = 128
+    """Chip side, pixels (>= 8); the principal point is the chip centre."""
+    framing: str = "fit"
+    """``"fit"``: the bounding sphere fills the chip at every range; ``"range"``: one focal."""
+    pixels_per_m: float | None = None
+    """``"range"`` framing: pixels per metre at 1 m (default: the "fit" focal at the nearest range)."""
+    channels: tuple[str, ...] = CHANNELS
+    """Channels to return, among intensity, depth, mask, shape."""
+    camouflage: bool = True
+    """Intensity with the mesh's paint (True) or one uniform grey, its mean luminance (False)."""
+    light: tuple[float, float, float] = DEFAULT_LIGHT
+    """Direction towards the light, camera frame (OpenCV); also the canonical light of shape."""
+    ambient: float = 0.25
+    """Ambient fraction in [0, 1): shadowed sides stay visible, as under daylight."""
+    lighting_variation: float = 0.0
+    """Std (deg) of a random tilt of the light per chip (intensity only)."""
+    clutter: str | None = None
+    """Background: None, ``"ground"`` (textured terrain plane) or ``"noise"`` (smooth texture)."""
+    noise_sigma: float = 0.0
+    """Additive Gaussian noise std on intensity and shape ([0, 1] units)."""
+    depth_noise_mm: float = 0.0
+    """Additive Gaussian noise std on depth surface pixels, mm."""
+    seed: int = 0
+    """Seed of lighting jitter, clutter and noise (rendering is deterministic)."""
+    backend: str = "raycast"
+    """``"raycast"`` (exact per-pixel rays) or ``"pyrender"`` (OpenGL; no ground clutter)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "size", _check_size(self.size))
+        chans = tuple(self.channels)
+        if not chans:
+            raise InputError("channels: expected at least one of " + ", ".join(CHANNELS))
+        for ch in chans:
+            check_choice(ch, "channels", CHANNELS)
+        object.__setattr__(self, "channels", chans)
+        check_choice(self.framing, "framing", ("fit", "range"))
+        check_choice(self.backend, "backend", ("raycast", "pyrender"))
+        check_choice(self.clutter, "clutter", (None, "ground", "noise"))
+        if not 0 <= self.ambient < 1:
+            raise InputError(f"ambient: expected a value in [0, 1), got {self.ambient}")
+        for nm in ("noise_sigma", "depth_noise_mm", "lighting_variation"):
+            v = getattr(self, nm)
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"{nm}: expected a finite value >= 0, got {v}")
+        s = self.seed
+        if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0:
+            raise InputError(f"seed: expected a non-negative integer, got {s!r}")
+        object.__setattr__(self, "seed", int(s))
+        light = tuple(float(v) for v in np.asarray(self.light, dtype=np.float64).reshape(3))
+        if not np.linalg.norm(light) > 0:
+            raise InputError(f"light: expected a non-zero direction, got {tuple(self.light)}")
+        object.__setattr__(self, "light", light)
+        if self.backend == "pyrender" and self.clutter == "ground":
+            raise InputError("clutter='ground' needs backend='raycast'")
 
 
 @dataclass(eq=False)
 class ChipSet:
     """Chips of one target at ``N`` poses.
 
-    Attributes
-    ----------
-    channels : dict of str -> (N, S, S) array
-        ``intensity`` / ``shape`` float32 [0, 1], ``depth`` float32 mm (NaN = no
-        surface), ``mask`` bool, for the channels requested.
-    poses : list of ChipPose
-        One per chip, in order.
-    target : str
-        The mesh name.
-    table : pandas.DataFrame
-        :func:`~prism3d.atr.poses.poses_table` plus ``target``, ``light_x/y/z``
-        (camera-frame light direction used for ``intensity``) and ``chip``
-        (index).
+    ``channels``: name -> ``(N, S, S)`` array; ``poses``: one :class:`ChipPose` per
+    chip; ``table``: :func:`~prism3d.atr.poses.poses_table` plus ``chip``, ``target``
+    and the camera-frame light ``light_x/y/z``.
     """
 
     channels: dict[str, NDArray]
@@ -105,36 +161,50 @@ class ChipSet:
 
 @dataclass(frozen=True, eq=False)
 class TerrainAlbedo:
-    """Procedural terrain texture (an albedo field): a sum of random plane waves.
+    """Procedural terrain albedo, a sum of random plane waves in [0.1, 0.8], greenish-brown.
 
-    ``scale_mm`` is the largest texture wavelength; 4 octaves halve it each time.
-    Deterministic in ``seed``; values in [0.1, 0.8], greenish-brown.
+    ``scale_mm`` is the largest wavelength (each octave halves it); deterministic in ``seed``.
     """
 
     scale_mm: float
     seed: int = 0
 
     def __call__(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        rng = np.random.default_rng(self.seed + 7919)
+        rng = np.random.default_rng(self.seed + _TERRAIN_SEED_OFFSET)
         p = np.asarray(points, dtype=np.float64)[:, :2]
         g = np.zeros(len(p))
         amp = 1.0
-        for octave in range(4):
+        for octave in range(_TERRAIN_OCTAVES):
             k = 2.0 * math.pi / (self.scale_mm / 2.0**octave)
-            for _ in range(3):
+            for _ in range(_TERRAIN_WAVES):
                 th = rng.uniform(0, 2 * math.pi)
                 ph = rng.uniform(0, 2 * math.pi)
                 g += amp * np.sin(k * (p[:, 0] * math.cos(th) + p[:, 1] * math.sin(th)) + ph)
-            amp *= 0.6
+            amp *= _TERRAIN_DECAY
         g = 0.45 + 0.18 * g / 1.5
         g = np.clip(g, 0.1, 0.8)
         return np.stack([0.9 * g, g, 0.7 * g], axis=1)
 
 
-def _bounding_sphere(mesh: SceneMesh) -> tuple[NDArray[np.float64], float]:
+def as_chip_spec(chip_spec: ChipSpec | None, default: ChipSpec | None = None) -> ChipSpec:
+    """``chip_spec``, or ``default`` (``ChipSpec()``) when None; InputError for another type."""
+    if chip_spec is None:
+        return ChipSpec() if default is None else default
+    if not isinstance(chip_spec, ChipSpec):
+        raise InputError(f"chip_spec: expected a ChipSpec, got {type(chip_spec).__name__}")
+    return chip_spec
+
+
+def bounding_sphere(mesh: SceneMesh) -> tuple[NDArray[np.float64], float]:
+    """Centre ``(3,)`` (bounding-box centre, mm) and radius (mm) enclosing ``mesh``."""
     c = mesh.bounds.mean(axis=0)
     r = float(np.max(np.linalg.norm(mesh.vertices - c, axis=1)))
     return c, r
+
+
+def default_range_mm(mesh: SceneMesh) -> float:
+    """The default camera range of ``mesh``: :data:`DEFAULT_RANGE_RADII` bounding radii, mm."""
+    return DEFAULT_RANGE_RADII * bounding_sphere(mesh)[1]
 
 
 def _check_size(size: int) -> int:
@@ -158,30 +228,16 @@ def chip_poses(
 ) -> list[ChipPose]:
     """Framed chip poses of ``mesh`` looking at its bounding-box centre.
 
-    Parameters
-    ----------
-    azimuths_deg, elevations_deg, ranges_mm, rolls_deg : str, float or sequence
-        Grids (``"0:360:10"``, ``"10,40"``, numbers; :func:`~prism3d.atr.poses.parse_range`).
-    size : int
-        Chip side, pixels (>= 8). The principal point is the chip centre
-        ``((size-1)/2, (size-1)/2)``.
-    framing : {"fit", "range"}
-        ``"fit"``: focal length so the bounding sphere spans ``fill`` of the chip at
-        every range. ``"range"``: one focal length ``pixels_per_m`` (pixels per metre
-        of target at 1 m range; default: the "fit" focal at the nearest range).
-    directions_deg : (N, 2) float, optional
-        (az, el) list replacing the az x el grid (e.g. a Fibonacci sampling).
-
-    Returns
-    -------
-    list of ChipPose
-        Range-major, then elevation, azimuth, roll.
+    Grids as :func:`~prism3d.atr.poses.parse_range` (``"0:360:10"``, ``"10,40"``);
+    ``directions_deg`` (N, 2) (az, el) replaces the az x el grid. ``framing``,
+    ``pixels_per_m``: :class:`ChipSpec`; ``fill``: fraction of the chip the bounding
+    sphere spans under "fit". Returns range-major, then elevation, azimuth, roll.
     """
     size = _check_size(size)
     check_choice(framing, "framing", ("fit", "range"))
     if not 0 < fill <= 1:
         raise InputError(f"fill: expected a fraction in (0, 1], got {fill}")
-    c, r = _bounding_sphere(mesh)
+    c, r = bounding_sphere(mesh)
     if directions_deg is None:
         az = parse_range(azimuths_deg)
         el = parse_range(elevations_deg)
@@ -191,10 +247,10 @@ def chip_poses(
     ranges = parse_range(ranges_mm)
     rolls = parse_range(rolls_deg)
     for R in ranges:
-        if not R > 1.05 * r:
+        if not R > _MIN_RANGE_RADII * r:
             raise InputError(
                 f"ranges_mm: range {R} mm puts the camera inside {mesh.name}'s bounding sphere "
-                f"(radius {r:.1f} mm); use ranges > {1.05 * r:.1f} mm"
+                f"(radius {r:.1f} mm); use ranges > {_MIN_RANGE_RADII * r:.1f} mm"
             )
 
     def fit_focal(R: float) -> float:
@@ -221,11 +277,32 @@ def chip_poses(
     return out
 
 
-def _ground_mesh(mesh: SceneMesh, seed: int) -> SceneMesh:
-    """A square ground plane under ``mesh`` (object z up), 30x its size, textured."""
+def spec_poses(
+    mesh: SceneMesh,
+    azimuth: str | float | Sequence[float],
+    elevation: str | float | Sequence[float],
+    range_mm: str | float | Sequence[float] | None,
+    chip_spec: ChipSpec,
+) -> list[ChipPose]:
+    """:func:`chip_poses` with the size and framing of ``chip_spec``; range None = default."""
+    if range_mm is None:
+        range_mm = default_range_mm(mesh)
+    return chip_poses(
+        mesh,
+        azimuth,
+        elevation,
+        range_mm,
+        size=chip_spec.size,
+        framing=chip_spec.framing,
+        pixels_per_m=chip_spec.pixels_per_m,
+    )
+
+
+def ground_mesh(mesh: SceneMesh, seed: int) -> SceneMesh:
+    """A square textured ground plane under ``mesh`` (object z up), 30x its size."""
     b = mesh.bounds
     c = b.mean(axis=0)
-    half = 15.0 * float(np.max(b[1, :2] - b[0, :2]))
+    half = _GROUND_HALF_EXTENTS * float(np.max(b[1, :2] - b[0, :2]))
     z = b[0, 2] - 1e-3 * max(float(np.max(b[1] - b[0])), 1.0)
     v = np.array(
         [
@@ -236,7 +313,7 @@ def _ground_mesh(mesh: SceneMesh, seed: int) -> SceneMesh:
         ]
     )
     f = np.array([[0, 1, 2], [0, 2, 3]])
-    scale = 0.6 * float(np.max(b[1] - b[0]))
+    scale = _GROUND_TEXTURE_EXTENTS * float(np.max(b[1] - b[0]))
     return SceneMesh(v, f, albedo_field=TerrainAlbedo(scale, seed), name="ground")
 
 
@@ -245,7 +322,7 @@ def _smooth_noise(rng: np.random.Generator, n: int, size: int) -> NDArray[np.flo
     w = rng.standard_normal((n, size, size))
     fy = np.fft.fftfreq(size)[:, None]
     fx = np.fft.fftfreq(size)[None, :]
-    lp = np.exp(-(fx**2 + fy**2) / (2 * 0.06**2))
+    lp = np.exp(-(fx**2 + fy**2) / (2 * _NOISE_CUTOFF**2))
     g = np.fft.ifft2(np.fft.fft2(w) * lp).real
     g /= g.std(axis=(1, 2), keepdims=True) + 1e-12
     return np.clip(0.45 + 0.15 * g, 0.05, 0.85).astype(np.float32)
@@ -255,10 +332,7 @@ def _light_dirs(
     light: Sequence[float], variation_deg: float, n: int, rng: np.random.Generator
 ) -> NDArray:
     l0 = np.asarray(light, dtype=np.float64).reshape(3)
-    nl = np.linalg.norm(l0)
-    if not nl > 0:
-        raise InputError(f"light: expected a non-zero direction, got {tuple(light)}")
-    l0 = l0 / nl
+    l0 = l0 / np.linalg.norm(l0)
     if variation_deg <= 0:
         return np.tile(l0, (n, 1))
     # random rotation by a Gaussian angle about a random axis perpendicular to l0
@@ -275,6 +349,42 @@ def _paint_grey(mesh: SceneMesh) -> float:
     return float(np.mean(mesh.vertex_colors() @ _LUMA))
 
 
+@dataclass(eq=False)
+class _Buffers:
+    """Output arrays ``(N, S, S)`` filled in place by the renderers."""
+
+    depth: NDArray[np.float32]
+    mask: NDArray[np.bool_]
+    intensity: NDArray[np.float32] | None
+    shape: NDArray[np.float32] | None
+
+    @classmethod
+    def allocate(cls, n: int, size: int, chans: Sequence[str]) -> _Buffers:
+        def maybe(ch: str) -> NDArray[np.float32] | None:
+            return np.zeros((n, size, size), dtype=np.float32) if ch in chans else None
+
+        return cls(
+            np.full((n, size, size), np.nan, dtype=np.float32),
+            np.zeros((n, size, size), dtype=bool),
+            maybe("intensity"),
+            maybe("shape"),
+        )
+
+    @property
+    def need_normals(self) -> bool:
+        return self.intensity is not None or self.shape is not None
+
+
+@dataclass(frozen=True, eq=False)
+class _Shading:
+    """Paint and lights of one render: ``grey`` replaces the paint when not None (once)."""
+
+    grey: float | None
+    lights: NDArray[np.float64]
+    canon: NDArray[np.float64]
+    ambient: float
+
+
 def render_chips(
     mesh: SceneMesh,
     poses: Sequence[ChipPose] | None = None,
@@ -282,175 +392,65 @@ def render_chips(
     azimuth: str | float | Sequence[float] = "0:360:30",
     elevation: str | float | Sequence[float] = 20.0,
     range_mm: str | float | Sequence[float] | None = None,
-    size: int = 128,
-    framing: str = "fit",
-    pixels_per_m: float | None = None,
-    channels: Sequence[str] = CHANNELS,
-    camouflage: bool = True,
-    light: Sequence[float] = DEFAULT_LIGHT,
-    ambient: float = 0.25,
-    lighting_variation: float = 0.0,
-    clutter: str | None = None,
-    noise_sigma: float = 0.0,
-    depth_noise_mm: float = 0.0,
-    seed: int = 0,
-    backend: str = "raycast",
+    chip_spec: ChipSpec | None = None,
 ) -> ChipSet:
-    """Render ``mesh`` at ``poses`` into chips.
+    """Render ``mesh`` (object frame, mm) into chips.
 
-    Parameters
-    ----------
-    mesh : SceneMesh
-        The target (object frame, mm).
-    poses : sequence of ChipPose, optional
-        Exact poses (their ``K`` and ``T_cam_obj`` are used as given; ``size`` must
-        match). Default: :func:`chip_poses` of ``azimuth`` x ``elevation`` x
-        ``range_mm`` (default range: 4 bounding-sphere radii) with ``framing``.
-    size : int
-        Chip side in pixels (>= 8).
-    channels : sequence of {"intensity", "depth", "mask", "shape"}
-        Which arrays to return.
-    camouflage : bool
-        Use the mesh's paint (True) or one uniform grey (False) for ``intensity``.
-    light : (3,) float
-        Direction towards the light, camera frame (OpenCV: -y is up, -z towards the
-        camera). Also the canonical light of ``shape``.
-    ambient : float
-        Ambient fraction in [0, 1).
-    lighting_variation : float
-        Standard deviation (degrees) of a random tilt of the light per chip
-        (``intensity`` only).
-    clutter : {None, "ground", "noise"}
-        Background (module docstring).
-    noise_sigma : float
-        Additive Gaussian noise (std, [0, 1] units) on ``intensity`` and ``shape``.
-    depth_noise_mm : float
-        Additive Gaussian noise (std, mm) on ``depth`` surface pixels.
-    seed : int
-        Seed of lighting jitter, clutter and noise (deterministic).
-    backend : {"raycast", "pyrender"}
-        ``raycast``: exact per-pixel-centre rays (:class:`RaycastRenderer`).
-        ``pyrender``: OpenGL rasterisation (z-buffer depth, paint sampled at the
-        vertices; no "ground" clutter).
-
-    Returns
-    -------
-    ChipSet
-
-    Raises
-    ------
-    InputError
-        Not a SceneMesh, a bad size/channel/framing/backend/clutter, bad noise or
-        ambient values, an unusable range.
+    ``poses`` are used as given (``K``, ``T_cam_obj``; their size must match
+    ``chip_spec.size``); default: :func:`chip_poses` of ``azimuth`` x ``elevation`` x
+    ``range_mm`` (default range :func:`default_range_mm`). ``chip_spec``: the chip
+    settings (None = ``ChipSpec()``). Raises :class:`InputError` for a non-SceneMesh,
+    bad poses or an unusable range.
     """
+    spec = as_chip_spec(chip_spec)
     if not isinstance(mesh, SceneMesh):
         raise InputError(f"mesh: expected a SceneMesh, got {type(mesh).__name__}")
-    size = _check_size(size)
-    chans = tuple(channels)
-    if not chans:
-        raise InputError("channels: expected at least one of " + ", ".join(CHANNELS))
-    for ch in chans:
-        check_choice(ch, "channels", CHANNELS)
-    check_choice(backend, "backend", ("raycast", "pyrender"))
-    check_choice(clutter, "clutter", (None, "ground", "noise"))
-    if not 0 <= ambient < 1:
-        raise InputError(f"ambient: expected a value in [0, 1), got {ambient}")
-    for v, nm in (
-        (noise_sigma, "noise_sigma"),
-        (depth_noise_mm, "depth_noise_mm"),
-        (lighting_variation, "lighting_variation"),
-    ):
-        if not (math.isfinite(v) and v >= 0):
-            raise InputError(f"{nm}: expected a finite value >= 0, got {v}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
     if poses is None:
-        if range_mm is None:
-            range_mm = 4.0 * _bounding_sphere(mesh)[1]
-        poses = chip_poses(
-            mesh,
-            azimuth,
-            elevation,
-            range_mm,
-            size=size,
-            framing=framing,
-            pixels_per_m=pixels_per_m,
-        )
+        poses = spec_poses(mesh, azimuth, elevation, range_mm, spec)
+    poses = _check_poses(poses)
+    rng = np.random.default_rng(spec.seed)
+    n = len(poses)
+    lights = _light_dirs(spec.light, spec.lighting_variation, n, rng)
+    canon = lights[0] if spec.lighting_variation <= 0 else _light_dirs(spec.light, 0.0, 1, rng)[0]
+    shading = _Shading(None if spec.camouflage else _paint_grey(mesh), lights, canon, spec.ambient)
+    buf = _Buffers.allocate(n, spec.size, spec.channels)
+    if spec.backend == "raycast":
+        _render_raycast(mesh, poses, spec, shading, buf)
+    else:
+        _render_pyrender(mesh, poses, spec.size, shading, buf)
+    _add_clutter_and_noise(buf, spec, rng)
+    arrays = {"intensity": buf.intensity, "depth": buf.depth, "mask": buf.mask, "shape": buf.shape}
+    table = poses_table(poses)
+    table.insert(0, "chip", np.arange(n))
+    table.insert(1, "target", mesh.name)
+    table["light_x"], table["light_y"], table["light_z"] = lights[:, 0], lights[:, 1], lights[:, 2]
+    return ChipSet({ch: arrays[ch] for ch in spec.channels}, poses, mesh.name, table)
+
+
+def _check_poses(poses: Sequence[ChipPose]) -> list[ChipPose]:
     poses = list(poses)
     if not poses:
         raise InputError("poses: expected at least one pose")
     for p in poses:
         if not isinstance(p, ChipPose):
             raise InputError(f"poses: expected ChipPose items, got {type(p).__name__}")
-    if backend == "pyrender" and clutter == "ground":
-        raise InputError("clutter='ground' needs backend='raycast'")
-    rng = np.random.default_rng(seed)
-    n = len(poses)
-    lights = _light_dirs(light, lighting_variation, n, rng)
-    canon = lights[0] if lighting_variation <= 0 else _light_dirs(light, 0.0, 1, rng)[0]
-    want_int = "intensity" in chans
-    want_shape = "shape" in chans
-    need_normals = want_int or want_shape
-    depth = np.full((n, size, size), np.nan, dtype=np.float32)
-    mask = np.zeros((n, size, size), dtype=bool)
-    inten = np.zeros((n, size, size), dtype=np.float32) if want_int else None
-    shape = np.zeros((n, size, size), dtype=np.float32) if want_shape else None
-    grey = None if camouflage else _paint_grey(mesh)
-    if backend == "raycast":
-        _render_raycast(
-            mesh,
-            poses,
-            size,
-            clutter,
-            seed,
-            need_normals,
-            want_int,
-            grey,
-            lights,
-            canon,
-            ambient,
-            depth,
-            mask,
-            inten,
-            shape,
-        )
-    else:
-        _render_pyrender(
-            mesh,
-            poses,
-            size,
-            need_normals,
-            want_int,
-            grey,
-            lights,
-            canon,
-            ambient,
-            depth,
-            mask,
-            inten,
-            shape,
-        )
-    if clutter == "noise" and want_int:
+    return poses
+
+
+def _add_clutter_and_noise(buf: _Buffers, spec: ChipSpec, rng: np.random.Generator) -> None:
+    """Noise background, then sensor noise, in this order of random draws (reproducible)."""
+    n, size = buf.depth.shape[:2]
+    if spec.clutter == "noise" and buf.intensity is not None:
         bg = _smooth_noise(rng, n, size)
-        inten[~mask] = bg[~mask]
-    if noise_sigma > 0:
-        if want_int:
-            inten += rng.normal(0.0, noise_sigma, inten.shape).astype(np.float32)
-            np.clip(inten, 0.0, 1.0, out=inten)
-        if want_shape:
-            shape += rng.normal(0.0, noise_sigma, shape.shape).astype(np.float32)
-            np.clip(shape, 0.0, 1.0, out=shape)
-    if depth_noise_mm > 0:
-        fin = np.isfinite(depth)
-        depth[fin] += rng.normal(0.0, depth_noise_mm, int(fin.sum())).astype(np.float32)
-    out: dict[str, NDArray] = {}
-    for ch in chans:
-        out[ch] = {"intensity": inten, "depth": depth, "mask": mask, "shape": shape}[ch]
-    table = poses_table(poses)
-    table.insert(0, "chip", np.arange(n))
-    table.insert(1, "target", mesh.name)
-    table["light_x"], table["light_y"], table["light_z"] = lights[:, 0], lights[:, 1], lights[:, 2]
-    return ChipSet(out, poses, mesh.name, table)
+        buf.intensity[~buf.mask] = bg[~buf.mask]
+    if spec.noise_sigma > 0:
+        for img in (buf.intensity, buf.shape):
+            if img is not None:
+                img += rng.normal(0.0, spec.noise_sigma, img.shape).astype(np.float32)
+                np.clip(img, 0.0, 1.0, out=img)
+    if spec.depth_noise_mm > 0:
+        fin = np.isfinite(buf.depth)
+        buf.depth[fin] += rng.normal(0.0, spec.depth_noise_mm, int(fin.sum())).astype(np.float32)
 
 
 def _pixel_rays(
@@ -469,112 +469,99 @@ def _shade(n_cam: NDArray, l_cam: NDArray, ambient: float) -> NDArray[np.float64
     return ambient + (1.0 - ambient) * np.clip(n_cam @ l_cam, 0.0, None)
 
 
+def _batch_rays(
+    batch: Sequence[ChipPose], size: int, ray_cache: dict[bytes, tuple[NDArray, NDArray]]
+) -> tuple[NDArray, NDArray, NDArray, list[NDArray]]:
+    """Object-frame ray origins, directions ``(B*S*S, 3)``, camera z per ray, rotations."""
+    npx = size * size
+    nb = len(batch)
+    origins = np.empty((nb * npx, 3))
+    dirs = np.empty((nb * npx, 3))
+    zc = np.empty(nb * npx)
+    Rs = []
+    for j, p in enumerate(batch):
+        key = p.K.tobytes() + bytes([size % 256, size // 256])
+        if key not in ray_cache:
+            ray_cache[key] = _pixel_rays(p.K, size)
+        rc, z = ray_cache[key]
+        T = p.T_obj_cam
+        sl = slice(j * npx, (j + 1) * npx)
+        origins[sl] = T[:3, 3]
+        dirs[sl] = rc @ T[:3, :3].T
+        zc[sl] = z
+        Rs.append(T[:3, :3])
+    return origins, dirs, zc, Rs
+
+
 def _render_raycast(
-    mesh: SceneMesh,
-    poses: list[ChipPose],
-    size: int,
-    clutter: str | None,
-    seed: int,
-    need_normals: bool,
-    want_int: bool,
-    grey: float | None,
-    lights: NDArray[np.float64],
-    canon: NDArray[np.float64],
-    ambient: float,
-    depth: NDArray[np.float32],
-    mask: NDArray[np.bool_],
-    inten: NDArray[np.float32] | None,
-    shape: NDArray[np.float32] | None,
+    mesh: SceneMesh, poses: list[ChipPose], spec: ChipSpec, sh: _Shading, buf: _Buffers
 ) -> None:
     from prism3d.capture.render import RaycastRenderer
 
+    size = spec.size
     objects = [(mesh, np.eye(4))]
-    if clutter == "ground":
-        objects.append((_ground_mesh(mesh, seed), np.eye(4)))
+    if spec.clutter == "ground":
+        objects.append((ground_mesh(mesh, spec.seed), np.eye(4)))
     renderer = RaycastRenderer(objects)
     npx = size * size
     ray_cache: dict[bytes, tuple[NDArray, NDArray]] = {}
     for b0 in range(0, len(poses), _BATCH):
         batch = poses[b0 : b0 + _BATCH]
         nb = len(batch)
-        origins = np.empty((nb * npx, 3))
-        dirs = np.empty((nb * npx, 3))
-        zc = np.empty(nb * npx)
-        Rs = []
-        for j, p in enumerate(batch):
-            key = p.K.tobytes() + bytes([size % 256, size // 256])
-            if key not in ray_cache:
-                ray_cache[key] = _pixel_rays(p.K, size)
-            rc, z = ray_cache[key]
-            T = p.T_obj_cam
-            sl = slice(j * npx, (j + 1) * npx)
-            origins[sl] = T[:3, 3]
-            dirs[sl] = rc @ T[:3, :3].T
-            zc[sl] = z
-            Rs.append(T[:3, :3])
+        origins, dirs, zc, Rs = _batch_rays(batch, size, ray_cache)
         hits = renderer.cast(origins, dirs, normalized=True)
         hit = hits.object_id >= 0
-        d_all = np.where(hit, hits.t * zc, np.nan).reshape(nb, size, size)
-        depth[b0 : b0 + nb] = d_all
-        mask[b0 : b0 + nb] = (hits.object_id == 0).reshape(nb, size, size)
-        if not need_normals:
+        buf.depth[b0 : b0 + nb] = np.where(hit, hits.t * zc, np.nan).reshape(nb, size, size)
+        buf.mask[b0 : b0 + nb] = (hits.object_id == 0).reshape(nb, size, size)
+        if not buf.need_normals:
             continue
         alb = None
-        if want_int:
+        if buf.intensity is not None:
             a = renderer.albedo(hits) @ _LUMA
-            if grey is not None:
-                a[hits.object_id == 0] = grey
+            if sh.grey is not None:
+                a[hits.object_id == 0] = sh.grey
             alb = a.reshape(nb, npx)
         nw = hits.normals.reshape(nb, npx, 3)
         hb = hit.reshape(nb, npx)
         for j in range(nb):
             nc = np.nan_to_num(nw[j] @ Rs[j])  # R^T n per row: camera-frame normals
-            if want_int:
-                inten[b0 + j] = np.where(
-                    hb[j], alb[j] * _shade(nc, lights[b0 + j], ambient), 0.0
+            if buf.intensity is not None:
+                buf.intensity[b0 + j] = np.where(
+                    hb[j], alb[j] * _shade(nc, sh.lights[b0 + j], sh.ambient), 0.0
                 ).reshape(size, size)
-            if shape is not None:
-                shape[b0 + j] = np.where(hb[j], _shade(nc, canon, ambient), 0.0).reshape(size, size)
+            if buf.shape is not None:
+                buf.shape[b0 + j] = np.where(
+                    hb[j], _shade(nc, sh.canon, sh.ambient), 0.0
+                ).reshape(size, size)
 
 
 def _render_pyrender(
-    mesh: SceneMesh,
-    poses: list[ChipPose],
-    size: int,
-    need_normals: bool,
-    want_int: bool,
-    grey: float | None,
-    lights: NDArray[np.float64],
-    canon: NDArray[np.float64],
-    ambient: float,
-    depth: NDArray[np.float32],
-    mask: NDArray[np.bool_],
-    inten: NDArray[np.float32] | None,
-    shape: NDArray[np.float32] | None,
+    mesh: SceneMesh, poses: list[ChipPose], size: int, sh: _Shading, buf: _Buffers
 ) -> None:
-    from prism3d.capture.render import PyrenderRenderer
+    from prism3d.capture.render_gl import PyrenderRenderer
     from prism3d.capture.rig import CameraModel
 
     with PyrenderRenderer([(mesh, np.eye(4))]) as renderer:
         for i, p in enumerate(poses):
             cam = CameraModel(p.K, np.zeros(5), (size, size))
             res = renderer.render(cam, p.T_obj_cam)
-            depth[i] = res.depth_mm
-            mask[i] = res.mask
-            if need_normals:
-                nc = np.nan_to_num(res.normals_cam.reshape(-1, 3).astype(np.float64))
-                m = res.mask.reshape(-1)
-                if want_int:
-                    a = (
-                        (res.albedo.reshape(-1, 3) @ _LUMA)
-                        if grey is None
-                        else np.full(m.shape, grey)
-                    )
-                    inten[i] = np.where(m, a * _shade(nc, lights[i], ambient), 0.0).reshape(
-                        size, size
-                    )
-                if shape is not None:
-                    shape[i] = np.where(m, _shade(nc, canon, ambient), 0.0).reshape(size, size)
+            buf.depth[i] = res.depth_mm
+            buf.mask[i] = res.mask
+            if not buf.need_normals:
+                continue
+            nc = np.nan_to_num(res.normals_cam.reshape(-1, 3).astype(np.float64))
+            m = res.mask.reshape(-1)
+            if buf.intensity is not None:
+                a = (
+                    (res.albedo.reshape(-1, 3) @ _LUMA)
+                    if sh.grey is None
+                    else np.full(m.shape, sh.grey)
+                )
+                buf.intensity[i] = np.where(
+                    m, a * _shade(nc, sh.lights[i], sh.ambient), 0.0
+                ).reshape(size, size)
+            if buf.shape is not None:
+                buf.shape[i] = np.where(m, _shade(nc, sh.canon, sh.ambient), 0.0).reshape(size, size)
 
 
 # -- mesh files and the render command ------------------------------------------------------
@@ -591,28 +578,11 @@ def load_mesh_file(
 ) -> SceneMesh:
     """Load a mesh file (GLB, OBJ, PLY, OFF, STL...) with trimesh as a :class:`SceneMesh`.
 
-    Parameters
-    ----------
-    units : {"mm", "cm", "m", "in"}
-        Units of the file's coordinates.
-    up : {"y", "z"}
-        The file's up axis; ``"y"`` (glTF convention) is rotated to the prism3d
-        object frame's z-up (``(x, y, z) -> (x, -z, y)``... i.e. +90 deg about x).
-    length_mm : float, optional
-        Rescale so the longest horizontal extent is this long (for files in
-        arbitrary units).
-    yaw_deg : float
-        Rotation about the (new) up axis, counter-clockwise seen from above, to put
-        the model's nose on +x (e.g. 90 for a Y-up file whose nose is on +z).
-    name : str, optional
-        Default: the file stem.
-
-    Returns
-    -------
-    SceneMesh
-        Vertices in mm, object frame z up, origin at the footprint centre on the
-        ground (bounding-box centre in x, y; minimum z = 0); vertex albedo from the
-        file's face/vertex colours (material colours), grey when there are none.
+    ``units`` of the file's coordinates; ``up`` its up axis (``"y"``, glTF, is turned
+    +90 deg about x to z-up); ``length_mm`` rescales the longest horizontal extent;
+    ``yaw_deg`` turns about up (counter-clockwise from above) to put the nose on +x.
+    Returns vertices in mm, z up, origin at the footprint centre on the ground, vertex
+    albedo from the file's colours (grey when none).
     """
     from prism3d.io.mesh import read_mesh
 
@@ -654,93 +624,76 @@ def render_to_folder(
     azimuth: str | Sequence[float] = "0:360:10",
     elevation: str | Sequence[float] = "10:60:25",
     range_mm: str | Sequence[float] | float | None = None,
-    size: int = 128,
-    framing: str = "fit",
-    pixels_per_m: float | None = None,
-    channels: Sequence[str] = CHANNELS,
+    chip_spec: ChipSpec | None = None,
     units: str = "mm",
     up: str = "z",
     fmt: str = "npz",
-    camouflage: bool = True,
-    clutter: str | None = None,
-    noise_sigma: float = 0.0,
-    seed: int = 0,
-    backend: str = "raycast",
 ) -> Path:
-    """Render chips of a mesh (or mesh file) into a folder with a Parquet manifest.
+    """Render chips of a mesh (or mesh file, in ``units`` with ``up``) into a folder.
 
-    Writes (each file atomically):
-
-    * ``fmt="npz"``: ``chips_<channel>.npz`` holding one ``(N, S, S)`` array
-      ``chips`` per channel;
-    * ``fmt="png"``: ``<channel>/chip_00000.png`` (intensity/shape 8-bit, mask 0/255)
-      and ``depth/chip_00000.tiff`` (float32 mm, NaN = no surface);
-    * ``manifest.parquet``: one row per chip, every pose and camera field
-      (:func:`~prism3d.atr.poses.poses_table`), ``target``, ``chip``, the light, the
-      file names, ``size``, ``framing`` and ``schema_version``.
-
-    Returns
-    -------
-    Path
-        The manifest path.
+    ``fmt="npz"``: ``chips_<channel>.npz`` (one ``(N, S, S)`` array ``chips`` each);
+    ``fmt="png"``: ``<channel>/chip_00000.png`` (8-bit; mask 0/255) and
+    ``depth/chip_00000.tiff`` (float32 mm). Then ``manifest.parquet``: one row per chip
+    (poses table, light, file names, size, framing, schema_version). Every file is
+    written atomically. Returns the manifest path.
     """
     from prism3d.io.atomic import atomic_path
 
+    spec = as_chip_spec(chip_spec)
     check_choice(fmt, "fmt", ("npz", "png"))
     if not isinstance(mesh, SceneMesh):
         mesh = load_mesh_file(mesh, units=units, up=up)
     chips = render_chips(
-        mesh,
-        None,
-        azimuth=azimuth,
-        elevation=elevation,
-        range_mm=range_mm,
-        size=size,
-        framing=framing,
-        pixels_per_m=pixels_per_m,
-        channels=channels,
-        camouflage=camouflage,
-        clutter=clutter,
-        noise_sigma=noise_sigma,
-        seed=seed,
-        backend=backend,
+        mesh, None, azimuth=azimuth, elevation=elevation, range_mm=range_mm, chip_spec=spec
     )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = chips.table.copy()
+    write = _write_npz_channel if fmt == "npz" else _write_image_channel
     for ch, arr in chips.channels.items():
-        if fmt == "npz":
-            fn = f"chips_{ch}.npz"
-            with atomic_path(out / fn) as tmp, open(tmp, "wb") as fh:
-                np.savez_compressed(fh, chips=arr)
-            table[f"file_{ch}"] = [f"{fn}#{i}" for i in range(len(chips))]
-        else:
-            import cv2
-
-            (out / ch).mkdir(exist_ok=True)
-            names = []
-            for i, img in enumerate(arr):
-                if ch == "depth":
-                    fn = f"{ch}/chip_{i:05d}.tiff"
-                    ok, buf = cv2.imencode(".tiff", img.astype(np.float32))
-                else:
-                    fn = f"{ch}/chip_{i:05d}.png"
-                    u8 = (
-                        (img.astype(np.uint8) * 255)
-                        if ch == "mask"
-                        else np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
-                    )
-                    ok, buf = cv2.imencode(".png", u8)
-                if not ok:
-                    raise InputError(f"{out / fn}: image encoding failed")
-                with atomic_path(out / fn) as tmp:
-                    tmp.write_bytes(buf.tobytes())
-                names.append(fn)
-            table[f"file_{ch}"] = names
-    table["size"] = size
-    table["framing"] = framing
+        table[f"file_{ch}"] = write(out, ch, arr)
+    table["size"] = spec.size
+    table["framing"] = spec.framing
     table["schema_version"] = CHIP_SCHEMA_VERSION
     manifest = out / "manifest.parquet"
     with atomic_path(manifest) as tmp:
         table.to_parquet(tmp, index=False)
     return manifest
+
+
+def _write_npz_channel(out: Path, ch: str, arr: NDArray) -> list[str]:
+    """``chips_<ch>.npz``; returns the per-chip references ``file#index``."""
+    from prism3d.io.atomic import atomic_path
+
+    fn = f"chips_{ch}.npz"
+    with atomic_path(out / fn) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, chips=arr)
+    return [f"{fn}#{i}" for i in range(len(arr))]
+
+
+def _write_image_channel(out: Path, ch: str, arr: NDArray) -> list[str]:
+    """One PNG (depth: float32 TIFF) per chip under ``<ch>/``; returns the file names."""
+    import cv2
+
+    from prism3d.io.atomic import atomic_path
+
+    (out / ch).mkdir(exist_ok=True)
+    names = []
+    for i, img in enumerate(arr):
+        if ch == "depth":
+            fn = f"{ch}/chip_{i:05d}.tiff"
+            ok, buf = cv2.imencode(".tiff", img.astype(np.float32))
+        else:
+            fn = f"{ch}/chip_{i:05d}.png"
+            u8 = (
+                (img.astype(np.uint8) * 255)
+                if ch == "mask"
+                else np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+            )
+            ok, buf = cv2.imencode(".png", u8)
+        if not ok:
+            raise InputError(f"{out / fn}: image encoding failed")
+        with atomic_path(out / fn) as tmp:
+            tmp.write_bytes(buf.tobytes())
+        names.append(fn)
+    return names

@@ -1,17 +1,8 @@
 """Recognition evaluation: Pcc, confusion, per-aspect / per-range accuracy, ROC, PSR
 distributions, plots, and a feature-based baseline classifier.
 
-:func:`evaluate_bank` renders test chips of ``[(class, SceneMesh), ...]`` at poses
-the bank was not trained on (default: azimuths a quarter step past the training
-ones), classifies them, scores target chips against clutter-only chips (for ROC) and
-returns a JSON-ready dict; with ``out_json`` it also writes the per-chip results
-table (Parquet) and the plots (PNG) beside the JSON, atomically.
-
-Detection ROC: a chip is declared "target" when its best score over the bank is
->= a threshold; Pd is over target chips, Pfa over clutter chips (the same poses
-rendered without the target). "False alarms per image" counts, for each threshold,
-the mean number of clutter chips above it per target image set (= Pfa here, one
-decision per chip).
+:func:`evaluate_bank` classifies test chips at unseen poses and scores target chips
+against clutter-only chips (ROC definitions: docs/atr.md "Evaluation").
 """
 
 from __future__ import annotations
@@ -19,21 +10,26 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 from prism3d.atr.bank import FilterBank, check_targets, render_class_chips
-from prism3d.atr.chips import _bounding_sphere, _ground_mesh, chip_poses, render_chips
+from prism3d.atr.chips import ChipSpec, as_chip_spec, ground_mesh, render_chips, spec_poses
 from prism3d.atr.poses import parse_range
 
 from prism3d.errors import InputError
 
 __all__ = [
+    "EVAL_CHIP_SPEC",
+    "HELDOUT_SEED_OFFSET",
     "accuracy_by",
     "confusion_matrix",
     "evaluate_bank",
     "feature_baseline",
+    "format_results",
+    "heldout_seed",
     "pcc",
     "plot_confusion",
     "plot_per_aspect",
@@ -43,6 +39,11 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Test seed = training seed + 1: a camouflage pattern and noise the bank never saw.
+HELDOUT_SEED_OFFSET = 1
+#: Seed stride between targets' clutter-only chips (distinct from the class stride 1009).
+_CLUTTER_SEED_STRIDE = 31
 
 
 def _labels(values: Sequence[str], classes: Sequence[str], name: str) -> NDArray[np.int64]:
@@ -110,6 +111,19 @@ def roc_curve(target_scores: NDArray, clutter_scores: NDArray) -> dict[str, list
     return {"thresholds": th.tolist(), "pd": pd_.tolist(), "pfa": pfa.tolist(), "auc": auc}
 
 
+def heldout_seed(seed: int) -> int:
+    """Seed of the test targets and chips for a bank trained with ``seed``.
+
+    Test targets wear a camouflage pattern (and chips get noise draws) the bank never
+    saw: ``seed + HELDOUT_SEED_OFFSET``.
+    """
+    return int(seed) + HELDOUT_SEED_OFFSET
+
+
+#: Default test chips: the library's chip defaults with the held-out seed of seed 0.
+EVAL_CHIP_SPEC = ChipSpec(seed=heldout_seed(0))
+
+
 def evaluate_bank(
     bank: FilterBank,
     targets: Sequence[tuple[str, object]],
@@ -117,114 +131,49 @@ def evaluate_bank(
     azimuth: str | Sequence[float] | None = None,
     elevation: str | Sequence[float] | None = None,
     range_mm: str | float | Sequence[float] | None = None,
-    camouflage: bool = True,
-    noise_sigma: float = 0.0,
-    depth_noise_mm: float = 0.0,
-    lighting_variation: float = 0.0,
-    clutter: str | None = None,
-    seed: int = 1,
+    chip_spec: ChipSpec | None = None,
     out_json: str | Path | None = None,
 ) -> dict:
     """Evaluate a bank on rendered test chips (module docstring).
 
-    Parameters
-    ----------
-    bank : FilterBank
-    targets : list of (class_name, SceneMesh)
-        Every class must be one of ``bank.classes`` (else :class:`InputError`).
-    azimuth, elevation : str or sequence, optional
-        Test grid. Default azimuths: the training azimuths shifted by a quarter
-        step (unseen, interleaved); default elevations: the training ones.
-    camouflage, noise_sigma, depth_noise_mm, lighting_variation, clutter, seed
-        Test conditions (:func:`~prism3d.atr.chips.render_chips`).
-    out_json : path, optional
-        Write the dict as JSON, plus ``<stem>_chips.parquet`` (one row per chip)
-        and ``<stem>_confusion.png``, ``_aspect.png``, ``_roc.png``, ``_psr.png``.
+    ``targets``: ``[(class, SceneMesh)]``, classes among ``bank.classes``. Default
+    azimuths: the training ones shifted by a quarter step; default elevations and
+    ranges: the training ones. ``chip_spec``: test conditions (None =
+    :data:`EVAL_CHIP_SPEC`); its size and framing are replaced by the bank's.
+    ``out_json``: also write ``<stem>_chips.parquet`` and the plots beside it.
 
-    Returns
-    -------
-    dict
-        ``classes``, ``pcc``, ``confusion`` (list of lists, rows = true),
-        ``per_class`` (accuracy), ``per_aspect`` (accuracy per bin centre, keys as
-        strings), ``per_elevation``, ``per_range``, ``roc`` (:func:`roc_curve` of
-        best scores, target vs clutter chips), ``pd_at_pfa`` (Pd at Pfa <= 1%, 5%,
-        10%), ``scores_target``, ``scores_clutter``, ``psr_target``,
-        ``psr_clutter``, ``n_chips``, ``conditions``.
+    Returns a JSON-ready dict: ``classes``, ``pcc``, ``confusion`` (rows = true),
+    ``per_class``, ``per_aspect``, ``per_elevation``, ``per_range``, ``roc`` (target vs
+    clutter-only chips), ``pd_at_pfa`` (Pfa <= 1, 5, 10 %), ``scores_target``,
+    ``scores_clutter``, ``psr_target``, ``psr_clutter``, ``n_chips``, ``conditions``.
     """
     if not isinstance(bank, FilterBank):
         raise InputError(f"bank: expected a FilterBank, got {type(bank).__name__}")
-    items = check_targets(targets)
-    for c, m in items:
-        if c not in bank.classes:
-            raise InputError(
-                f"targets: unknown class {c!r} for target {m.name!r}; the bank's classes are {bank.classes}"
-            )
-    md = bank.metadata
-    if azimuth is None:
-        tr = md.get("azimuth") or [0.0]
-        step = float(np.median(np.diff(sorted(tr)))) if len(tr) > 1 else bank.bin_deg
-        azimuth = [a + step / 4.0 for a in tr]
-    if elevation is None:
-        elevation = md.get("elevation") or [20.0]
-    if range_mm is None and md.get("range_mm"):
-        range_mm = md["range_mm"]
-    framing = md.get("framing", "fit")
-    kw = {
-        "camouflage": camouflage,
-        "noise_sigma": noise_sigma,
-        "depth_noise_mm": depth_noise_mm,
-        "lighting_variation": lighting_variation,
-        "clutter": clutter,
-        "seed": seed,
-    }
-    X, labels, az, el, rng_, fx = render_class_chips(
-        items,
-        channel=bank.channel,
-        azimuth=parse_range(azimuth),
-        elevation=elevation,
-        range_mm=range_mm,
+    items = _check_eval_targets(bank, targets)
+    azimuth, elevation, range_mm = _test_grid(bank, azimuth, elevation, range_mm)
+    spec = replace(
+        as_chip_spec(chip_spec, EVAL_CHIP_SPEC),
         size=bank.size,
-        framing=framing,
-        **kw,
+        framing=bank.metadata.get("framing", "fit"),
+    )
+    X, labels, az, el, rng_, fx = render_class_chips(
+        items, channel=bank.channel, azimuth=azimuth, elevation=elevation, range_mm=range_mm,
+        chip_spec=spec,
     )
     df = bank.classify(X, fx)
     df.insert(0, "true_class", labels)
     df["az_deg"], df["el_deg"], df["range_mm"] = az, el, rng_
     correct = df["true_class"].to_numpy() == df["pred_class"].to_numpy()
     df["correct"] = correct
-    # clutter-only chips at the same poses (ground, or noise background, or empty)
-    cl_scores, cl_psr = [], []
-    for i, (_, mesh) in enumerate(items):
-        rmm = range_mm if range_mm is not None else 4.0 * _bounding_sphere(mesh)[1]
-        poses = chip_poses(
-            mesh, parse_range(azimuth), elevation, rmm, size=bank.size, framing=framing
-        )
-        bg = _ground_mesh(mesh, seed + i)
-        cs = render_chips(
-            bg,
-            poses,
-            size=bank.size,
-            channels=(bank.channel,),
-            **dict(kw, clutter="noise" if clutter == "noise" else None, seed=seed + 31 * i),
-        )
-        r = bank.responses(cs)
-        cl_scores.append(r[bank.metric].max(axis=1))
-        cl_psr.append(r["psr"].max(axis=1))
-    cl_scores_a = np.concatenate(cl_scores)
-    cl_psr_a = np.concatenate(cl_psr)
+    cl_scores, cl_psr = _clutter_scores(bank, items, azimuth, elevation, range_mm, spec)
     cls_scores = np.array([df[f"score_{c}"].to_numpy() for c in bank.classes]).max(axis=0)
-    roc = roc_curve(cls_scores, cl_scores_a)
-    pd_at = {}
-    for lim in (0.01, 0.05, 0.1):
-        ok = [p for p, f in zip(roc["pd"], roc["pfa"], strict=True) if f <= lim]
-        pd_at[str(lim)] = float(max(ok)) if ok else 0.0
-    conf = confusion_matrix(labels, df["pred_class"].tolist(), bank.classes)
+    roc = roc_curve(cls_scores, cl_scores)
     res = {
         "classes": list(bank.classes),
         "channel": bank.channel,
         "metric": bank.metric,
         "pcc": float(correct.mean()),
-        "confusion": conf.tolist(),
+        "confusion": confusion_matrix(labels, df["pred_class"].tolist(), bank.classes).tolist(),
         "per_class": {
             c: float(correct[np.array(labels) == c].mean()) for c in bank.classes if c in labels
         },
@@ -235,25 +184,89 @@ def evaluate_bank(
         "per_elevation": {f"{k:g}": v for k, v in accuracy_by(el, correct).items()},
         "per_range": {f"{k:g}": v for k, v in accuracy_by(rng_, correct).items()},
         "roc": roc,
-        "pd_at_pfa": pd_at,
+        "pd_at_pfa": _pd_at_pfa(roc),
         "scores_target": cls_scores.tolist(),
-        "scores_clutter": cl_scores_a.tolist(),
+        "scores_clutter": cl_scores.tolist(),
         "psr_target": df["psr"].tolist(),
-        "psr_clutter": cl_psr_a.tolist(),
+        "psr_clutter": cl_psr.tolist(),
         "n_chips": len(df),
-        "conditions": {
-            "camouflage": bool(camouflage),
-            "noise_sigma": float(noise_sigma),
-            "depth_noise_mm": float(depth_noise_mm),
-            "clutter": clutter,
-            "lighting_variation": float(lighting_variation),
-            "seed": int(seed),
-            "azimuth": [float(a) for a in parse_range(azimuth)],
-        },
+        "conditions": _conditions(spec, azimuth),
     }
     if out_json is not None:
         _write_results(res, df, Path(out_json))
     return res
+
+
+def format_results(res: dict) -> str:
+    """Pcc and the confusion matrix of an :func:`evaluate_bank` result, as text lines."""
+    lines = [f"Pcc {100 * res['pcc']:.1f}% over {len(res['classes'])} classes ({', '.join(res['classes'])})"]
+    for c, row in zip(res["classes"], res["confusion"], strict=True):
+        lines.append(f"  {c:<10} " + " ".join(f"{v:5d}" for v in row))
+    return "\n".join(lines)
+
+
+def _check_eval_targets(bank: FilterBank, targets) -> list[tuple[str, object]]:
+    items = check_targets(targets)
+    for c, m in items:
+        if c not in bank.classes:
+            raise InputError(
+                f"targets: unknown class {c!r} for target {m.name!r}; the bank's classes are {bank.classes}"
+            )
+    return items
+
+
+def _test_grid(bank: FilterBank, azimuth, elevation, range_mm) -> tuple[list[float], object, object]:
+    """Test azimuths (default: a quarter training step past them), elevations, ranges."""
+    md = bank.metadata
+    if azimuth is None:
+        tr = md.get("azimuth") or [0.0]
+        step = float(np.median(np.diff(sorted(tr)))) if len(tr) > 1 else bank.bin_deg
+        azimuth = [a + step / 4.0 for a in tr]
+    if elevation is None:
+        elevation = md.get("elevation") or [20.0]
+    if range_mm is None and md.get("range_mm"):
+        range_mm = md["range_mm"]
+    return parse_range(azimuth), elevation, range_mm
+
+
+def _clutter_scores(
+    bank: FilterBank, items, azimuth, elevation, range_mm, spec: ChipSpec
+) -> tuple[NDArray, NDArray]:
+    """Best score and PSR of clutter-only chips (ground, or noise background) per pose."""
+    scores, psr = [], []
+    for i, (_, mesh) in enumerate(items):
+        poses = spec_poses(mesh, azimuth, elevation, range_mm, spec)
+        cspec = replace(
+            spec,
+            channels=(bank.channel,),
+            clutter="noise" if spec.clutter == "noise" else None,
+            seed=spec.seed + _CLUTTER_SEED_STRIDE * i,
+        )
+        r = bank.responses(render_chips(ground_mesh(mesh, spec.seed + i), poses, chip_spec=cspec))
+        scores.append(r[bank.metric].max(axis=1))
+        psr.append(r["psr"].max(axis=1))
+    return np.concatenate(scores), np.concatenate(psr)
+
+
+def _pd_at_pfa(roc: dict) -> dict[str, float]:
+    """Best Pd with Pfa <= 1 %, 5 %, 10 % (keys ``"0.01"``...)."""
+    out = {}
+    for lim in (0.01, 0.05, 0.1):
+        ok = [p for p, f in zip(roc["pd"], roc["pfa"], strict=True) if f <= lim]
+        out[str(lim)] = float(max(ok)) if ok else 0.0
+    return out
+
+
+def _conditions(spec: ChipSpec, azimuth: list[float]) -> dict:
+    return {
+        "camouflage": bool(spec.camouflage),
+        "noise_sigma": float(spec.noise_sigma),
+        "depth_noise_mm": float(spec.depth_noise_mm),
+        "clutter": spec.clutter,
+        "lighting_variation": float(spec.lighting_variation),
+        "seed": int(spec.seed),
+        "azimuth": [float(a) for a in azimuth],
+    }
 
 
 def _write_results(res: dict, df, path: Path) -> None:
@@ -402,11 +415,7 @@ def feature_baseline(
     def table(az, sd):
         rows, labs = [], []
         for i, (c, mesh) in enumerate(items):
-            cs = render_chips(
-                mesh,
-                None,
-                azimuth=az,
-                elevation=elevation,
+            spec = ChipSpec(
                 size=size,
                 framing="range",
                 channels=("depth", "mask"),
@@ -414,6 +423,7 @@ def feature_baseline(
                 depth_noise_mm=depth_noise_mm,
                 seed=sd + i,
             )
+            cs = render_chips(mesh, None, azimuth=az, elevation=elevation, chip_spec=spec)
             for j, p in enumerate(cs.poses):
                 rows.append(feature_fn(cs["depth"][j], cs["mask"][j], p.K))
                 labs.append(c)

@@ -1,40 +1,16 @@
 """Correlation filters (MACE, UMACE, MACH, OT-MACH) and correlation-peak metrics.
 
-All filters are designed in the 2-D frequency domain (numpy FFT) from ``N``
-training images ``x_i`` of shape ``(H, W)``; ``X_i = fft2(x_i)``, ``d = H * W``.
-A filter is the complex array ``F`` ``(H, W)``; the correlation plane of an image
-``g`` is ``c = ifft2(fft2(g) * conj(F))`` (real part), i.e.
-``c[s] = sum_x g(x + s) f(x)`` with circular wrap: a target shifted by ``s`` moves
-the peak from ``(0, 0)`` to ``s``. :func:`correlate` returns the plane with the
-zero shift at the centre ``(H // 2, W // 2)`` (``np.fft.fftshift``).
-
-Designs (diagonal matrices stored as ``(H, W)`` arrays):
-
-* MACE: ``F = d D^-1 X (X^+ D^-1 X)^-1 u`` with ``D`` the average power spectrum
-  ``mean |X_i|^2`` and ``u = 1``: every training image correlates to exactly 1 at
-  the origin while the plane energy is minimal (sharp peaks).
-* UMACE: ``F = D^-1 m`` with ``m = mean X_i`` (no constraint, no matrix inverse).
-* MACH: ``F = S^-1 m`` with the average similarity measure
-  ``S = mean |X_i - m|^2`` (peak-height variation across the class is minimal).
-* OT-MACH: ``F = m / (alpha C + beta D + gamma S)`` with white-noise ``C = 1``
-  (scaled to the mean of ``D``) -- the optimal trade-off of noise tolerance (C),
-  peak sharpness (D) and distortion tolerance (S). ``(0, 1, 0)`` is UMACE,
-  ``(0, 0, 1)`` is MACH, ``(1, 0, 0)`` is the matched filter of the class mean.
-
-A tiny ``eps`` (relative to the mean of the denominator) keeps divisions finite; it
-does not change the MACE constraints (they hold for any positive diagonal ``D``).
+Filters are ``(H, W)`` complex arrays designed in the 2-D frequency domain from
+``(N, H, W)`` training images; the correlation plane of ``g`` is
+``ifft2(fft2(g) * conj(F))`` (a target shifted by ``s`` moves the peak to ``s``).
+Designs and conventions: docs/atr.md "Correlation filters".
 
 References
 ----------
-.. [1] A. Mahalanobis, B. V. K. Vijaya Kumar, D. Casasent, "Minimum average
-   correlation energy filters", Applied Optics 26(17), 3633-3640 (1987).
-.. [2] A. Mahalanobis, B. V. K. Vijaya Kumar, S. Song, S. R. F. Sims, J. F.
-   Epperson, "Unconstrained correlation filters", Applied Optics 33(17),
-   3751-3759 (1994) (UMACE, MACH).
-.. [3] Ph. Refregier, "Filter design for optical pattern recognition:
-   multicriteria optimization approach", Optics Letters 15(15), 854-856 (1990).
-.. [4] B. V. K. Vijaya Kumar, A. Mahalanobis, R. D. Juday, *Correlation Pattern
-   Recognition*, Cambridge University Press (2005).
+.. [1] Mahalanobis, Kumar, Casasent, Applied Optics 26(17), 3633 (1987) (MACE).
+.. [2] Mahalanobis et al., Applied Optics 33(17), 3751 (1994) (UMACE, MACH).
+.. [3] Refregier, Optics Letters 15(15), 854 (1990) (optimal trade-off).
+.. [4] Kumar, Mahalanobis, Juday, *Correlation Pattern Recognition*, CUP (2005).
 """
 
 from __future__ import annotations
@@ -72,16 +48,8 @@ _EPS = 1e-9
 
 @dataclass(frozen=True, eq=False)
 class CorrelationFilter:
-    """A frequency-domain correlation filter.
-
-    Attributes
-    ----------
-    freq : (H, W) complex128
-        The filter ``F`` (module docstring).
-    kind : str
-        ``"mace"``, ``"umace"``, ``"mach"`` or ``"otmach"``.
-    params : tuple of float
-        ``(alpha, beta, gamma)`` for OT-MACH (and the equivalent for UMACE/MACH).
+    """A frequency-domain filter: ``freq`` (H, W) complex128, ``kind`` (mace, umace,
+    mach, otmach) and OT-MACH ``params`` (alpha, beta, gamma).
     """
 
     freq: NDArray[np.complex128]
@@ -120,13 +88,8 @@ def _reg(a: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def mace_filter(images: NDArray) -> CorrelationFilter:
-    """MACE filter of ``(N, H, W)`` training images: correlation peak 1 at the origin
-    for each of them, minimum average correlation-plane energy.
-
-    Raises
-    ------
-    InputError
-        Bad array, NaN, or linearly dependent training images (singular ``X^+ D^-1 X``).
+    """MACE filter of ``(N, H, W)`` images: peak 1 at the origin for each, minimum
+    average plane energy. InputError for linearly dependent images.
     """
     X = _spectra(images)
     n = X.shape[0]
@@ -170,11 +133,8 @@ def otmach_from_moments(
 
 
 def otmach_filter(images: NDArray, alpha: float, beta: float, gamma: float) -> CorrelationFilter:
-    """Optimal trade-off MACH filter ``F = m / (alpha C + beta D + gamma S)``.
-
-    ``C`` is white noise scaled to the mean power of the training spectra, so the
-    three weights are comparable. Scaling all three weights by ``k`` scales ``F``
-    by ``1/k`` (peak metrics such as PSR are unchanged).
+    """OT-MACH filter ``F = m / (alpha C + beta D + gamma S)`` (white noise ``C``
+    scaled to the mean power, so the weights are comparable; only their ratios matter).
     """
     m, D, S = _moments(images)
     return otmach_from_moments(m, D, S, alpha, beta, gamma)
@@ -216,29 +176,12 @@ def correlate_many(freqs: NDArray, spectra: NDArray) -> NDArray[np.float64]:
 def peak_metrics(
     planes: NDArray, *, window: int = PSR_WINDOW, exclude: int = PSR_EXCLUDE
 ) -> dict[str, NDArray[np.float64]]:
-    """Peak height, location, PSR and PCE of correlation planes.
+    """Peak height, location, PSR and PCE of ``(..., H, W)`` correlation planes.
 
-    Parameters
-    ----------
-    planes : (..., H, W) float
-        Correlation planes (any leading shape).
-    window, exclude : int
-        PSR sidelobe region: the ``window x window`` square centred on the peak
-        (circular wrap at the borders) minus the central ``exclude x exclude``
-        square. Defaults: 20x20 minus 5x5.
-
-    Returns
-    -------
-    dict
-        ``peak`` (max value), ``row``, ``col`` (its index), ``psr`` =
-        ``(peak - mean(sidelobe)) / std(sidelobe)``, ``pce`` =
-        ``peak^2 / sum(c^2)`` (peak-to-correlation energy, plane energy over all
-        pixels), each of the leading shape.
-
-    References
-    ----------
-    .. [1] B. V. K. Vijaya Kumar, A. Mahalanobis, R. D. Juday, *Correlation Pattern
-       Recognition* (2005), ch. 5 (PSR, PCE).
+    Returns a dict of leading-shape arrays: ``peak``, ``row``, ``col``, ``psr`` =
+    ``(peak - mean(sidelobe)) / std(sidelobe)`` over the ``window`` square around the peak
+    (wrapping) minus the central ``exclude`` square, and ``pce`` = ``peak^2 / sum(c^2)``
+    (Kumar et al. 2005, ch. 5).
     """
     c = np.asarray(planes, dtype=np.float64)
     if c.ndim < 2:

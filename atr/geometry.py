@@ -33,14 +33,8 @@ UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 
 
 def as_camera(K_or_camera: NDArray | CameraModel, size: tuple[int, int]) -> CameraModel:
-    """A :class:`CameraModel` from a camera or a ``(3, 3)`` intrinsic matrix.
-
-    Parameters
-    ----------
-    K_or_camera : CameraModel or (3, 3) array
-        The camera; a bare ``K`` means no lens distortion.
-    size : (int, int)
-        ``(width, height)`` of the depth map it must describe.
+    """A :class:`CameraModel` from a camera or a ``(3, 3)`` ``K`` (no distortion),
+    checked against the depth map's ``(width, height)``.
     """
     if isinstance(K_or_camera, CameraModel):
         if tuple(K_or_camera.size) != tuple(size):
@@ -54,20 +48,8 @@ def as_camera(K_or_camera: NDArray | CameraModel, size: tuple[int, int]) -> Came
 
 
 def depth_to_points(depth_mm: NDArray, K_or_camera: NDArray | CameraModel) -> NDArray[np.float64]:
-    """Back-project a depth map to camera-frame points.
-
-    Parameters
-    ----------
-    depth_mm : (H, W) float
-        Depth along the camera z axis, mm; NaN = no surface.
-    K_or_camera : (3, 3) array or CameraModel
-        Intrinsics; with a :class:`CameraModel` lens distortion is inverted exactly
-        (:meth:`CameraModel.pixel_grid_rays`).
-
-    Returns
-    -------
-    (H, W, 3) float64
-        Points ``(x, y, z)`` mm in the OpenCV camera frame; NaN where depth is NaN.
+    """Back-project ``(H, W)`` depth (mm along z, NaN = none) to ``(H, W, 3)`` float64
+    camera-frame points (mm, NaN where depth is); a CameraModel's distortion is inverted exactly.
     """
     d = check_array(depth_mm, "depth_mm", ndim=2, dtype_kind="fiu").astype(np.float64)
     h, w = d.shape
@@ -125,30 +107,12 @@ def normals_from_depth(
     *,
     max_step_ratio: float = 0.05,
 ) -> NDArray[np.float32]:
-    """Unit surface normals from a depth map.
+    """Unit camera-frame normals ``(H, W, 3)`` float32 of a depth map (mm, NaN = none).
 
-    At each pixel, the horizontal and vertical tangents are one-sided differences of
-    the back-projected point map, each taken on the side where the surface continues
-    most linearly (smallest second difference), so that normals of piecewise-planar
-    targets do not smear across creases or depth discontinuities; the normal is their
-    cross product, oriented towards the camera. No smoothing is applied: smooth a
-    noisy (reconstructed) depth map first.
-
-    Parameters
-    ----------
-    depth_mm : (H, W) float
-        Depth mm, NaN = no surface.
-    K_or_camera : (3, 3) array or CameraModel
-        Intrinsics (distortion handled exactly with a CameraModel).
-    max_step_ratio : float
-        A tangent whose depth step exceeds ``max_step_ratio * depth`` on both sides
-        is a discontinuity: the normal is NaN there.
-
-    Returns
-    -------
-    (H, W, 3) float32
-        Unit normals in the camera frame (``n . p < 0``: facing the camera); NaN
-        where depth or both neighbours in a direction are missing.
+    Tangents are one-sided differences of the point map on the side where the surface
+    continues most linearly (no smearing across creases); a depth step over
+    ``max_step_ratio * depth`` on both sides is a discontinuity (NaN). Normals face the
+    camera; no smoothing (smooth noisy depth first).
     """
     P = depth_to_points(depth_mm, K_or_camera)
     du = _tangent(P, 1)
@@ -189,17 +153,8 @@ def up_rotation(up: str) -> NDArray[np.float64]:
 
 @dataclass(frozen=True)
 class GravityBox:
-    """Gravity-aligned bounding box of a z-up point set.
-
-    Attributes
-    ----------
-    length_mm, width_mm, height_mm : float
-        Longer and shorter horizontal sides of the minimum-area footprint rectangle,
-        and the vertical extent.
-    axes : (3, 3) float64
-        Rows: unit length axis, width axis (both horizontal) and up ``(0, 0, 1)``.
-    center : (3,) float64
-        Box centre.
+    """Gravity-aligned box: ``length_mm`` >= ``width_mm`` (footprint sides),
+    ``height_mm``; ``axes`` (3, 3) rows length, width, up; ``center`` (3,) mm.
     """
 
     length_mm: float
@@ -314,24 +269,11 @@ def gravity_box(
     axis_points: NDArray | None = None,
     axis: NDArray | None = None,
 ) -> GravityBox:
-    """Gravity-aligned box of points already expressed with +z up.
+    """Gravity-aligned box of ``(N, 3)`` points (mm, +z up).
 
-    The horizontal axes are the principal axes of the horizontal coordinates of
-    ``axis_points`` (e.g. uniform surface samples; default ``points_zup``): for
-    targets with a vertical mirror plane (vehicles, aircraft, ships) they are the
-    length and width directions of the object itself. When that spread is isotropic
-    the minimum-area footprint rectangle is used instead. Both choices are invariant
-    to rotations about the vertical. ``length`` is the longer horizontal side.
-
-    Parameters
-    ----------
-    points_zup : (N, 3) float
-        Points, mm, +z up (the box encloses all of them).
-    axis_points : (K, 3) float, optional
-        Points whose horizontal principal axes orient the box.
-    axis : (2,) float, optional
-        The horizontal major axis to use directly (e.g. from :func:`surface_axis`);
-        overrides ``axis_points``.
+    Horizontal axes: ``axis`` if given, else the principal axes of ``axis_points``
+    (default the points), else the minimum-area footprint rectangle when that spread is
+    isotropic; invariant to rotations about the vertical. ``length`` is the longer side.
     """
     p = check_array(points_zup, "points", shape=(None, 3), dtype_kind="fiu", min_size=3)
     p = p[np.all(np.isfinite(p), axis=1)].astype(np.float64)
@@ -356,21 +298,10 @@ def gravity_box(
 
 
 def min_oriented_box(points: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Minimum-volume oriented bounding box (no gravity constraint).
+    """Minimum-volume oriented box of ``(N, 3)`` points (trimesh; PCA axes for planar input).
 
-    Uses trimesh's convex-hull based search (:func:`trimesh.bounds.oriented_bounds`).
-
-    Parameters
-    ----------
-    points : (N, 3) float
-        Points, mm.
-
-    Returns
-    -------
-    extents : (3,) float64
-        Box side lengths, sorted in decreasing order, mm.
-    T_box_points : (4, 4) float64
-        Transform from the points' frame to the box frame (centred).
+    Returns ``extents`` (3,) mm in decreasing order and ``T_box_points`` (4, 4), points'
+    frame -> the centred box frame.
     """
     import trimesh
 

@@ -1,20 +1,10 @@
 """Viewing poses for training and test chips: grids, view-sphere samplings, tables.
 
-A chip pose places an OpenCV camera (x right, y down, z forward) on a sphere around
-the target's bounding-box centre. Angles follow the target's object frame (x forward,
-y left, z up, millimetres):
-
-* ``az_deg`` -- azimuth of the camera position, counter-clockwise seen from above,
-  measured from the +x axis (0 = looking at the nose, 90 = looking at the left side,
-  180 = looking at the tail);
-* ``el_deg`` -- elevation of the camera above the x-y plane (90 = straight down);
-* ``range_mm`` -- camera distance from the bounding-box centre;
-* ``roll_deg`` -- rotation of the image about the optical axis (positive turns the
-  scene clockwise in the image).
-
-The camera looks at the centre with the object's +z appearing up in the image.
-Every pose is fully recorded (angles, intrinsics ``K`` and ``T_cam_obj``) so that a
-chip can be reproduced or back-projected from its manifest row alone.
+An OpenCV camera (x right, y down, z forward) on a sphere around the target's
+bounding-box centre, object frame x forward, y left, z up (mm): ``az_deg`` from +x,
+counter-clockwise from above; ``el_deg`` above the x-y plane; ``range_mm`` from the
+centre; ``roll_deg`` about the optical axis (positive turns the scene clockwise).
+Details: docs/atr.md "Viewing poses".
 """
 
 from __future__ import annotations
@@ -48,21 +38,9 @@ POSE_COLUMNS = ("az_deg", "el_deg", "range_mm", "roll_deg", "fx", "fy", "cx", "c
 
 @dataclass(frozen=True)
 class ChipPose:
-    """One chip's viewpoint and camera.
-
-    Parameters
-    ----------
-    az_deg, el_deg : float
-        Azimuth and elevation of the camera in the object frame, degrees (module
-        docstring).
-    range_mm : float
-        Camera distance from the target's bounding-box centre, mm (> 0).
-    roll_deg : float
-        Image roll about the optical axis, degrees.
-    K : (3, 3) float64
-        Pinhole intrinsics of the chip camera (no distortion, no skew).
-    T_cam_obj : (4, 4) float64
-        Object frame -> camera frame (OpenCV): ``p_cam = T_cam_obj @ p_obj``.
+    """One chip's viewpoint and camera: ``az_deg``, ``el_deg`` (degrees, module
+    docstring), ``range_mm`` (> 0), ``roll_deg``, pinhole ``K`` (3, 3) and ``T_cam_obj``
+    (4, 4), object -> OpenCV camera frame.
     """
 
     az_deg: float
@@ -130,17 +108,10 @@ class ChipPose:
 
 
 def parse_range(spec: str | float | Sequence[float]) -> list[float]:
-    """Parse an angle or range list: ``"A0:A1:STEP"``, ``"v1,v2,..."`` or one number.
+    """Parse ``"A0:A1:STEP"``, ``"v1,v2,..."`` or numbers into a list of floats.
 
-    ``"A0:A1:STEP"`` is end-exclusive (``"0:360:10"`` -> 0, 10, ..., 350: 360 would
-    repeat 0), except that the end is included when it is reached exactly and is not
-    a full turn from the start (``"10:60:25"`` -> 10, 35, 60). Numbers and sequences
-    pass through as floats.
-
-    Raises
-    ------
-    InputError
-        Malformed text, a non-positive step, or an empty result.
+    ``"A0:A1:STEP"`` is end-exclusive (``"0:360:10"`` stops at 350), but includes an end
+    reached exactly that is not a full turn (``"10:60:25"`` -> 10, 35, 60).
     """
     if isinstance(spec, (int, float, np.integer, np.floating)) and not isinstance(spec, bool):
         return [float(spec)]
@@ -207,20 +178,8 @@ def directions_to_az_el(dirs: NDArray) -> NDArray[np.float64]:
 def fibonacci_directions(
     n: int, *, min_el_deg: float = -90.0, max_el_deg: float = 90.0
 ) -> NDArray[np.float64]:
-    """Near-uniform view directions by the Fibonacci (golden-angle) spiral.
-
-    Points are equally spaced in ``sin(el)`` between the elevation limits (equal
-    area) and turn by the golden angle, so any ``n`` is near-uniform.
-
-    Returns
-    -------
-    (n, 2) float64
-        (az, el) degrees.
-
-    References
-    ----------
-    .. [1] A. Gonzalez, "Measurement of areas on a sphere using Fibonacci and
-       latitude-longitude lattices", Mathematical Geosciences 42 (2010).
+    """Near-uniform ``(n, 2)`` (az, el) degrees on the golden-angle spiral, equally
+    spaced in ``sin(el)`` (Gonzalez, Mathematical Geosciences 42, 2010).
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise InputError(f"n: expected a positive integer, got {n!r}")
@@ -237,18 +196,83 @@ def fibonacci_directions(
     return np.stack([az, el], axis=1)
 
 
+#: Golden ratio: the icosahedron's vertices are the cyclic permutations of (0, +-1, +-phi).
+_PHI = (1.0 + math.sqrt(5.0)) / 2.0
+_ICO_VERTICES = np.array(
+    [
+        [-1, _PHI, 0],
+        [1, _PHI, 0],
+        [-1, -_PHI, 0],
+        [1, -_PHI, 0],
+        [0, -1, _PHI],
+        [0, 1, _PHI],
+        [0, -1, -_PHI],
+        [0, 1, -_PHI],
+        [_PHI, 0, -1],
+        [_PHI, 0, 1],
+        [-_PHI, 0, -1],
+        [-_PHI, 0, 1],
+    ],
+    dtype=np.float64,
+)
+#: The icosahedron's 20 faces (vertex indices, counter-clockwise from outside).
+_ICO_FACES = np.array(
+    [
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ],
+    dtype=np.int64,
+)
+
+
+def _icosahedron() -> tuple[list[NDArray[np.float64]], NDArray[np.int64]]:
+    """Unit vertices (list, grown by :func:`_subdivide`) and faces of the icosahedron."""
+    v = _ICO_VERTICES
+    return list(v / np.linalg.norm(v, axis=1, keepdims=True)), _ICO_FACES
+
+
+def _subdivide(verts: list[NDArray[np.float64]], f: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Split every triangle into four; new edge midpoints go on the unit sphere (appended)."""
+    cache: dict[tuple[int, int], int] = {}
+
+    def mid(a: int, b: int) -> int:
+        key = (min(a, b), max(a, b))
+        if key not in cache:
+            m = verts[a] + verts[b]
+            verts.append(m / np.linalg.norm(m))
+            cache[key] = len(verts) - 1
+        return cache[key]
+
+    nf = []
+    for a, b, c in f:
+        ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+        nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+    return np.asarray(nf, dtype=np.int64)
+
+
 def icosphere_directions(
     subdivisions: int = 1, *, min_el_deg: float = -90.0
 ) -> NDArray[np.float64]:
-    """View directions at the vertices of a subdivided icosahedron (10 * 4**k + 2).
-
-    Each subdivision splits every triangle into four and projects the new vertices
-    on the unit sphere. Directions below ``min_el_deg`` are dropped.
-
-    Returns
-    -------
-    (N, 2) float64
-        (az, el) degrees, sorted by elevation then azimuth (deterministic).
+    """``(N, 2)`` (az, el) degrees at the vertices of an icosahedron subdivided
+    ``subdivisions`` times (10 * 4**k + 2), above ``min_el_deg``, sorted by el then az.
     """
     if (
         isinstance(subdivisions, bool)
@@ -256,66 +280,9 @@ def icosphere_directions(
         or not 0 <= subdivisions <= 6
     ):
         raise InputError(f"subdivisions: expected an integer in [0, 6], got {subdivisions!r}")
-    p = (1.0 + math.sqrt(5.0)) / 2.0
-    v = np.array(
-        [
-            [-1, p, 0],
-            [1, p, 0],
-            [-1, -p, 0],
-            [1, -p, 0],
-            [0, -1, p],
-            [0, 1, p],
-            [0, -1, -p],
-            [0, 1, -p],
-            [p, 0, -1],
-            [p, 0, 1],
-            [-p, 0, -1],
-            [-p, 0, 1],
-        ],
-        dtype=np.float64,
-    )
-    f = np.array(
-        [
-            [0, 11, 5],
-            [0, 5, 1],
-            [0, 1, 7],
-            [0, 7, 10],
-            [0, 10, 11],
-            [1, 5, 9],
-            [5, 11, 4],
-            [11, 10, 2],
-            [10, 7, 6],
-            [7, 1, 8],
-            [3, 9, 4],
-            [3, 4, 2],
-            [3, 2, 6],
-            [3, 6, 8],
-            [3, 8, 9],
-            [4, 9, 5],
-            [2, 4, 11],
-            [6, 2, 10],
-            [8, 6, 7],
-            [9, 8, 1],
-        ],
-        dtype=np.int64,
-    )
-    verts = list(v / np.linalg.norm(v, axis=1, keepdims=True))
+    verts, f = _icosahedron()
     for _ in range(int(subdivisions)):
-        cache: dict[tuple[int, int], int] = {}
-
-        def mid(a: int, b: int, cache: dict[tuple[int, int], int] = cache) -> int:
-            key = (min(a, b), max(a, b))
-            if key not in cache:
-                m = verts[a] + verts[b]
-                verts.append(m / np.linalg.norm(m))
-                cache[key] = len(verts) - 1
-            return cache[key]
-
-        nf = []
-        for a, b, c in f:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        f = np.asarray(nf, dtype=np.int64)
+        f = _subdivide(verts, f)
     ae = directions_to_az_el(np.asarray(verts))
     ae = np.round(ae, 9) % np.array([360.0, 1e9])
     ae = ae[ae[:, 1] >= min_el_deg - 1e-9]
@@ -368,30 +335,10 @@ def make_poses(
     rolls_deg: Sequence[float] | float = 0.0,
     center_obj: NDArray | Sequence[float] = (0.0, 0.0, 0.0),
 ) -> list[ChipPose]:
-    """All combinations of (az, el) directions x ranges x rolls as :class:`ChipPose`.
+    """All (az, el) directions x ranges x rolls as :class:`ChipPose`, range-major.
 
-    Parameters
-    ----------
-    directions_deg : (N, 2) float
-        (az, el) degrees (:func:`grid_directions`, :func:`fibonacci_directions`,
-        :func:`icosphere_directions`).
-    ranges_mm : float or sequence of float
-        Camera distances, mm.
-    K : (3, 3) float64, optional
-        Intrinsics used for every pose. Default: ``focal_px`` (default ``size``)
-        with the principal point at the chip centre ``((size-1)/2, (size-1)/2)``.
-        :func:`~prism3d.atr.chips.render_chips` replaces ``K`` per its framing.
-    size : int
-        Chip size in pixels (for the default ``K``).
-    rolls_deg : float or sequence of float
-        Rolls about the optical axis.
-    center_obj : (3,) float
-        Point looked at, object frame mm (the bounding-box centre, typically).
-
-    Returns
-    -------
-    list of ChipPose
-        Ordered range-major, then direction, then roll (deterministic).
+    ``K`` default: focal ``focal_px`` (default ``size``), principal point at the chip
+    centre; ``center_obj``: the point looked at, object frame mm.
     """
     dirs = check_array(
         np.asarray(directions_deg, dtype=np.float64).reshape(-1, 2),

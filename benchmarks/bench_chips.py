@@ -22,7 +22,7 @@ def _rate(fn, n: int) -> float:
 
 def main() -> str:
     import numpy as np
-    from prism3d.atr.chips import chip_poses, render_chips
+    from prism3d.atr.chips import CHANNELS, ChipSpec, chip_poses, render_chips
     from prism3d.datasets.targets import builtin_target
 
     mesh = builtin_target("tank_t1")
@@ -30,10 +30,10 @@ def main() -> str:
     rows = []
     for backend in ("raycast", "pyrender"):
         for label, ch in (("depth+mask", ("depth", "mask")), ("intensity+depth+mask+shape", None)):
-            kw = {} if ch is None else {"channels": ch}
+            spec = ChipSpec(size=128, backend=backend, channels=CHANNELS if ch is None else ch)
 
-            def run(n, backend=backend, kw=kw):
-                render_chips(mesh, poses[:n], size=128, backend=backend, **kw)
+            def run(n, spec=spec):
+                render_chips(mesh, poses[:n], chip_spec=spec)
 
             rows.append((backend, label, _rate(run, len(poses))))
     lines = [

@@ -57,7 +57,8 @@ def main(work: Path) -> str:
     import pandas as pd
     from prism3d.datasets.db import init_db, verify_db
     from prism3d.datasets.ingest import add_builtin, add_quaternius_vehicles
-    from prism3d.datasets.jobs import run_features_job, run_render_job
+    from prism3d.atr.chips import ChipSpec
+    from prism3d.datasets.jobs import RunOptions, run_features_job, run_render_job
 
     out: list[str] = ["## Target database and jobs (benchmarks/bench_db.py)", ""]
     out.append(
@@ -84,15 +85,15 @@ def main(work: Path) -> str:
     out.append("")
 
     # -- the several-thousand-chip job, 2 workers -----------------------------------
-    kw = {"azimuth": "0:360:5", "elevation": "10,30,50", "size": 64, "chips_per_unit": 108}
-    rep = run_render_job(db, "main", workers=2, **kw)
+    kw = {"azimuth": "0:360:5", "elevation": "10,30,50", "chip_spec": ChipSpec(size=64), "chips_per_unit": 108}
+    rep = run_render_job(db, "main", run=RunOptions(workers=2), **kw)
     n_main = len(db.renders("main"))
     out.append(
         f"Render job `main`: {len(targets)} targets x 216 poses, 64x64, 4 channels: {n_main} chips, "
         f"{rep.total_units} units, 2 workers: {rep.seconds:.1f} s ({n_main / rep.seconds:.0f} chips/s), "
         f"failed units {len(rep.failed)}."
     )
-    frep = run_features_job(db, "main", workers=2)
+    frep = run_features_job(db, "main", run=RunOptions(workers=2))
     out.append(
         f"Features job: {frep.total_units} units (view features of every chip + model features) "
         f"in {frep.seconds:.1f} s, failed {len(frep.failed)}."
@@ -121,7 +122,7 @@ def main(work: Path) -> str:
     sub = {
         "azimuth": "0:360:5",
         "elevation": "20,40",
-        "size": 64,
+        "chip_spec": ChipSpec(size=64),
         "chips_per_unit": 72,
         "classes": ["tank", "jet", "ship", "truck"],
     }
@@ -129,7 +130,7 @@ def main(work: Path) -> str:
     loads = {}
     for w in (1, 2):
         loads[w] = _load()
-        r = run_render_job(db, f"speed{w}", workers=w, **sub)
+        r = run_render_job(db, f"speed{w}", run=RunOptions(workers=w), **sub)
         times[w] = r.seconds
     n_sub = len(db.renders("speed1"))
     out.append("| workers | chips | seconds | chips/s | load avg (1/5/15 min) before |")
@@ -147,12 +148,11 @@ def main(work: Path) -> str:
     mem = {
         "azimuth": "0:360:2",
         "elevation": "5,20,35,50",
-        "size": 64,
+        "chip_spec": ChipSpec(size=64, channels=("intensity", "depth", "mask")),
         "chips_per_unit": 120,
-        "channels": ("intensity", "depth", "mask"),
         "targets": list(targets["target_id"][:14]),
     }
-    r = run_render_job(db, "memory", workers=1, **mem)
+    r = run_render_job(db, "memory", run=RunOptions(workers=1), **mem)
     n_mem = len(db.renders("memory"))
     table, growth = _rss_table(db, "memory")
     out.append(

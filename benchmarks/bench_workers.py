@@ -20,19 +20,21 @@ import prism3d  # noqa: F401  (environment first)
 def main() -> None:
     from prism3d.datasets import db as dbm
     from prism3d.datasets.ingest import add_builtin
-    from prism3d.datasets.jobs import run_render_job
+    from prism3d.atr.chips import ChipSpec
+    from prism3d.datasets.jobs import RunOptions, run_render_job
 
     d = tempfile.mkdtemp(prefix="prism3d-bench-workers-")
     dbm.init_db(d)
     add_builtin(d)
-    kw = dict(azimuth="0:360:5", elevation="10:80:10", size=96, chips_per_unit=144)
-    run_render_job(d, "warm", workers=1, azimuth="0:360:90", elevation="20", size=32)  # caches
+    kw = dict(azimuth="0:360:5", elevation="10:80:10", chip_spec=ChipSpec(size=96), chips_per_unit=144)
+    run_render_job(d, "warm", run=RunOptions(workers=1), azimuth="0:360:90", elevation="20",
+                   chip_spec=ChipSpec(size=32))  # caches
     rows = []
     times = {}
     for w in (1, 2):
         load = os.getloadavg()[0]
         t0 = time.perf_counter()
-        rep = run_render_job(d, f"w{w}", workers=w, **kw)
+        rep = run_render_job(d, f"w{w}", run=RunOptions(workers=w), **kw)
         dt = time.perf_counter() - t0
         times[w] = dt
         n = len(dbm.open_db(d).renders(f"w{w}"))

@@ -1,23 +1,8 @@
 """The target database: a plain folder of YAML, Parquet, PLY and ``.npz`` files.
 
-The folder format is written down in ``datasets/FORMAT.md``; it is readable without
-prism3d (pandas, pyarrow, DuckDB). This module creates and opens a database, reads
-its tables with schema checks, loads chips as NumPy arrays, summarises (``info``)
-and checks (``verify``) a database.
-
-Layout::
-
-    DB/
-      db.yaml                        schema_version, units: mm, created, prism3d version
-      .lock                          fcntl lock of read-modify-write of targets.parquet
-      targets.parquet                one row per target
-      models/<target_id>.ply         normalised models (mm, z up, vertex colours)
-      renders/<job>/job.yaml         render job spec
-      renders/<job>/manifest/part-<unit>.parquet   one row per chip
-      renders/<job>/chips/<target_id>/<index>.npz  one chip, one array per channel
-      features/<job>/part-<unit>.parquet           per-chip view features
-      features/models/part-<target_id>.parquet     per-target model features
-      evals/                         evaluation results
+Create, open, read (with schema checks), load chips, summarise and verify a database.
+The folder format is ``datasets/FORMAT.md`` (layout also in docs/atr.md); it is
+readable without prism3d (pandas, pyarrow, DuckDB).
 """
 
 from __future__ import annotations
@@ -36,13 +21,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.errors import DatasetError
+from prism3d.errors import DatasetError, InputError
 
 __all__ = [
     "DB_SCHEMA_VERSION",
     "TABLE_SCHEMA_VERSION",
     "TARGET_COLUMNS",
     "TargetDB",
+    "check_add_request",
     "format_info",
     "init_db",
     "open_db",
@@ -120,18 +106,8 @@ def _prism3d_version() -> str:
 def write_table(
     df: Any, path: str | Path, *, kind: str, extra_meta: dict[str, str] | None = None
 ) -> None:
-    """Write a DataFrame as Parquet atomically, with ``schema_version`` column and metadata.
-
-    Parameters
-    ----------
-    df : pandas.DataFrame
-        The rows (a ``schema_version`` column is set to :data:`TABLE_SCHEMA_VERSION`).
-    path : path
-        Output ``.parquet`` file.
-    kind : str
-        Table kind stored under ``prism3d_table`` (``targets``, ``manifest``...).
-    extra_meta : dict of str -> str, optional
-        More key-value metadata (e.g. the job's spec hash).
+    """Write ``df`` as Parquet atomically, with a ``schema_version`` column and
+    ``prism3d_table`` = ``kind`` plus ``extra_meta`` in the key-value metadata.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -233,15 +209,7 @@ def _safe_rel(root: Path, rel: str, what: str) -> Path:
 
 
 class TargetDB:
-    """An opened target database folder (see :func:`open_db`).
-
-    Attributes
-    ----------
-    path : Path
-        The database folder.
-    meta : dict
-        Contents of ``db.yaml``.
-    """
+    """An opened target database: ``path`` (the folder) and ``meta`` (``db.yaml``)."""
 
     def __init__(self, path: Path, meta: dict[str, Any]) -> None:
         self.path = path
@@ -371,20 +339,8 @@ class TargetDB:
         range_mm: tuple[float, float] | None = None,
         channel: str = "depth",
     ) -> tuple[NDArray, Any]:
-        """Chips of one channel as one array, with their manifest rows.
-
-        Returns
-        -------
-        X : (N, H, W) array
-            ``depth`` float32 mm (NaN = no surface), ``intensity``/``shape`` float32
-            in [0, 1], ``mask`` bool.
-        meta : pandas.DataFrame
-            The N manifest rows, in the order of ``X``.
-
-        Raises
-        ------
-        DatasetError
-            Unknown job or channel, a chip path escaping the DB, unreadable chips.
+        """Chips of one channel ``(N, H, W)`` (depth float32 mm, intensity/shape float32,
+        mask bool) and their N manifest rows, in the same order.
         """
         rows = self.select(
             job,
@@ -435,7 +391,8 @@ class TargetDB:
 
     # -- summary / checks ------------------------------------------------------------
     def info(self) -> dict[str, Any]:
-        """Counts per table and class, jobs and their completion (a JSON-able dict)."""
+        """Counts per table and class, and the render jobs by name (a JSON-able dict;
+        :func:`prism3d.datasets.jobs.database_info` adds each job's completion)."""
         t = self.targets()
         out: dict[str, Any] = {
             "path": str(self.path),
@@ -446,17 +403,29 @@ class TargetDB:
             }
             if len(t)
             else {},
-            "jobs": {},
+            "jobs": {job: {} for job in self.jobs()},
         }
-        from prism3d.datasets.jobs import job_status
-
-        for job in self.jobs():
-            out["jobs"][job] = job_status(self, job)
         return out
 
     def verify(self) -> list[str]:
         """Problems found (empty list = healthy); see :func:`verify_db`."""
         return verify_db(self)
+
+
+def check_add_request(
+    meshes: Sequence[str | Path], builtin: Sequence[str] | None, target_class: str | None
+) -> str:
+    """Which targets ``db add`` adds: ``"builtin"`` (``builtin`` not None; an empty list
+    means all) or ``"meshes"`` (mesh files, which need ``target_class``)."""
+    if builtin is not None:
+        if meshes:
+            raise InputError("db add: give mesh files or --builtin, not both")
+        return "builtin"
+    if not meshes:
+        raise InputError("db add: give mesh files (with --class) or --builtin")
+    if target_class is None:
+        raise InputError("db add: give the targets' --class")
+    return "meshes"
 
 
 def _check_name(name: str, what: str) -> None:
@@ -545,17 +514,10 @@ def _as_db(db: TargetDB | str | Path) -> TargetDB:
 
 
 def verify_db(db: TargetDB | str | Path, *, check_hashes: bool = True) -> list[str]:
-    """Check a database; return the problems found (``prism3d db verify DB``).
+    """Problems of a database, one line each (empty when healthy).
 
-    Checks: every table's schema version is known; every target's model file exists
-    and matches its hash; every manifest row's chip file exists, stays inside the DB
-    and matches its sha256; chip files no manifest row points to (orphans of a
-    killed unit); leftover temporary files.
-
-    Returns
-    -------
-    list of str
-        One line per problem; empty when the database is healthy.
+    Checks schema versions, model files and hashes, chip files (present, inside the DB,
+    sha256), orphan chips of killed units and leftover temporary files.
     """
     db = _as_db(db)
     problems: list[str] = []
@@ -623,7 +585,8 @@ def verify_db(db: TargetDB | str | Path, *, check_hashes: bool = True) -> list[s
 
 
 def format_info(info: dict[str, Any]) -> str:
-    """Human-readable text of :meth:`TargetDB.info` (for ``prism3d db info``)."""
+    """Human-readable text of :meth:`TargetDB.info` or of
+    :func:`~prism3d.datasets.jobs.database_info` (for ``prism3d db info``)."""
     lines = [
         f"database {info['path']} (schema {info['schema_version']})",
         f"targets: {info['targets']}",
@@ -634,7 +597,7 @@ def format_info(info: dict[str, Any]) -> str:
     for job, st in info["jobs"].items():
         lines.append(
             f"  {job}: {st['done_units']}/{st['units']} units done, {st['chips']} chips, "
-            f"features {'yes' if st['features'] else 'no'}"
+            f"features {'yes' if st['features'] else 'no'}" if st else f"  {job}"
         )
     return "\n".join(lines)
 

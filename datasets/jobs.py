@@ -1,25 +1,9 @@
 """Render and feature jobs over a target database, in-process or on a Dask cluster.
 
-A job is split into *units*; a unit is one target x a slice of its poses (render) or
-one finished render unit (features) or one target's model (model features). A unit
-writes its chips first, each atomically, and its manifest part LAST, atomically; so a
-part file present means a complete unit. A part records the hash of the job spec
-(Parquet key-value metadata ``prism3d_spec_hash``): rerunning a job skips every unit
-whose part exists with the same hash (resume). A unit killed half-way leaves only
-orphan chips, which the rerun overwrites (same names, same bytes: rendering is
-deterministic per unit, and chip ``.npz`` files are written with fixed zip
-timestamps, so their sha256 is reproducible).
-
-Runners: ``workers=0`` runs units in this process (debugging); ``workers=N`` starts a
-``dask.distributed.LocalCluster`` of N single-threaded worker processes started with
-``spawn`` (safe with numba/OpenMP and OSMesa; importing prism3d in the worker sets
-``PYOPENGL_PLATFORM``/``NUMBA_THREADING_LAYER``); ``scheduler="tcp://host:port"``
-uses an existing cluster. A failing unit is retried ``retries`` times, then reported
-(target and pose range) without stopping the other units.
-
-Each render unit records its worker's pid, resident memory (psutil RSS, sampled at
-the end of the unit) and time in the part's metadata (``prism3d_unit_stats``, JSON);
-see :func:`unit_stats`.
+A job is split into units (one target x a slice of its poses); a unit writes its chips,
+then its manifest part last, both atomically, tagged with the job's spec hash, so a
+rerun skips finished units (resume). Units run in this process or on Dask workers
+(:class:`RunOptions`). Units, resume and runners: docs/atr.md "Target database and jobs".
 """
 
 from __future__ import annotations
@@ -32,12 +16,13 @@ import os
 import time
 import zipfile
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from prism3d.atr.chips import CHANNELS, ChipSpec, as_chip_spec
 from prism3d.datasets.db import (
     TargetDB,
     _as_db,
@@ -53,10 +38,13 @@ from prism3d.errors import DatasetError, Prism3dError
 from prism3d.progress import ProgressFn
 
 __all__ = [
+    "JOB_CHIP_FIELDS",
     "JOB_SCHEMA_VERSION",
     "JobReport",
     "RenderSpec",
+    "RunOptions",
     "Unit",
+    "database_info",
     "job_status",
     "plan_units",
     "run_features_job",
@@ -68,7 +56,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 JOB_SCHEMA_VERSION = 1
-_CHANNELS = ("intensity", "depth", "mask", "shape")
+_CHANNELS = CHANNELS
+#: ChipSpec fields a render job stores (the others must keep their defaults).
+JOB_CHIP_FIELDS = ("size", "channels", "framing", "camouflage", "clutter", "seed", "backend")
 
 
 # ---------------------------------------------------------------------------------
@@ -78,45 +68,32 @@ _CHANNELS = ("intensity", "depth", "mask", "shape")
 
 @dataclass(frozen=True)
 class RenderSpec:
-    """A render job: what to render (stored as ``renders/<job>/job.yaml``).
+    """A render job, stored as ``renders/<job>/job.yaml`` (its JSON hashes the job).
 
-    Attributes
-    ----------
-    name : str
-        Job name (folder name under ``renders/``).
-    targets : tuple of str
-        Target ids, fixed when the job is created.
-    azimuth, elevation : str
-        Angle grids in degrees (``"0:360:10"``, ``"10,30"``, ``"20"``).
-    range_mm : str or None
-        Range grid, mm; None = 4 bounding-sphere radii of each target.
-    size : int
-        Chip side, pixels.
-    channels : tuple of str
-        Subset of intensity, depth, mask, shape.
-    framing : {"fit", "range"}
-    camouflage : bool
-    clutter : {None, "ground", "noise"}
-    seed : int
-        Job seed (each unit derives its own seed from it, the target and the slice).
-    chips_per_unit : int
-        Poses per unit (50-200 balances overhead and lost work on a kill).
-    backend : {"raycast", "pyrender"}
+    The chip fields (:data:`JOB_CHIP_FIELDS`) take their defaults from
+    :class:`~prism3d.atr.chips.ChipSpec` (:attr:`chip_spec`); ``seed`` is the job seed,
+    each unit derives its own from it, the target and the slice.
     """
 
     name: str
+    """Job name (folder name under ``renders/``)."""
     targets: tuple[str, ...]
+    """Target ids, fixed when the job is created."""
     azimuth: str = "0:360:30"
+    """Azimuth grid, degrees (``"0:360:10"``, ``"10,30"``)."""
     elevation: str = "20"
+    """Elevation grid, degrees."""
     range_mm: str | None = None
-    size: int = 128
-    channels: tuple[str, ...] = _CHANNELS
-    framing: str = "fit"
-    camouflage: bool = True
-    clutter: str | None = None
-    seed: int = 0
+    """Range grid, mm; None = :func:`~prism3d.atr.chips.default_range_mm` of each target."""
+    size: int = ChipSpec.size
+    channels: tuple[str, ...] = ChipSpec.channels
+    framing: str = ChipSpec.framing
+    camouflage: bool = ChipSpec.camouflage
+    clutter: str | None = ChipSpec.clutter
+    seed: int = ChipSpec.seed
     chips_per_unit: int = 100
-    backend: str = "raycast"
+    """Poses per unit (50-200 balances overhead and lost work on a kill)."""
+    backend: str = ChipSpec.backend
 
     def __post_init__(self) -> None:
         from prism3d.atr.poses import parse_range
@@ -154,6 +131,37 @@ class RenderSpec:
             v = getattr(self, nm)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise DatasetError(f"{nm}: expected an integer >= {lo}, got {v!r}")
+
+    @classmethod
+    def create(
+        cls, name: str, targets: Sequence[str], grid: dict[str, Any], chip_spec: ChipSpec,
+        chips_per_unit: int,
+    ) -> RenderSpec:
+        """The spec of a job rendering ``grid`` (azimuth, elevation, range_mm) with ``chip_spec``."""
+        extra = [
+            f.name for f in fields(ChipSpec)
+            if f.name not in JOB_CHIP_FIELDS and getattr(chip_spec, f.name) != f.default
+        ]
+        if extra:
+            raise DatasetError(
+                f"chip_spec: a render job stores only {', '.join(JOB_CHIP_FIELDS)}; "
+                f"leave {', '.join(extra)} at their defaults"
+            )
+        rng = grid.get("range_mm")
+        return cls(
+            name=name,
+            targets=tuple(targets),
+            azimuth=str(grid.get("azimuth", cls.azimuth)),
+            elevation=str(grid.get("elevation", cls.elevation)),
+            range_mm=None if rng is None else str(rng),
+            chips_per_unit=chips_per_unit,
+            **{k: getattr(chip_spec, k) for k in JOB_CHIP_FIELDS},
+        )
+
+    @property
+    def chip_spec(self) -> ChipSpec:
+        """The chip settings of this job (job seed; units replace it with their own)."""
+        return ChipSpec(**{k: getattr(self, k) for k in JOB_CHIP_FIELDS})
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -225,14 +233,7 @@ def plan_units(spec: RenderSpec) -> list[Unit]:
 def write_npz_deterministic(path: str | Path, arrays: dict[str, NDArray]) -> str:
     """Write arrays as a compressed ``.npz`` with fixed zip timestamps, atomically.
 
-    The same arrays always give the same bytes (``np.savez_compressed`` stamps the
-    current time), so the file's sha256 identifies its content. Readable by
-    ``np.load(path, allow_pickle=False)``.
-
-    Returns
-    -------
-    str
-        The hex sha256 of the written file.
+    The same arrays give the same bytes, so the returned sha256 identifies the content.
     """
     from prism3d.io.atomic import atomic_path
 
@@ -295,27 +296,16 @@ def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str
     dict
         Unit stats: ``unit``, ``chips``, ``seconds``, ``pid``, ``rss_mb``.
     """
-    from prism3d.atr.chips import _bounding_sphere, chip_poses, render_chips
+    from prism3d.atr.chips import render_chips, spec_poses
 
     t0 = time.perf_counter()
     db = open_db(db_path)
     spec = RenderSpec.from_dict(spec_dict)
     mesh, cls = _target_mesh(db, unit.target_id)
-    rng = spec.range_mm if spec.range_mm is not None else 4.0 * _bounding_sphere(mesh)[1]
-    poses = chip_poses(
-        mesh, spec.azimuth, spec.elevation, rng, size=spec.size, framing=spec.framing
-    )
+    chip_spec = replace(spec.chip_spec, seed=_unit_seed(spec.seed, unit))
+    poses = spec_poses(mesh, spec.azimuth, spec.elevation, spec.range_mm, chip_spec)
     poses = poses[unit.start : unit.stop]
-    chips = render_chips(
-        mesh,
-        poses,
-        size=spec.size,
-        channels=spec.channels,
-        camouflage=spec.camouflage,
-        clutter=spec.clutter,
-        seed=_unit_seed(spec.seed, unit),
-        backend=spec.backend,
-    )
+    chips = render_chips(mesh, poses, chip_spec=chip_spec)
     table = chips.table.drop(columns=["chip", "target"])
     files, shas = [], []
     for i in range(len(poses)):
@@ -428,18 +418,8 @@ def model_features_unit(db_path: str, target_id: str) -> dict[str, Any]:
 
 @dataclass
 class JobReport:
-    """Outcome of a job run.
-
-    Attributes
-    ----------
-    job : str
-    total_units, skipped_units, done_units : int
-        All units, units already finished before this run (resumed), units finished now.
-    failed : list of dict
-        ``unit``, ``what`` (target and pose range), ``error`` per failed unit.
-    stats : list of dict
-        Per-unit stats (``pid``, ``rss_mb``, ``seconds``, ``chips``) of units run now.
-    seconds : float
+    """Outcome of a job run: unit counts (``total``, ``skipped`` = resumed,
+    ``done`` = run now), ``failed`` (``unit``, ``what``, ``error``), per-unit ``stats``.
     """
 
     job: str
@@ -473,52 +453,79 @@ class JobReport:
 _Task = tuple[str, str, Callable[..., dict[str, Any]], tuple]
 
 
-def _execute(
-    tasks: list[_Task],
-    report: JobReport,
-    *,
-    workers: int,
-    scheduler: str | None,
-    retries: int,
-    progress: ProgressFn | None,
-) -> None:
-    """Run ``(unit_id, what, fn, args)`` tasks; fill ``report`` (never raises for a unit)."""
-    n = len(tasks)
-    done = 0
-    if progress is not None:
-        progress(0, n, report.job)
+@dataclass(frozen=True)
+class RunOptions:
+    """Where and how job units run."""
 
-    def finish(unit_id: str, what: str, res: Any, err: BaseException | None) -> None:
-        nonlocal done
-        done += 1
+    workers: int = 0
+    """0: units run in this process (debugging); N: a local Dask cluster of N processes."""
+    scheduler: str | None = None
+    """Address of an existing Dask scheduler (``tcp://HOST:PORT``); overrides ``workers``."""
+    retries: int = 2
+    """Retries of a failing unit before it is reported."""
+    progress: ProgressFn | None = None
+    """Progress callback ``(done, total, label)``."""
+
+    def __post_init__(self) -> None:
+        w, r = self.workers, self.retries
+        if isinstance(w, bool) or not isinstance(w, int) or w < 0:
+            raise DatasetError(f"workers: expected an integer >= 0, got {w!r}")
+        sch = self.scheduler
+        if sch is not None and not (isinstance(sch, str) and "://" in sch):
+            raise DatasetError(f"scheduler: expected an address like tcp://HOST:PORT, got {sch!r}")
+        if isinstance(r, bool) or not isinstance(r, int) or r < 0:
+            raise DatasetError(f"retries: expected an integer >= 0, got {r!r}")
+
+
+class _Tally:
+    """Counts finished tasks into a :class:`JobReport` and reports progress."""
+
+    def __init__(self, report: JobReport, n: int, progress: ProgressFn | None) -> None:
+        self.report, self.n, self.progress, self.done = report, n, progress, 0
+        if progress is not None:
+            progress(0, n, report.job)
+
+    def __call__(self, unit_id: str, what: str, res: Any, err: BaseException | None) -> None:
+        self.done += 1
         if err is None:
-            report.done_units += 1
-            report.stats.append(res)
+            self.report.done_units += 1
+            self.report.stats.append(res)
         else:
             log.warning("unit %s (%s) failed: %s", unit_id, what, err)
-            report.failed.append(
+            self.report.failed.append(
                 {"unit": unit_id, "what": what, "error": f"{type(err).__name__}: {err}"}
             )
-        if progress is not None:
-            progress(done, n, unit_id)
+        if self.progress is not None:
+            self.progress(self.done, self.n, unit_id)
 
+
+def _execute(tasks: list[_Task], report: JobReport, run: RunOptions) -> None:
+    """Run ``(unit_id, what, fn, args)`` tasks; fill ``report`` (never raises for a unit)."""
+    finish = _Tally(report, len(tasks), run.progress)
     if not tasks:
         return
-    if scheduler is None and workers == 0:
-        for unit_id, what, fn, args in tasks:
-            err: BaseException | None = None
-            res = None
-            for _attempt in range(retries + 1):
-                try:
-                    res = fn(*args)
-                    err = None
-                    break
-                except Exception as exc:  # noqa: BLE001 - one unit's failure must not stop the job
-                    err = exc
-            finish(unit_id, what, res, err)
-        return
+    if run.scheduler is None and run.workers == 0:
+        _run_local(tasks, run.retries, finish)
+    else:
+        _run_dask(tasks, report.job, run, finish)
+
+
+def _run_local(tasks: list[_Task], retries: int, finish: _Tally) -> None:
+    for unit_id, what, fn, args in tasks:
+        err: BaseException | None = None
+        res = None
+        for _attempt in range(retries + 1):
+            try:
+                res = fn(*args)
+                err = None
+                break
+            except Exception as exc:  # noqa: BLE001 - one unit's failure must not stop the job
+                err = exc
+        finish(unit_id, what, res, err)
+
+
+def _dask_config() -> dict[str, Any]:
     import dask
-    from distributed import Client, LocalCluster, as_completed
 
     # one core per worker process: numba's parallel kernels would otherwise start one
     # thread per core in every worker and the workers would fight for the cores
@@ -526,17 +533,23 @@ def _execute(
     environ.setdefault("NUMBA_NUM_THREADS", 1)
     environ.setdefault("PRISM3D_NUM_THREADS", 1)  # Open3D ray casting (capture.render)
     environ.setdefault("OMP_NUM_THREADS", 1)
-    cfg = {
+    return {
         "distributed.worker.multiprocessing-method": "spawn",
         "distributed.nanny.pre-spawn-environ": environ,
     }
-    with dask.config.set(cfg):
-        if scheduler is not None:
+
+
+def _run_dask(tasks: list[_Task], job: str, run: RunOptions, finish: _Tally) -> None:
+    import dask
+    from distributed import Client, LocalCluster, as_completed
+
+    with dask.config.set(_dask_config()):
+        if run.scheduler is not None:
             cluster = None
-            client = Client(scheduler)
+            client = Client(run.scheduler)
         else:
             cluster = LocalCluster(
-                n_workers=workers,
+                n_workers=run.workers,
                 threads_per_worker=1,
                 processes=True,
                 dashboard_address=":0",  # a free port: never clash with another cluster
@@ -547,8 +560,8 @@ def _execute(
             futs = []
             names: dict[str, tuple[str, str]] = {}
             for unit_id, what, fn, args in tasks:
-                key = f"{report.job}-{unit_id}-{time.time_ns()}"
-                futs.append(client.submit(fn, *args, key=key, retries=retries, pure=False))
+                key = f"{job}-{unit_id}-{time.time_ns()}"
+                futs.append(client.submit(fn, *args, key=key, retries=run.retries, pure=False))
                 names[key] = (unit_id, what)
             for fut in as_completed(futs):
                 unit_id, what = names[fut.key]
@@ -561,17 +574,6 @@ def _execute(
             client.close()
             if cluster is not None:
                 cluster.close()
-
-
-def _check_runner(workers: int, scheduler: str | None, retries: int) -> None:
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
-        raise DatasetError(f"workers: expected an integer >= 0, got {workers!r}")
-    if scheduler is not None and not (isinstance(scheduler, str) and "://" in scheduler):
-        raise DatasetError(
-            f"scheduler: expected an address like tcp://HOST:PORT, got {scheduler!r}"
-        )
-    if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
-        raise DatasetError(f"retries: expected an integer >= 0, got {retries!r}")
 
 
 def load_spec(db: TargetDB, job: str) -> RenderSpec:
@@ -611,51 +613,51 @@ def run_render_job(
     db: TargetDB | str | Path,
     job: str,
     *,
-    azimuth: str = "0:360:30",
-    elevation: str = "20",
+    azimuth: str = RenderSpec.azimuth,
+    elevation: str = RenderSpec.elevation,
     range_mm: str | None = None,
-    size: int = 128,
-    channels: Sequence[str] = _CHANNELS,
+    chip_spec: ChipSpec | None = None,
     targets: Sequence[str] | None = None,
     classes: Sequence[str] | None = None,
-    framing: str = "fit",
-    camouflage: bool = True,
-    clutter: str | None = None,
-    seed: int = 0,
-    chips_per_unit: int = 100,
-    backend: str = "raycast",
-    workers: int = 0,
-    scheduler: str | None = None,
-    retries: int = 2,
-    progress: ProgressFn | None = None,
+    chips_per_unit: int = RenderSpec.chips_per_unit,
+    run: RunOptions | None = None,
 ) -> JobReport:
     """Create (or resume) render job ``job`` and run its unfinished units.
 
-    ``prism3d db render DB --job NAME --azimuth A --elevation E --range R --size S
-    --channels C,.. --targets T,.. --workers N --scheduler ADDR``.
-
-    On the first run the spec (with the target list resolved: ``targets`` ids and/or
-    ``classes``, default every target) is stored in ``renders/<job>/job.yaml``; a
-    rerun with the same parameters resumes, a rerun with different parameters is an
-    error (choose a new job name).
-
-    Returns
-    -------
-    JobReport
-        ``exit_code`` is 1 when any unit failed after its retries.
-
-    Raises
-    ------
-    DatasetError
-        Bad parameters, unknown targets, a job name reused with another spec.
+    The first run stores the spec (targets resolved from ``targets`` ids and/or
+    ``classes``, default every target; chips per ``chip_spec``, None = ``ChipSpec()``)
+    in ``renders/<job>/job.yaml``; a rerun with the same parameters resumes, with others
+    it raises :class:`DatasetError` (as for unknown targets). ``run``: where units run.
+    The report's ``exit_code`` is 1 when a unit failed after its retries.
     """
-    import yaml
-
-    from prism3d.io.atomic import atomic_write_text
-
     t0 = time.perf_counter()
     db = _as_db(db)
-    _check_runner(workers, scheduler, retries)
+    run = RunOptions() if run is None else run
+    chosen = _select_targets(db, job, targets, classes)
+    grid = {"azimuth": azimuth, "elevation": elevation, "range_mm": range_mm}
+    spec = RenderSpec.create(
+        job, chosen, grid, as_chip_spec(chip_spec), chips_per_unit
+    )
+    _store_spec(db, spec)
+    units = plan_units(spec)
+    report = JobReport(job=job, total_units=len(units))
+    mdir = db.job_dir(job) / "manifest"
+    tasks: list[_Task] = []
+    sd = spec.to_dict()
+    for u in units:
+        if _part_done(mdir / f"part-{u.unit_id}.parquet", "prism3d_spec_hash", spec.spec_hash):
+            report.skipped_units += 1
+        else:
+            tasks.append((u.unit_id, u.describe(), render_unit, (str(db.path), sd, u)))
+    _execute(tasks, report, run)
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+def _select_targets(
+    db: TargetDB, job: str, targets: Sequence[str] | None, classes: Sequence[str] | None
+) -> tuple[str, ...]:
+    """Target ids of a job: ``targets`` and/or ``classes``, else the stored job's, else all."""
     table = db.targets()
     ids = list(table["target_id"])
     if targets:
@@ -669,77 +671,38 @@ def run_render_job(
         sel = sel[sel["target_id"].isin(list(targets))]
     if classes:
         sel = sel[sel["class"].isin(list(classes))]
-    chosen = tuple(sorted(sel["target_id"]))
-    jf = db.job_dir(job) / "job.yaml"
-    if jf.is_file() and not targets and not classes:
-        chosen = load_spec(
-            db, job
-        ).targets  # resume with the job's targets (new ones are not added)
-    spec = RenderSpec(
-        name=job,
-        targets=chosen,
-        azimuth=str(azimuth),
-        elevation=str(elevation),
-        range_mm=None if range_mm is None else str(range_mm),
-        size=size,
-        channels=tuple(channels),
-        framing=framing,
-        camouflage=camouflage,
-        clutter=clutter,
-        seed=seed,
-        chips_per_unit=chips_per_unit,
-        backend=backend,
-    )
+    if (db.job_dir(job) / "job.yaml").is_file() and not targets and not classes:
+        return load_spec(db, job).targets  # resume with the job's targets (new ones are not added)
+    return tuple(sorted(sel["target_id"]))
+
+
+def _store_spec(db: TargetDB, spec: RenderSpec) -> None:
+    """Write ``job.yaml``, or check that the stored spec is the same."""
+    import yaml
+
+    from prism3d.io.atomic import atomic_write_text
+
+    jf = db.job_dir(spec.name) / "job.yaml"
     if jf.is_file():
-        old = load_spec(db, job)
+        old = load_spec(db, spec.name)
         if old.spec_hash != spec.spec_hash:
-            diff = {
-                k: (v, spec.to_dict()[k])
-                for k, v in old.to_dict().items()
-                if spec.to_dict()[k] != v
-            }
+            new = spec.to_dict()
+            diff = {k: (v, new[k]) for k, v in old.to_dict().items() if new[k] != v}
             raise DatasetError(
-                f"job {job!r} exists with a different spec (stored vs given: {diff}); "
+                f"job {spec.name!r} exists with a different spec (stored vs given: {diff}); "
                 "rerun with the same parameters to resume, or choose a new --job name"
             )
-    else:
-        atomic_write_text(
-            jf,
-            yaml.safe_dump(
-                {
-                    "schema_version": JOB_SCHEMA_VERSION,
-                    "spec_hash": spec.spec_hash,
-                    **spec.to_dict(),
-                },
-                sort_keys=False,
-            ),
-        )
-    units = plan_units(spec)
-    report = JobReport(job=job, total_units=len(units))
-    mdir = db.job_dir(job) / "manifest"
-    tasks: list[_Task] = []
-    sd = spec.to_dict()
-    for u in units:
-        if _part_done(mdir / f"part-{u.unit_id}.parquet", "prism3d_spec_hash", spec.spec_hash):
-            report.skipped_units += 1
-        else:
-            tasks.append((u.unit_id, u.describe(), render_unit, (str(db.path), sd, u)))
-    _execute(
-        tasks, report, workers=workers, scheduler=scheduler, retries=retries, progress=progress
-    )
-    report.seconds = time.perf_counter() - t0
-    return report
+        return
+    head = {"schema_version": JOB_SCHEMA_VERSION, "spec_hash": spec.spec_hash}
+    atomic_write_text(jf, yaml.safe_dump({**head, **spec.to_dict()}, sort_keys=False))
 
 
 def run_features_job(
     db: TargetDB | str | Path,
     job: str,
     *,
-    workers: int = 0,
-    scheduler: str | None = None,
-    retries: int = 2,
+    run: RunOptions | None = None,
     models: bool = True,
-    progress: ProgressFn | None = None,
 ) -> JobReport:
     """Features of render job ``job`` (``prism3d db features DB --job NAME``).
 
@@ -750,7 +713,7 @@ def run_features_job(
     """
     t0 = time.perf_counter()
     db = _as_db(db)
-    _check_runner(workers, scheduler, retries)
+    run = RunOptions() if run is None else run
     spec = load_spec(db, job)
     if "depth" not in spec.channels:
         raise DatasetError(
@@ -790,9 +753,7 @@ def run_features_job(
                         (str(db.path), tid),
                     )
                 )
-    _execute(
-        tasks, report, workers=workers, scheduler=scheduler, retries=retries, progress=progress
-    )
+    _execute(tasks, report, run)
     report.seconds = time.perf_counter() - t0
     return report
 
@@ -817,6 +778,14 @@ def job_status(db: TargetDB, job: str) -> dict[str, Any]:
         "chips": chips,
         "features": fdir.is_dir() and any(fdir.glob("part-*.parquet")),
     }
+
+
+def database_info(db: TargetDB | str | Path) -> dict[str, Any]:
+    """:meth:`TargetDB.info` with each render job's completion (:func:`job_status`)."""
+    db = _as_db(db)
+    info = db.info()
+    info["jobs"] = {job: job_status(db, job) for job in info["jobs"]}
+    return info
 
 
 def unit_stats(db: TargetDB | str | Path, job: str) -> Any:

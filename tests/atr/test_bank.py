@@ -6,7 +6,14 @@ import json
 
 import numpy as np
 import pytest
-from prism3d.atr.bank import FilterBank, prepare_chips, render_class_chips, train_bank
+from prism3d.atr.bank import (
+    FilterBank,
+    check_bank_command,
+    prepare_chips,
+    render_class_chips,
+    train_bank,
+)
+from prism3d.atr.chips import ChipSpec
 
 from prism3d.errors import InputError
 
@@ -18,8 +25,11 @@ def _targets(variants: str = "1", seed: int = 0):
     return [(n.split("_")[0], builtin_target(n, seed=seed)) for n in names]
 
 
-def _pcc(bank, targets, **kw):
-    X, lab, _, _, _, fx = render_class_chips(targets, channel=bank.channel, size=bank.size, **kw)
+def _pcc(bank, targets, azimuth, elevation, **chip_fields):
+    spec = ChipSpec(size=bank.size, **chip_fields)
+    X, lab, _, _, _, fx = render_class_chips(
+        targets, channel=bank.channel, azimuth=azimuth, elevation=elevation, chip_spec=spec
+    )
     df = bank.classify(X, fx)
     return float(np.mean(df["pred_class"].to_numpy() == np.array(lab))), df
 
@@ -27,7 +37,12 @@ def _pcc(bank, targets, **kw):
 @pytest.fixture(scope="module")
 def small_bank():
     return train_bank(
-        _targets("1"), channel="depth", azimuth="0:360:15", elevation="20", bin_deg=15, size=48
+        _targets("1"),
+        channel="depth",
+        azimuth="0:360:15",
+        elevation="20",
+        bin_deg=15,
+        chip_spec=ChipSpec(size=48),
     )
 
 
@@ -86,7 +101,7 @@ def test_save_load_roundtrip(tmp_path, small_bank):
 def test_detect_in_scene(small_bank):
     targets = _targets("1")
     X, _lab, _az, _, _, fx = render_class_chips(
-        targets[:1], channel="depth", azimuth=[30.0], elevation="20", size=48
+        targets[:1], channel="depth", azimuth=[30.0], elevation="20", chip_spec=ChipSpec(size=48)
     )
     chip = X[0]
     scene = np.full((128, 160), np.nan, dtype=np.float32)
@@ -103,16 +118,24 @@ def test_detect_in_scene(small_bank):
 
 def test_bank_errors():
     t = _targets("1")
+    s32 = ChipSpec(size=32)
     with pytest.raises(InputError, match="at least 2 classes"):
-        train_bank(t[:1], size=32, azimuth="0:360:90")
+        train_bank(t[:1], chip_spec=s32, azimuth="0:360:90")
     with pytest.raises(InputError, match="empty list"):
-        train_bank([], size=32)
+        train_bank([], chip_spec=s32)
     with pytest.raises(InputError, match="360 / bin_deg"):
-        train_bank(t, bin_deg=7, size=32)
+        train_bank(t, bin_deg=7, chip_spec=s32)
     with pytest.raises(InputError, match="SceneMesh"):
-        train_bank([("tank", "mesh.obj")], size=32)
+        train_bank([("tank", "mesh.obj")], chip_spec=s32)
     with pytest.raises(InputError, match="channel"):
-        train_bank(t, channel="rgb", size=32)
+        train_bank(t, channel="rgb", chip_spec=s32)
+    with pytest.raises(InputError, match="params: expected 'auto'"):
+        train_bank(t, params=(1.0, 1.0), chip_spec=s32)
+    with pytest.raises(InputError, match="give -o BANK.npz"):
+        check_bank_command("train", output=None, bank=None)
+    with pytest.raises(InputError, match="give the bank file"):
+        check_bank_command("eval", output="b.npz", bank=None)
+    check_bank_command("eval", output=None, bank="b.npz")
     with pytest.raises(InputError, match="fx"):
         prepare_chips(np.zeros((1, 8, 8)), "depth")
 
@@ -127,7 +150,10 @@ def test_builtin_full_pcc_depth_shape_intensity():
     t_test = _targets("123", seed=1)
     res = {}
     for ch in ("depth", "shape", "intensity"):
-        bank = train_bank(t, channel=ch, azimuth="0:360:10", elevation="15,35", bin_deg=10, size=64)
+        bank = train_bank(
+            t, channel=ch, azimuth="0:360:10", elevation="15,35", bin_deg=10,
+            chip_spec=ChipSpec(size=64),
+        )
         res[ch], _ = _pcc(
             bank,
             t_test,
@@ -175,7 +201,8 @@ def test_real_meshes_tank_airplane_ship(shared_data):
         for n in names
     ]
     bank = train_bank(
-        t, channel="depth", azimuth="0:360:10", elevation="15,35", bin_deg=10, size=64
+        t, channel="depth", azimuth="0:360:10", elevation="15,35", bin_deg=10,
+        chip_spec=ChipSpec(size=64),
     )
     pcc, _ = _pcc(
         bank,

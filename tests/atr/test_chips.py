@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 import pytest
-from prism3d.atr.chips import chip_poses, load_mesh_file, render_chips, render_to_folder
+from prism3d.atr.chips import ChipSpec, chip_poses, load_mesh_file, render_chips, render_to_folder
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
 
 from prism3d.errors import InputError
@@ -44,7 +46,7 @@ def _cube(half: float = 50.0) -> SceneMesh:
 def test_depth_exact_no_flying_pixels():
     cube = _cube()
     poses = chip_poses(cube, [0.0], [0.0], [1000.0], size=33, framing="range", pixels_per_m=300.0)
-    cs = render_chips(cube, poses, size=33)
+    cs = render_chips(cube, poses, chip_spec=ChipSpec(size=33))
     d = cs["depth"][0]
     m = cs["mask"][0]
     assert d[16, 16] == pytest.approx(950.0, abs=1e-6)
@@ -61,7 +63,11 @@ def test_depth_exact_no_flying_pixels():
 def test_shape_and_intensity_lambertian():
     cube = _cube()
     cs = render_chips(
-        cube, azimuth=[30.0], elevation=20.0, range_mm=800.0, size=48, camouflage=False, ambient=0.2
+        cube,
+        azimuth=[30.0],
+        elevation=20.0,
+        range_mm=800.0,
+        chip_spec=ChipSpec(size=48, camouflage=False, ambient=0.2),
     )
     m = cs["mask"][0]
     ratio = cs["intensity"][0][m] / cs["shape"][0][m]
@@ -77,18 +83,14 @@ def test_framing_fit_vs_range(builtin_tank):
         azimuth=[90.0],
         elevation=10.0,
         range_mm=[1000.0, 2000.0],
-        size=48,
-        framing="fit",
-        channels=("mask",),
+        chip_spec=ChipSpec(size=48, framing="fit", channels=("mask",)),
     )
     rng = render_chips(
         builtin_tank,
         azimuth=[90.0],
         elevation=10.0,
         range_mm=[1000.0, 2000.0],
-        size=48,
-        framing="range",
-        channels=("mask",),
+        chip_spec=ChipSpec(size=48, framing="range", channels=("mask",)),
     )
     a_fit = fit["mask"].sum(axis=(1, 2))
     a_rng = rng["mask"].sum(axis=(1, 2))
@@ -100,11 +102,9 @@ def test_clutter_noise_determinism(builtin_tank):
     kw = {
         "azimuth": "0:360:120",
         "elevation": 25.0,
-        "size": 48,
-        "clutter": "ground",
-        "noise_sigma": 0.05,
-        "lighting_variation": 10.0,
-        "seed": 4,
+        "chip_spec": ChipSpec(
+            size=48, clutter="ground", noise_sigma=0.05, lighting_variation=10.0, seed=4
+        ),
     }
     a = render_chips(builtin_tank, **kw)
     b = render_chips(builtin_tank, **kw)
@@ -117,66 +117,114 @@ def test_clutter_noise_determinism(builtin_tank):
         builtin_tank,
         azimuth=[0.0],
         elevation=20.0,
-        size=48,
-        clutter="noise",
-        channels=("intensity", "mask"),
+        chip_spec=ChipSpec(size=48, clutter="noise", channels=("intensity", "mask")),
     )
     assert n["intensity"][0][~n["mask"][0]].std() > 0.01
     c = render_chips(
         builtin_tank,
         azimuth=[0.0],
         elevation=20.0,
-        size=48,
-        seed=1,
-        noise_sigma=0.0,
-        channels=("intensity",),
-        camouflage=True,
+        chip_spec=ChipSpec(size=48, seed=1, noise_sigma=0.0, channels=("intensity",), camouflage=True),
     )
     d = render_chips(
         builtin_tank,
         azimuth=[0.0],
         elevation=20.0,
-        size=48,
-        seed=1,
-        noise_sigma=0.0,
-        channels=("intensity",),
-        camouflage=False,
+        chip_spec=ChipSpec(size=48, seed=1, noise_sigma=0.0, channels=("intensity",), camouflage=False),
     )
     assert not np.array_equal(c["intensity"], d["intensity"])
 
 
 def test_pyrender_backend_matches_raycast(builtin_tank):
     pytest.importorskip("pyrender")
-    kw = {"azimuth": [45.0], "elevation": 20.0, "size": 48, "channels": ("depth", "mask")}
-    a = render_chips(builtin_tank, backend="raycast", **kw)
-    b = render_chips(builtin_tank, backend="pyrender", **kw)
+    kw = {"azimuth": [45.0], "elevation": 20.0}
+    spec = ChipSpec(size=48, channels=("depth", "mask"))
+    a = render_chips(builtin_tank, chip_spec=spec, **kw)
+    b = render_chips(builtin_tank, chip_spec=replace(spec, backend="pyrender"), **kw)
     both = a["mask"][0] & b["mask"][0]
     assert (a["mask"][0] != b["mask"][0]).mean() < 0.02
     assert np.median(np.abs(a["depth"][0][both] - b["depth"][0][both])) < 0.5
 
 
 def test_render_errors(builtin_tank):
-    with pytest.raises(InputError, match="chip size"):
-        render_chips(builtin_tank, size=0)
-    with pytest.raises(InputError, match="channels"):
-        render_chips(builtin_tank, channels=("colour",))
     with pytest.raises(InputError, match="inside"):
-        render_chips(builtin_tank, range_mm=10.0, size=32)
+        render_chips(builtin_tank, range_mm=10.0, chip_spec=ChipSpec(size=32))
     with pytest.raises(InputError, match="SceneMesh"):
-        render_chips("tank", size=32)
-    with pytest.raises(InputError, match="clutter"):
-        render_chips(builtin_tank, clutter="forest", size=32)
-    with pytest.raises(InputError, match="noise_sigma"):
-        render_chips(builtin_tank, noise_sigma=-1, size=32)
+        render_chips("tank", chip_spec=ChipSpec(size=32))
+    with pytest.raises(InputError, match="chip_spec: expected a ChipSpec"):
+        render_chips(builtin_tank, chip_spec={"size": 32})
     with pytest.raises(InputError, match="empty mesh"):
         SceneMesh(np.zeros((0, 3)), np.zeros((0, 3), int))
+
+
+@pytest.mark.parametrize(
+    ("fields", "match"),
+    [
+        ({"size": 0}, "chip size"),
+        ({"size": 8.5}, "chip size"),
+        ({"channels": ("colour",)}, "channels"),
+        ({"channels": ()}, "at least one"),
+        ({"framing": "zoom"}, "framing"),
+        ({"backend": "vulkan"}, "backend"),
+        ({"clutter": "forest"}, "clutter"),
+        ({"ambient": 1.0}, "ambient"),
+        ({"noise_sigma": -1}, "noise_sigma"),
+        ({"depth_noise_mm": float("nan")}, "depth_noise_mm"),
+        ({"lighting_variation": -0.1}, "lighting_variation"),
+        ({"seed": -1}, "seed"),
+        ({"seed": True}, "seed"),
+        ({"light": (0.0, 0.0, 0.0)}, "non-zero direction"),
+        ({"backend": "pyrender", "clutter": "ground"}, "needs backend='raycast'"),
+    ],
+)
+def test_chip_spec_validation(fields, match):
+    with pytest.raises(InputError, match=match):
+        ChipSpec(**fields)
+
+
+def test_chip_spec_normalises_and_is_frozen():
+    spec = ChipSpec(size=np.int64(32), channels=["depth"], light=[0, 0, -2])
+    assert spec.size == 32 and type(spec.size) is int
+    assert spec.channels == ("depth",) and spec.light == (0.0, 0.0, -2.0)
+    with pytest.raises(AttributeError):
+        spec.size = 64  # type: ignore[misc]
+
+
+def test_camouflage_off_is_applied_once(tmp_path):
+    """Camouflage off = one grey, the mean luminance of the target's own (camouflage) paint.
+
+    Greying must happen once, at rendering: the CLI renders the painted target and lets
+    ChipSpec.camouflage decide. Painting the target plain first and greying it again
+    gives the base coat's luminance instead (a different grey), which this catches.
+    """
+    from prism3d.atr.chips import _LUMA
+    from prism3d.cli import main
+    from prism3d.datasets.targets import builtin_target
+
+    camo = builtin_target("tank_t1", seed=0)
+    plain = builtin_target("tank_t1", camouflage=False)
+    grey_camo = float(np.mean(camo.vertex_colors() @ _LUMA))
+    grey_plain = float(np.mean(plain.vertex_colors() @ _LUMA))
+    assert abs(grey_camo - grey_plain) > 1e-3  # distinguishable at rtol 1e-5 below
+    spec = ChipSpec(size=32, camouflage=False, channels=("intensity", "shape", "mask"))
+    cs = render_chips(camo, azimuth=[30.0], elevation=20.0, chip_spec=spec)
+    m = cs["mask"][0]
+    ratio = cs["intensity"][0][m] / cs["shape"][0][m]
+    np.testing.assert_allclose(ratio, grey_camo, rtol=1e-5)
+    # the CLI path: `prism3d render tank_t1 --no-camouflage` gives the same chips
+    out = tmp_path / "cli"
+    argv = ["--quiet", "render", "tank_t1", "-o", str(out), "--azimuth", "30", "--elevation", "20",
+            "--size", "32", "--no-camouflage", "--channels", "intensity", "shape", "mask"]
+    assert main(argv) == 0
+    with np.load(out / "chips_intensity.npz") as z:
+        np.testing.assert_array_equal(z["chips"], cs["intensity"])
 
 
 def test_render_to_folder_and_mesh_file(tmp_path, builtin_tank):
     import trimesh
 
     man = render_to_folder(
-        builtin_tank, tmp_path / "npz", azimuth="0:360:90", elevation="10", size=32
+        builtin_tank, tmp_path / "npz", azimuth="0:360:90", elevation="10", chip_spec=ChipSpec(size=32)
     )
     df = pd.read_parquet(man)
     assert len(df) == 4 and {"az_deg", "fx", "T_cam_obj_23", "schema_version", "file_depth"} <= set(
@@ -185,7 +233,12 @@ def test_render_to_folder_and_mesh_file(tmp_path, builtin_tank):
     with np.load(tmp_path / "npz" / "chips_depth.npz", allow_pickle=False) as z:
         assert z["chips"].shape == (4, 32, 32)
     man = render_to_folder(
-        builtin_tank, tmp_path / "png", azimuth="0:360:180", elevation="10", size=32, fmt="png"
+        builtin_tank,
+        tmp_path / "png",
+        azimuth="0:360:180",
+        elevation="10",
+        chip_spec=ChipSpec(size=32),
+        fmt="png",
     )
     df = pd.read_parquet(man)
     assert (tmp_path / "png" / df["file_depth"][0]).exists() and (

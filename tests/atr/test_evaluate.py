@@ -7,11 +7,16 @@ import json
 import numpy as np
 import pytest
 from prism3d.atr.bank import train_bank
+from prism3d.atr.chips import ChipSpec
 from prism3d.atr.evaluate import (
+    EVAL_CHIP_SPEC,
+    HELDOUT_SEED_OFFSET,
     accuracy_by,
     confusion_matrix,
     evaluate_bank,
     feature_baseline,
+    format_results,
+    heldout_seed,
     pcc,
     plot_confusion,
     roc_curve,
@@ -58,12 +63,18 @@ def test_metrics_known_answers():
 @pytest.fixture(scope="module")
 def bank():
     return train_bank(
-        _targets(), channel="shape", azimuth="0:360:30", elevation="20", bin_deg=30, size=48
+        _targets(),
+        channel="shape",
+        azimuth="0:360:30",
+        elevation="20",
+        bin_deg=30,
+        chip_spec=ChipSpec(size=48),
     )
 
 
 def test_evaluate_bank_writes_results(tmp_path, bank):
-    res = evaluate_bank(bank, _targets(), noise_sigma=0.02, out_json=tmp_path / "res.json")
+    spec = ChipSpec(noise_sigma=0.02, seed=heldout_seed(0), size=200)  # size: the bank's wins
+    res = evaluate_bank(bank, _targets(), chip_spec=spec, out_json=tmp_path / "res.json")
     assert res["classes"] == ["tank", "jet", "ship"]
     assert res["n_chips"] == 36
     assert 0.0 <= res["pcc"] <= 1.0 and res["pcc"] >= 0.8
@@ -77,6 +88,16 @@ def test_evaluate_bank_writes_results(tmp_path, bank):
         assert (tmp_path / f"res{suffix}").stat().st_size > 0
     fig = plot_confusion(res)
     assert fig.axes
+    assert res["conditions"]["seed"] == 1 and res["conditions"]["noise_sigma"] == 0.02
+    text = format_results(res)
+    assert text.startswith(f"Pcc {100 * res['pcc']:.1f}% over 3 classes (tank, jet, ship)")
+    assert len(text.splitlines()) == 4
+
+
+def test_heldout_seed_rule():
+    assert HELDOUT_SEED_OFFSET == 1
+    assert heldout_seed(0) == 1 and heldout_seed(41) == 42
+    assert EVAL_CHIP_SPEC.seed == heldout_seed(0)
 
 
 def test_evaluate_unknown_class(bank):

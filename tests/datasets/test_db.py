@@ -8,10 +8,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from prism3d.datasets.db import TABLE_SCHEMA_VERSION, init_db, open_db, read_table, verify_db
+from prism3d.datasets.db import (
+    TABLE_SCHEMA_VERSION,
+    check_add_request,
+    init_db,
+    open_db,
+    read_table,
+    verify_db,
+)
 from prism3d.datasets.ingest import add_builtin, add_meshes
 
-from prism3d.errors import DatasetError
+from prism3d.errors import DatasetError, InputError
 
 
 def _box_obj(path: Path, size: tuple[float, float, float], shift: float = 0.0) -> Path:
@@ -113,6 +120,18 @@ def test_up_axis_y_and_sidecar(tmp_path: Path) -> None:
     np.testing.assert_allclose([r["length_mm"], r["width_mm"], r["height_mm"]], [4, 1, 3])
     with pytest.raises(DatasetError, match="declares units 'mm'"):
         add_meshes(db, [f], target_class="ship", units="m")
+
+
+def test_check_add_request() -> None:
+    assert check_add_request([], [], None) == "builtin"  # --builtin without names: all
+    assert check_add_request([], ["tank_t1"], None) == "builtin"
+    assert check_add_request(["a.obj"], None, "tank") == "meshes"
+    with pytest.raises(InputError, match="not both"):
+        check_add_request(["a.obj"], [], None)
+    with pytest.raises(InputError, match="give mesh files"):
+        check_add_request([], None, "tank")
+    with pytest.raises(InputError, match="--class"):
+        check_add_request(["a.obj"], None, None)
 
 
 def test_add_builtin(tmp_path: Path) -> None:

@@ -15,8 +15,11 @@ import pandas as pd
 import pytest
 from prism3d.datasets.db import init_db, open_db, verify_db
 from prism3d.datasets.ingest import add_builtin
+from prism3d.atr.chips import ChipSpec
 from prism3d.datasets.jobs import (
     RenderSpec,
+    RunOptions,
+    database_info,
     job_status,
     plan_units,
     run_features_job,
@@ -30,7 +33,7 @@ from prism3d.errors import DatasetError
 JOB = {
     "azimuth": "0:360:30",
     "elevation": "10,40",
-    "size": 32,
+    "chip_spec": ChipSpec(size=32),
     "chips_per_unit": 10,
 }  # 24 poses -> 3 units
 
@@ -53,6 +56,15 @@ def _snapshot(folder: Path) -> dict[str, str]:
         for p in sorted(folder.rglob("*"))
         if p.is_file() and p.name != ".lock"
     }
+
+
+def test_render_spec_from_and_into_chip_spec() -> None:
+    chip = ChipSpec(size=48, channels=("depth", "mask"), camouflage=False, clutter="noise", seed=3)
+    spec = RenderSpec.create("a", ["t"], {"azimuth": "0:360:90", "range_mm": 900}, chip, 7)
+    assert spec.chip_spec == chip and spec.range_mm == "900" and spec.elevation == "20"
+    assert spec.chips_per_unit == 7
+    # the defaults live in ChipSpec: a default job stores the ChipSpec defaults
+    assert RenderSpec(name="b", targets=("t",)).chip_spec == ChipSpec()
 
 
 def test_plan_units_and_spec_checks() -> None:
@@ -198,7 +210,8 @@ def test_export_split(small_db, tmp_path: Path) -> None:
 
 
 def test_info_and_stats(small_db) -> None:
-    info = small_db.info()
+    assert small_db.info()["jobs"] == {"j": {}}  # the folder alone: names only
+    info = database_info(small_db)
     assert info["targets"] == 2 and info["targets_per_class"] == {"jet": 1, "tank": 1}
     assert info["jobs"]["j"] == {"units": 6, "done_units": 6, "chips": 48, "features": True}
     st = unit_stats(small_db, "j")
@@ -211,13 +224,17 @@ def test_rerun_resumes_and_spec_mismatch(small_db) -> None:
     assert rep.ok and rep.done_units == 0 and rep.skipped_units == 6
     assert _snapshot(small_db.path) == before
     with pytest.raises(DatasetError, match="exists with a different spec"):
-        run_render_job(small_db, "j", **{**JOB, "size": 40})
+        run_render_job(small_db, "j", **{**JOB, "chip_spec": ChipSpec(size=40)})
     with pytest.raises(DatasetError, match="unknown target ids"):
         run_render_job(small_db, "k", targets=["nope"], **JOB)
     with pytest.raises(DatasetError, match="workers"):
-        run_render_job(small_db, "k", workers=-1, **JOB)
+        run_render_job(small_db, "k", run=RunOptions(workers=-1), **JOB)
     with pytest.raises(DatasetError, match="scheduler"):
-        run_render_job(small_db, "k", scheduler="localhost", **JOB)
+        run_render_job(small_db, "k", run=RunOptions(scheduler="localhost"), **JOB)
+    with pytest.raises(DatasetError, match="retries"):
+        RunOptions(retries=-1)
+    with pytest.raises(DatasetError, match="leave noise_sigma at"):
+        run_render_job(small_db, "k", **{**JOB, "chip_spec": ChipSpec(size=32, noise_sigma=0.1)})
     assert _snapshot(small_db.path) == before
 
 
@@ -269,7 +286,13 @@ def test_failing_unit_is_reported_others_finish(tmp_path: Path) -> None:
     add_meshes(db, [box], target_class="truck", units="cm", up="z")
     (db.path / "models" / "box.ply").write_bytes(b"ply\ncorrupted")
     rep = run_render_job(
-        db, "f", azimuth="0:360:90", elevation="20", size=16, chips_per_unit=2, retries=1
+        db,
+        "f",
+        azimuth="0:360:90",
+        elevation="20",
+        chip_spec=ChipSpec(size=16),
+        chips_per_unit=2,
+        run=RunOptions(retries=1),
     )
     assert not rep.ok and rep.exit_code == 1
     assert rep.done_units == 2 and len(rep.failed) == 2
@@ -281,8 +304,10 @@ def test_failing_unit_is_reported_others_finish(tmp_path: Path) -> None:
 _KILL_SCRIPT = """
 import sys
 import prism3d
+from prism3d.atr.chips import ChipSpec
 from prism3d.datasets.jobs import run_render_job
-run_render_job(sys.argv[1], "k", azimuth="0:360:5", elevation="10,30", size=48, chips_per_unit=8)
+run_render_job(sys.argv[1], "k", azimuth="0:360:5", elevation="10,30", chip_spec=ChipSpec(size=48),
+               chips_per_unit=8)
 """
 
 
@@ -317,11 +342,11 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
     assert 0 < n_parts < total
     assert job_status(killed, "k")["done_units"] == n_parts
     rep = run_render_job(
-        killed, "k", azimuth="0:360:5", elevation="10,30", size=48, chips_per_unit=8
+        killed, "k", azimuth="0:360:5", elevation="10,30", chip_spec=ChipSpec(size=48), chips_per_unit=8
     )
     assert rep.ok and rep.skipped_units == n_parts and rep.done_units == total - n_parts
     rep2 = run_render_job(
-        clean, "k", azimuth="0:360:5", elevation="10,30", size=48, chips_per_unit=8
+        clean, "k", azimuth="0:360:5", elevation="10,30", chip_spec=ChipSpec(size=48), chips_per_unit=8
     )
     assert rep2.ok and rep2.done_units == total
     a, b = killed.renders("k"), clean.renders("k")
@@ -335,7 +360,7 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_dask_local_cluster(small_db, tmp_path: Path) -> None:
     """Two spawn workers give the same manifest as the in-process run."""
-    rep = run_render_job(small_db, "jd", workers=2, **JOB)
+    rep = run_render_job(small_db, "jd", run=RunOptions(workers=2), **JOB)
     assert rep.ok and rep.done_units == 6
     assert len({s["pid"] for s in rep.stats}) >= 1 and all(
         s["pid"] != os.getpid() for s in rep.stats
@@ -349,9 +374,24 @@ def test_resume_keeps_job_targets(tmp_path: Path) -> None:
     """A target added after a job was created is not silently added to it on resume."""
     db = init_db(tmp_path / "db")
     add_builtin(db, ["truck_k1"])
-    kw = {"azimuth": "0,180", "elevation": "20", "size": 16}
+    kw = {"azimuth": "0,180", "elevation": "20", "chip_spec": ChipSpec(size=16)}
     assert run_render_job(db, "r", **kw).done_units == 1
     add_builtin(db, ["truck_k2"])
     rep = run_render_job(db, "r", **kw)
     assert rep.total_units == 1 and rep.skipped_units == 1
     assert run_render_job(db, "r2", **kw).total_units == 2  # a new job sees both
+
+
+def test_cli_db_render_and_features_quiet(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """`--quiet` silences the summaries of `db render` and `db features` (exit codes kept)."""
+    from prism3d.cli import main
+
+    db = init_db(tmp_path / "db")
+    add_builtin(db, ["truck_k1"])
+    capsys.readouterr()
+    render = ["db", "render", str(db.path), "--job", "q", "--azimuth", "0,180", "--size", "16"]
+    assert main(["--quiet", *render]) == 0
+    assert main(["--quiet", "db", "features", str(db.path), "--job", "q"]) == 0
+    assert capsys.readouterr().out == ""
+    assert main(render) == 0  # resumed: the summary is printed without --quiet
+    assert "job q: 1/1 units done" in capsys.readouterr().out
