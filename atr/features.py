@@ -1,46 +1,26 @@
 """Size, profile, range and surface features of targets, one named column each.
 
-Three sources give one flat ``dict[str, float]`` each:
-
-* :func:`model_features` — a triangle mesh (``vertices``, ``faces``);
-* :func:`scan_features` — a point cloud (``points``, optional ``normals``);
-* :func:`view_features` — one depth view (``depth_mm``, ``mask``, ``K``), fast
-  enough for 128x128 chips.
-
-:func:`features_table` / :func:`features_to_parquet` run the first two over files
-(``prism3d features MODEL_OR_SCAN... -o features.parquet``). Every column is
-documented (name, unit, definition, invariances) in ``docs/features.md`` and in
-:data:`FEATURE_INFO` (machine readable). Units are in the names (``_mm``, ``_mm2``,
-``_mm3``, ``_deg``, ``_px``, ``_per_m``); names without a unit suffix are unitless
-ratios, fractions or counts.
-
-Frames: model and scan features are computed after rotating the input so that its
-``up`` axis is +z (gravity). The horizontal "length axis" is the longer side of
-the minimum-area footprint rectangle, so every model/scan feature is invariant to
-rotations about the vertical and to translations; the sign of the length axis is
-fixed by the skewness of the surface distribution along it (front and back of a
-target differ), which makes profiles invariant too, except for targets that are
-symmetric front to back.
+:func:`model_features` (a mesh), :func:`scan_features` (a point cloud) and
+:func:`view_features` (one depth view or chip) give a flat ``dict[str, float]``;
+:func:`features_table` / :func:`features_to_parquet` run the first two over files.
+Every column (unit in the name: ``_mm``, ``_mm2``, ``_mm3``, ``_deg``, ``_px``,
+``_per_m``) is defined in docs/features.md and :data:`FEATURE_INFO`. Model and scan
+features are computed with ``up`` rotated to +z and the length axis from the
+footprint, so they are invariant to rotations about the vertical and translations.
 
 References
 ----------
-.. [1] M.-K. Hu, "Visual pattern recognition by moment invariants", IRE Trans.
-   Information Theory 8(2), 1962 (Hu moments).
-.. [2] C. T. Zahn and R. Z. Roskies, "Fourier descriptors for plane closed curves",
-   IEEE Trans. Computers C-21(3), 1972.
-.. [3] R. Osada, T. Funkhouser, B. Chazelle and D. Dobkin, "Shape distributions",
-   ACM Trans. Graphics 21(4), 2002 (D2).
-.. [4] R. B. Rusu, N. Blodow and M. Beetz, "Fast point feature histograms (FPFH) for
-   3D registration", ICRA 2009.
-.. [5] M. Pauly, M. Gross and L. P. Kobbelt, "Efficient simplification of
-   point-sampled surfaces", IEEE Visualization 2002 (surface variation as a
-   curvature estimate).
+.. [1] M.-K. Hu, "Visual pattern recognition by moment invariants", IRE Trans. IT 8(2), 1962.
+.. [2] C. T. Zahn, R. Z. Roskies, "Fourier descriptors for plane closed curves", IEEE TC 21(3), 1972.
+.. [3] R. Osada et al., "Shape distributions", ACM TOG 21(4), 2002 (D2).
+.. [4] R. B. Rusu, N. Blodow, M. Beetz, "Fast point feature histograms (FPFH)...", ICRA 2009.
+.. [5] M. Pauly, M. Gross, L. P. Kobbelt, "Efficient simplification of point-sampled surfaces",
+   IEEE Visualization 2002 (surface variation as a curvature estimate).
 """
 
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -59,6 +39,7 @@ from prism3d.capture.rig import CameraModel
 
 from prism3d.checks import check_array, check_choice, check_same_shape
 from prism3d.io.mesh import UNITS_MM
+from prism3d.io.units import declared_units
 from prism3d.errors import InputError
 
 __all__ = [
@@ -77,8 +58,6 @@ __all__ = [
 #: Version of the feature table layout (column names and definitions).
 FEATURES_SCHEMA_VERSION = 1
 
-#: Millimetres per unit accepted by ``units``.
-
 N_SAMPLES = 4096  # surface samples for profile / surface features (fixed seed)
 N_STATIONS = 10  # profile stations along the length axis
 N_ELEV_BINS = 6  # normal elevation histogram, 15 deg bins
@@ -88,22 +67,21 @@ N_RANGE_BINS = 8
 N_FOURIER = 8
 N_FPFH = 33
 _SEED = 0
+N_CURV_NEIGHBOURS = 16  # surface variation from 16 neighbours: smooth yet local on 4096 samples
+FPFH_RADIUS = 0.1  # FPFH support radius, fraction of the box diagonal
+FPFH_MAX_NN = 64  # neighbours per FPFH support (bounds the cost on dense samples)
+N_NORMAL_NEIGHBOURS = 20  # Open3D normal estimation for scans without normals
+N_OUTLINE = 64  # outline resampled to 64 points for the Fourier descriptors
+SPACING_SUBSAMPLE = 20000  # the median spacing is taken over at most ~20000 points
+NEAR_CELLS = 2.0  # surface vertices within 2 spacings (one octree cell) of a point are kept
+MIN_POINTS = 10  # fewer points (or supported surface vertices) give no meaningful box
 
 ProgressFn = Callable[[int, int, str], None]
 
 
 # -- machine-readable description ---------------------------------------------------------
 def _build_info() -> dict[str, dict[str, Any]]:
-    """``name -> {unit, source, invariant_to, definition}``.
-
-    ``source``: "model" (mesh), "scan" (points), "view" (depth view); ``invariant_to``
-    lists "translation", "rotation_about_vertical" (model/scan), "image_rotation"
-    (view, rotation in the image plane), "scale" (uniform scaling of the object,
-    for views: of its apparent size; tested to < 2 %), "scale_approx" (invariant in
-    theory but pixel discretisation of thin parts moves it by up to tens of per
-    cent between 0.7x apparent sizes), "range" (view: the value is physical, so it
-    does not change with the distance), "any_rotation" (any 3-D rotation).
-    """
+    """``name -> {unit, source, invariant_to, definition}`` (terms: docs/features.md)."""
     info: dict[str, dict[str, Any]] = {}
     MS = ("model", "scan")
     RIG = ["translation", "rotation_about_vertical"]
@@ -245,7 +223,7 @@ def _profiles(q: NDArray, L: float, W: float, H: float) -> dict[str, float]:
 def _curvature(P: NDArray) -> dict[str, float]:
     from scipy.spatial import cKDTree
 
-    k = min(16, len(P))
+    k = min(N_CURV_NEIGHBOURS, len(P))
     _, nb = cKDTree(P).query(P, k=k)
     X = P[nb] - P[nb].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", X, X) / k
@@ -290,7 +268,7 @@ def _fpfh(P: NDArray, N: NDArray, diag: float) -> dict[str, float]:
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(P, dtype=np.float64)))
     pc.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(N, dtype=np.float64))
     f = o3d.pipelines.registration.compute_fpfh_feature(
-        pc, o3d.geometry.KDTreeSearchParamHybrid(radius=0.1 * diag, max_nn=64)
+        pc, o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS * diag, max_nn=FPFH_MAX_NN)
     )
     m = np.asarray(f.data).mean(axis=1)
     return {f"fpfh_{i:02d}": float(v) for i, v in enumerate(m)}
@@ -339,29 +317,12 @@ def _order(d: dict[str, float], source: str) -> dict[str, float]:
 
 # -- public API ---------------------------------------------------------------------------
 def model_features(vertices: NDArray, faces: NDArray, *, up: str = "z") -> dict[str, float]:
-    """Features of a triangle mesh in millimetres.
+    """Features of a triangle mesh: ``vertices`` (N, 3) mm, ``faces`` (M, 3) int, ``up`` the
+    axis pointing up ("z", "y", "x", "-z", ...).
 
-    Parameters
-    ----------
-    vertices : (N, 3) float
-        Vertex positions, mm.
-    faces : (M, 3) int
-        Triangles.
-    up : {"z", "y", "x", "-z", "-y", "-x"}
-        The axis that points up (gravity) in the mesh's frame.
-
-    Returns
-    -------
-    dict[str, float]
-        Every model/scan column of :data:`FEATURE_INFO`, in its order. The volume is
-        the mesh's own enclosed volume when it is watertight (trimesh's test), else
-        the convex hull volume (``volume_is_hull`` = 1). Meshes made of overlapping
-        closed parts count overlaps twice in volume and area.
-
-    Raises
-    ------
-    InputError
-        Empty mesh, bad shapes, indices out of range, non-finite vertices, bad ``up``.
+    Returns every model/scan column of :data:`FEATURE_INFO`, in order; the volume is the
+    mesh's own when watertight, else the hull's (``volume_is_hull`` = 1). Raises
+    InputError on an empty mesh, bad shapes or indices, non-finite vertices, bad ``up``.
     """
     import trimesh
 
@@ -389,11 +350,11 @@ def model_features(vertices: NDArray, faces: NDArray, *, up: str = "z") -> dict[
 
 
 def _spacing(P: NDArray, tree: Any = None) -> float:
-    """Median nearest-neighbour distance of (up to 20000 of) the points."""
+    """Median nearest-neighbour distance of (up to ~SPACING_SUBSAMPLE of) the points."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(P) if tree is None else tree
-    return float(np.median(tree.query(P[:: max(1, len(P) // 20000)], k=2)[0][:, 1]))
+    return float(np.median(tree.query(P[:: max(1, len(P) // SPACING_SUBSAMPLE)], k=2)[0][:, 1]))
 
 
 #: ``box="auto"`` fits the surface only to clouds at least this many point spacings
@@ -403,16 +364,9 @@ DENSE_SPACINGS = 200.0
 
 
 def surface_near_data(points: NDArray, normals: NDArray, *, spacing: float | None = None) -> NDArray[np.float64]:
-    """Vertices of the least-squares surface of an oriented cloud that lie within two
-    point spacings (one octree cell) of the data.
-
-    The surface is a screened Poisson reconstruction
-    (:func:`~prism3d.reconstruct.fusion.poisson_mesh`, octree cells about two point
-    spacings). Its vertices far from any point (the surface Poisson invents where
-    nothing was seen, e.g. an object's underside) are dropped. A scan's depth errors
-    have long tails; the extreme points that set a min/max box are those tails,
-    while the fitted surface averages them with their neighbours. ``spacing``: the
-    points' median nearest-neighbour distance, when already known.
+    """Vertices of the screened Poisson surface of an oriented cloud that lie within two
+    point spacings (one octree cell) of a point: boxes on it ignore the depth-error tails
+    (docs/features.md). ``spacing``: the median nearest-neighbour distance, if known.
     """
     from scipy.spatial import cKDTree
 
@@ -425,9 +379,8 @@ def surface_near_data(points: NDArray, normals: NDArray, *, spacing: float | Non
     if not spacing > 0:
         raise InputError("points: no point spacing (all points coincide?)")
     V, _, _ = poisson_mesh(P, N, spacing=spacing)
-    # supported: a point within one octree cell (2 spacings) of the vertex
-    near = tree.query(V, distance_upper_bound=2.0 * spacing)[0] <= 2.0 * spacing
-    if near.sum() < 10:
+    near = tree.query(V, distance_upper_bound=NEAR_CELLS * spacing)[0] <= NEAR_CELLS * spacing
+    if near.sum() < MIN_POINTS:
         raise InputError("points: the fitted surface does not follow the points (are the normals oriented?)")
     return V[near]
 
@@ -436,31 +389,12 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
                   box: str = "auto") -> dict[str, float]:
     """Features of a point cloud (a scan) in millimetres.
 
-    Parameters
-    ----------
-    points : (N, 3) float
-        Points, mm (NaN rows are dropped). At least 10 finite points.
-    normals : (N, 3) float, optional
-        Point normals (sign irrelevant); estimated from 20 nearest neighbours
-        (Open3D) when absent.
-    up : str
-        Up axis of the points' frame (see :func:`model_features`).
-    box : {"auto", "surface", "points"}
-        What the gravity-aligned and oriented boxes enclose. ``"points"``: every
-        point (min/max; a scan's extreme depth errors enlarge the box).
-        ``"surface"``: the least-squares surface of the points near the data
-        (:func:`surface_near_data`; needs outward normals, as a fused model or a
-        reconstructed scan has). ``"auto"``: surface when ``normals`` are given and
-        the cloud is dense (at least ``DENSE_SPACINGS`` = 200 point spacings across;
-        a stitched model of the paper rig is ~1000), points otherwise: on PCL's
-        397-point bunny scan the surface bulged 10 % beyond the points. On 8 stitched stereo views of each of the six built-in
-        targets (paper rig) the box from the points is up to 2.6 % wide (the trucks),
-        from the surface -1.6 ... +1.6 % on every dimension.
-
-    Raises
-    ------
-    InputError
-        Bad shapes, fewer than 10 finite points, bad ``up``.
+    ``points`` (N, 3) mm, NaN rows dropped, >= 10 finite; ``normals`` (N, 3) (sign
+    irrelevant; estimated from 20 neighbours when absent); ``up`` as for
+    :func:`model_features`. ``box``: what the boxes enclose: "points" (every point),
+    "surface" (:func:`surface_near_data`, needs outward normals) or "auto" (surface when
+    normals are given and the cloud spans >= ``DENSE_SPACINGS`` spacings; why:
+    docs/features.md). Raises InputError on bad shapes, < 10 points, bad ``up``.
     """
     P = check_array(points, "points", ndim=2, dtype_kind="fiu")
     if P.shape[1] != 3:
@@ -473,8 +407,8 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
     if normals is not None:
         Nn = check_array(normals, "normals", shape=(P.shape[0], 3), dtype_kind="f")
         ok &= np.all(np.isfinite(Nn), axis=1)
-    if ok.sum() < 10:
-        raise InputError(f"points: need at least 10 finite points, got {int(ok.sum())}")
+    if ok.sum() < MIN_POINTS:
+        raise InputError(f"points: need at least {MIN_POINTS} finite points, got {int(ok.sum())}")
     R = up_rotation(up)
     P = P[ok].astype(np.float64) @ R.T
     if normals is not None:
@@ -483,7 +417,7 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
         import open3d as o3d
 
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(N_NORMAL_NEIGHBOURS))
         N = np.asarray(pc.normals)
     if len(P) > N_SAMPLES:
         sel = np.sort(np.random.default_rng(_SEED).choice(len(P), N_SAMPLES, replace=False))
@@ -507,24 +441,9 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
 def view_features(depth_mm: NDArray, mask: NDArray | None, K: NDArray | CameraModel) -> dict[str, float]:
     """Range and silhouette features of one depth view (e.g. a 128x128 chip).
 
-    Parameters
-    ----------
-    depth_mm : (H, W) float
-        Depth mm along the camera z axis, NaN = no surface.
-    mask : (H, W) bool or None
-        Target pixels (intersected with finite depth); None = every finite depth.
-    K : (3, 3) array or CameraModel
-        Intrinsics (only fx, fy are used; distortion is ignored).
-
-    Returns
-    -------
-    dict[str, float]
-        The view columns of :data:`FEATURE_INFO`, in its order.
-
-    Raises
-    ------
-    InputError
-        Mask and depth shapes differ, no target pixel with finite depth.
+    ``depth_mm`` (H, W) mm along z, NaN = no surface; ``mask`` (H, W) bool target pixels
+    or None (every finite depth); ``K`` (3, 3) or CameraModel (fx, fy only). Returns the
+    view columns of :data:`FEATURE_INFO` in order; InputError if no target pixel.
     """
     import cv2
 
@@ -592,7 +511,7 @@ def _fourier(c: NDArray) -> dict[str, float]:
     closed = np.vstack([c, c[:1]])
     seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
-    t = np.linspace(0.0, s[-1], 64, endpoint=False)
+    t = np.linspace(0.0, s[-1], N_OUTLINE, endpoint=False)
     x = np.interp(t, s, closed[:, 0])
     y = np.interp(t, s, closed[:, 1])
     C = np.abs(np.fft.fft(x + 1j * y))
@@ -610,12 +529,8 @@ _SCAN_EXT = {".pcd", ".xyz", ".pts"}
 
 
 def read_units_sidecar(path: str | Path) -> dict[str, str] | None:
-    """Read ``<file>.units.yaml`` beside ``path`` if it exists.
-
-    The sidecar is a YAML mapping with keys ``units`` (mm, cm, m, in) and/or ``up``
-    (x, y, z, -x, -y, -z), e.g. ``units: m`` / ``up: y`` for a Y-up model in metres.
-    Unknown keys or values are an error.
-    """
+    """``<file>.units.yaml`` beside ``path`` (keys ``units``: mm cm m in, ``up``: x y z -x
+    -y -z; anything else is an error), or None when there is none."""
     import yaml
 
     side = Path(str(path) + ".units.yaml")
@@ -638,14 +553,6 @@ def read_units_sidecar(path: str | Path) -> dict[str, str] | None:
     return out
 
 
-def _ply_units(comments: list[str]) -> str | None:
-    for c in comments:
-        mt = re.fullmatch(r"\s*units\s+(\w+)\s*", c)
-        if mt:
-            return mt.group(1)
-    return None
-
-
 def _load(path: Path) -> tuple[str, NDArray, NDArray | None, NDArray | None, str | None]:
     """``(kind, points_or_vertices, faces, normals, units_in_file)``."""
     ext = path.suffix.lower()
@@ -653,7 +560,7 @@ def _load(path: Path) -> tuple[str, NDArray, NDArray | None, NDArray | None, str
         from prism3d.io.ply import read_ply
 
         ply = read_ply(path)
-        units = _ply_units(ply.comments)
+        units, _ = declared_units(ply.comments)
         if ply.faces is not None and len(ply.faces):
             return "mesh", ply.points, ply.faces, None, units
         return "scan", ply.points, None, ply.normals, units
@@ -713,30 +620,14 @@ def features_table(
     box: str = "auto",
     progress: ProgressFn | None = None,
 ) -> Any:
-    """One row of features per model or scan file.
+    """One row of features per model or scan file (pandas DataFrame).
 
-    Parameters
-    ----------
-    paths : sequence of path
-        Meshes (.obj .glb .gltf .off .stl, .ply with faces) and scans (.ply without
-        faces, .pcd).
-    units : {"mm", "cm", "m", "in"}, optional
-        Units of files that do not declare theirs. Declared units (a PLY comment
-        ``units mm`` as prism3d writes, or a ``<file>.units.yaml`` sidecar) win; a
-        ``units`` that contradicts them is an error. A file with no known units and
-        no ``units`` is an error (never guessed).
-    up : {"y", "z", "-y", ...}, optional
-        Up axis of files whose sidecar does not give one; required otherwise.
-    box : {"auto", "surface", "points"}
-        Scans: what the boxes enclose (see :func:`scan_features`).
-    progress : callable (done, total, label), optional
-
-    Returns
-    -------
-    pandas.DataFrame
-        Columns ``source`` (path), ``kind`` (mesh|scan), ``units_in`` (units the file
-        was read in), ``up_in``, ``schema_version``, then every model/scan feature
-        (mm after conversion).
+    ``paths``: meshes (.obj .glb .gltf .off .stl, .ply with faces) and scans (.ply, .pcd).
+    ``units`` (mm cm m in) for files that do not declare theirs (PLY comment ``units``
+    or a ``.units.yaml`` sidecar; a contradiction is an error, never guessed); ``up``
+    unless the sidecar gives it; ``box`` as for :func:`scan_features`; ``progress``
+    ``(done, total, label)``. Columns ``source kind units_in up_in schema_version`` then
+    every model/scan feature, in mm.
     """
     import pandas as pd
 
@@ -776,12 +667,10 @@ def features_to_parquet(
     box: str = "auto",
     progress: ProgressFn | None = None,
 ) -> Any:
-    """``prism3d features MODEL_OR_SCAN... -o features.parquet [--units U] [--up y|z] [--box B]``.
-
-    Computes :func:`features_table` and writes it atomically as Parquet, with
-    ``schema_version`` both as a column and in the file's key-value metadata
-    (``prism3d_features_schema_version``), plus ``prism3d_feature_units`` (JSON:
-    column -> unit). Returns the DataFrame.
+    """``prism3d features MODEL_OR_SCAN... -o features.parquet [--units U] [--up y|z] [--box B]``:
+    :func:`features_table` written atomically as Parquet, with key-value metadata
+    ``prism3d_features_schema_version`` and ``prism3d_feature_units`` (JSON column ->
+    unit). Returns the DataFrame.
     """
     import json
 

@@ -12,16 +12,21 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-_Part = tuple[NDArray[np.float64], NDArray[np.int64]]
+__all__ = [
+    "SEGMENTS", "Part", "both_sides", "box", "cylinder", "ellipse", "embed", "hull_plan", "loft",
+    "mirror_y", "oriented", "prism", "rotate_x", "taper", "wheel",
+]
 
-_SEGMENTS = 20  # facets around a cylinder / wheel
+Part = tuple[NDArray[np.float64], NDArray[np.int64]]
+
+SEGMENTS = 20  # facets around a cylinder / wheel
 
 # ---------------------------------------------------------------------------------
 # Closed primitives (all at full scale, millimetres; geometry given in metres * 1000)
 # ---------------------------------------------------------------------------------
 
 
-def _oriented(vertices: NDArray[np.float64], faces: NDArray[np.int64]) -> _Part:
+def oriented(vertices: NDArray[np.float64], faces: NDArray[np.int64]) -> Part:
     """Flip a closed, consistently wound part so its normals point outward."""
     a, b, c = (vertices[faces[:, i]] for i in range(3))
     signed_volume = np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0
@@ -30,12 +35,12 @@ def _oriented(vertices: NDArray[np.float64], faces: NDArray[np.int64]) -> _Part:
     return vertices, np.ascontiguousarray(faces, dtype=np.int64)
 
 
-def _loft(
+def loft(
     rings: Sequence[NDArray[np.float64]],
     *,
     start_apex: Sequence[float] | None = None,
     end_apex: Sequence[float] | None = None,
-) -> _Part:
+) -> Part:
     """Closed surface through cross-section rings, capped at both ends.
 
     Each ring is ``(K, 3)`` (same K, same cyclic order, star-shaped about its
@@ -62,10 +67,10 @@ def _loft(
     last = (m - 1) * k
     faces.append(np.stack([np.full(k, s_i + 1), last + idx, last + nxt], axis=1))
     vertices = np.vstack(rs + [start[None], end[None]])
-    return _oriented(vertices, np.concatenate(faces))
+    return oriented(vertices, np.concatenate(faces))
 
 
-def _embed(poly: Sequence[Sequence[float]], axis: int, value: float) -> NDArray[np.float64]:
+def embed(poly: Sequence[Sequence[float]], axis: int, value: float) -> NDArray[np.float64]:
     """2-D polygon in the plane ``coord[axis] = value`` (other axes in x, y, z order)."""
     p = np.asarray(poly, dtype=np.float64) * 1000.0
     out = np.empty((len(p), 3))
@@ -76,32 +81,32 @@ def _embed(poly: Sequence[Sequence[float]], axis: int, value: float) -> NDArray[
     return out
 
 
-def _prism(poly: Sequence[Sequence[float]], axis: int, lo: float, hi: float) -> _Part:
+def prism(poly: Sequence[Sequence[float]], axis: int, lo: float, hi: float) -> Part:
     """Polygon (metres; coordinates of the other two axes in x, y, z order) extruded
     along ``axis`` from ``lo`` to ``hi`` metres."""
-    return _loft([_embed(poly, axis, lo), _embed(poly, axis, hi)])
+    return loft([embed(poly, axis, lo), embed(poly, axis, hi)])
 
 
-def _taper(
+def taper(
     poly_lo: Sequence[Sequence[float]],
     poly_hi: Sequence[Sequence[float]],
     axis: int,
     lo: float,
     hi: float,
-) -> _Part:
+) -> Part:
     """Loft between two polygons with the same vertex count at ``lo`` and ``hi``."""
-    return _loft([_embed(poly_lo, axis, lo), _embed(poly_hi, axis, hi)])
+    return loft([embed(poly_lo, axis, lo), embed(poly_hi, axis, hi)])
 
 
-def _box(lo: Sequence[float], hi: Sequence[float]) -> _Part:
+def box(lo: Sequence[float], hi: Sequence[float]) -> Part:
     """Axis-aligned box between corners ``lo`` and ``hi`` (metres)."""
     x0, y0, z0 = lo
     x1, y1, z1 = hi
-    return _prism([(x0, y0), (x1, y0), (x1, y1), (x0, y1)], 2, z0, z1)
+    return prism([(x0, y0), (x1, y0), (x1, y1), (x0, y1)], 2, z0, z1)
 
 
-def _ellipse(
-    center: Sequence[float], axis: int, r1: float, r2: float, n: int = _SEGMENTS
+def ellipse(
+    center: Sequence[float], axis: int, r1: float, r2: float, n: int = SEGMENTS
 ) -> NDArray[np.float64]:
     """Ring of ``n`` points on an ellipse perpendicular to ``axis`` (metres in, mm out);
     ``r1``, ``r2`` are the semi-axes along the other two axes in x, y, z order."""
@@ -114,9 +119,9 @@ def _ellipse(
     return ring * 1000.0
 
 
-def _cylinder(
-    p0: Sequence[float], p1: Sequence[float], r0: float, r1: float | None = None, n: int = _SEGMENTS
-) -> _Part:
+def cylinder(
+    p0: Sequence[float], p1: Sequence[float], r0: float, r1: float | None = None, n: int = SEGMENTS
+) -> Part:
     """Cylinder or cone frustum from ``p0`` to ``p1`` (metres), radii ``r0``, ``r1``;
     ``r1 = 0`` gives a cone with its apex at ``p1``."""
     a = np.asarray(p0, dtype=np.float64)
@@ -131,16 +136,16 @@ def _cylinder(
     r1 = r0 if r1 is None else r1
     ring0 = (a + r0 * circle) * 1000.0
     if r1 == 0:
-        return _loft([ring0], end_apex=b * 1000.0)
-    return _loft([ring0, (b + r1 * circle) * 1000.0])
+        return loft([ring0], end_apex=b * 1000.0)
+    return loft([ring0, (b + r1 * circle) * 1000.0])
 
 
-def _wheel(x: float, y_in: float, y_out: float, radius: float, n: int = _SEGMENTS) -> _Part:
+def wheel(x: float, y_in: float, y_out: float, radius: float, n: int = SEGMENTS) -> Part:
     """Wheel (cylinder along y) touching the ground, centre at ``x``."""
-    return _cylinder((x, y_in, radius), (x, y_out, radius), radius, n=n)
+    return cylinder((x, y_in, radius), (x, y_out, radius), radius, n=n)
 
 
-def _rotate_x(part: _Part, angle_rad: float, pivot: Sequence[float]) -> _Part:
+def rotate_x(part: Part, angle_rad: float, pivot: Sequence[float]) -> Part:
     """Rotate a part about the x axis through ``pivot`` (metres)."""
     c, s = np.cos(angle_rad), np.sin(angle_rad)
     R = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
@@ -148,17 +153,17 @@ def _rotate_x(part: _Part, angle_rad: float, pivot: Sequence[float]) -> _Part:
     return (part[0] - p) @ R.T + p, part[1]
 
 
-def _mirror_y(part: _Part) -> _Part:
+def mirror_y(part: Part) -> Part:
     """Mirror a part across the x-z plane (keeps outward orientation)."""
     v = part[0] * np.array([1.0, -1.0, 1.0])
     return v, np.ascontiguousarray(part[1][:, ::-1])
 
 
-def _both_sides(part: _Part) -> list[_Part]:
-    return [part, _mirror_y(part)]
+def both_sides(part: Part) -> list[Part]:
+    return [part, mirror_y(part)]
 
 
-def _hull_plan(
+def hull_plan(
     length: float,
     beam: float,
     x_bow: float,

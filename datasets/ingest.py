@@ -1,22 +1,11 @@
 """Adding targets to a database: mesh files (explicit units and up axis) and built-ins.
 
-Every added target becomes one row of ``targets.parquet`` and one normalised model
-``models/<target_id>.ply`` (binary PLY, millimetres, object frame z up / x forward,
-origin at the footprint centre on the ground, vertex colours, comments ``units mm``
-and ``up z``).
-
-Units are never guessed: they come from ``units=`` (``--units``), a sidecar
-``FILE.units.yaml`` (``units: m`` / ``up: y``), or, for PLY files written by
-prism3d, the header comment ``units mm``. A file without any of them is refused.
-Files in arbitrary units (many free asset packs) can be rescaled to a stated length
-with ``length_mm`` (the longest horizontal extent after the up-axis rotation).
-
-Duplicates are found by content: the SHA-256 of the source file bytes (for
-built-ins, of the generated normalised model). A duplicate is skipped with a message,
-or is an error with ``strict=True``. All inputs are loaded and checked before the
-database is touched, so a bad file changes nothing. The read-modify-write of the
-targets table runs under an exclusive lock on ``DB/.lock`` and replaces the table
-atomically, so concurrent ``add`` calls from several processes are safe.
+Each target becomes a row of ``targets.parquet`` and a normalised ``models/<id>.ply``
+(binary, mm, z up / x forward, origin at the footprint centre on the ground, comments
+``units mm`` and ``up z``). Units are never guessed (flag, ``FILE.units.yaml`` sidecar
+or PLY comment); duplicates are found by SHA-256; everything is checked before the DB
+is touched, and the table is replaced atomically under ``DB/.lock``. Details:
+docs/targets.md.
 """
 
 from __future__ import annotations
@@ -42,6 +31,7 @@ from prism3d.datasets.db import (
 )
 
 from prism3d.io.mesh import UNITS_MM
+from prism3d.io.units import declared_units
 from prism3d.errors import DatasetError, Prism3dError
 
 __all__ = [
@@ -59,22 +49,17 @@ log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 _UPS = ("y", "z")
+MAX_ID_LEN = 100  # target ids are file names: well under every file system's limit
 
 
 @dataclass
 class AddReport:
-    """What an ``add`` did.
-
-    Attributes
-    ----------
-    added : list of str
-        New target ids.
-    skipped : list of str
-        One message per duplicate that was skipped.
-    """
+    """What an ``add`` did."""
 
     added: list[str] = field(default_factory=list)
+    """New target ids."""
     skipped: list[str] = field(default_factory=list)
+    """One message per duplicate that was skipped."""
 
     def summary(self) -> str:
         lines = [
@@ -107,21 +92,20 @@ class _Pending:
 
 def _sanitize(name: str) -> str:
     s = re.sub(r"[^A-Za-z0-9_.\-]", "_", name).strip("._-") or "target"
-    return s[:100]
+    return s[:MAX_ID_LEN]
 
 
-def _ply_units(path: Path) -> str | None:
+def _file_units(path: Path) -> tuple[str | None, str | None]:
+    """``(units, up)`` a PLY file declares in its comments; ``(None, None)`` for other types."""
     from prism3d.io.ply import read_ply
 
+    if path.suffix.lower() != ".ply":
+        return None, None
     try:
         ply = read_ply(path)
     except Prism3dError as exc:
         raise DatasetError(f"{path}: cannot read PLY ({exc})") from None
-    for c in ply.comments:
-        m = re.fullmatch(r"\s*units\s+(\w+)\s*;?.*", c)
-        if m:
-            return m.group(1)
-    return None
+    return declared_units(ply.comments)
 
 
 def _resolve_units(path: Path, units: str | None, up: str | None) -> tuple[str, str]:
@@ -132,7 +116,7 @@ def _resolve_units(path: Path, units: str | None, up: str | None) -> tuple[str, 
         side = read_units_sidecar(path) or {}
     except Prism3dError as exc:
         raise DatasetError(str(exc)) from None
-    file_units = _ply_units(path) if path.suffix.lower() == ".ply" else None
+    file_units, file_up = _file_units(path)
     for nm, v, allowed in (("units", units, UNITS_MM), ("up", up, _UPS)):
         if v is not None and v not in allowed:
             raise DatasetError(f"{nm}: expected one of {', '.join(allowed)}, got {v!r}")
@@ -152,8 +136,8 @@ def _resolve_units(path: Path, units: str | None, up: str | None) -> tuple[str, 
     if "up" in side and up is not None and side["up"] != up:
         raise DatasetError(f"{path}: sidecar says up {side['up']!r} but up={up!r} was given")
     up_v = side.get("up", up)
-    if up_v is None:
-        up_v = "z" if file_units is not None else None  # prism3d PLY files are z up
+    if up_v is None and file_units is not None:
+        up_v = file_up or "z"  # prism3d PLY files are z up
     if up_v is None:
         raise DatasetError(
             f"{path}: up axis unknown; pass --up (y or z) or set 'up:' in {path.name}.units.yaml"
@@ -336,35 +320,13 @@ def add_meshes(
 ) -> AddReport:
     """Add mesh files as targets (``prism3d db add DB MESH... --class C --units U --up A``).
 
-    Parameters
-    ----------
-    db : TargetDB or path
-    paths : sequence of path
-        OBJ, PLY, GLB/glTF, OFF or STL files.
-    target_class : str
-        Class label of every file given (e.g. ``tank``).
-    units : {"mm", "cm", "m", "in"}, optional
-        Units of the files' coordinates, unless declared by a sidecar
-        ``FILE.units.yaml`` or a PLY ``units`` comment (a contradiction is an error).
-    up : {"y", "z"}, optional
-        Up axis of the files (glTF is y up), unless declared by the sidecar.
-    length_mm : float, optional
-        Rescale each model so its longest horizontal extent is this long, mm
-        (for files in arbitrary units; recorded in ``scale_to_mm``).
-    yaw_deg : float
-        Rotation about the up axis to put the nose on +x.
-    strict : bool
-        A duplicate (same source sha256) is an error instead of a skip.
-
-    Returns
-    -------
-    AddReport
-
-    Raises
-    ------
-    DatasetError
-        Missing file, unsupported format, unknown units/up, corrupt mesh, duplicate
-        with ``strict``; nothing is written then.
+    ``paths``: OBJ, PLY, GLB/glTF, OFF or STL files, all of class ``target_class``.
+    ``units`` (mm cm m in) and ``up`` (y z) unless a sidecar ``FILE.units.yaml`` or a
+    PLY comment declares them (a contradiction is an error). ``length_mm``: rescale so
+    the longest horizontal extent is this long (recorded in ``scale_to_mm``);
+    ``yaw_deg``: rotation about up to put the nose on +x; ``strict``: a duplicate (same
+    source sha256) is an error, not a skip. Raises DatasetError (nothing written) on a
+    missing file, bad format, unknown units/up, corrupt mesh or strict duplicate.
     """
     db = _as_db(db)
     _check_name(target_class, "class")

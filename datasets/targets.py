@@ -1,39 +1,9 @@
 """Built-in procedural targets: tanks, jets, ships and trucks with camouflage paint.
 
-Every target is built on the fly from closed primitives (boxes, extruded polygons,
-lofted cross-sections, cylinders, cones); no file is needed and the geometry of a
-variant never changes. Targets come as :class:`~prism3d.capture.mesh.SceneMesh` in
-millimetres.
-
-Object frame (right-handed, gravity-aligned)
---------------------------------------------
-- origin: centre of the footprint (axis-aligned bounding box in x and y) on the
-  ground plane; the lowest point of the target is at ``z = 0``;
-- ``x``: length axis, pointing forward (gun/nose/bow/cab side);
-- ``y``: width axis, pointing to the target's LEFT (port side);
-- ``z``: up.
-
-So ``metadata["length_mm"], ["width_mm"], ["height_mm"]`` are exactly the mesh
-extents along x, y and z.
-
-Scale
------
-Each variant is designed at full size (real dimensions, millimetres) and has a
-hobby ``model_scale`` (1/35, 1/48, 1/72, 1/700, 1/1200) chosen so the default model
-is 150-280 mm long and fits the ~300 x 300 mm field of the paper's rig at 1250 mm.
-``scale`` selects the size: ``"model"`` (default, the kit scale), ``"full"``
-(real size, e.g. a 10 m tank, for ATR at real ranges) or a number = ratio to full
-size (``1.0`` is full size, ``1/35`` a 1:35 model). The camouflage patch size
-scales with the model, so every scale shows the same pattern.
-
-Mesh structure
---------------
-The outer surface is the union of overlapping closed parts, simply concatenated
-(``manifold3d``, needed for exact boolean union, is not installed). Each part is a
-closed, consistently outward-oriented triangle mesh, so the whole mesh is
-watertight with consistent winding, but parts interpenetrate: there are internal
-faces, hidden from every outside viewpoint (ray casting and rendering are
-unaffected; volume and area sums over parts overcount the overlaps).
+Built on the fly from closed, outward-oriented primitives (overlapping parts, simply
+concatenated), as :class:`~prism3d.capture.mesh.SceneMesh` in millimetres, object
+frame x forward, y left, z up, origin at the footprint centre on the ground; kit,
+full or any scale. Frame, scales and mesh structure: docs/targets.md.
 """
 
 from __future__ import annotations
@@ -48,29 +18,24 @@ from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh
 from prism3d.checks import check_positive
+from prism3d.datasets._primitives import (
+    Part,
+    both_sides,
+    box,
+    cylinder,
+    ellipse,
+    hull_plan,
+    loft,
+    prism,
+    rotate_x,
+    taper,
+    wheel,
+)
 from prism3d.capture.camouflage import CLASS_PALETTES, camouflage_field, plain_paint
 from prism3d.errors import InputError
 from prism3d.io.ply import write_ply
 
 __all__ = ["builtin_classes", "builtin_target", "export_builtin_target", "list_builtin_targets"]
-
-_Part = tuple[NDArray[np.float64], NDArray[np.int64]]
-from prism3d.datasets._primitives import (  # noqa: F401
-    _oriented,
-    _loft,
-    _embed,
-    _prism,
-    _taper,
-    _box,
-    _ellipse,
-    _cylinder,
-    _wheel,
-    _rotate_x,
-    _mirror_y,
-    _both_sides,
-    _hull_plan,
-    _SEGMENTS,
-)
 
 # ---------------------------------------------------------------------------------
 # Tanks
@@ -89,70 +54,65 @@ def _track_profile(x_rear: float, x_front: float, height: float) -> list[tuple[f
     ]
 
 
-def _tracks(x_rear: float, x_front: float, height: float, y_in: float, y_out: float) -> list[_Part]:
-    return _both_sides(_prism(_track_profile(x_rear, x_front, height), 1, y_in, y_out))
+def _tracks(x_rear: float, x_front: float, height: float, y_in: float, y_out: float) -> list[Part]:
+    return both_sides(prism(_track_profile(x_rear, x_front, height), 1, y_in, y_out))
 
 
-def _road_wheels(xs: Sequence[float], radius: float, y_in: float, y_out: float) -> list[_Part]:
-    parts: list[_Part] = []
+def _road_wheels(xs: Sequence[float], radius: float, y_in: float, y_out: float) -> list[Part]:
+    parts: list[Part] = []
     for x in xs:
-        parts += _both_sides(_cylinder((x, y_in, radius + 0.05), (x, y_out, radius + 0.05), radius))
+        parts += both_sides(cylinder((x, y_in, radius + 0.05), (x, y_out, radius + 0.05), radius))
     return parts
 
 
-def _build_tank_t1() -> list[_Part]:
-    """Modern main battle tank: low hull, side skirts, wedge turret amidships, long gun."""
+def _build_tank_t1() -> list[Part]:
     parts = _tracks(-3.6, 3.7, 1.0, 1.1, 1.75)
-    parts += _both_sides(_box((-3.55, 1.75, 0.40), (3.55, 1.83, 1.05)))  # side skirts
-    parts.append(_box((-3.5, -1.1, 0.42), (3.5, 1.1, 1.0)))  # lower hull
+    parts += both_sides(box((-3.55, 1.75, 0.40), (3.55, 1.83, 1.05)))  # side skirts
+    parts.append(box((-3.5, -1.1, 0.42), (3.5, 1.1, 1.0)))  # lower hull
     hull = [(-3.75, 0.95), (3.7, 0.95), (4.0, 1.2), (2.9, 1.7), (-3.6, 1.75), (-3.8, 1.4)]
-    parts.append(_prism(hull, 1, -1.83, 1.83))
+    parts.append(prism(hull, 1, -1.83, 1.83))
     turret_lo = [(-2.3, -1.6), (1.0, -1.7), (2.3, -0.7), (2.3, 0.7), (1.0, 1.7), (-2.3, 1.6)]
     turret_hi = [(-2.2, -1.45), (0.9, -1.55), (1.9, -0.55), (1.9, 0.55), (0.9, 1.55), (-2.2, 1.45)]
-    parts.append(_taper(turret_lo, turret_hi, 2, 1.7, 2.45))
-    parts.append(_box((2.1, -0.4, 1.85), (2.7, 0.4, 2.35)))  # mantlet
-    parts.append(_cylinder((2.6, 0.0, 2.1), (7.9, 0.0, 2.1), 0.09))  # barrel
-    parts.append(_cylinder((3.8, 0.0, 2.1), (5.6, 0.0, 2.1), 0.13))  # thermal sleeve
-    parts.append(_cylinder((-0.6, -0.75, 2.4), (-0.6, -0.75, 2.75), 0.38))  # commander cupola
-    parts.append(_box((-1.5, 0.4, 2.4), (-0.8, 1.0, 2.6)))  # loader hatch
-    parts += _both_sides(_box((0.9, 1.45, 2.0), (1.3, 1.75, 2.3)))  # smoke launchers
+    parts.append(taper(turret_lo, turret_hi, 2, 1.7, 2.45))
+    parts.append(box((2.1, -0.4, 1.85), (2.7, 0.4, 2.35)))  # mantlet
+    parts.append(cylinder((2.6, 0.0, 2.1), (7.9, 0.0, 2.1), 0.09))  # barrel
+    parts.append(cylinder((3.8, 0.0, 2.1), (5.6, 0.0, 2.1), 0.13))  # thermal sleeve
+    parts.append(cylinder((-0.6, -0.75, 2.4), (-0.6, -0.75, 2.75), 0.38))  # commander cupola
+    parts.append(box((-1.5, 0.4, 2.4), (-0.8, 1.0, 2.6)))  # loader hatch
+    parts += both_sides(box((0.9, 1.45, 2.0), (1.3, 1.75, 2.3)))  # smoke launchers
     return parts
 
 
-def _build_tank_t2() -> list[_Part]:
-    """Second-world-war medium tank: tall sloped hull, visible road wheels, round
-    turret set forward, short gun."""
+def _build_tank_t2() -> list[Part]:
     parts = _tracks(-2.9, 3.0, 0.95, 0.95, 1.45)
     parts += _road_wheels([-2.0, -1.0, 0.0, 1.0, 2.0], 0.38, 0.9, 1.52)
-    parts.append(_box((-2.7, -0.95, 0.45), (2.8, 0.95, 1.0)))  # lower hull
+    parts.append(box((-2.7, -0.95, 0.45), (2.8, 0.95, 1.0)))  # lower hull
     hull = [(-2.95, 0.9), (2.9, 0.9), (3.15, 1.1), (2.1, 1.75), (-2.7, 1.75), (-3.0, 1.3)]
-    parts.append(_prism(hull, 1, -1.5, 1.5))
+    parts.append(prism(hull, 1, -1.5, 1.5))
     c = (0.55, 0.0)
-    ring_lo = _ellipse((c[0], c[1], 1.75), 2, 1.1, 1.0)
-    ring_hi = _ellipse((c[0] - 0.1, c[1], 2.55), 2, 0.85, 0.8)
-    parts.append(_loft([ring_lo, ring_hi]))  # cast turret
-    parts.append(_cylinder((1.5, 0.0, 2.1), (1.9, 0.0, 2.1), 0.3))  # mantlet
-    parts.append(_cylinder((1.8, 0.0, 2.1), (4.3, 0.0, 2.1), 0.08))  # short gun
-    parts.append(_cylinder((0.2, 0.45, 2.5), (0.2, 0.45, 2.8), 0.32))  # cupola
-    parts.append(_box((-2.9, -1.2, 1.75), (-1.9, 1.2, 1.95)))  # engine deck grille
+    ring_lo = ellipse((c[0], c[1], 1.75), 2, 1.1, 1.0)
+    ring_hi = ellipse((c[0] - 0.1, c[1], 2.55), 2, 0.85, 0.8)
+    parts.append(loft([ring_lo, ring_hi]))  # cast turret
+    parts.append(cylinder((1.5, 0.0, 2.1), (1.9, 0.0, 2.1), 0.3))  # mantlet
+    parts.append(cylinder((1.8, 0.0, 2.1), (4.3, 0.0, 2.1), 0.08))  # short gun
+    parts.append(cylinder((0.2, 0.45, 2.5), (0.2, 0.45, 2.8), 0.32))  # cupola
+    parts.append(box((-2.9, -1.2, 1.75), (-1.9, 1.2, 1.95)))  # engine deck grille
     return parts
 
 
-def _build_tank_t3() -> list[_Part]:
-    """Tank destroyer: six visible road wheels, large fixed casemate at the rear, very
-    long gun with a muzzle brake."""
+def _build_tank_t3() -> list[Part]:
     parts = _tracks(-3.4, 3.3, 1.0, 1.05, 1.6)
     parts += _road_wheels([-2.45, -1.5, -0.55, 0.4, 1.35, 2.3], 0.36, 1.0, 1.68)
-    parts.append(_box((-3.2, -1.05, 0.45), (3.2, 1.05, 1.0)))
+    parts.append(box((-3.2, -1.05, 0.45), (3.2, 1.05, 1.0)))
     hull = [(-3.45, 0.95), (3.3, 0.95), (3.55, 1.15), (2.7, 1.5), (-3.3, 1.5)]
-    parts.append(_prism(hull, 1, -1.65, 1.65))
+    parts.append(prism(hull, 1, -1.65, 1.65))
     casemate = [(-3.3, 1.5), (0.6, 1.5), (-0.2, 2.7), (-3.1, 2.7)]
-    parts.append(_prism(casemate, 1, -1.45, 1.45))
-    parts.append(_box((0.0, -0.45, 1.8), (0.45, 0.45, 2.4)))  # gun mantlet
-    parts.append(_cylinder((0.3, 0.0, 2.1), (4.9, 0.0, 2.1), 0.1))  # gun
-    parts.append(_cylinder((4.9, 0.0, 2.1), (5.35, 0.0, 2.1), 0.17))  # muzzle brake
-    parts.append(_cylinder((-1.8, 0.7, 2.7), (-1.8, 0.7, 2.95), 0.3))  # hatch ring
-    parts += _both_sides(_cylinder((-3.5, 1.0, 1.3), (-3.5, 1.4, 1.3), 0.2))  # rear stowage
+    parts.append(prism(casemate, 1, -1.45, 1.45))
+    parts.append(box((0.0, -0.45, 1.8), (0.45, 0.45, 2.4)))  # gun mantlet
+    parts.append(cylinder((0.3, 0.0, 2.1), (4.9, 0.0, 2.1), 0.1))  # gun
+    parts.append(cylinder((4.9, 0.0, 2.1), (5.35, 0.0, 2.1), 0.17))  # muzzle brake
+    parts.append(cylinder((-1.8, 0.7, 2.7), (-1.8, 0.7, 2.95), 0.3))  # hatch ring
+    parts += both_sides(cylinder((-3.5, 1.0, 1.3), (-3.5, 1.4, 1.3), 0.2))  # rear stowage
     return parts
 
 
@@ -161,32 +121,30 @@ def _build_tank_t3() -> list[_Part]:
 # ---------------------------------------------------------------------------------
 
 
-def _fuselage(stations: Sequence[tuple[float, float, float, float]], nose_x: float) -> _Part:
+def _fuselage(stations: Sequence[tuple[float, float, float, float]], nose_x: float) -> Part:
     """Fuselage lofted through elliptic stations (x, y-radius, z-radius, z-centre),
     listed nose to tail, with a pointed nose at ``nose_x``."""
-    rings = [_ellipse((x, 0.0, zc), 0, ry, rz) for x, ry, rz, zc in stations]
+    rings = [ellipse((x, 0.0, zc), 0, ry, rz) for x, ry, rz, zc in stations]
     zc0 = stations[0][3]
-    return _loft(rings, start_apex=(nose_x * 1000.0, 0.0, zc0 * 1000.0))
+    return loft(rings, start_apex=(nose_x * 1000.0, 0.0, zc0 * 1000.0))
 
 
 def _canopy(
     x_front: float, x_rear: float, z_base: float, half_width: float, height: float
-) -> _Part:
+) -> Part:
     xs = np.linspace(x_front, x_rear, 5)[1:-1]
     shape = [0.8, 1.0, 0.7]
     rings = [
-        _ellipse((x, 0.0, z_base), 0, half_width * s, height * s, n=12) for x, s in zip(xs, shape)
+        ellipse((x, 0.0, z_base), 0, half_width * s, height * s, n=12) for x, s in zip(xs, shape)
     ]
-    return _loft(
+    return loft(
         rings,
         start_apex=(x_front * 1000.0, 0.0, z_base * 1000.0),
         end_apex=(x_rear * 1000.0, 0.0, z_base * 1000.0),
     )
 
 
-def _build_jet_j1() -> list[_Part]:
-    """Single-engine fighter: 40-degree swept trapezoid wing, single fin, conventional
-    tailplane, ventral intake."""
+def _build_jet_j1() -> list[Part]:
     stations = [
         (6.6, 0.3, 0.3, 1.6),
         (4.6, 0.6, 0.62, 1.6),
@@ -197,20 +155,18 @@ def _build_jet_j1() -> list[_Part]:
     ]
     parts = [_fuselage(stations, 7.6)]
     parts.append(_canopy(5.0, 1.6, 2.05, 0.42, 0.6))
-    parts.append(_box((-1.2, -0.55, 0.62), (3.1, 0.55, 1.3)))  # ventral intake
+    parts.append(box((-1.2, -0.55, 0.62), (3.1, 0.55, 1.3)))  # ventral intake
     wing = [(2.0, 0.0), (-1.6, 4.75), (-3.0, 4.75), (-3.3, 0.0), (-3.0, -4.75), (-1.6, -4.75)]
-    parts.append(_prism(wing, 2, 1.4, 1.6))
+    parts.append(prism(wing, 2, 1.4, 1.6))
     tail = [(-5.0, 0.0), (-6.6, 2.8), (-7.5, 2.8), (-7.4, 0.0), (-7.5, -2.8), (-6.6, -2.8)]
-    parts.append(_prism(tail, 2, 1.5, 1.62))
+    parts.append(prism(tail, 2, 1.5, 1.62))
     fin = [(-4.6, 2.2), (-7.3, 2.2), (-7.6, 4.9), (-6.6, 4.9)]
-    parts.append(_prism(fin, 1, -0.08, 0.08))
-    parts.append(_cylinder((-7.4, 0.0, 1.6), (-7.9, 0.0, 1.6), 0.45, 0.4))  # nozzle
+    parts.append(prism(fin, 1, -0.08, 0.08))
+    parts.append(cylinder((-7.4, 0.0, 1.6), (-7.9, 0.0, 1.6), 0.45, 0.4))  # nozzle
     return parts
 
 
-def _build_jet_j2() -> list[_Part]:
-    """Heavy twin-engine fighter: blended centre body, two engine nacelles, 45-degree
-    swept wing, twin canted fins, tailplane."""
+def _build_jet_j2() -> list[Part]:
     stations = [
         (8.5, 0.35, 0.35, 2.0),
         (6.5, 0.62, 0.66, 2.0),
@@ -220,29 +176,27 @@ def _build_jet_j2() -> list[_Part]:
     parts = [_fuselage(stations, 9.6)]
     parts.append(_canopy(6.6, 2.8, 2.5, 0.45, 0.65))
     body = [(3.0, -1.0), (1.0, -1.9), (-8.0, -1.9), (-8.0, 1.9), (1.0, 1.9), (3.0, 1.0)]
-    parts.append(_prism(body, 2, 1.5, 2.3))
+    parts.append(prism(body, 2, 1.5, 2.3))
     for y in (-1.15, 1.15):
-        parts.append(_cylinder((2.6, y, 1.55), (-9.0, y, 1.55), 0.65))  # nacelle
-        parts.append(_cylinder((-9.0, y, 1.55), (-9.6, y, 1.55), 0.6, 0.5))  # nozzle
+        parts.append(cylinder((2.6, y, 1.55), (-9.0, y, 1.55), 0.65))  # nacelle
+        parts.append(cylinder((-9.0, y, 1.55), (-9.6, y, 1.55), 0.6, 0.5))  # nozzle
         sign = np.sign(y)
         intake = [(0.6 * sign, 0.9), (1.7 * sign, 0.9), (1.7 * sign, 1.9), (0.6 * sign, 1.9)]
-        parts.append(_prism(intake, 0, 1.0, 4.6))
+        parts.append(prism(intake, 0, 1.0, 4.6))
     wing = [(1.0, -1.5), (-4.6, -6.75), (-6.2, -6.75), (-6.8, -1.5),
             (-6.8, 1.5), (-6.2, 6.75), (-4.6, 6.75), (1.0, 1.5)]
-    parts.append(_prism(wing, 2, 1.75, 1.95))
+    parts.append(prism(wing, 2, 1.75, 1.95))
     tail = [(-6.7, -1.6), (-8.6, -4.3), (-9.8, -4.3), (-9.6, -1.6),
             (-9.6, 1.6), (-9.8, 4.3), (-8.6, 4.3), (-6.7, 1.6)]
-    parts.append(_prism(tail, 2, 1.6, 1.75))
+    parts.append(prism(tail, 2, 1.6, 1.75))
     fin = [(-6.2, 2.1), (-9.2, 2.1), (-9.5, 5.6), (-8.3, 5.6)]
     for y, cant in ((1.6, -0.26), (-1.6, 0.26)):
-        part = _prism(fin, 1, y - 0.08, y + 0.08)
-        parts.append(_rotate_x(part, cant, (0.0, y, 2.1)))
+        part = prism(fin, 1, y - 0.08, y + 0.08)
+        parts.append(rotate_x(part, cant, (0.0, y, 2.1)))
     return parts
 
 
-def _build_jet_j3() -> list[_Part]:
-    """Delta-wing canard fighter: clipped delta wing, close-coupled canards, tall fin,
-    no tailplane, single engine."""
+def _build_jet_j3() -> list[Part]:
     stations = [
         (6.3, 0.28, 0.3, 1.5),
         (4.3, 0.58, 0.62, 1.5),
@@ -255,14 +209,14 @@ def _build_jet_j3() -> list[_Part]:
     for sign in (-1.0, 1.0):  # side intakes
         y0, y1 = 0.55 * sign, 1.25 * sign
         intake = [(y0, 0.85), (y1, 0.85), (y1, 1.75), (y0, 1.75)]
-        parts.append(_prism(intake, 0, -1.0, 3.0))
+        parts.append(prism(intake, 0, -1.0, 3.0))
     wing = [(1.2, 0.0), (-5.8, 5.45), (-6.8, 5.45), (-6.8, -5.45), (-5.8, -5.45)]
-    parts.append(_prism(wing, 2, 1.15, 1.35))
+    parts.append(prism(wing, 2, 1.15, 1.35))
     canard = [(3.9, 0.0), (2.7, 2.3), (2.2, 2.3), (2.3, 0.0), (2.2, -2.3), (2.7, -2.3)]
-    parts.append(_prism(canard, 2, 1.85, 1.95))
+    parts.append(prism(canard, 2, 1.85, 1.95))
     fin = [(-3.6, 2.0), (-7.2, 2.0), (-7.4, 5.3), (-6.3, 5.3)]
-    parts.append(_prism(fin, 1, -0.08, 0.08))
-    parts.append(_cylinder((-6.9, 0.0, 1.5), (-7.6, 0.0, 1.5), 0.45, 0.4))
+    parts.append(prism(fin, 1, -0.08, 0.08))
+    parts.append(cylinder((-6.9, 0.0, 1.5), (-7.6, 0.0, 1.5), 0.45, 0.4))
     return parts
 
 
@@ -274,80 +228,74 @@ def _build_jet_j3() -> list[_Part]:
 def _ship_hull(
     length_wl: float, length_deck: float, beam_wl: float, beam_deck: float, freeboard: float,
     bow_frac: float = 0.22, stern_frac: float = 0.85,
-) -> _Part:
-    wl = _hull_plan(length_wl, beam_wl, length_wl / 2 - bow_frac * length_wl, stern_frac)
+) -> Part:
+    wl = hull_plan(length_wl, beam_wl, length_wl / 2 - bow_frac * length_wl, stern_frac)
     shift = (length_deck - length_wl) / 2.0 * 0.6
-    deck = _hull_plan(
+    deck = hull_plan(
         length_deck, beam_deck, length_deck / 2 - bow_frac * length_deck + shift, stern_frac,
         x_center=shift,
     )
-    return _taper(wl, deck, 2, 0.0, freeboard)
+    return taper(wl, deck, 2, 0.0, freeboard)
 
 
 def _gun_turret(
     x: float, z: float, facing: float, radius: float = 3.2, barrel: float = 7.0
-) -> list[_Part]:
-    lo = _ellipse((x, 0.0, z), 2, radius, radius * 0.85, n=12)
-    hi = _ellipse((x - 0.5 * facing, 0.0, z + 2.8), 2, radius * 0.7, radius * 0.6, n=12)
+) -> list[Part]:
+    lo = ellipse((x, 0.0, z), 2, radius, radius * 0.85, n=12)
+    hi = ellipse((x - 0.5 * facing, 0.0, z + 2.8), 2, radius * 0.7, radius * 0.6, n=12)
     x0 = x + facing * radius * 0.6
     return [
-        _loft([lo, hi]),
-        _cylinder((x0, 0.0, z + 1.3), (x0 + facing * barrel, 0.0, z + 1.3), 0.3),
+        loft([lo, hi]),
+        cylinder((x0, 0.0, z + 1.3), (x0 + facing * barrel, 0.0, z + 1.3), 0.3),
     ]
 
 
-def _build_ship_s1() -> list[_Part]:
-    """Destroyer: flared hull, forward superstructure with bridge and lattice-free pole
-    mast, one raked funnel, gun turrets fore and aft, hangar aft."""
+def _build_ship_s1() -> list[Part]:
     parts = [_ship_hull(146.0, 154.0, 16.5, 18.0, 8.0)]
-    parts.append(_box((18.0, -7.0, 8.0), (44.0, 7.0, 15.0)))  # forward superstructure
+    parts.append(box((18.0, -7.0, 8.0), (44.0, 7.0, 15.0)))  # forward superstructure
     bridge = [(30.0, 15.0), (46.0, 15.0), (44.0, 20.0), (30.0, 20.0)]
-    parts.append(_prism(bridge, 1, -6.5, 6.5))
-    parts.append(_cylinder((33.0, 0.0, 20.0), (33.0, 0.0, 38.0), 0.7, 0.45))  # mast
-    parts.append(_box((32.6, -5.0, 32.0), (33.4, 5.0, 32.8)))  # yardarm
-    parts.append(_box((-30.0, -7.0, 8.0), (18.0, 7.0, 13.5)))  # aft superstructure
+    parts.append(prism(bridge, 1, -6.5, 6.5))
+    parts.append(cylinder((33.0, 0.0, 20.0), (33.0, 0.0, 38.0), 0.7, 0.45))  # mast
+    parts.append(box((32.6, -5.0, 32.0), (33.4, 5.0, 32.8)))  # yardarm
+    parts.append(box((-30.0, -7.0, 8.0), (18.0, 7.0, 13.5)))  # aft superstructure
     funnel = [
-        _ellipse((2.0, 0.0, 13.0), 2, 4.5, 2.8, n=16),
-        _ellipse((-1.0, 0.0, 24.0), 2, 3.6, 2.3, n=16),
+        ellipse((2.0, 0.0, 13.0), 2, 4.5, 2.8, n=16),
+        ellipse((-1.0, 0.0, 24.0), 2, 3.6, 2.3, n=16),
     ]
-    parts.append(_loft(funnel))
-    parts.append(_box((-44.0, -6.5, 8.0), (-30.0, 6.5, 14.0)))  # hangar
+    parts.append(loft(funnel))
+    parts.append(box((-44.0, -6.5, 8.0), (-30.0, 6.5, 14.0)))  # hangar
     parts += _gun_turret(55.0, 8.0, 1.0)
     parts += _gun_turret(-56.0, 8.0, -1.0)
-    parts.append(_box((46.0, -3.0, 8.0), (50.0, 3.0, 9.5)))  # missile cells
+    parts.append(box((46.0, -3.0, 8.0), (50.0, 3.0, 9.5)))  # missile cells
     return parts
 
 
-def _build_ship_s2() -> list[_Part]:
-    """Container ship: long hull with aft accommodation block and funnel, container
-    bays stacked to different heights, forecastle mast."""
+def _build_ship_s2() -> list[Part]:
     parts = [_ship_hull(174.0, 180.0, 29.0, 30.0, 14.0, bow_frac=0.18, stern_frac=0.8)]
-    parts.append(_box((-80.0, -12.5, 14.0), (-66.0, 12.5, 40.0)))  # accommodation
-    parts.append(_box((-73.0, -15.0, 36.0), (-66.0, 15.0, 40.0)))  # bridge wings
-    parts.append(_box((-87.0, -3.5, 14.0), (-80.0, 3.5, 44.0)))  # funnel
+    parts.append(box((-80.0, -12.5, 14.0), (-66.0, 12.5, 40.0)))  # accommodation
+    parts.append(box((-73.0, -15.0, 36.0), (-66.0, 15.0, 40.0)))  # bridge wings
+    parts.append(box((-87.0, -3.5, 14.0), (-80.0, 3.5, 44.0)))  # funnel
     tiers = [3, 4, 5, 5, 4, 5, 4, 3, 3, 2]
     for i, n_tiers in enumerate(tiers):
         x0 = -62.0 + 13.5 * i
-        parts.append(_box((x0, -12.5, 14.0), (x0 + 12.5, 12.5, 14.0 + 2.6 * n_tiers)))
-    parts.append(_box((78.0, -9.0, 14.0), (86.0, 9.0, 16.5)))  # forecastle deck house
-    parts.append(_cylinder((82.0, 0.0, 16.5), (82.0, 0.0, 28.0), 0.6))  # fore mast
+        parts.append(box((x0, -12.5, 14.0), (x0 + 12.5, 12.5, 14.0 + 2.6 * n_tiers)))
+    parts.append(box((78.0, -9.0, 14.0), (86.0, 9.0, 16.5)))  # forecastle deck house
+    parts.append(cylinder((82.0, 0.0, 16.5), (82.0, 0.0, 28.0), 0.6))  # fore mast
     return parts
 
 
-def _build_ship_s3() -> list[_Part]:
-    """Aircraft carrier: hull under a wide angled flight deck, starboard island with
-    bridge, funnel and mast, parked aircraft."""
+def _build_ship_s3() -> list[Part]:
     parts = [_ship_hull(285.0, 300.0, 38.0, 40.0, 17.0, bow_frac=0.15, stern_frac=0.9)]
     deck = [(-150.0, -20.0), (100.0, -20.0), (152.0, -11.0), (152.0, 11.0),
             (80.0, 22.0), (-40.0, 36.0), (-150.0, 30.0)]
-    parts.append(_prism(deck, 2, 17.0, 20.0))
-    parts.append(_box((-22.0, -19.5, 20.0), (14.0, -12.0, 35.0)))  # island
-    parts.append(_box((-6.0, -19.0, 35.0), (12.0, -12.5, 41.0)))  # bridge
-    parts.append(_box((-20.0, -18.5, 35.0), (-9.0, -13.0, 44.0)))  # funnel
-    parts.append(_cylinder((3.0, -15.5, 41.0), (3.0, -15.5, 60.0), 1.0, 0.6))  # mast
+    parts.append(prism(deck, 2, 17.0, 20.0))
+    parts.append(box((-22.0, -19.5, 20.0), (14.0, -12.0, 35.0)))  # island
+    parts.append(box((-6.0, -19.0, 35.0), (12.0, -12.5, 41.0)))  # bridge
+    parts.append(box((-20.0, -18.5, 35.0), (-9.0, -13.0, 44.0)))  # funnel
+    parts.append(cylinder((3.0, -15.5, 41.0), (3.0, -15.5, 60.0), 1.0, 0.6))  # mast
     for i, x in enumerate([-120.0, -100.0, -80.0, 60.0]):
         y = 10.0 if i < 3 else -6.0
-        parts.append(_box((x, y - 6.0, 20.0), (x + 16.0, y + 6.0, 24.5)))  # parked aircraft
+        parts.append(box((x, y - 6.0, 20.0), (x + 16.0, y + 6.0, 24.5)))  # parked aircraft
     return parts
 
 
@@ -356,61 +304,57 @@ def _build_ship_s3() -> list[_Part]:
 # ---------------------------------------------------------------------------------
 
 
-def _wheel_pairs(xs: Sequence[float], radius: float, y_in: float, y_out: float) -> list[_Part]:
-    parts: list[_Part] = []
+def _wheel_pairs(xs: Sequence[float], radius: float, y_in: float, y_out: float) -> list[Part]:
+    parts: list[Part] = []
     for x in xs:
-        parts += _both_sides(_wheel(x, y_in, y_out, radius))
+        parts += both_sides(wheel(x, y_in, y_out, radius))
     return parts
 
 
-def _build_truck_k1() -> list[_Part]:
-    """Six-wheel-drive cargo truck, cab over engine, canvas-covered cargo bed."""
+def _build_truck_k1() -> list[Part]:
     parts = _wheel_pairs([2.9, -1.6, -3.0], 0.55, 0.8, 1.22)
-    parts.append(_box((-3.9, -0.5, 0.85), (3.7, 0.5, 1.2)))  # chassis frame
+    parts.append(box((-3.9, -0.5, 0.85), (3.7, 0.5, 1.2)))  # chassis frame
     cab = [(2.3, 1.05), (4.0, 1.05), (4.05, 2.0), (3.8, 3.0), (2.3, 3.0)]
-    parts.append(_prism(cab, 1, -1.2, 1.2))
-    parts.append(_box((3.95, -1.25, 0.75), (4.15, 1.25, 1.05)))  # bumper
-    parts.append(_box((-4.0, -1.25, 1.2), (2.1, 1.25, 1.7)))  # cargo bed
+    parts.append(prism(cab, 1, -1.2, 1.2))
+    parts.append(box((3.95, -1.25, 0.75), (4.15, 1.25, 1.05)))  # bumper
+    parts.append(box((-4.0, -1.25, 1.2), (2.1, 1.25, 1.7)))  # cargo bed
     arch = [(-1.25, 1.7), (1.25, 1.7), (1.25, 2.7), (0.9, 3.15), (-0.9, 3.15), (-1.25, 2.7)]
-    parts.append(_prism(arch, 0, -4.0, 2.0))  # canvas cover
-    parts.append(_cylinder((0.4, -0.95, 0.95), (1.6, -0.95, 0.95), 0.3))  # fuel tank
+    parts.append(prism(arch, 0, -4.0, 2.0))  # canvas cover
+    parts.append(cylinder((0.4, -0.95, 0.95), (1.6, -0.95, 0.95), 0.3))  # fuel tank
     return parts
 
 
-def _build_truck_k2() -> list[_Part]:
-    """Four-wheel bonneted utility truck: long engine hood, open drop-side bed."""
+def _build_truck_k2() -> list[Part]:
     parts = _wheel_pairs([2.6, -2.2], 0.55, 0.78, 1.18)
-    parts.append(_box((-3.5, -0.5, 0.8), (3.3, 0.5, 1.15)))  # chassis frame
+    parts.append(box((-3.5, -0.5, 0.8), (3.3, 0.5, 1.15)))  # chassis frame
     hood = [(1.9, 1.0), (3.55, 1.0), (3.55, 1.8), (1.9, 2.0)]
-    parts.append(_prism(hood, 1, -0.8, 0.8))
-    parts += _both_sides(_box((1.9, 0.8, 1.0), (3.4, 1.2, 1.35)))  # front fenders
+    parts.append(prism(hood, 1, -0.8, 0.8))
+    parts += both_sides(box((1.9, 0.8, 1.0), (3.4, 1.2, 1.35)))  # front fenders
     cab = [(0.4, 1.05), (2.0, 1.05), (2.0, 2.0), (1.7, 2.75), (0.4, 2.75)]
-    parts.append(_prism(cab, 1, -1.15, 1.15))
-    parts.append(_box((-3.5, -1.2, 1.15), (0.3, 1.2, 1.35)))  # bed floor
-    parts += _both_sides(_box((-3.5, 1.12, 1.35), (0.3, 1.2, 1.95)))  # drop sides
-    parts.append(_box((-3.5, -1.12, 1.35), (-3.42, 1.12, 1.95)))  # tailgate
-    parts.append(_box((0.22, -1.12, 1.35), (0.3, 1.12, 2.2)))  # headboard
-    parts.append(_box((3.5, -1.15, 0.7), (3.7, 1.15, 1.0)))  # bumper
+    parts.append(prism(cab, 1, -1.15, 1.15))
+    parts.append(box((-3.5, -1.2, 1.15), (0.3, 1.2, 1.35)))  # bed floor
+    parts += both_sides(box((-3.5, 1.12, 1.35), (0.3, 1.2, 1.95)))  # drop sides
+    parts.append(box((-3.5, -1.12, 1.35), (-3.42, 1.12, 1.95)))  # tailgate
+    parts.append(box((0.22, -1.12, 1.35), (0.3, 1.12, 2.2)))  # headboard
+    parts.append(box((3.5, -1.15, 0.7), (3.7, 1.15, 1.0)))  # bumper
     return parts
 
 
-def _build_truck_k3() -> list[_Part]:
-    """Six-wheel fuel tanker: cab over engine, elliptic tank with domed ends and top
-    walkway."""
+def _build_truck_k3() -> list[Part]:
     parts = _wheel_pairs([3.4, -1.7, -3.1], 0.55, 0.8, 1.22)
-    parts.append(_box((-4.4, -0.5, 0.85), (4.2, 0.5, 1.2)))
+    parts.append(box((-4.4, -0.5, 0.85), (4.2, 0.5, 1.2)))
     cab = [(2.8, 1.05), (4.5, 1.05), (4.55, 2.0), (4.3, 3.0), (2.8, 3.0)]
-    parts.append(_prism(cab, 1, -1.2, 1.2))
-    parts.append(_box((4.45, -1.25, 0.75), (4.65, 1.25, 1.05)))
+    parts.append(prism(cab, 1, -1.2, 1.2))
+    parts.append(box((4.45, -1.25, 0.75), (4.65, 1.25, 1.05)))
     rings = [
-        _ellipse((-4.45, 0.0, 2.1), 0, 0.85, 0.6),
-        _ellipse((-4.3, 0.0, 2.1), 0, 1.2, 0.9),
-        _ellipse((2.4, 0.0, 2.1), 0, 1.2, 0.9),
-        _ellipse((2.55, 0.0, 2.1), 0, 0.85, 0.6),
+        ellipse((-4.45, 0.0, 2.1), 0, 0.85, 0.6),
+        ellipse((-4.3, 0.0, 2.1), 0, 1.2, 0.9),
+        ellipse((2.4, 0.0, 2.1), 0, 1.2, 0.9),
+        ellipse((2.55, 0.0, 2.1), 0, 0.85, 0.6),
     ]
-    parts.append(_loft(rings))  # tank with domed ends
-    parts.append(_box((-4.0, -0.35, 2.95), (2.2, 0.35, 3.1)))  # walkway
-    parts.append(_box((-4.4, -1.1, 1.1), (2.6, 1.1, 1.35)))  # tank cradle
+    parts.append(loft(rings))  # tank with domed ends
+    parts.append(box((-4.0, -0.35, 2.95), (2.2, 0.35, 3.1)))  # walkway
+    parts.append(box((-4.4, -1.1, 1.1), (2.6, 1.1, 1.35)))  # tank cradle
     return parts
 
 
@@ -426,110 +370,84 @@ class _Variant:
     target_class: str
     variant: str
     model_scale: Fraction
-    build: Callable[[], list[_Part]]
+    build: Callable[[], list[Part]]
     patch_full_mm: float
     """Camouflage patch diameter on the full-size target, millimetres."""
     features: dict = field(default_factory=dict)
+    description: str = ""
 
 
 _CLASSES = ("tank", "jet", "ship", "truck")
 
 _VARIANTS: dict[str, _Variant] = {
     "tank_t1": _Variant(
-        "tank",
-        "t1",
-        Fraction(1, 48),
-        _build_tank_t1,
-        1200.0,
+        "tank", "t1", Fraction(1, 48), _build_tank_t1, 1200.0,
         {"turret": "amidships wedge", "gun": "long", "road_wheels": "skirted"},
+        "Modern main battle tank: low hull, side skirts, wedge turret amidships, long gun.",
     ),
     "tank_t2": _Variant(
-        "tank",
-        "t2",
-        Fraction(1, 35),
-        _build_tank_t2,
-        1000.0,
+        "tank", "t2", Fraction(1, 35), _build_tank_t2, 1000.0,
         {"turret": "forward round", "gun": "short", "road_wheels": 5},
+        ("Second-world-war medium tank: tall sloped hull, visible road wheels, round turret "
+         "set forward, short gun."),
     ),
     "tank_t3": _Variant(
-        "tank",
-        "t3",
-        Fraction(1, 35),
-        _build_tank_t3,
-        1200.0,
+        "tank", "t3", Fraction(1, 35), _build_tank_t3, 1200.0,
         {"turret": "rear casemate", "gun": "very long", "road_wheels": 6},
+        ("Tank destroyer: six visible road wheels, large fixed casemate at the rear, very long "
+         "gun with a muzzle brake."),
     ),
     "jet_j1": _Variant(
-        "jet",
-        "j1",
-        Fraction(1, 72),
-        _build_jet_j1,
-        2500.0,
+        "jet", "j1", Fraction(1, 72), _build_jet_j1, 2500.0,
         {"wing": "swept trapezoid", "tail": "single fin", "engine_count": 1},
+        ("Single-engine fighter: 40-degree swept trapezoid wing, single fin, conventional "
+         "tailplane, ventral intake."),
     ),
     "jet_j2": _Variant(
-        "jet",
-        "j2",
-        Fraction(1, 72),
-        _build_jet_j2,
-        2500.0,
+        "jet", "j2", Fraction(1, 72), _build_jet_j2, 2500.0,
         {"wing": "swept trapezoid", "tail": "twin canted fins", "engine_count": 2},
+        ("Heavy twin-engine fighter: blended centre body, two engine nacelles, 45-degree swept "
+         "wing, twin canted fins, tailplane."),
     ),
     "jet_j3": _Variant(
-        "jet",
-        "j3",
-        Fraction(1, 72),
-        _build_jet_j3,
-        2500.0,
+        "jet", "j3", Fraction(1, 72), _build_jet_j3, 2500.0,
         {"wing": "clipped delta + canards", "tail": "single fin", "engine_count": 1},
+        ("Delta-wing canard fighter: clipped delta wing, close-coupled canards, tall fin, no "
+         "tailplane, single engine."),
     ),
     "ship_s1": _Variant(
-        "ship",
-        "s1",
-        Fraction(1, 700),
-        _build_ship_s1,
-        9000.0,
+        "ship", "s1", Fraction(1, 700), _build_ship_s1, 9000.0,
         {"type": "destroyer", "superstructure": "midships", "masts": 1},
+        ("Destroyer: flared hull, forward superstructure with bridge and lattice-free pole "
+         "mast, one raked funnel, gun turrets fore and aft, hangar aft."),
     ),
     "ship_s2": _Variant(
-        "ship",
-        "s2",
-        Fraction(1, 700),
-        _build_ship_s2,
-        12000.0,
+        "ship", "s2", Fraction(1, 700), _build_ship_s2, 12000.0,
         {"type": "container ship", "superstructure": "aft", "masts": 1},
+        ("Container ship: long hull with aft accommodation block and funnel, container bays "
+         "stacked to different heights, forecastle mast."),
     ),
     "ship_s3": _Variant(
-        "ship",
-        "s3",
-        Fraction(1, 1200),
-        _build_ship_s3,
-        15000.0,
+        "ship", "s3", Fraction(1, 1200), _build_ship_s3, 15000.0,
         {"type": "aircraft carrier", "superstructure": "starboard island", "masts": 1},
+        ("Aircraft carrier: hull under a wide angled flight deck, starboard island with "
+         "bridge, funnel and mast, parked aircraft."),
     ),
     "truck_k1": _Variant(
-        "truck",
-        "k1",
-        Fraction(1, 35),
-        _build_truck_k1,
-        900.0,
+        "truck", "k1", Fraction(1, 35), _build_truck_k1, 900.0,
         {"cab": "cab over engine", "cargo": "canvas cover", "axles": 3},
+        "Six-wheel-drive cargo truck, cab over engine, canvas-covered cargo bed.",
     ),
     "truck_k2": _Variant(
-        "truck",
-        "k2",
-        Fraction(1, 35),
-        _build_truck_k2,
-        900.0,
+        "truck", "k2", Fraction(1, 35), _build_truck_k2, 900.0,
         {"cab": "bonneted", "cargo": "open drop-side bed", "axles": 2},
+        "Four-wheel bonneted utility truck: long engine hood, open drop-side bed.",
     ),
     "truck_k3": _Variant(
-        "truck",
-        "k3",
-        Fraction(1, 35),
-        _build_truck_k3,
-        900.0,
+        "truck", "k3", Fraction(1, 35), _build_truck_k3, 900.0,
         {"cab": "cab over engine", "cargo": "fuel tank", "axles": 3},
+        ("Six-wheel fuel tanker: cab over engine, elliptic tank with domed ends and top "
+         "walkway."),
     ),
 }
 
@@ -586,76 +504,36 @@ def _scale_ratio(scale: float | str, model_scale: Fraction) -> float:
     return ratio
 
 
-def builtin_target(
-    name: str,
-    *,
-    scale: float | str = "model",
-    camouflage: bool = True,
-    seed: int = 0,
-    palette: str | None = None,
-) -> SceneMesh:
-    """Build a built-in procedural target.
-
-    Parameters
-    ----------
-    name : str
-        One of :func:`list_builtin_targets` (e.g. ``"tank_t1"``).
-    scale : {"model", "full"} or float
-        ``"model"``: the variant's hobby kit scale (``metadata["model_scale"]``, the
-        model is 150-280 mm long); ``"full"``: real size; a number: ratio to full
-        size (``1.0`` = full size, ``1/35`` = a 1:35 model).
-    camouflage : bool
-        Disruptive camouflage paint (:class:`~prism3d.capture.camouflage.CamouflageField`)
-        when True, the plain base coat (uniform) when False.
-    seed : int
-        Camouflage pattern seed (>= 0). The geometry does not depend on it.
-    palette : str, optional
-        Override the class's default palette (see
-        :data:`~prism3d.capture.camouflage.PALETTES`).
-
-    Returns
-    -------
-    SceneMesh
-        Vertices ``(N, 3)`` float64 mm in the object frame (module docstring: x
-        forward, y left, z up, origin at the footprint centre on the ground),
-        ``albedo_field`` set, and ``metadata`` with ``class``, ``variant``, ``name``,
-        ``model_scale`` (float), ``model_scale_label`` ("1:35"), ``scale`` (the ratio
-        to full size used), ``length_mm``, ``width_mm``, ``height_mm`` (mesh extents
-        along x, y, z), ``full_length_mm``, ``provenance`` ("builtin procedural"),
-        ``description``, ``features`` (variant traits), ``parts``, ``camouflage``
-        (palette name or ``"none"``), ``patch_size_mm``, ``seed``.
-
-    Raises
-    ------
-    InputError
-        Unknown ``name`` (the message lists valid names), bad ``scale``, ``seed`` or
-        ``palette``.
-    """
+def _check_name_and_seed(name: str, seed: int) -> None:
     if name not in _VARIANTS:
         raise InputError(
             f"unknown built-in target {name!r}; valid names: {', '.join(_VARIANTS)}"
         )
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
+
+
+def _paint(name: str, patch_mm: float, camouflage: bool, seed: int, palette: str | None):
+    """Albedo field: the camouflage of ``name`` or its plain base coat."""
     spec = _VARIANTS[name]
-    ratio = _scale_ratio(scale, spec.model_scale)
-    full_vertices, faces, n_parts = _full_size_geometry(name)
-    vertices = full_vertices * ratio
-    patch_mm = spec.patch_full_mm * ratio
-    palette_name = CLASS_PALETTES[spec.target_class] if palette is None else palette
-    if camouflage:
-        # Mix the variant index into the seed so two targets never share a pattern.
-        variant_index = list(_VARIANTS).index(name)
-        albedo = camouflage_field(
-            spec.target_class,
-            patch_size_mm=patch_mm,
-            seed=int(seed) * len(_VARIANTS) + variant_index,
-            palette=palette,
-        )
-    else:
-        albedo = plain_paint(spec.target_class, palette=palette)
+    if not camouflage:
+        return plain_paint(spec.target_class, palette=palette)
+    # Mix the variant index into the seed so two targets never share a pattern.
+    variant_index = list(_VARIANTS).index(name)
+    return camouflage_field(
+        spec.target_class,
+        patch_size_mm=patch_mm,
+        seed=int(seed) * len(_VARIANTS) + variant_index,
+        palette=palette,
+    )
+
+
+def _metadata(name: str, vertices: NDArray, ratio: float, n_parts: int, camouflage: bool, seed: int,
+              palette: str | None) -> dict:
+    spec = _VARIANTS[name]
     extent = vertices.max(axis=0) - vertices.min(axis=0)
-    metadata = {
+    palette_name = CLASS_PALETTES[spec.target_class] if palette is None else palette
+    return {
         "class": spec.target_class,
         "variant": spec.variant,
         "name": name,
@@ -667,20 +545,68 @@ def builtin_target(
         "height_mm": float(extent[2]),
         "full_length_mm": float(extent[0] / ratio),
         "provenance": "builtin procedural",
-        "description": " ".join((spec.build.__doc__ or "").split()),
+        "description": spec.description,
         "features": dict(spec.features),
         "parts": n_parts,
         "camouflage": palette_name if camouflage else "none",
-        "patch_size_mm": patch_mm,
+        "patch_size_mm": spec.patch_full_mm * ratio,
         "seed": int(seed),
     }
+
+
+def builtin_target(
+    name: str,
+    *,
+    scale: float | str = "model",
+    camouflage: bool = True,
+    seed: int = 0,
+    palette: str | None = None,
+) -> SceneMesh:
+    """Build a built-in procedural target (frame and scales: docs/targets.md).
+
+    Parameters
+    ----------
+    name : str
+        One of :func:`list_builtin_targets` (e.g. ``"tank_t1"``).
+    scale : {"model", "full"} or float
+        The kit scale (model 150-280 mm long), real size, or a ratio to full size.
+    camouflage : bool
+        Disruptive camouflage paint, else the plain base coat.
+    seed : int
+        Camouflage pattern seed (>= 0); the geometry does not depend on it.
+    palette : str, optional
+        Overrides the class's palette (:data:`~prism3d.capture.camouflage.PALETTES`).
+
+    Returns
+    -------
+    SceneMesh
+        Vertices ``(N, 3)`` float64 mm, object frame (x forward, y left, z up, origin at
+        the footprint centre on the ground), ``albedo_field``, and ``metadata``
+        (class, variant, sizes ``length_mm width_mm height_mm`` = extents along x, y, z,
+        scales, description, camouflage, ``patch_size_mm``, seed).
+
+    Raises
+    ------
+    InputError
+        Unknown ``name`` (the message lists valid names), bad ``scale``, ``seed``, ``palette``.
+    """
+    _check_name_and_seed(name, seed)
+    spec = _VARIANTS[name]
+    ratio = _scale_ratio(scale, spec.model_scale)
+    full_vertices, faces, n_parts = _full_size_geometry(name)
+    vertices = full_vertices * ratio
+    albedo = _paint(name, spec.patch_full_mm * ratio, camouflage, seed, palette)
     return SceneMesh(
         vertices=vertices,
         faces=np.array(faces),
         albedo_field=albedo,
         name=name,
-        metadata=metadata,
+        metadata=_metadata(name, vertices, ratio, n_parts, camouflage, seed, palette),
     )
+
+
+EDGES_PER_PATCH = 3.0  # export: default longest edge = patch / 3, so vertex paint shows the pattern
+SUBDIVIDE_MAX_ITER = 12  # trimesh subdivision passes; each halves the edges (4096x shorter at most)
 
 
 def export_builtin_target(
@@ -693,35 +619,13 @@ def export_builtin_target(
     palette: str | None = None,
     max_edge_mm: float | None = None,
 ) -> Path:
-    """Write a built-in target as a binary PLY mesh with vertex colours (atomically).
+    """Write a built-in target as a binary PLY mesh with vertex colours, atomically.
 
-    The paint is sampled at the vertices, so faces are first split until no edge is
-    longer than ``max_edge_mm`` (default: a third of the camouflage patch size), so
-    that viewers show the pattern. The split mesh is for viewing and exchange; the
-    :class:`SceneMesh` from :func:`builtin_target` (exact procedural paint) is what
-    the renderer should use.
-
-    Parameters
-    ----------
-    name : str
-        One of :func:`list_builtin_targets`.
-    out_path : str or Path
-        Output ``.ply`` file (its folder must exist).
-    scale, camouflage, seed, palette
-        As for :func:`builtin_target`.
-    max_edge_mm : float, optional
-        Longest edge after splitting, mm (in the output's scale).
-
-    Returns
-    -------
-    Path
-        ``out_path``.
-
-    Raises
-    ------
-    InputError
-        Bad name or options, an output suffix other than ``.ply``, or a missing
-        output folder.
+    The paint is sampled at the vertices after splitting faces to edges of at most
+    ``max_edge_mm`` (default a third of the patch size): for viewers and exchange; the
+    renderer should use :func:`builtin_target` (exact procedural paint). ``scale``,
+    ``camouflage``, ``seed``, ``palette`` as for :func:`builtin_target`. Returns
+    ``out_path`` (a ``.ply`` in an existing folder, else InputError).
     """
     import trimesh  # lazy: only needed for the export
 
@@ -734,12 +638,12 @@ def export_builtin_target(
     vertices, faces = mesh.vertices, mesh.faces
     if camouflage:
         edge = (
-            mesh.metadata["patch_size_mm"] / 3.0
+            mesh.metadata["patch_size_mm"] / EDGES_PER_PATCH
             if max_edge_mm is None
             else check_positive(max_edge_mm, "max_edge_mm")
         )
         vertices, faces = trimesh.remesh.subdivide_to_size(
-            vertices, faces, max_edge=edge, max_iter=12
+            vertices, faces, max_edge=edge, max_iter=SUBDIVIDE_MAX_ITER
         )
         merged = trimesh.Trimesh(vertices, faces, process=True)
         vertices = np.asarray(merged.vertices, dtype=np.float64)

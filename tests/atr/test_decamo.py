@@ -9,7 +9,7 @@ import pytest
 import tifffile
 from prism3d.atr.decamo import decamo_to_folder, decamouflage, lmse, sh_basis
 from prism3d.capture.rig import paper_rig
-from prism3d.capture.simulate import simulate_shot
+from prism3d.capture.simulate import ShotOptions, simulate_shot
 from prism3d.datasets.targets import builtin_target
 
 from prism3d.errors import InputError
@@ -36,8 +36,8 @@ def shot():
     yet model the camera)."""
     rig = paper_rig(sensor_size=(648, 486), focal_px=5107 / 4)
     m = builtin_target("tank_t1")
-    s = simulate_shot(rig, [(m, _pose(30, 35))], supersample=1, noise=True, ambient=0.2, flash=0.8,
-                      effects=None)
+    s = simulate_shot(rig, [(m, _pose(30, 35))], ShotOptions(supersample=1, noise=True, ambient=0.2, flash=0.8,
+                                                                effects=None))
     left, _ = rig.split.split(s.sensor_image)
     return rig, left, s.truth
 

@@ -261,6 +261,18 @@ def test_features_table_units_up_and_parquet(tmp_path) -> None:
     assert df2["kind"][0] == "scan"
 
 
+def test_features_reads_the_units_of_an_exported_builtin(tmp_path) -> None:
+    """``units mm; frame ...`` (export_builtin_target) declares mm, as for ``prism3d db add``."""
+    from prism3d.datasets.targets import export_builtin_target
+
+    p = export_builtin_target("truck_k2", tmp_path / "k2.ply", camouflage=False)
+    with pytest.raises(InputError, match="declares units 'mm'"):
+        features_table([p], units="m", up="z")
+    df = features_table([p], up="z")
+    assert list(df["units_in"]) == ["mm"]
+    assert df["length_mm"][0] == pytest.approx(builtin_target("truck_k2").metadata["length_mm"], rel=0.02)
+
+
 def test_real_meshes_mixed_units_and_up(shared_data, tmp_path) -> None:
     d = shared_data / "meshes"
     bunny = tmp_path / "stanford-bunny.obj"
