@@ -203,7 +203,7 @@ def prism_table(cache: Path) -> list[str]:
     bad)."""
     from prism3d.capture.camera_effects import CameraEffects
     from prism3d.capture.rig import StereoRig
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.reconstruct.pipeline import reconstruct_shot
@@ -216,7 +216,8 @@ def prism_table(cache: Path) -> list[str]:
         folder = cache / name.replace(" ", "_")
         if not (folder / "rig.yaml").exists():
             kind = kw.pop("kind")
-            simulate_to_folder(kind, folder, effects=CameraEffects.ideal(), **kw)
+            simulate_to_folder(kind, folder, SimulateOptions(effects=CameraEffects.ideal(),
+                               **{k: v for k, v in kw.items() if k != "target"}), target=kw.get("target"))
         rig = StereoRig.load(folder / "rig.yaml")
         shot_file = folder / ("shot.png" if (folder / "shot.png").exists() else "shot_01.png")
         truth = np.load(folder / ("truth.npz" if shot_file.name == "shot.png" else "truth_01.npz"))["disparity_rect"]

@@ -34,7 +34,7 @@ PRISM3D = Path(sys.executable).parent / "prism3d"
 
 
 def _shots(cache: Path) -> dict[str, Path]:
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
 
     out = {}
@@ -43,7 +43,8 @@ def _shots(cache: Path) -> dict[str, Path]:
         folder = cache / name.replace(" ", "_")
         if not (folder / "rig.yaml").exists():
             kind = kw.pop("kind")
-            simulate_to_folder(kind, folder, **kw)
+            simulate_to_folder(kind, folder, SimulateOptions(**{k: v for k, v in kw.items() if k != "target"}),
+                               target=kw.get("target"))
         out[name] = folder
     return out
 

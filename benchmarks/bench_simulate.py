@@ -25,7 +25,7 @@ from prism3d.capture.camouflage import CamouflageField
 from prism3d.capture.render import RaycastRenderer, SensorNoise
 from prism3d.capture.rig import paper_rig
 from prism3d.capture.scenes import flat_plate, translation
-from prism3d.capture.simulate import Projector, simulate_shot
+from prism3d.capture.simulate import Projector, ShotOptions, simulate_shot
 
 import prism3d  # noqa: F401  (environment first)
 
@@ -130,7 +130,7 @@ def main() -> None:
         objs.append((flat_plate(60, 60, albedo=(0.8, 0.8, 0.8), name="occluder"), translation(30, -20, 900)))
     # warm-up (numba compile / cache load) on a tiny rig
     small = paper_rig(sensor_size=(324, 244), focal_px=5107 / 8)
-    simulate_shot(small, objs, projector=Projector.for_rig(small), supersample=args.supersample)
+    simulate_shot(small, objs, ShotOptions(supersample=args.supersample), projector=Projector.for_rig(small))
     runs = []
     for k in range(args.repeat + 1):
         # a fresh renderer per cold shot (scene build, ~0.1 s, excluded); the last
@@ -142,10 +142,8 @@ def main() -> None:
         rays.update(camera=0, shadow=0, shadow_cast=0)
         t0 = time.perf_counter()
         c0 = time.process_time()
-        shot = simulate_shot(
-            rig, objs, projector=projector, supersample=args.supersample, noise=True, seed=0,
-            renderer=renderer,
-        )
+        shot = simulate_shot(rig, objs, ShotOptions(supersample=args.supersample, noise=True, seed=0), projector=projector,
+                             renderer=renderer)
         runs.append(
             (time.perf_counter() - t0, dict(timings), dict(rays), time.process_time() - c0, dict(cpu))
         )

@@ -63,7 +63,7 @@ def _group_match() -> None:
     64-bit census codes."""
     import numpy as np
 
-    from prism3d.reconstruct.match import match_stereo_full
+    from prism3d.reconstruct.match import MatchOptions, match_stereo_full
 
     left, right = _textured_pair(40, 64, 4)
     grey_l, grey_r = left[..., 0].copy(), right[..., 0].copy()
@@ -71,10 +71,12 @@ def _group_match() -> None:
     for lv, rv in ((left, right), (grey_l, grey_r), (float_l, float_r)):
         for c2f in (False, True):
             for sub in ("lk", "equiangular"):
-                match_stereo_full(lv, rv, min_disp=0, num_disp=16, coarse_to_fine=c2f, subpixel=sub)
-    match_stereo_full(left, right, min_disp=0, num_disp=16, paths=8)
-    match_stereo_full(left, right, min_disp=0, num_disp=16, census_window=(7, 7))
-    match_stereo_full(float_l, float_r, min_disp=0, num_disp=16, census_window=(7, 7))
+                match_stereo_full(lv, rv, min_disp=0, num_disp=16,
+                                  options=MatchOptions(coarse_to_fine=c2f, subpixel=sub))
+    match_stereo_full(left, right, min_disp=0, num_disp=16, options=MatchOptions(paths=8))
+    c77 = MatchOptions(census_window=(7, 7))
+    match_stereo_full(left, right, min_disp=0, num_disp=16, options=c77)
+    match_stereo_full(float_l, float_r, min_disp=0, num_disp=16, options=c77)
 
 
 def _tiny_rig() -> Any:
@@ -87,45 +89,45 @@ def _tiny_rig() -> Any:
 def _group_simulate() -> None:
     """The virtual rig (``prism3d simulate plate|calib|scene``): ray casting, shading,
     shadows, supersampling, sensor noise, camouflage and value-noise textures."""
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
 
     rig = _tiny_rig()
     with tempfile.TemporaryDirectory(prefix="prism3d-precompile-") as tmp:
         out = Path(tmp)
-        simulate_to_folder("plate", out / "p1", rig=rig, supersample=1)
-        simulate_to_folder("plate", out / "p2", rig=rig, supersample=2, camouflage=False,
-                           noise=False, effects=None)
-        simulate_to_folder("scene", out / "s", rig=rig, target=builtin_target("tank_t1", seed=0),
-                           views=2, supersample=2)
+        simulate_to_folder("plate", out / "p1", SimulateOptions(supersample=1), rig=rig)
+        simulate_to_folder("plate", out / "p2", SimulateOptions(supersample=2, camouflage=False, noise=False, effects=None),
+                           rig=rig)
+        simulate_to_folder("scene", out / "s", SimulateOptions(views=2, supersample=2), rig=rig,
+                           target=builtin_target("tank_t1", seed=0))
         # a small board: the default 9 x 6 x 25 mm one does not fit the tiny views
-        simulate_to_folder("calib", out / "c", rig=rig, views=1, supersample=1, board=(4, 3),
-                           square_mm=20.0)
+        simulate_to_folder("calib", out / "c", SimulateOptions(views=1, supersample=1, board=(4, 3), square_mm=20.0),
+                           rig=rig)
 
 
 def _group_reconstruct() -> None:
     """One shot to a scan (``prism3d reconstruct``): B-spline rectification, matching,
     slanted-plane refinement, smoothing, triangulation and normals."""
     from prism3d.capture.scenes import flat_plate, place_at
-    from prism3d.capture.simulate import Projector, simulate_shot
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.capture.simulate import Projector, ShotOptions, simulate_shot
+    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
 
     rig = _tiny_rig()
     plate = flat_plate()
-    shot = simulate_shot(rig, [(plate, place_at(plate, 1250.0))],
-                         projector=Projector.for_rig(rig, pattern=True), supersample=1, seed=0)
+    shot = simulate_shot(rig, [(plate, place_at(plate, 1250.0))], ShotOptions(supersample=1, seed=0),
+                         projector=Projector.for_rig(rig, pattern=True))
     reconstruct_shot(shot.sensor_image, rig)
-    reconstruct_shot(shot.sensor_image, rig, smooth_sigma_px=1.5, refine_interpolation="linear")
+    reconstruct_shot(shot.sensor_image, rig, ReconstructOptions(smooth_sigma_px=1.5, refine_interpolation="linear"))
 
 
 def _group_chips() -> None:
     """ATR chips (``prism3d render``, ``bank``, ``db render``): ray-cast chips."""
-    from prism3d.atr.chips import render_chips
+    from prism3d.atr.chips import ChipSpec, render_chips
     from prism3d.datasets.targets import builtin_target
 
     tank = builtin_target("tank_t1", seed=0)
-    render_chips(tank, azimuth="0:360:180", size=16, clutter="ground")
-    render_chips(tank, azimuth=0.0, size=16)
+    render_chips(tank, azimuth="0:360:180", chip_spec=ChipSpec(size=16, clutter="ground"))
+    render_chips(tank, azimuth=0.0, chip_spec=ChipSpec(size=16))
 
 
 def _group_io() -> None:

@@ -113,7 +113,7 @@ def _virtual_resolver(name: str) -> Any:
 
 # --- simulate ------------------------------------------------------------------------------
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
 
     rig = None
     if args.rig is not None:
@@ -137,11 +137,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if args.jpeg_quality is not None:
         effects = dataclasses.replace(effects, jpeg_quality=args.jpeg_quality or None)
     board = parse_board(args.board)
-    summary = simulate_to_folder(args.kind, args.out_dir, rig=rig, target=target, pattern=args.pattern,
-                                 camouflage=args.camouflage, views=args.views, seed=args.seed,
-                                 noise=args.noise, supersample=args.supersample,
-                                 progress=_progress(args, f"simulate {args.kind}"), compress=args.compress,
-                                 board=board, square_mm=args.square, blur_sigma=args.blur, effects=effects)
+    summary = simulate_to_folder(args.kind, args.out_dir, SimulateOptions(
+        pattern=args.pattern, camouflage=args.camouflage, views=args.views, seed=args.seed, noise=args.noise,
+        supersample=args.supersample, compress=args.compress, board=board, square_mm=args.square,
+        blur_sigma=args.blur, effects=effects,
+    ), rig=rig, target=target, progress=_progress(args, f"simulate {args.kind}"))
     _say(args, f"wrote {summary['n_shots']} shot(s) and ground truth to {args.out_dir} "
                f"in {summary['seconds']:.1f} s")
     return 0
@@ -188,7 +188,7 @@ def _add_simulate(sub: Any) -> None:
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:
-    from prism3d.capture.acquire import capture_shots
+    from prism3d.capture.acquire import CaptureOptions, capture_shots
 
     expected = None
     if args.calib is not None:
@@ -198,10 +198,10 @@ def _cmd_capture(args: argparse.Namespace) -> int:
     camera = args.camera
     if camera == "virtual":  # the physically simulated paper rig, not a stand-in
         camera = "virtual:plate"
-    paths = capture_shots(args.trigger, camera, args.output, count=args.count, interval_s=args.interval,
-                          pattern_id=args.pattern, flash=not args.no_flash, expected_size=expected,
-                          progress=_progress(args, "capture"), trigger_timeout=args.timeout,
-                          grab_timeout=args.grab_timeout, resolver=_virtual_resolver)
+    paths = capture_shots(args.trigger, camera, args.output, CaptureOptions(
+        count=args.count, interval_s=args.interval, pattern_id=args.pattern, flash=not args.no_flash,
+        expected_size=expected, trigger_timeout=args.timeout, grab_timeout=args.grab_timeout,
+    ), progress=_progress(args, "capture"), resolver=_virtual_resolver)
     for p in paths:
         _say(args, str(p))
     return 0
@@ -305,23 +305,12 @@ def _parse_range(text: str | None, what: str) -> tuple[float, float] | None:
 
 
 def _cmd_match(args: argparse.Namespace) -> int:
-    from prism3d.io.images import read_image
-    from prism3d.io.pfm import write_pfm
-    from prism3d.reconstruct.match import match_stereo_full
+    from prism3d.reconstruct.match import match_files
 
     if args.output.suffix.lower() != ".pfm":
         raise InputError(f"{args.output}: disparity is written as PFM (.pfm)")
-    left = read_image(args.left)
-    right = read_image(args.right)
-    res = match_stereo_full(left, right, min_disp=args.min_disp, num_disp=args.num_disp)
-    import numpy as np
-
-    disp = res.disparity if args.dense else np.where(res.valid, res.disparity, np.nan).astype(np.float32)
-    write_pfm(args.output, disp)
-    if args.valid_out is not None:
-        from prism3d.io.images import write_image
-
-        write_image(args.valid_out, res.valid)
+    res = match_files(args.left, args.right, args.output, num_disp=args.num_disp,
+                      min_disp=args.min_disp, dense=args.dense, valid_out=args.valid_out)
     _say(args, f"wrote {args.output} ({100.0 * res.valid.mean():.1f}% confident pixels)")
     return 0
 
@@ -370,18 +359,18 @@ def _check_views(args: argparse.Namespace) -> None:
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.pipeline import reconstruct_to_files
+    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_to_files
 
     _check_views(args)
     if args.smooth < 0:
         raise InputError(f"--smooth: expected a sigma >= 0 px, got {args.smooth}")
+    options = ReconstructOptions(min_disp=args.min_disp, num_disp=args.num_disp,
+                                 depth_range_mm=_parse_range(args.depth_range, "--depth-range"),
+                                 smooth_sigma_px=args.smooth, min_confidence=args.min_confidence)
     rec = reconstruct_to_files(args.shot, list(args.calib), args.output, left_path=args.left,
                                right_path=args.right, disparity_out=args.disparity_out,
                                depth_out=args.depth_out, mesh_out=args.mesh,
-                               image_size=_parse_size(args.image_size), min_disp=args.min_disp,
-                               num_disp=args.num_disp,
-                               depth_range_mm=_parse_range(args.depth_range, "--depth-range"),
-                               smooth_sigma_px=args.smooth, min_confidence=args.min_confidence,
+                               image_size=_parse_size(args.image_size), options=options,
                                progress=_progress(args, "reconstruct"))
     if args.json:
         _print_json({"output": str(args.output), "points": len(rec.scan), "min_disp": rec.min_disp,
@@ -506,19 +495,19 @@ def _add_flatness(sub: Any) -> None:
 
 # --- stitch --------------------------------------------------------------------------------
 def _cmd_stitch(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.stitch import stitch_to_files
+    from prism3d.reconstruct.stitch import StitchOptions, stitch_to_files
 
     if len(args.scans) < 2:
         raise InputError("stitch needs at least 2 scans")
-    opts: dict[str, Any] = {}
+    opts: dict[str, Any] = {"turntable_step_deg": args.turntable_step}
     if args.voxel is not None:
         opts["voxel"] = args.voxel
     if args.smooth:
         opts["smooth_iterations"] = args.smooth
     if args.min_confidence is not None:
         opts["min_confidence"] = args.min_confidence
-    res = stitch_to_files(args.scans, args.output, mesh_out=args.mesh, turntable_step_deg=args.turntable_step,
-                          progress=_progress(args, "stitch"), **opts)
+    res = stitch_to_files(args.scans, args.output, StitchOptions(**opts), mesh_out=args.mesh,
+                          progress=_progress(args, "stitch"))
     _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
                + (f", mesh {args.mesh}" if args.mesh else ""))
     pairs = res.diagnostics.get("pairs", [])
@@ -613,7 +602,7 @@ def _add_features(sub: Any) -> None:
 
 # --- ATR: render / bank ---------------------------------------------------------------------
 def _cmd_render(args: argparse.Namespace) -> int:
-    from prism3d.atr.chips import render_to_folder
+    from prism3d.atr.chips import ChipSpec, render_to_folder
     from prism3d.datasets.resolve import resolve_model
 
     if Path(args.model).is_file():
@@ -621,12 +610,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
             raise InputError(f"{args.model}: give --units (mm, cm, m, in): mesh files do not say their units")
         model: Any = args.model
     else:
-        model = resolve_model(args.model, camouflage=args.camouflage, seed=args.seed)[1]
+        model = resolve_model(args.model, seed=args.seed)[1]  # painted; ChipSpec.camouflage decides
+    spec = ChipSpec(size=args.size, framing=args.framing, pixels_per_m=args.pixels_per_m, channels=args.channels,
+                    camouflage=args.camouflage, clutter=args.clutter, noise_sigma=args.noise, seed=args.seed,
+                    backend=args.backend)
     manifest = render_to_folder(model, args.output, azimuth=args.azimuth, elevation=args.elevation,
-                                range_mm=args.range, size=args.size, framing=args.framing,
-                                pixels_per_m=args.pixels_per_m, channels=args.channels, units=args.units or "mm",
-                                up=args.up, fmt=args.format, camouflage=args.camouflage, clutter=args.clutter,
-                                noise_sigma=args.noise, seed=args.seed, backend=args.backend)
+                                range_mm=args.range, chip_spec=spec, units=args.units or "mm", up=args.up,
+                                fmt=args.format)
     _say(args, f"wrote chips and {manifest}")
     return 0
 
@@ -659,35 +649,32 @@ def _add_render(sub: Any) -> None:
 
 
 def _cmd_bank(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from prism3d.atr.bank import check_bank_command
     from prism3d.datasets.resolve import resolve_targets
 
+    check_bank_command(args.action, output=args.output, bank=args.bank)
     if args.action == "train":
-        from prism3d.atr.bank import train_bank
+        from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
 
-        if args.output is None:
-            raise InputError("bank train: give -o BANK.npz")
-        targets = resolve_targets(args.targets, units=args.units, up=args.up, camouflage=args.camouflage,
-                                  seed=args.seed)
+        targets = resolve_targets(args.targets, units=args.units, up=args.up, seed=args.seed)
         grid = {k: v for k, v in (("azimuth", args.azimuth), ("elevation", args.elevation)) if v is not None}
-        bank = train_bank(targets, channel=args.channel, bin_deg=args.bin_deg, size=args.size, **grid)
+        spec = replace(BANK_CHIP_SPEC, size=args.size, camouflage=args.camouflage)
+        bank = train_bank(targets, channel=args.channel, bin_deg=args.bin_deg, chip_spec=spec, **grid)
         bank.save(args.output)
         _say(args, f"wrote {args.output}: {len(bank.classes)} classes, channel {args.channel}")
         return 0
     from prism3d.atr.bank import FilterBank
-    from prism3d.atr.evaluate import evaluate_bank
+    from prism3d.atr.evaluate import EVAL_CHIP_SPEC, evaluate_bank, format_results, heldout_seed
 
-    if args.bank is None:
-        raise InputError("bank eval: give the bank file (bank eval BANK.npz ...)")
     bank = FilterBank.load(args.bank)
-    # test targets wear a different camouflage pattern than the training ones
-    targets = resolve_targets(args.targets, units=args.units, up=args.up, camouflage=args.camouflage,
-                              seed=args.seed + 1)
-    res = evaluate_bank(bank, targets, azimuth=args.azimuth, elevation=args.elevation, camouflage=args.camouflage,
-                        noise_sigma=args.noise, clutter="noise" if args.clutter else None, out_json=args.json)
-    if not args.quiet:
-        print(f"Pcc {100 * res['pcc']:.1f}% over {len(res['classes'])} classes ({', '.join(res['classes'])})")
-        for c, row in zip(res["classes"], res["confusion"], strict=True):
-            print(f"  {c:<10} " + " ".join(f"{v:5d}" for v in row))
+    targets = resolve_targets(args.targets, units=args.units, up=args.up, seed=heldout_seed(args.seed))
+    spec = replace(EVAL_CHIP_SPEC, camouflage=args.camouflage, noise_sigma=args.noise,
+                   clutter="noise" if args.clutter else None)
+    res = evaluate_bank(bank, targets, azimuth=args.azimuth, elevation=args.elevation, chip_spec=spec,
+                        out_json=args.json)
+    _say(args, format_results(res))
     return 0
 
 
@@ -731,37 +718,35 @@ def _cmd_db(args: argparse.Namespace) -> int:
     if a == "add":
         from prism3d.datasets import ingest
 
-        if args.builtin is not None:
-            if args.meshes:
-                raise InputError("db add: give mesh files or --builtin, not both")
+        if dbm.check_add_request(args.meshes, args.builtin, args.target_class) == "builtin":
             rep = ingest.add_builtin(args.db, args.builtin or None, strict=args.strict)
         else:
-            if not args.meshes:
-                raise InputError("db add: give mesh files (with --class) or --builtin")
-            if args.target_class is None:
-                raise InputError("db add: give the targets' --class")
             rep = ingest.add_meshes(args.db, args.meshes, target_class=args.target_class, units=args.units,
                                     up=args.up, length_mm=args.length_mm, yaw_deg=args.yaw, strict=args.strict)
         _say(args, rep.summary())
         return 0
     if a == "render":
-        from prism3d.datasets.jobs import run_render_job
+        from prism3d.atr.chips import ChipSpec
+        from prism3d.datasets.jobs import RunOptions, run_render_job
 
+        spec = ChipSpec(size=args.size, channels=args.channels, framing=args.framing, camouflage=args.camouflage,
+                        seed=args.seed)
+        run = RunOptions(workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "render"))
         rep = run_render_job(args.db, args.job, azimuth=args.azimuth, elevation=args.elevation, range_mm=args.range,
-                             size=args.size, channels=args.channels, targets=args.targets, classes=args.classes,
-                             framing=args.framing, camouflage=args.camouflage, seed=args.seed,
-                             workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "render"))
-        print(rep.summary())
+                             chip_spec=spec, targets=args.targets, classes=args.classes, run=run)
+        _say(args, rep.summary())
         return rep.exit_code
     if a == "features":
-        from prism3d.datasets.jobs import run_features_job
+        from prism3d.datasets.jobs import RunOptions, run_features_job
 
-        rep = run_features_job(args.db, args.job, workers=args.workers, scheduler=args.scheduler,
-                               progress=_progress(args, "features"))
-        print(rep.summary())
+        run = RunOptions(workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "features"))
+        rep = run_features_job(args.db, args.job, run=run)
+        _say(args, rep.summary())
         return rep.exit_code
     if a == "info":
-        info = dbm.open_db(args.db).info()
+        from prism3d.datasets.jobs import database_info
+
+        info = database_info(dbm.open_db(args.db))
         print(dbm.info_json(info) if args.json else dbm.format_info(info))
         return 0
     problems = dbm.verify_db(args.db)

@@ -85,15 +85,16 @@ def _stage_simulate(ctx: DemoContext) -> Section:
     """The virtual prism rig: one flash shot of a camouflaged target, with ground truth."""
     import numpy as np
 
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
     from prism3d.report import image_png
 
     s = Section("Virtual prism rig: a simulated flash shot and its ground truth")
     out = ctx.path("simulate")
     target = builtin_target("tank_t1", seed=ctx.seed)
-    summary = simulate_to_folder("scene", out, target=target, views=1, seed=ctx.seed,
-                                 supersample=1 if ctx.fast else 2)
+    summary = simulate_to_folder("scene", out, SimulateOptions(views=1, seed=ctx.seed,
+                                                               supersample=1 if ctx.fast else 2),
+                                 target=target)
     from prism3d.io.images import read_image
 
     shot = read_image(out / "shot_00.png")
@@ -138,9 +139,9 @@ def demo_rig(ctx: DemoContext) -> Any:
 def _stage_calibration(ctx: DemoContext) -> Section:
     """Simulated chessboard shots -> calibration by bundle adjustment; recovered vs true."""
 
-    from prism3d.capture.rig import rotation_angle_deg
-    from prism3d.capture.simulate import simulate_to_folder
-    from prism3d.reconstruct.calibrate import calibrate_stereo
+    from prism3d.geometry import rotation_angle_deg
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
+    from prism3d.reconstruct.calibrate import CalibrationOptions, calibrate_stereo
 
     s = Section(f"Calibration: 5 simulated chessboard shots ({DEMO_BOARD[0]}x{DEMO_BOARD[1]} corners, "
                 f"{DEMO_SQUARE_MM:g} mm squares), bundle adjustment")
@@ -148,10 +149,11 @@ def _stage_calibration(ctx: DemoContext) -> Section:
     out = ctx.path("calibration")
     # A 19 x 13 board of 12 mm squares: at this focal length the principal point is
     # pinned by the number of corners (std ~0.3 px with 5 poses; ~0.6 px for 9 x 6).
-    simulate_to_folder("calib", out, rig=true, seed=ctx.seed, supersample=2, board=DEMO_BOARD,
-                       square_mm=DEMO_SQUARE_MM)
+    simulate_to_folder("calib", out, SimulateOptions(seed=ctx.seed, supersample=2, board=DEMO_BOARD,
+                                                       square_mm=DEMO_SQUARE_MM), rig=true)
     shots = sorted(out.glob("calib_*.png"))
-    cal = calibrate_stereo(shots, board=DEMO_BOARD, square_mm=DEMO_SQUARE_MM, tangential=False)
+    options = CalibrationOptions(board=DEMO_BOARD, square_mm=DEMO_SQUARE_MM, tangential=False)
+    cal = calibrate_stereo(shots, options=options)
     cal.save(ctx.path("calib.yaml"))
     ctx.results["calibration"] = cal
     ctx.results["true_rig"] = true
@@ -187,17 +189,17 @@ def _stage_calibration(ctx: DemoContext) -> Section:
 
 
 def _table1_run(ctx: DemoContext, rig: Any, out: Any, *, pattern: bool) -> Any:
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.io.images import read_image
     from prism3d.reconstruct.flatness import flatness_test
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
 
-    simulate_to_folder("plate", out, rig=ctx.results["true_rig"], pattern=pattern, camouflage=False,
-                       seed=ctx.seed, supersample=1 if ctx.fast else 2)
+    simulate_to_folder("plate", out, SimulateOptions(pattern=pattern, camouflage=False, seed=ctx.seed,
+                                                       supersample=1 if ctx.fast else 2), rig=ctx.results["true_rig"])
     shot = read_image(out / "shot.png")
     res = {}
     for label, sigma in (("unsmoothed", 0.0), ("smoothed", 2.0)):
-        rec = reconstruct_shot(shot, rig, smooth_sigma_px=sigma)
+        rec = reconstruct_shot(shot, rig, ReconstructOptions(smooth_sigma_px=sigma))
         res[label] = (flatness_test(rec.scan.points, focal_px=rec.rect.focal_px,
                                     baseline_mm=rec.rect.baseline_mm), rec)
     return res
@@ -265,71 +267,84 @@ def cloud_figure(points: Any, colors: Any, title: str, *, max_points: int = 3000
     return figure_png(fig)
 
 
+def _scan_views(ctx: DemoContext, out: Path, rig: Any, n: int) -> list[tuple[Any, Any, Any]]:
+    """Reconstruct the ``n`` simulated turntable shots in ``out`` at the stitcher's
+    confidence (what `prism3d stitch` keeps from scan files) and save them."""
+    import numpy as np
+
+    from prism3d.io.images import read_image
+    from prism3d.io.ply import write_ply
+    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
+    from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE
+
+    scans = []
+    for k in range(n):
+        rec = reconstruct_shot(read_image(out / f"shot_{k:02d}.png"), rig,
+                               ReconstructOptions(min_confidence=STITCH_MIN_CONFIDENCE))
+        sc = rec.scan
+        scans.append((sc.points.astype(np.float64), sc.colors, sc.normals))
+        write_ply(ctx.path("scans", f"scan_{k:02d}.ply"), sc.points, colors=sc.colors, normals=sc.normals,
+                  comments=["prism3d scan", "units mm", "frame left camera (OpenCV axes)"])
+        if k == 0:
+            ctx.results["view0"] = rec
+    return scans
+
+
+def _size_rows(res: Any, T_w0: Any, target: Any) -> list[list[Any]]:
+    """Gravity-aligned size of the stitched model (turntable frame, z up) against the
+    true mesh: the box of the fitted surface and the box of every point."""
+    from prism3d.atr.features import model_features, scan_features
+
+    P_w, N_w = res.points @ T_w0[:3, :3].T + T_w0[:3, 3], res.normals @ T_w0[:3, :3].T
+    f_scan = scan_features(P_w, N_w, up="z", box="surface")
+    f_pts = scan_features(P_w, N_w, up="z", box="points")
+    f_true = model_features(target.vertices, target.faces, up="z")
+    return [[k[:-3], f_true[k], f_scan[k], 100 * (f_scan[k] / f_true[k] - 1), f_pts[k],
+             100 * (f_pts[k] / f_true[k] - 1)] for k in ("length_mm", "width_mm", "height_mm")]
+
+
 def _stage_model360(ctx: DemoContext) -> Section:
     """8 turntable shots of a camouflaged target -> 8 scans -> stitched 360-degree model."""
     import json
 
     import numpy as np
 
-    from prism3d.capture.rig import rotation_angle_deg
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
-    from prism3d.io.images import read_image
+    from prism3d.geometry import rotation_angle_deg
     from prism3d.io.ply import write_ply
-    from prism3d.reconstruct.stitch import stitch_scans
+    from prism3d.report import point_cloud_viewer
+    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
 
     s = Section("360-degree model: 8 shots on a turntable, reconstructed and stitched")
     true = ctx.results.get("true_rig") or demo_rig(ctx)
     cal = ctx.results.get("calibration")
-    rig = cal.rig if cal is not None else true
     out = ctx.path("scene")
     target = builtin_target("tank_t1", seed=ctx.seed)
-    simulate_to_folder("scene", out, rig=true, target=target, views=8, seed=ctx.seed, supersample=1)
+    simulate_to_folder("scene", out, SimulateOptions(views=8, seed=ctx.seed, supersample=1), rig=true,
+                       target=target)
     poses = json.loads((out / "poses.json").read_text())
     T_world_cam = [np.asarray(v["T_world_cam"], dtype=np.float64) for v in poses["views"]]
-    scans = []
-    from prism3d.reconstruct.pipeline import reconstruct_shot
-
-    from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE
-
-    for k in range(8):
-        # the points the stitcher uses (prism3d stitch on scan files keeps the same)
-        rec = reconstruct_shot(read_image(out / f"shot_{k:02d}.png"), rig, min_confidence=STITCH_MIN_CONFIDENCE)
-        sc = rec.scan
-        scans.append((sc.points.astype(np.float64), sc.colors, sc.normals))
-        write_ply(ctx.path("scans", f"scan_{k:02d}.ply"), sc.points, colors=sc.colors, normals=sc.normals,
-                  comments=["prism3d scan", "units mm"])
-        if k == 0:
-            ctx.results["view0"] = rec
-    res = stitch_scans(scans, turntable_step_deg=45.0, on_failure="warn")
+    scans = _scan_views(ctx, out, cal.rig if cal is not None else true, 8)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, on_failure="warn"))
     for w in res.diagnostics.get("warnings", []):
         s.paragraphs.append(f"<b>Warning:</b> {w}")
     write_ply(ctx.path("model.ply"), res.points, colors=res.colors, normals=res.normals,
               comments=["prism3d model", "units mm", "frame: left camera of view 0"])
     if res.mesh_vertices is not None:
         write_ply(ctx.path("model_mesh.ply"), res.mesh_vertices, faces=res.mesh_faces, colors=res.mesh_colors,
-                  comments=["prism3d model mesh", "units mm"])
+                  comments=["prism3d model mesh", "units mm", "frame: left camera of view 0"])
     rows = []
     T0 = np.linalg.inv(T_world_cam[0])
     for k in range(8):
-        T_true = T0 @ T_world_cam[k]
-        dT = np.linalg.inv(T_true) @ res.T_model_scan[k]
-        rows.append([k, len(scans[k][0]), rotation_angle_deg(dT[:3, :3]), float(np.linalg.norm(dT[:3, 3]))])
+        dT = np.linalg.inv(T0 @ T_world_cam[k]) @ res.T_model_scan[k]
+        rows.append([k, len(scans[k][0]), rotation_angle_deg(dT), float(np.linalg.norm(dT[:3, 3]))])
     s.table("Recovered view poses vs truth (the rig as calibrated above)",
             ["view", "points", "rotation error (deg)", "translation error (mm)"], rows)
-    # sizes of the stitched model, in the turntable frame (z up), against the true mesh
-    from prism3d.atr.features import model_features, scan_features
-
-    T_w0 = T_world_cam[0]
-    P_w, N_w = res.points @ T_w0[:3, :3].T + T_w0[:3, 3], res.normals @ T_w0[:3, :3].T
-    f_scan = scan_features(P_w, N_w, up="z", box="surface")
-    f_pts = scan_features(P_w, N_w, up="z", box="points")
-    f_true = model_features(target.vertices, target.faces, up="z")
     s.table("Gravity-aligned size of the stitched model vs the true mesh (box of the fitted surface near the "
             "points, as `prism3d features` gives by default; the box of every point beside it)",
             ["dimension", "true (mm)", "from the scans (mm)", "error (%)", "every point (mm)", "error (%)"],
-            [[k[:-3], f_true[k], f_scan[k], 100 * (f_scan[k] / f_true[k] - 1), f_pts[k],
-              100 * (f_pts[k] / f_true[k] - 1)] for k in ("length_mm", "width_mm", "height_mm")])
+            _size_rows(res, T_world_cam[0], target))
     s.paragraphs.append(
         f"Target: camouflaged 1:35 tank model ({target.metadata['length_mm']:.0f} mm long). Fused model: "
         f"{len(res.points)} points" + (f", mesh {len(res.mesh_faces)} triangles" if res.mesh_faces is not None else "")
@@ -340,8 +355,6 @@ def _stage_model360(ctx: DemoContext) -> Section:
         + "; the fused cloud keeps the points two scans agree on."
     )
     ctx.results["model"] = res
-    from prism3d.report import point_cloud_viewer
-
     s.raw_html.append(point_cloud_viewer(res.points, res.colors))
     s.figure("stitched model", cloud_figure(res.points, res.colors, "model"))
     s.link("model.ply", "model.ply")
@@ -358,7 +371,7 @@ def _stage_decamo(ctx: DemoContext) -> Section:
     from prism3d.atr.decamo import decamouflage
     from prism3d.report import image_png
 
-    from prism3d.capture.simulate import simulate_to_folder
+    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.reconstruct.rectify import rectify_shot
@@ -372,8 +385,8 @@ def _stage_decamo(ctx: DemoContext) -> Section:
     true = ctx.results.get("true_rig") or demo_rig(ctx)
     cal = ctx.results.get("calibration")
     out = ctx.path("decamo")
-    simulate_to_folder("scene", out, rig=true, target=builtin_target("tank_t1", seed=ctx.seed), views=1,
-                       pattern=False, seed=ctx.seed, supersample=1)
+    simulate_to_folder("scene", out, SimulateOptions(views=1, pattern=False, seed=ctx.seed, supersample=1),
+                       rig=true, target=builtin_target("tank_t1", seed=ctx.seed))
     left, _, _ = rectify_shot(read_image(out / "shot_00.png"), cal.rig if cal is not None else true)
     from prism3d.reconstruct.meshing import smooth_depth
 
@@ -432,6 +445,7 @@ def _stage_database(ctx: DemoContext) -> Section:
     """A small target database of the built-in targets, one render job and its features."""
     from prism3d.datasets import db as dbm
     from prism3d.datasets.ingest import add_builtin
+    from prism3d.atr.chips import ChipSpec
     from prism3d.datasets.jobs import run_features_job, run_render_job
 
     s = Section("Target database: built-in targets, a render job and a features job")
@@ -440,8 +454,8 @@ def _stage_database(ctx: DemoContext) -> Section:
         dbm.init_db(path)
     add_builtin(path)
     job = run_render_job(path, "demo", azimuth="0:360:30" if ctx.fast else "0:360:15", elevation="15:45:15",
-                         size=64, workers=0)
-    feats = run_features_job(path, "demo", workers=0)
+                         chip_spec=ChipSpec(size=64))
+    feats = run_features_job(path, "demo")
     db = dbm.open_db(path)
     t = db.targets()
     cols = [c for c in ("target_id", "class", "name", "length_mm", "width_mm", "height_mm") if c in t.columns]
@@ -459,23 +473,27 @@ def _stage_database(ctx: DemoContext) -> Section:
 
 def _stage_bank(ctx: DemoContext) -> Section:
     """Correlation filter banks trained on renders, evaluated on unseen poses."""
+    from dataclasses import replace
+
     from prism3d.atr.bank import train_bank
-    from prism3d.atr.evaluate import evaluate_bank, plot_confusion, plot_per_aspect, plot_roc
+    from prism3d.atr.chips import ChipSpec
+    from prism3d.atr.evaluate import (EVAL_CHIP_SPEC, evaluate_bank, heldout_seed, plot_confusion,
+                                      plot_per_aspect, plot_roc)
     from prism3d.datasets.resolve import resolve_targets
     from prism3d.report import figure_png
 
     s = Section("Recognition: OT-MACH correlation filter banks on rendered chips")
     names = ["tank_t1", "jet_j1", "ship_s1", "truck_k1"]
     train = resolve_targets(names, seed=ctx.seed)
-    test = resolve_targets(names, seed=ctx.seed + 1)  # a different camouflage pattern
+    test = resolve_targets(names, seed=heldout_seed(ctx.seed))  # a different camouflage pattern
     step = "0:360:30" if ctx.fast else "0:360:15"
     rows = []
     results = {}
     for channel in ("depth", "shape", "intensity"):
         bank = train_bank(train, channel=channel, azimuth=step, elevation="15:35:20", bin_deg=30 if ctx.fast else 15,
-                          size=64)
+                          chip_spec=ChipSpec(size=64))
         bank.save(ctx.path("banks", f"bank_{channel}.npz"))
-        res = evaluate_bank(bank, test, noise_sigma=0.03, clutter="noise",
+        res = evaluate_bank(bank, test, chip_spec=replace(EVAL_CHIP_SPEC, noise_sigma=0.03, clutter="noise"),
                             out_json=ctx.path("banks", f"results_{channel}.json"))
         results[channel] = res
         rows.append([channel, 100 * res["pcc"], res["roc"].get("auc", float("nan"))])

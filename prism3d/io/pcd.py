@@ -190,6 +190,21 @@ def _decode_ascii(path: Path, body: bytes, dtype: np.dtype, n: int) -> np.ndarra
     return rec
 
 
+def _decode_body(p: Path, header: dict[str, list[str]], body: bytes, dtype: np.dtype, n: int) -> np.ndarray:
+    """The ``n`` records of a PCD body in its ``DATA`` mode."""
+    mode = header["DATA"][0].lower() if header["DATA"] else ""
+    if mode == "ascii":
+        return _decode_ascii(p, body, dtype, n)
+    if mode == "binary":
+        need = n * dtype.itemsize
+        if len(body) < need:
+            raise InputError(f"{p}: binary PCD is truncated ({len(body)} < {need} bytes)")
+        return np.frombuffer(body[:need], dtype=dtype)
+    if mode == "binary_compressed":
+        return _decode_binary_compressed(p, body, dtype, n)
+    raise InputError(f"{p}: unknown PCD DATA mode {mode!r} (expected ascii, binary or binary_compressed)")
+
+
 def read_pcd(path: str | Path) -> PcdData:
     """Read a PCD file (``DATA ascii``, ``binary`` or ``binary_compressed``).
 
@@ -221,20 +236,7 @@ def read_pcd(path: str | Path) -> PcdData:
     for c in "xyz":
         if c not in names:
             raise InputError(f"{p}: PCD has no {c!r} field (fields: {' '.join(names)}); not a point cloud")
-    mode = header["DATA"][0].lower() if header["DATA"] else ""
-    body = raw[start:]
-    if mode == "ascii":
-        rec = _decode_ascii(p, body, dtype, n)
-    elif mode == "binary":
-        need = n * dtype.itemsize
-        if len(body) < need:
-            raise InputError(f"{p}: binary PCD is truncated ({len(body)} < {need} bytes)")
-        rec = np.frombuffer(body[:need], dtype=dtype)
-    elif mode == "binary_compressed":
-        rec = _decode_binary_compressed(p, body, dtype, n)
-    else:
-        raise InputError(f"{p}: unknown PCD DATA mode {mode!r} (expected ascii, binary or binary_compressed)")
-
+    rec = _decode_body(p, header, raw[start:], dtype, n)
     pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
     keep = np.isfinite(pts).all(axis=1)
     pts = pts[keep]

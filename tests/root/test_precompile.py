@@ -77,8 +77,8 @@ _FRESH = textwrap.dedent(
 
     from prism3d.capture.rig import paper_rig
     from prism3d.capture.scenes import flat_plate, place_at
-    from prism3d.capture.simulate import Projector, simulate_shot
-    from prism3d.reconstruct.match import match_stereo_full
+    from prism3d.capture.simulate import Projector, ShotOptions, simulate_shot
+    from prism3d.reconstruct.match import MatchOptions, match_stereo_full
     from prism3d.reconstruct.pipeline import reconstruct_shot
     from prism3d._precompile import kernel_dispatchers
 
@@ -87,11 +87,11 @@ _FRESH = textwrap.dedent(
     left, right = big[:, 6:].copy(), big[:, :50].copy()
     match_stereo_full(left, right, min_disp=0, num_disp=16)
     match_stereo_full(left[..., 1].astype(np.float64) / 255, right[..., 1].astype(np.float64) / 255,
-                      min_disp=0, num_disp=16, coarse_to_fine=True)
+                      min_disp=0, num_disp=16, options=MatchOptions(coarse_to_fine=True))
     rig = paper_rig(sensor_size=(400, 150), focal_px=5107.0 / 8.64)
     plate = flat_plate()
-    shot = simulate_shot(rig, [(plate, place_at(plate, 1250.0))],
-                         projector=Projector.for_rig(rig, pattern=True), supersample=1, seed=1)
+    shot = simulate_shot(rig, [(plate, place_at(plate, 1250.0))], ShotOptions(supersample=1, seed=1),
+                         projector=Projector.for_rig(rig, pattern=True))
     rec = reconstruct_shot(shot.sensor_image, rig)
     used = {k: sorted(str(s) for s in d.signatures)
             for k, d in kernel_dispatchers(public=True).items()}
