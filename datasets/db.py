@@ -28,12 +28,16 @@ __all__ = [
     "TABLE_SCHEMA_VERSION",
     "TARGET_COLUMNS",
     "TargetDB",
+    "as_db",
     "check_add_request",
+    "check_name",
     "format_info",
     "init_db",
     "open_db",
     "read_table",
+    "read_yaml",
     "sha256_file",
+    "utc_timestamp",
     "verify_db",
     "write_table",
 ]
@@ -85,7 +89,8 @@ def sha256_file(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def _now() -> str:
+def utc_timestamp() -> str:
+    """Current UTC time, ISO 8601 to the second."""
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
@@ -225,7 +230,7 @@ class TargetDB:
 
     def job_dir(self, job: str) -> Path:
         """``renders/<job>`` (the name is checked)."""
-        _check_name(job, "job")
+        check_name(job, "job")
         return self.path / "renders" / job
 
     def resolve(self, rel: str, what: str = "path") -> Path:
@@ -280,7 +285,7 @@ class TargetDB:
     def features(self, job: str) -> Any:
         """Per-chip view features of render job ``job`` (``features/<job>/part-*.parquet``),
         or the per-target model features for ``job="models"`` (``features/models/``)."""
-        _check_name(job, "job")
+        check_name(job, "job")
         df = _read_parts(self.path / "features" / job)
         if df is None:
             raise DatasetError(
@@ -329,34 +334,19 @@ class TargetDB:
         return np.stack(arrays) if arrays else np.zeros((0, 0, 0), dtype=np.float32)
 
     def load_chips(
-        self,
-        job: str,
-        *,
-        targets: Sequence[str] | None = None,
-        classes: Sequence[str] | None = None,
-        az_range: tuple[float, float] | None = None,
-        el_range: tuple[float, float] | None = None,
-        range_mm: tuple[float, float] | None = None,
-        channel: str = "depth",
+        self, job: str, *, channel: str = "depth", **filters: Any
     ) -> tuple[NDArray, Any]:
         """Chips of one channel ``(N, H, W)`` (depth float32 mm, intensity/shape float32,
-        mask bool) and their N manifest rows, in the same order.
+        mask bool) and their N manifest rows, in the same order (filters as :meth:`select`).
         """
-        rows = self.select(
-            job,
-            targets=targets,
-            classes=classes,
-            az_range=az_range,
-            el_range=el_range,
-            range_mm=range_mm,
-        )
+        rows = self.select(job, **filters)
         return self._load_rows(rows, channel), rows
 
     def iter_batches(
         self, job: str, batch_size: int, *, channel: str = "depth", **filters: Any
     ) -> Iterator[tuple[NDArray, Any]]:
         """Yield ``(X, meta)`` batches of at most ``batch_size`` chips (filters as
-        :meth:`load_chips`), without loading the whole job into memory."""
+        :meth:`select`), without loading the whole job into memory."""
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise DatasetError(f"batch_size: expected a positive integer, got {batch_size!r}")
         rows = self.select(job, **filters)
@@ -428,7 +418,8 @@ def check_add_request(
     return "meshes"
 
 
-def _check_name(name: str, what: str) -> None:
+def check_name(name: str, what: str) -> None:
+    """DatasetError unless ``name`` is a safe folder/file name (``what`` names it)."""
     import re
 
     if (
@@ -465,13 +456,23 @@ def init_db(path: str | Path) -> TargetDB:
         "format": "prism3d-target-db",
         "schema_version": DB_SCHEMA_VERSION,
         "units": "mm",
-        "created": _now(),
+        "created": utc_timestamp(),
         "prism3d_version": _prism3d_version(),
     }
     db = TargetDB(p, meta)
     write_table(_empty_targets(), db.targets_file, kind="targets")
     atomic_write_text(p / "db.yaml", yaml.safe_dump(meta, sort_keys=False))
     return db
+
+
+def read_yaml(f: Path) -> Any:
+    """The YAML document in file ``f`` (DatasetError if it is not valid YAML)."""
+    import yaml
+
+    try:
+        return yaml.safe_load(f.read_text())
+    except yaml.YAMLError as exc:
+        raise DatasetError(f"{f}: invalid YAML ({exc})") from None
 
 
 def open_db(path: str | Path) -> TargetDB:
@@ -482,18 +483,13 @@ def open_db(path: str | Path) -> TargetDB:
     DatasetError
         No ``db.yaml``, invalid YAML, unknown keys, unknown schema version, units not mm.
     """
-    import yaml
-
     p = Path(path)
     f = p / "db.yaml"
     if not f.is_file():
         raise DatasetError(
             f"{p}: not a prism3d database (no db.yaml); create one with 'prism3d db init {p}'"
         )
-    try:
-        meta = yaml.safe_load(f.read_text())
-    except yaml.YAMLError as exc:
-        raise DatasetError(f"{f}: invalid YAML ({exc})") from None
+    meta = read_yaml(f)
     if not isinstance(meta, dict):
         raise DatasetError(f"{f}: expected a mapping")
     unknown = set(meta) - _DB_YAML_KEYS
@@ -509,7 +505,8 @@ def open_db(path: str | Path) -> TargetDB:
     return TargetDB(p, meta)
 
 
-def _as_db(db: TargetDB | str | Path) -> TargetDB:
+def as_db(db: TargetDB | str | Path) -> TargetDB:
+    """``db`` itself, or the database opened at that path."""
     return db if isinstance(db, TargetDB) else open_db(db)
 
 
@@ -519,7 +516,7 @@ def verify_db(db: TargetDB | str | Path, *, check_hashes: bool = True) -> list[s
     Checks schema versions, model files and hashes, chip files (present, inside the DB,
     sha256), orphan chips of killed units and leftover temporary files.
     """
-    db = _as_db(db)
+    db = as_db(db)
     problems: list[str] = []
     try:
         t = db.targets()

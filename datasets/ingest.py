@@ -23,10 +23,10 @@ import numpy as np
 from prism3d.datasets.db import (
     TABLE_SCHEMA_VERSION,
     TargetDB,
-    _as_db,
-    _check_name,
-    _now,
+    as_db,
+    check_name,
     sha256_file,
+    utc_timestamp,
     write_table,
 )
 
@@ -275,7 +275,7 @@ def _commit(db: TargetDB, pending: list[_Pending], strict: bool) -> AddReport:
                     "n_faces": p.n_faces,
                     "provenance": p.provenance,
                     "builtin_scale": float(p.builtin_scale),
-                    "added": _now(),
+                    "added": utc_timestamp(),
                     "schema_version": TABLE_SCHEMA_VERSION,
                 }
             )
@@ -328,8 +328,8 @@ def add_meshes(
     source sha256) is an error, not a skip. Raises DatasetError (nothing written) on a
     missing file, bad format, unknown units/up, corrupt mesh or strict duplicate.
     """
-    db = _as_db(db)
-    _check_name(target_class, "class")
+    db = as_db(db)
+    check_name(target_class, "class")
     if isinstance(paths, (str, Path)):
         paths = [paths]
     if not paths:
@@ -357,7 +357,7 @@ def add_builtin(
     """
     from prism3d.datasets.targets import builtin_target, export_builtin_target, list_builtin_targets
 
-    db = _as_db(db)
+    db = as_db(db)
     all_names = list_builtin_targets()
     names = all_names if not names else list(names)
     for n in names:

@@ -25,11 +25,12 @@ from numpy.typing import NDArray
 from prism3d.atr.chips import CHANNELS, ChipSpec, as_chip_spec
 from prism3d.datasets.db import (
     TargetDB,
-    _as_db,
-    _check_name,
+    as_db,
+    check_name,
     open_db,
     read_metadata,
     read_table,
+    read_yaml,
     sha256_file,
     write_table,
 )
@@ -98,7 +99,7 @@ class RenderSpec:
     def __post_init__(self) -> None:
         from prism3d.atr.poses import parse_range
 
-        _check_name(self.name, "job")
+        check_name(self.name, "job")
         if not self.targets:
             raise DatasetError(f"job {self.name}: no targets to render (add targets first)")
         for nm in ("azimuth", "elevation") + (("range_mm",) if self.range_mm is not None else ()):
@@ -578,17 +579,12 @@ def _run_dask(tasks: list[_Task], job: str, run: RunOptions, finish: _Tally) -> 
 
 def load_spec(db: TargetDB, job: str) -> RenderSpec:
     """The stored spec of render job ``job``."""
-    import yaml
-
     f = db.job_dir(job) / "job.yaml"
     if not f.is_file():
         raise DatasetError(
             f"{db.path}: no render job {job!r}; jobs: {', '.join(db.jobs()) or 'none'}"
         )
-    try:
-        d = yaml.safe_load(f.read_text())
-    except yaml.YAMLError as exc:
-        raise DatasetError(f"{f}: invalid YAML ({exc})") from None
+    d = read_yaml(f)
     if not isinstance(d, dict) or d.get("schema_version") != JOB_SCHEMA_VERSION:
         raise DatasetError(
             f"{f}: unknown schema_version {d.get('schema_version') if isinstance(d, dict) else None!r} "
@@ -631,7 +627,7 @@ def run_render_job(
     The report's ``exit_code`` is 1 when a unit failed after its retries.
     """
     t0 = time.perf_counter()
-    db = _as_db(db)
+    db = as_db(db)
     run = RunOptions() if run is None else run
     chosen = _select_targets(db, job, targets, classes)
     grid = {"azimuth": azimuth, "elevation": elevation, "range_mm": range_mm}
@@ -712,7 +708,7 @@ def run_features_job(
     job). Resumable: a part whose recorded source sha256 matches is skipped.
     """
     t0 = time.perf_counter()
-    db = _as_db(db)
+    db = as_db(db)
     run = RunOptions() if run is None else run
     spec = load_spec(db, job)
     if "depth" not in spec.channels:
@@ -782,7 +778,7 @@ def job_status(db: TargetDB, job: str) -> dict[str, Any]:
 
 def database_info(db: TargetDB | str | Path) -> dict[str, Any]:
     """:meth:`TargetDB.info` with each render job's completion (:func:`job_status`)."""
-    db = _as_db(db)
+    db = as_db(db)
     info = db.info()
     info["jobs"] = {job: job_status(db, job) for job in info["jobs"]}
     return info
@@ -793,7 +789,7 @@ def unit_stats(db: TargetDB | str | Path, job: str) -> Any:
     from the manifest parts' metadata, as a DataFrame."""
     import pandas as pd
 
-    db = _as_db(db)
+    db = as_db(db)
     rows = []
     for p in sorted((db.job_dir(job) / "manifest").glob("part-*.parquet")):
         s = read_metadata(p).get("prism3d_unit_stats")

@@ -38,6 +38,45 @@ from prism3d.io.ply import write_ply
 __all__ = ["builtin_classes", "builtin_target", "export_builtin_target", "list_builtin_targets"]
 
 # ---------------------------------------------------------------------------------
+# Variant registry (filled by the @_variant builders below, in listing order)
+# ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Variant:
+    """A built-in target variant (full-size geometry recipe plus kit scale)."""
+
+    target_class: str
+    variant: str
+    model_scale: Fraction
+    build: Callable[[], list[Part]]
+    patch_full_mm: float
+    """Camouflage patch diameter on the full-size target, millimetres."""
+    features: dict = field(default_factory=dict)
+    description: str = ""
+
+
+_CLASSES = ("tank", "jet", "ship", "truck")
+
+_VARIANTS: dict[str, _Variant] = {}
+
+
+def _variant(
+    target_class: str, variant: str, model_scale: Fraction, patch_full_mm: float,
+    features: dict, description: str,
+) -> Callable[[Callable[[], list[Part]]], Callable[[], list[Part]]]:
+    """Register the decorated builder as built-in target ``<target_class>_<variant>``."""
+
+    def register(build: Callable[[], list[Part]]) -> Callable[[], list[Part]]:
+        _VARIANTS[f"{target_class}_{variant}"] = _Variant(
+            target_class, variant, model_scale, build, patch_full_mm, features, description
+        )
+        return build
+
+    return register
+
+
+# ---------------------------------------------------------------------------------
 # Tanks
 # ---------------------------------------------------------------------------------
 
@@ -65,6 +104,11 @@ def _road_wheels(xs: Sequence[float], radius: float, y_in: float, y_out: float) 
     return parts
 
 
+@_variant(
+    "tank", "t1", Fraction(1, 48), 1200.0,
+    {"turret": "amidships wedge", "gun": "long", "road_wheels": "skirted"},
+    "Modern main battle tank: low hull, side skirts, wedge turret amidships, long gun.",
+)
 def _build_tank_t1() -> list[Part]:
     parts = _tracks(-3.6, 3.7, 1.0, 1.1, 1.75)
     parts += both_sides(box((-3.55, 1.75, 0.40), (3.55, 1.83, 1.05)))  # side skirts
@@ -83,6 +127,12 @@ def _build_tank_t1() -> list[Part]:
     return parts
 
 
+@_variant(
+    "tank", "t2", Fraction(1, 35), 1000.0,
+    {"turret": "forward round", "gun": "short", "road_wheels": 5},
+    ("Second-world-war medium tank: tall sloped hull, visible road wheels, round turret "
+     "set forward, short gun."),
+)
 def _build_tank_t2() -> list[Part]:
     parts = _tracks(-2.9, 3.0, 0.95, 0.95, 1.45)
     parts += _road_wheels([-2.0, -1.0, 0.0, 1.0, 2.0], 0.38, 0.9, 1.52)
@@ -100,6 +150,12 @@ def _build_tank_t2() -> list[Part]:
     return parts
 
 
+@_variant(
+    "tank", "t3", Fraction(1, 35), 1200.0,
+    {"turret": "rear casemate", "gun": "very long", "road_wheels": 6},
+    ("Tank destroyer: six visible road wheels, large fixed casemate at the rear, very long "
+     "gun with a muzzle brake."),
+)
 def _build_tank_t3() -> list[Part]:
     parts = _tracks(-3.4, 3.3, 1.0, 1.05, 1.6)
     parts += _road_wheels([-2.45, -1.5, -0.55, 0.4, 1.35, 2.3], 0.36, 1.0, 1.68)
@@ -144,6 +200,12 @@ def _canopy(
     )
 
 
+@_variant(
+    "jet", "j1", Fraction(1, 72), 2500.0,
+    {"wing": "swept trapezoid", "tail": "single fin", "engine_count": 1},
+    ("Single-engine fighter: 40-degree swept trapezoid wing, single fin, conventional "
+     "tailplane, ventral intake."),
+)
 def _build_jet_j1() -> list[Part]:
     stations = [
         (6.6, 0.3, 0.3, 1.6),
@@ -166,6 +228,12 @@ def _build_jet_j1() -> list[Part]:
     return parts
 
 
+@_variant(
+    "jet", "j2", Fraction(1, 72), 2500.0,
+    {"wing": "swept trapezoid", "tail": "twin canted fins", "engine_count": 2},
+    ("Heavy twin-engine fighter: blended centre body, two engine nacelles, 45-degree swept "
+     "wing, twin canted fins, tailplane."),
+)
 def _build_jet_j2() -> list[Part]:
     stations = [
         (8.5, 0.35, 0.35, 2.0),
@@ -196,6 +264,12 @@ def _build_jet_j2() -> list[Part]:
     return parts
 
 
+@_variant(
+    "jet", "j3", Fraction(1, 72), 2500.0,
+    {"wing": "clipped delta + canards", "tail": "single fin", "engine_count": 1},
+    ("Delta-wing canard fighter: clipped delta wing, close-coupled canards, tall fin, no "
+     "tailplane, single engine."),
+)
 def _build_jet_j3() -> list[Part]:
     stations = [
         (6.3, 0.28, 0.3, 1.5),
@@ -250,6 +324,12 @@ def _gun_turret(
     ]
 
 
+@_variant(
+    "ship", "s1", Fraction(1, 700), 9000.0,
+    {"type": "destroyer", "superstructure": "midships", "masts": 1},
+    ("Destroyer: flared hull, forward superstructure with bridge and lattice-free pole "
+     "mast, one raked funnel, gun turrets fore and aft, hangar aft."),
+)
 def _build_ship_s1() -> list[Part]:
     parts = [_ship_hull(146.0, 154.0, 16.5, 18.0, 8.0)]
     parts.append(box((18.0, -7.0, 8.0), (44.0, 7.0, 15.0)))  # forward superstructure
@@ -270,6 +350,12 @@ def _build_ship_s1() -> list[Part]:
     return parts
 
 
+@_variant(
+    "ship", "s2", Fraction(1, 700), 12000.0,
+    {"type": "container ship", "superstructure": "aft", "masts": 1},
+    ("Container ship: long hull with aft accommodation block and funnel, container bays "
+     "stacked to different heights, forecastle mast."),
+)
 def _build_ship_s2() -> list[Part]:
     parts = [_ship_hull(174.0, 180.0, 29.0, 30.0, 14.0, bow_frac=0.18, stern_frac=0.8)]
     parts.append(box((-80.0, -12.5, 14.0), (-66.0, 12.5, 40.0)))  # accommodation
@@ -284,6 +370,12 @@ def _build_ship_s2() -> list[Part]:
     return parts
 
 
+@_variant(
+    "ship", "s3", Fraction(1, 1200), 15000.0,
+    {"type": "aircraft carrier", "superstructure": "starboard island", "masts": 1},
+    ("Aircraft carrier: hull under a wide angled flight deck, starboard island with "
+     "bridge, funnel and mast, parked aircraft."),
+)
 def _build_ship_s3() -> list[Part]:
     parts = [_ship_hull(285.0, 300.0, 38.0, 40.0, 17.0, bow_frac=0.15, stern_frac=0.9)]
     deck = [(-150.0, -20.0), (100.0, -20.0), (152.0, -11.0), (152.0, 11.0),
@@ -311,6 +403,11 @@ def _wheel_pairs(xs: Sequence[float], radius: float, y_in: float, y_out: float) 
     return parts
 
 
+@_variant(
+    "truck", "k1", Fraction(1, 35), 900.0,
+    {"cab": "cab over engine", "cargo": "canvas cover", "axles": 3},
+    "Six-wheel-drive cargo truck, cab over engine, canvas-covered cargo bed.",
+)
 def _build_truck_k1() -> list[Part]:
     parts = _wheel_pairs([2.9, -1.6, -3.0], 0.55, 0.8, 1.22)
     parts.append(box((-3.9, -0.5, 0.85), (3.7, 0.5, 1.2)))  # chassis frame
@@ -324,6 +421,11 @@ def _build_truck_k1() -> list[Part]:
     return parts
 
 
+@_variant(
+    "truck", "k2", Fraction(1, 35), 900.0,
+    {"cab": "bonneted", "cargo": "open drop-side bed", "axles": 2},
+    "Four-wheel bonneted utility truck: long engine hood, open drop-side bed.",
+)
 def _build_truck_k2() -> list[Part]:
     parts = _wheel_pairs([2.6, -2.2], 0.55, 0.78, 1.18)
     parts.append(box((-3.5, -0.5, 0.8), (3.3, 0.5, 1.15)))  # chassis frame
@@ -340,6 +442,12 @@ def _build_truck_k2() -> list[Part]:
     return parts
 
 
+@_variant(
+    "truck", "k3", Fraction(1, 35), 900.0,
+    {"cab": "cab over engine", "cargo": "fuel tank", "axles": 3},
+    ("Six-wheel fuel tanker: cab over engine, elliptic tank with domed ends and top "
+     "walkway."),
+)
 def _build_truck_k3() -> list[Part]:
     parts = _wheel_pairs([3.4, -1.7, -3.1], 0.55, 0.8, 1.22)
     parts.append(box((-4.4, -0.5, 0.85), (4.2, 0.5, 1.2)))
@@ -362,94 +470,6 @@ def _build_truck_k3() -> list[Part]:
 # Registry and public API
 # ---------------------------------------------------------------------------------
 
-
-@dataclass(frozen=True)
-class _Variant:
-    """A built-in target variant (full-size geometry recipe plus kit scale)."""
-
-    target_class: str
-    variant: str
-    model_scale: Fraction
-    build: Callable[[], list[Part]]
-    patch_full_mm: float
-    """Camouflage patch diameter on the full-size target, millimetres."""
-    features: dict = field(default_factory=dict)
-    description: str = ""
-
-
-_CLASSES = ("tank", "jet", "ship", "truck")
-
-_VARIANTS: dict[str, _Variant] = {
-    "tank_t1": _Variant(
-        "tank", "t1", Fraction(1, 48), _build_tank_t1, 1200.0,
-        {"turret": "amidships wedge", "gun": "long", "road_wheels": "skirted"},
-        "Modern main battle tank: low hull, side skirts, wedge turret amidships, long gun.",
-    ),
-    "tank_t2": _Variant(
-        "tank", "t2", Fraction(1, 35), _build_tank_t2, 1000.0,
-        {"turret": "forward round", "gun": "short", "road_wheels": 5},
-        ("Second-world-war medium tank: tall sloped hull, visible road wheels, round turret "
-         "set forward, short gun."),
-    ),
-    "tank_t3": _Variant(
-        "tank", "t3", Fraction(1, 35), _build_tank_t3, 1200.0,
-        {"turret": "rear casemate", "gun": "very long", "road_wheels": 6},
-        ("Tank destroyer: six visible road wheels, large fixed casemate at the rear, very long "
-         "gun with a muzzle brake."),
-    ),
-    "jet_j1": _Variant(
-        "jet", "j1", Fraction(1, 72), _build_jet_j1, 2500.0,
-        {"wing": "swept trapezoid", "tail": "single fin", "engine_count": 1},
-        ("Single-engine fighter: 40-degree swept trapezoid wing, single fin, conventional "
-         "tailplane, ventral intake."),
-    ),
-    "jet_j2": _Variant(
-        "jet", "j2", Fraction(1, 72), _build_jet_j2, 2500.0,
-        {"wing": "swept trapezoid", "tail": "twin canted fins", "engine_count": 2},
-        ("Heavy twin-engine fighter: blended centre body, two engine nacelles, 45-degree swept "
-         "wing, twin canted fins, tailplane."),
-    ),
-    "jet_j3": _Variant(
-        "jet", "j3", Fraction(1, 72), _build_jet_j3, 2500.0,
-        {"wing": "clipped delta + canards", "tail": "single fin", "engine_count": 1},
-        ("Delta-wing canard fighter: clipped delta wing, close-coupled canards, tall fin, no "
-         "tailplane, single engine."),
-    ),
-    "ship_s1": _Variant(
-        "ship", "s1", Fraction(1, 700), _build_ship_s1, 9000.0,
-        {"type": "destroyer", "superstructure": "midships", "masts": 1},
-        ("Destroyer: flared hull, forward superstructure with bridge and lattice-free pole "
-         "mast, one raked funnel, gun turrets fore and aft, hangar aft."),
-    ),
-    "ship_s2": _Variant(
-        "ship", "s2", Fraction(1, 700), _build_ship_s2, 12000.0,
-        {"type": "container ship", "superstructure": "aft", "masts": 1},
-        ("Container ship: long hull with aft accommodation block and funnel, container bays "
-         "stacked to different heights, forecastle mast."),
-    ),
-    "ship_s3": _Variant(
-        "ship", "s3", Fraction(1, 1200), _build_ship_s3, 15000.0,
-        {"type": "aircraft carrier", "superstructure": "starboard island", "masts": 1},
-        ("Aircraft carrier: hull under a wide angled flight deck, starboard island with "
-         "bridge, funnel and mast, parked aircraft."),
-    ),
-    "truck_k1": _Variant(
-        "truck", "k1", Fraction(1, 35), _build_truck_k1, 900.0,
-        {"cab": "cab over engine", "cargo": "canvas cover", "axles": 3},
-        "Six-wheel-drive cargo truck, cab over engine, canvas-covered cargo bed.",
-    ),
-    "truck_k2": _Variant(
-        "truck", "k2", Fraction(1, 35), _build_truck_k2, 900.0,
-        {"cab": "bonneted", "cargo": "open drop-side bed", "axles": 2},
-        "Four-wheel bonneted utility truck: long engine hood, open drop-side bed.",
-    ),
-    "truck_k3": _Variant(
-        "truck", "k3", Fraction(1, 35), _build_truck_k3, 900.0,
-        {"cab": "cab over engine", "cargo": "fuel tank", "axles": 3},
-        ("Six-wheel fuel tanker: cab over engine, elliptic tank with domed ends and top "
-         "walkway."),
-    ),
-}
 
 _GEOMETRY_CACHE: dict[str, tuple[NDArray[np.float64], NDArray[np.int64], int]] = {}
 
