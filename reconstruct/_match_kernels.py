@@ -57,7 +57,7 @@ INF16 = 0x3FFF  # "no such disparity" in uint16 path costs; sums of 8 stay < 655
 # numba's on-disk cache is keyed by the hash of *this* file only, yet the kernels inline
 # the intrinsics of _simd.py: its hash is recorded here, so that editing _simd.py (and
 # updating this line, which a test demands) recompiles the kernels
-_SIMD_SHA256 = "fe05b1efce54937f3dabe3a7084421f174182ee22b51896f53240b4aa2998b70"
+_SIMD_SHA256 = "80f5ba262b22a4ae80826b8cb8f9e3df1d95bd9da286e7d40a9e26a74fd9a7aa"
 
 
 @intrinsic
@@ -816,6 +816,15 @@ def _clamp_shift(shift, k_levels):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _sgm_layout(cost, agg, p1):
+    """``h, w, kp``, ``cost`` and ``agg`` flat, the size ``st`` of a pixel's slot in the
+    path buffers and the offset ``dst`` of its costs in the slot (room for a shift of
+    +-kp and the +-1 levels), and P1 as uint16."""
+    h, w, kp = cost.shape
+    return h, w, kp, cost.reshape(-1), agg.reshape(-1), 3 * kp + 2, kp + 1, np.uint16(p1)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _padding(kp, k_levels):
     """(kp,) uint16: 0 for searched levels, INF16 for the padding past ``k_levels``."""
     pad = np.zeros(kp, np.uint16)
@@ -829,12 +838,7 @@ def sgm_horizontal(cost, dlo, guide, p1, p2, gamma, k_levels, agg):
     """Left-to-right plus right-to-left SGM paths *assigned* to ``agg`` (H, W, Kp)
     uint16 from ``cost`` (H, W, Kp) uint8; both directions of a row in one loop.
     """
-    h, w, kp = cost.shape
-    costf = cost.reshape(-1)
-    aggf = agg.reshape(-1)
-    st = 3 * kp + 2
-    dst = kp + 1
-    p1u = np.uint16(p1)
+    h, w, kp, costf, aggf, st, dst, p1u = _sgm_layout(cost, agg, p1)
     for y in prange(h):
         pad = _padding(kp, k_levels)
         p2r = np.empty(w, np.uint16)  # p2r[x]: pair (x - 1, x)
@@ -931,12 +935,7 @@ def sgm_vertical_wta(cost, dlo, guide, p1, p2, gamma, k_levels, block, uniquenes
     ``disp``, ``conf`` (H, W) float32 while the final costs are in cache; columns in
     blocks of ``block``.
     """
-    h, w, kp = cost.shape
-    costf = cost.reshape(-1)
-    aggf = agg.reshape(-1)
-    st = 3 * kp + 2
-    dst = kp + 1
-    p1u = np.uint16(p1)
+    h, w, kp, costf, aggf, st, dst, p1u = _sgm_layout(cost, agg, p1)
     nb = (w + block - 1) // block
     for bi in prange(nb):
         x0 = bi * block

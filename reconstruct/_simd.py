@@ -135,30 +135,37 @@ def _load(context, builder, sig, args, ty: ir.VectorType):
     return builder.load(builder.bitcast(ptr, ty.as_pointer()), align=1)
 
 
-@intrinsic
-def v16_load(typingctx, arr, idx):  # pragma: no cover - compiled by numba
-    """``arr[idx:idx + 16]`` (uint16/32/64 or float32 array) as a vector."""
-    vt = _array_vec(arr)
-    if vt is None or not isinstance(idx, types.Integer):
-        return None
+def _loader(name: str, vec_of, doc: str):
+    """A load intrinsic ``name(arr, idx)``: the vector ``vec_of(arr)`` (None: not for
+    this array) at ``arr[idx]``; from a uint8 array, zero-extended lanes."""
 
-    def codegen(context, builder, sig, args):
-        return _load(context, builder, sig, args, _llvm(vt))
+    def typer(typingctx, arr, idx):  # pragma: no cover - compiled by numba
+        vt = vec_of(arr)
+        if vt is None or not isinstance(idx, types.Integer):
+            return None
+        u8 = _is_u8_array(arr)
 
-    return vt(arr, idx), codegen
+        def codegen(context, builder, sig, args):
+            if u8:
+                v8 = _load(context, builder, sig, args, ir.VectorType(ir.IntType(8), vt.lanes))
+                return builder.zext(v8, _llvm(vt))
+            return _load(context, builder, sig, args, _llvm(vt))
+
+        return vt(arr, idx), codegen
+
+    typer.__name__ = name
+    typer.__doc__ = doc
+    return intrinsic(typer)
 
 
-@intrinsic
-def v16_load_u8(typingctx, arr, idx):  # pragma: no cover - compiled by numba
-    """``arr[idx:idx + 16]`` of a uint8 array, zero-extended to a ``U16x16``."""
-    if not _is_u8_array(arr) or not isinstance(idx, types.Integer):
-        return None
-
-    def codegen(context, builder, sig, args):
-        v8 = _load(context, builder, sig, args, ir.VectorType(ir.IntType(8), _LANES))
-        return builder.zext(v8, _llvm(U16x16))
-
-    return U16x16(arr, idx), codegen
+v16_load = _loader("v16_load", _array_vec,
+                   "``arr[idx:idx + 16]`` (uint16/32/64 or float32 array) as a vector.")
+v16_load_u8 = _loader("v16_load_u8", lambda arr: U16x16 if _is_u8_array(arr) else None,
+                      "``arr[idx:idx + 16]`` of a uint8 array, zero-extended to a ``U16x16``.")
+v16_load_num = _loader(
+    "v16_load_num", lambda arr: U16x16 if _is_u8_array(arr) else _array_vec(arr),
+    "``arr[idx:idx + 16]`` of a uint8 (zero-extended to ``U16x16``), uint16/32/64 or "
+    "float32 array: pixel values of either image type.")
 
 
 @intrinsic
@@ -244,22 +251,9 @@ v16_min = _binary("min")
 v16_max = _binary("max")
 
 
-@intrinsic
-def v16_popcount(typingctx, v):  # pragma: no cover - compiled by numba
-    """Set bits of every lane of an unsigned vector."""
-    vt = _vec(v)
-    if vt is None or vt.kind != "u":
-        return None
-
-    def codegen(context, builder, sig, args):
-        return _call(builder, f"llvm.ctpop.v{_LANES}i{vt.bits}", _llvm(vt), [args[0]])
-
-    return vt(v), codegen
-
-
-def _conversion(name: str, accepts, result: _VecType, op: str, doc: str):
-    """A lane-wise conversion intrinsic: vectors for which ``accepts(vt)`` holds become
-    ``result`` by the LLVM cast ``op`` (``trunc``, ``uitofp``, ``fptoui``)."""
+def _unary(name: str, accepts, result, emit, doc: str):
+    """A one-vector intrinsic: vectors ``vt`` for which ``accepts(vt)`` holds give the
+    type ``result(vt)``, built by ``emit(builder, x, vt)``."""
 
     def typer(typingctx, v):  # pragma: no cover - compiled by numba
         vt = _vec(v)
@@ -267,13 +261,30 @@ def _conversion(name: str, accepts, result: _VecType, op: str, doc: str):
             return None
 
         def codegen(context, builder, sig, args):
-            return getattr(builder, op)(args[0], _llvm(result))
+            return emit(builder, args[0], vt)
 
-        return result(v), codegen
+        return result(vt)(v), codegen
 
     typer.__name__ = name
     typer.__doc__ = doc
     return intrinsic(typer)
+
+
+def _unsigned(vt: _VecType) -> bool:
+    return vt.kind == "u"
+
+
+v16_popcount = _unary(
+    "v16_popcount", _unsigned, lambda vt: vt,
+    lambda builder, x, vt: _call(builder, f"llvm.ctpop.v{_LANES}i{vt.bits}", _llvm(vt), [x]),
+    "Set bits of every lane of an unsigned vector.")
+
+
+def _conversion(name: str, accepts, result: _VecType, op: str, doc: str):
+    """A lane-wise conversion intrinsic: vectors for which ``accepts(vt)`` holds become
+    ``result`` by the LLVM cast ``op`` (``trunc``, ``uitofp``, ``fptoui``)."""
+    return _unary(name, accepts, lambda vt: result,
+                  lambda builder, x, vt: getattr(builder, op)(x, _llvm(result)), doc)
 
 
 v16_narrow = _conversion(
@@ -288,18 +299,11 @@ v16_to_u16 = _conversion(
     "lie in [0, 65536)).")
 
 
-@intrinsic
-def v16_reduce_min(typingctx, v):  # pragma: no cover - compiled by numba
-    """The smallest lane of an unsigned vector, as its scalar type."""
-    vt = _vec(v)
-    if vt is None or vt.kind != "u":
-        return None
-
-    def codegen(context, builder, sig, args):
-        return _call(builder, f"llvm.vector.reduce.umin.v{_LANES}i{vt.bits}",
-                     _lane_type(vt), [args[0]])
-
-    return vt.scalar(v), codegen
+v16_reduce_min = _unary(
+    "v16_reduce_min", _unsigned, lambda vt: vt.scalar,
+    lambda builder, x, vt: _call(builder, f"llvm.vector.reduce.umin.v{_LANES}i{vt.bits}",
+                                 _lane_type(vt), [x]),
+    "The smallest lane of an unsigned vector, as its scalar type.")
 
 
 @intrinsic
@@ -352,27 +356,6 @@ def v16_keys(typingctx, v, base):  # pragma: no cover - compiled by numba
 
 
 @intrinsic
-def v16_load_num(typingctx, arr, idx):  # pragma: no cover - compiled by numba
-    """``arr[idx:idx + 16]`` of a uint8 (zero-extended to ``U16x16``), uint16/32/64 or
-    float32 array: pixel values of either image type."""
-    if _is_u8_array(arr):
-        vt = U16x16
-    else:
-        vt = _array_vec(arr)
-    if vt is None or not isinstance(idx, types.Integer):
-        return None
-    u8 = _is_u8_array(arr)
-
-    def codegen(context, builder, sig, args):
-        if u8:
-            v8 = _load(context, builder, sig, args, ir.VectorType(ir.IntType(8), _LANES))
-            return builder.zext(v8, _llvm(U16x16))
-        return _load(context, builder, sig, args, _llvm(vt))
-
-    return vt(arr, idx), codegen
-
-
-@intrinsic
 def v16_zero(typingctx, arr):  # pragma: no cover - compiled by numba
     """A zero vector of the element type of ``arr`` (a uint16/32/64 or float32 array)."""
     vt = _array_vec(arr)
@@ -404,18 +387,13 @@ def v16_lt(typingctx, a, b, like):  # pragma: no cover - compiled by numba
     return lt(a, b, like), codegen
 
 
-@intrinsic
-def v16_reverse(typingctx, v):  # pragma: no cover - compiled by numba
-    """The lanes of ``v`` in reverse order."""
-    vt = _vec(v)
-    if vt is None:
-        return None
+def _reversed(builder, x, vt: _VecType):
+    mask = ir.Constant(ir.VectorType(_I32, _LANES), list(range(_LANES - 1, -1, -1)))
+    return builder.shuffle_vector(x, ir.Constant(_llvm(vt), ir.Undefined), mask)
 
-    def codegen(context, builder, sig, args):
-        mask = ir.Constant(ir.VectorType(_I32, _LANES), list(range(_LANES - 1, -1, -1)))
-        return builder.shuffle_vector(args[0], ir.Constant(_llvm(vt), ir.Undefined), mask)
 
-    return vt(v), codegen
+v16_reverse = _unary("v16_reverse", lambda vt: True, lambda vt: vt, _reversed,
+                     "The lanes of ``v`` in reverse order.")
 
 
 # ------------------------------------------------------------- 8-lane float32 ops
@@ -427,16 +405,8 @@ def _is_f32_array(arr: types.Type) -> bool:
             and arr.dtype == types.float32)
 
 
-@intrinsic
-def v8f_load(typingctx, arr, idx):  # pragma: no cover - compiled by numba
-    """``arr[idx:idx + 8]`` of a float32 array as an ``F32x8``."""
-    if not _is_f32_array(arr) or not isinstance(idx, types.Integer):
-        return None
-
-    def codegen(context, builder, sig, args):
-        return _load(context, builder, sig, args, _llvm(F32x8))
-
-    return F32x8(arr, idx), codegen
+v8f_load = _loader("v8f_load", lambda arr: F32x8 if _is_f32_array(arr) else None,
+                   "``arr[idx:idx + 8]`` of a float32 array as an ``F32x8``.")
 
 
 @intrinsic
