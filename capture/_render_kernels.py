@@ -123,18 +123,20 @@ def pack_rays_sel(
 
 
 @njit(cache=True, nogil=True, inline="always")  # inlined: no call cost in the kernel
+def _row3(a: np.ndarray, i: int) -> tuple:  # pragma: no cover - compiled
+    """``(a[i, 0], a[i, 1], a[i, 2])``."""
+    return a[i, 0], a[i, 1], a[i, 2]
+
+
+@njit(cache=True, nogil=True, inline="always")  # inlined: no call cost in the kernel
 def _moller_trumbore(
     ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
     A: np.ndarray, E1: np.ndarray, E2: np.ndarray, f: int,
 ) -> tuple:  # pragma: no cover - compiled
     """``(ok, u, v, t)`` of the ray ``o + t d`` on triangle ``f`` in float64;
     ``ok`` False for a degenerate (zero or non-finite determinant) triangle."""
-    e1x = E1[f, 0]
-    e1y = E1[f, 1]
-    e1z = E1[f, 2]
-    e2x = E2[f, 0]
-    e2y = E2[f, 1]
-    e2z = E2[f, 2]
+    e1x, e1y, e1z = _row3(E1, f)
+    e2x, e2y, e2z = _row3(E2, f)
     px = dy * e2z - dz * e2y
     py = dz * e2x - dx * e2z
     pz = dx * e2y - dy * e2x
@@ -159,9 +161,7 @@ def _store_facing_normal(
     N: np.ndarray, f: int, dx: float, dy: float, dz: float, n_out: np.ndarray, j: int
 ) -> None:  # pragma: no cover - compiled
     """``n_out[j]`` = the unit normal of face ``f``, flipped to face the ray ``d``."""
-    nx = N[f, 0]
-    ny = N[f, 1]
-    nz = N[f, 2]
+    nx, ny, nz = _row3(N, f)
     if nx * dx + ny * dy + nz * dz > 0.0:
         nx = -nx
         ny = -ny
@@ -211,13 +211,8 @@ def refine_compact(
         index_out[j] = first + i
         obj_out[j] = ob
         face_out[j] = fl
-        oi = i * stride
-        ox = o[oi, 0]
-        oy = o[oi, 1]
-        oz = o[oi, 2]
-        dx = d[i, 0]
-        dy = d[i, 1]
-        dz = d[i, 2]
+        ox, oy, oz = _row3(o, i * stride)
+        dx, dy, dz = _row3(d, i)
         ok, u, v, t = _moller_trumbore(ox, oy, oz, dx, dy, dz, A, E1, E2, f)
         if not ok:
             u = np.float64(uv32[q, 0])
@@ -307,9 +302,7 @@ def light_hits(
     fy = Kp[1, 1]
     cy = Kp[1, 2]
     for i in prange(P.shape[0]):
-        px = P[i, 0]
-        py = P[i, 1]
-        pz = P[i, 2]
+        px, py, pz = _row3(P, i)
         lx = src[0] - px
         ly = src[1] - py
         lz = src[2] - pz
@@ -373,9 +366,7 @@ def rotate_rays(
 ) -> None:  # pragma: no cover - compiled
     """``out[i] = R @ d_cam[i]`` for ``(N, 3)`` rays."""
     for i in prange(d_cam.shape[0]):
-        x = d_cam[i, 0]
-        y = d_cam[i, 1]
-        z = d_cam[i, 2]
+        x, y, z = _row3(d_cam, i)
         out[i, 0] = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
         out[i, 1] = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
         out[i, 2] = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z

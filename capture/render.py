@@ -568,7 +568,7 @@ def _scene_plane(v: NDArray[np.float64]) -> tuple[NDArray[np.float64], float] | 
 
 
 @dataclass(eq=False)
-class _Hits:
+class _CompactHits:
     """Compact hits: ``index`` (M,) of the hit rays, then per-hit fields."""
 
     index: NDArray[np.int64]
@@ -578,11 +578,17 @@ class _Hits:
     bary_uv: NDArray[np.float64]
     points: NDArray[np.float64]
     normals: NDArray[np.float64]
+
+
+@dataclass(eq=False)
+class _Hits(_CompactHits):
+    """Compact hits and ``extra`` (M,), the traced rays' extra values at the hits."""
+
     extra: NDArray[np.float64] | None = None
 
 
 @dataclass(eq=False)
-class CameraHits:
+class CameraHits(_CompactHits):
     """The hit pixels of a camera render (:meth:`RaycastRenderer.trace_camera`):
     ``index`` (M,) int64 flat pixel ``v * W + u``, increasing; ``object_id``,
     ``face_id``, ``t`` (M,) mm along the unit ray, ``bary_uv`` (M, 2), ``points`` and
@@ -590,13 +596,6 @@ class CameraHits:
     of the unit ray (depth = ``t * z_cam``), ``shape`` ``(H, W)``.
     """
 
-    index: NDArray[np.int64]
-    object_id: NDArray[np.int32]
-    face_id: NDArray[np.int64]
-    t: NDArray[np.float64]
-    bary_uv: NDArray[np.float64]
-    points: NDArray[np.float64]
-    normals: NDArray[np.float64]
     z_cam: NDArray[np.float64]
     shape: tuple[int, int]
 

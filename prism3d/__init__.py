@@ -15,6 +15,7 @@ from prism3d._env import configure_environment as _configure_environment
 
 _configure_environment()
 
+from prism3d import errors  # noqa: E402
 from prism3d.errors import (  # noqa: E402
     CalibrationError,
     DatasetError,
@@ -26,12 +27,5 @@ from prism3d.errors import (  # noqa: E402
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "__version__",
-    "Prism3dError",
-    "InputError",
-    "CalibrationError",
-    "ReconstructionError",
-    "DeviceError",
-    "DatasetError",
-]
+__all__ = ["__version__"]
+__all__ += errors.__all__

@@ -23,6 +23,11 @@ from prism3d.errors import InputError, Prism3dError
 
 Handler = Callable[[argparse.Namespace], int | None]
 
+#: Choices shared by several commands (``--units``, ``--up``, ``--channels``).
+_UNITS = ("mm", "cm", "m", "in")
+_UP_AXES = ("y", "z")
+_CHANNELS = ("intensity", "depth", "mask", "shape")
+
 
 class _Parser(argparse.ArgumentParser):
     """argparse with our exit code 2 and one-line messages."""
@@ -42,6 +47,19 @@ def _say(args: argparse.Namespace, text: str) -> None:
         print(text)
 
 
+def _command(
+    sub: Any, name: str, run: Handler, *, help: str, description: str
+) -> argparse.ArgumentParser:
+    """Add the subcommand ``name``, run by ``run(args)``."""
+    p = sub.add_parser(name, help=help, description=description)
+    p.set_defaults(func=run)
+    return p
+
+
+def _output_option(p: argparse.ArgumentParser, metavar: str) -> None:
+    p.add_argument("-o", "--output", required=True, type=Path, metavar=metavar)
+
+
 # --- demo -------------------------------------------------------------------------------
 def _cmd_demo(args: argparse.Namespace) -> int:
     from prism3d.demo import run_demo
@@ -56,14 +74,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _add_demo(sub: Any) -> None:
-    p = sub.add_parser("demo", help="run the whole pipeline on built-in data and write report.html",
-                       description="Run every stage of prism3d on built-in data (simulated shots, "
-                       "calibration, reconstruction, ATR) and write OUT_DIR/report.html.")
+    p = _command(sub, "demo", _cmd_demo,
+                 help="run the whole pipeline on built-in data and write report.html",
+                 description="Run every stage of prism3d on built-in data (simulated shots, "
+                 "calibration, reconstruction, ATR) and write OUT_DIR/report.html.")
     p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     p.add_argument("--seed", type=int, default=0, help="random seed for simulated data (default 0)")
     p.add_argument("--fast", action="store_true", help="smaller images and fewer views (for tests)")
     p.add_argument("--only", nargs="+", metavar="STAGE", help="run only these stages")
-    p.set_defaults(func=_cmd_demo)
 
 
 # --- trigger / capture --------------------------------------------------------------------
@@ -88,10 +106,11 @@ def _cmd_trigger(args: argparse.Namespace) -> int:
 
 
 def _add_trigger(sub: Any) -> None:
-    p = sub.add_parser("trigger", help="flash+shutter controller over a serial line (simulate|ping|status|fire)",
-                       description="Talk to the flash/shutter trigger controller (protocol: "
-                       "docs/trigger-protocol.md). 'simulate' serves a simulated controller on a "
-                       "pseudo-terminal and prints its path first.")
+    p = _command(sub, "trigger", _cmd_trigger,
+                 help="flash+shutter controller over a serial line (simulate|ping|status|fire)",
+                 description="Talk to the flash/shutter trigger controller (protocol: "
+                 "docs/trigger-protocol.md). 'simulate' serves a simulated controller on a "
+                 "pseudo-terminal and prints its path first.")
     p.add_argument("action", choices=["simulate", "ping", "status", "fire"])
     p.add_argument("port", nargs="?", metavar="PORT", help="device path or pyserial URL (not for simulate)")
     p.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for each reply (default 1)")
@@ -102,7 +121,6 @@ def _add_trigger(sub: Any) -> None:
     p.add_argument("--flash-delay-us", type=int, default=500)
     p.add_argument("--flash-us", type=int, default=2000)
     p.add_argument("--shutter-us", type=int, default=8000)
-    p.set_defaults(func=_cmd_trigger)
 
 
 def _virtual_resolver(name: str) -> Any:
@@ -148,13 +166,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _add_simulate(sub: Any) -> None:
-    p = sub.add_parser("simulate", help="virtual rig shots with exact ground truth (plate|calib|scene)",
-                       description="Render side-by-side prism shots through the virtual rig and write "
-                       "them with ground truth: shot PNG(s), rig.yaml (OpenCV FileStorage) and "
-                       "truth.npz (depth_left_mm, depth_right_mm, mask, albedo, shading, true "
-                       "rectified disparity...). plate: the paper's 30x30 cm plate at 1250 mm; calib: "
-                       "5 chessboard shots (9x6 inner corners, 25 mm); scene: a built-in target on a "
-                       "turntable, 8 views at 45 deg (also target.ply and poses.json).")
+    p = _command(sub, "simulate", _cmd_simulate,
+                 help="virtual rig shots with exact ground truth (plate|calib|scene)",
+                 description="Render side-by-side prism shots through the virtual rig and write "
+                 "them with ground truth: shot PNG(s), rig.yaml (OpenCV FileStorage) and "
+                 "truth.npz (depth_left_mm, depth_right_mm, mask, albedo, shading, true "
+                 "rectified disparity...). plate: the paper's 30x30 cm plate at 1250 mm; calib: "
+                 "5 chessboard shots (9x6 inner corners, 25 mm); scene: a built-in target on a "
+                 "turntable, 8 views at 45 deg (also target.ply and poses.json).")
     p.add_argument("kind", choices=["plate", "calib", "scene"])
     p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     p.add_argument("--target", default="tank_t1", help="scene: built-in target name (default tank_t1)")
@@ -184,7 +203,6 @@ def _add_simulate(sub: Any) -> None:
                    "vignetting, lens PSF, gloss or JPEG (default: real-camera effects on)")
     p.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
                    help="JPEG quality of the simulated camera, 1-100 (default 92; 0 = none)")
-    p.set_defaults(func=_cmd_simulate)
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:
@@ -208,13 +226,14 @@ def _cmd_capture(args: argparse.Namespace) -> int:
 
 
 def _add_capture(sub: Any) -> None:
-    p = sub.add_parser("capture", help="one-shot (or sequence) capture: arm, fire, grab, check, save",
-                       description="Arm the trigger controller, fire the flash and shutter, grab the frame "
-                       "from the camera source, check it and save shot_NNN.png + shot_NNN.json atomically.")
+    p = _command(sub, "capture", _cmd_capture,
+                 help="one-shot (or sequence) capture: arm, fire, grab, check, save",
+                 description="Arm the trigger controller, fire the flash and shutter, grab the frame "
+                 "from the camera source, check it and save shot_NNN.png + shot_NNN.json atomically.")
     p.add_argument("--trigger", required=True, metavar="PORT", help="trigger controller port or pyserial URL")
     p.add_argument("--camera", required=True, metavar="SOURCE",
                    help="folder:PATH | opencv:INDEX_OR_URL | virtual[:TARGET]")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR")
+    _output_option(p, "DIR")
     p.add_argument("--count", type=int, default=1, help="number of shots (default 1)")
     p.add_argument("--interval", type=float, default=0.0, metavar="S", help="seconds between shots")
     p.add_argument("--pattern", type=int, default=1, help="grating pattern id (0 = plain flash)")
@@ -222,7 +241,6 @@ def _add_capture(sub: Any) -> None:
     p.add_argument("--calib", type=Path, help="calibration YAML: check the frame size against it")
     p.add_argument("--timeout", type=float, default=1.0, help="trigger reply timeout, seconds")
     p.add_argument("--grab-timeout", type=float, default=5.0, help="camera frame timeout, seconds")
-    p.set_defaults(func=_cmd_capture)
 
 
 # --- calibrate / rectify -------------------------------------------------------------------
@@ -250,20 +268,20 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _add_calibrate(sub: Any) -> None:
-    p = sub.add_parser("calibrate", help="chessboard calibration of the prism rig (bundle adjustment)",
-                       description="Detect chessboard corners in each view of side-by-side prism shots "
-                       "(or in separate left/right images with --pairs), estimate both cameras "
-                       "(K, k1 k2 [p1 p2]), the rig's R T and every board pose by bundle adjustment, "
-                       "and write an OpenCV FileStorage YAML with the quality figures.")
+    p = _command(sub, "calibrate", _cmd_calibrate,
+                 help="chessboard calibration of the prism rig (bundle adjustment)",
+                 description="Detect chessboard corners in each view of side-by-side prism shots "
+                 "(or in separate left/right images with --pairs), estimate both cameras "
+                 "(K, k1 k2 [p1 p2]), the rig's R T and every board pose by bundle adjustment, "
+                 "and write an OpenCV FileStorage YAML with the quality figures.")
     p.add_argument("images", nargs="+", type=Path, metavar="IMAGES",
                    help="prism shots; with --pairs: left1 right1 left2 right2 ...")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="CALIB_YAML")
+    _output_option(p, "CALIB_YAML")
     p.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
     p.add_argument("--square", type=float, default=25.0, metavar="MM", help="square size, mm (default 25)")
     p.add_argument("--pairs", action="store_true", help="IMAGES alternate left, right (ordinary stereo rig)")
     p.add_argument("--skew", action="store_true", help="estimate the skew (off by default, as Bouguet advises)")
     p.add_argument("--no-tangential", action="store_true", help="radial k1 k2 only (the paper's model)")
-    p.set_defaults(func=_cmd_calibrate)
 
 
 def _cmd_rectify(args: argparse.Namespace) -> int:
@@ -279,18 +297,15 @@ def _cmd_rectify(args: argparse.Namespace) -> int:
 
 
 def _add_rectify(sub: Any) -> None:
-    p = sub.add_parser("rectify", help="rectify the two views of a prism shot (or a stereo pair)",
-                       description="Split a side-by-side shot into its two views (or take --left/--right "
-                       "files), undistort and rectify them (equal principal points: disparity = f*B/z), "
-                       "write left.png, right.png and rectification.yaml (R1 R2 P1 P2 Q).")
-    p.add_argument("shot", type=Path, nargs="?", metavar="SHOT", help="side-by-side sensor image")
-    p.add_argument("--left", type=Path, metavar="LEFT", help="left view file (ordinary stereo rig)")
-    p.add_argument("--right", type=Path, metavar="RIGHT", help="right view file")
-    _calib_options(p)
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT_DIR")
+    p = _command(sub, "rectify", _cmd_rectify,
+                 help="rectify the two views of a prism shot (or a stereo pair)",
+                 description="Split a side-by-side shot into its two views (or take --left/--right "
+                 "files), undistort and rectify them (equal principal points: disparity = f*B/z), "
+                 "write left.png, right.png and rectification.yaml (R1 R2 P1 P2 Q).")
+    _shot_options(p)
+    _output_option(p, "OUT_DIR")
     p.add_argument("--alpha", type=float, default=1.0,
                    help="0 = crop to valid pixels, 1 = keep every source pixel (default)")
-    p.set_defaults(func=_cmd_rectify)
 
 
 # --- match / reconstruct / flatness -------------------------------------------------------
@@ -316,18 +331,18 @@ def _cmd_match(args: argparse.Namespace) -> int:
 
 
 def _add_match(sub: Any) -> None:
-    p = sub.add_parser("match", help="dense stereo matching of a rectified pair -> disparity PFM",
-                       description="Census + semi-global matching with sub-pixel refinement, left-right "
-                       "check and hole filling. Writes d = x_left - x_right (float32 PFM).")
+    p = _command(sub, "match", _cmd_match,
+                 help="dense stereo matching of a rectified pair -> disparity PFM",
+                 description="Census + semi-global matching with sub-pixel refinement, left-right "
+                 "check and hole filling. Writes d = x_left - x_right (float32 PFM).")
     p.add_argument("left", type=Path, metavar="LEFT")
     p.add_argument("right", type=Path, metavar="RIGHT")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="DISP_PFM")
+    _output_option(p, "DISP_PFM")
     p.add_argument("--num-disp", required=True, type=int, metavar="N", help="number of disparity levels")
     p.add_argument("--min-disp", type=int, default=0, metavar="M", help="smallest disparity (default 0)")
     p.add_argument("--sparse", dest="dense", action="store_false",
                    help="write NaN where the match is not confident (default: dense, holes filled)")
     p.add_argument("--valid-out", type=Path, metavar="PNG", help="also write the confidence mask")
-    p.set_defaults(func=_cmd_match)
 
 
 def _calib_options(p: argparse.ArgumentParser, *, required: bool = True) -> None:
@@ -349,6 +364,14 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
     if w <= 0 or h <= 0:
         raise InputError(f"--image-size: width and height must be > 0, got {text!r}")
     return w, h
+
+
+def _shot_options(p: argparse.ArgumentParser) -> None:
+    """SHOT or --left/--right (checked by :func:`_check_views`), and the calibration."""
+    p.add_argument("shot", type=Path, nargs="?", metavar="SHOT", help="side-by-side sensor image")
+    p.add_argument("--left", type=Path, metavar="LEFT", help="left view file (ordinary stereo rig)")
+    p.add_argument("--right", type=Path, metavar="RIGHT", help="right view file")
+    _calib_options(p)
 
 
 def _check_views(args: argparse.Namespace) -> None:
@@ -387,18 +410,16 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 def _add_reconstruct(sub: Any) -> None:
     from prism3d.reconstruct.defaults import DEFAULT_MIN_CONFIDENCE
 
-    p = sub.add_parser("reconstruct", help="one prism shot (or a stereo pair) -> metric scan PLY",
-                       description="Rectify the two views of a side-by-side shot (or of --left/--right "
-                       "files), match them, refine, and triangulate into a coloured point cloud with "
-                       "normals (millimetres, left camera frame). Each point carries its confidence "
-                       "(the chance its disparity is within 1 px of the truth), disparity_std (px) "
-                       "and depth_std (mm). Prints the share of pixels kept and why the rest were "
-                       "dropped.")
-    p.add_argument("shot", type=Path, nargs="?", metavar="SHOT", help="side-by-side sensor image")
-    p.add_argument("--left", type=Path, metavar="LEFT", help="left view file (ordinary stereo rig)")
-    p.add_argument("--right", type=Path, metavar="RIGHT", help="right view file")
-    _calib_options(p)
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="SCAN_PLY")
+    p = _command(sub, "reconstruct", _cmd_reconstruct,
+                 help="one prism shot (or a stereo pair) -> metric scan PLY",
+                 description="Rectify the two views of a side-by-side shot (or of --left/--right "
+                 "files), match them, refine, and triangulate into a coloured point cloud with "
+                 "normals (millimetres, left camera frame). Each point carries its confidence "
+                 "(the chance its disparity is within 1 px of the truth), disparity_std (px) "
+                 "and depth_std (mm). Prints the share of pixels kept and why the rest were "
+                 "dropped.")
+    _shot_options(p)
+    _output_option(p, "SCAN_PLY")
     p.add_argument("--disparity-out", type=Path, metavar="PFM",
                    help="disparity of the kept pixels (rectified-left grid, inf elsewhere)")
     p.add_argument("--depth-out", type=Path, metavar="TIFF|NPY|NPZ", help="depth in mm (rectified-left grid)")
@@ -414,7 +435,6 @@ def _add_reconstruct(sub: Any) -> None:
     p.add_argument("--smooth", type=float, default=0.0, metavar="SIGMA_PX",
                    help="edge-preserving depth smoothing, Gaussian sigma in pixels (default off)")
     p.add_argument("--json", action="store_true", help="print the result (coverage, timings) as JSON")
-    p.set_defaults(func=_cmd_reconstruct)
 
 
 def _cmd_triangulate(args: argparse.Namespace) -> int:
@@ -427,18 +447,18 @@ def _cmd_triangulate(args: argparse.Namespace) -> int:
 
 
 def _add_triangulate(sub: Any) -> None:
-    p = sub.add_parser("triangulate", help="disparity map -> coloured point cloud (like reprojectImageTo3D)",
-                       description="Turn a disparity map (PFM; NaN, inf or <= 0 = no value) into a coloured "
-                       "point cloud with normals, millimetres, left camera frame. The disparity is on the "
-                       "calibration's rectified-left grid (as prism3d rectify/match write it), or on the "
-                       "left image as given for an already-rectified pair (Middlebury/ETH3D calib.txt).")
+    p = _command(sub, "triangulate", _cmd_triangulate,
+                 help="disparity map -> coloured point cloud (like reprojectImageTo3D)",
+                 description="Turn a disparity map (PFM; NaN, inf or <= 0 = no value) into a coloured "
+                 "point cloud with normals, millimetres, left camera frame. The disparity is on the "
+                 "calibration's rectified-left grid (as prism3d rectify/match write it), or on the "
+                 "left image as given for an already-rectified pair (Middlebury/ETH3D calib.txt).")
     p.add_argument("disparity", type=Path, metavar="DISP_PFM")
     _calib_options(p)
     p.add_argument("--left", required=True, type=Path, metavar="LEFT",
                    help="colours: the rectified left view, or the left view as shot")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="CLOUD_PLY")
+    _output_option(p, "CLOUD_PLY")
     p.add_argument("--max-depth", type=float, metavar="MM", help="drop points further than this")
-    p.set_defaults(func=_cmd_triangulate)
 
 
 def _cmd_convert_calib(args: argparse.Namespace) -> int:
@@ -453,15 +473,15 @@ def _cmd_convert_calib(args: argparse.Namespace) -> int:
 
 
 def _add_convert_calib(sub: Any) -> None:
-    p = sub.add_parser("convert-calib", help="another tool's stereo calibration -> prism3d calibration YAML",
-                       description="Read a stereo calibration in any format prism3d understands "
-                       "(Middlebury/ETH3D calib.txt, KITTI calib_cam_to_cam.txt, ROS camera_info "
-                       "left + right, OpenCV stereo YAML) and write prism3d's OpenCV FileStorage YAML.")
+    p = _command(sub, "convert-calib", _cmd_convert_calib,
+                 help="another tool's stereo calibration -> prism3d calibration YAML",
+                 description="Read a stereo calibration in any format prism3d understands "
+                 "(Middlebury/ETH3D calib.txt, KITTI calib_cam_to_cam.txt, ROS camera_info "
+                 "left + right, OpenCV stereo YAML) and write prism3d's OpenCV FileStorage YAML.")
     p.add_argument("calib", type=Path, nargs="+", metavar="CALIB", help="one file, or two (ROS left right; "
                    "OpenCV intrinsics extrinsics)")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="CALIB_YAML")
+    _output_option(p, "CALIB_YAML")
     p.add_argument("--image-size", metavar="WxH", help="each view's size, when the file does not state it")
-    p.set_defaults(func=_cmd_convert_calib)
 
 
 def _cmd_flatness(args: argparse.Namespace) -> int:
@@ -481,16 +501,16 @@ def _cmd_flatness(args: argparse.Namespace) -> int:
 
 
 def _add_flatness(sub: Any) -> None:
-    p = sub.add_parser("flatness", help="the paper's plane-fit accuracy test (Table I) on a plate scan",
-                       description="Fit z = ax + by + c by least squares in 5 regions of a flat-plate scan "
-                       "(upper left, upper right, centre, lower left, lower right; eq. 9-13) and report "
-                       "the RMS residual (eq. 14-15) and the depth resolution z^2/(fB) (eq. 16).")
+    p = _command(sub, "flatness", _cmd_flatness,
+                 help="the paper's plane-fit accuracy test (Table I) on a plate scan",
+                 description="Fit z = ax + by + c by least squares in 5 regions of a flat-plate scan "
+                 "(upper left, upper right, centre, lower left, lower right; eq. 9-13) and report "
+                 "the RMS residual (eq. 14-15) and the depth resolution z^2/(fB) (eq. 16).")
     p.add_argument("scan", type=Path, metavar="SCAN_PLY")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--region", type=float, default=0.2, help="region side as a fraction of the plate (0.2)")
     p.add_argument("--focal", type=float, help="focal length, px (default: from the scan's header)")
     p.add_argument("--baseline", type=float, help="baseline, mm (default: from the scan's header)")
-    p.set_defaults(func=_cmd_flatness)
 
 
 # --- stitch --------------------------------------------------------------------------------
@@ -526,20 +546,20 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
 
 
 def _add_stitch(sub: Any) -> None:
-    p = sub.add_parser("stitch", help="register and fuse scans of several views into one 360-degree model",
-                       description="Register the scans pairwise (turntable prior or deterministic global "
-                       "registration, then multi-scale ICP), optimise a pose graph with loop closure, fuse "
-                       "the points and optionally mesh them (screened Poisson). Writes poses.json beside the "
-                       "model: T_model_scan for each input.")
+    p = _command(sub, "stitch", _cmd_stitch,
+                 help="register and fuse scans of several views into one 360-degree model",
+                 description="Register the scans pairwise (turntable prior or deterministic global "
+                 "registration, then multi-scale ICP), optimise a pose graph with loop closure, fuse "
+                 "the points and optionally mesh them (screened Poisson). Writes poses.json beside the "
+                 "model: T_model_scan for each input.")
     p.add_argument("scans", nargs="+", type=Path, metavar="SCANS", help="PLY or PCD scans in acquisition order")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="MODEL_PLY")
+    _output_option(p, "MODEL_PLY")
     p.add_argument("--mesh", type=Path, metavar="MESH_PLY", help="also write a watertight mesh")
     p.add_argument("--turntable-step", type=float, metavar="DEG", help="known rotation between views")
     p.add_argument("--voxel", type=float, help="fusion voxel size in the scans' units (default: from spacing)")
     p.add_argument("--smooth", type=int, default=0, metavar="N", help="mesh smoothing iterations (default 0)")
     p.add_argument("--min-confidence", type=float, metavar="C", help="use the scans' points whose confidence "
                    "property reaches this (default 0.9: disparity within 1 px with 90 %% chance; 0 = all)")
-    p.set_defaults(func=_cmd_stitch)
 
 
 # --- ATR: decamo / features ------------------------------------------------------------------
@@ -559,20 +579,20 @@ def _cmd_decamo(args: argparse.Namespace) -> int:
 
 
 def _add_decamo(sub: Any) -> None:
-    p = sub.add_parser("decamo", help="remove camouflage using depth: albedo, shading, shape image, false shadows",
-                       description="Estimate the lighting (2nd-order spherical harmonics) from the image and "
-                       "the surface normals of its depth map, separate shading from the piecewise-constant "
-                       "paint, and write albedo.png, shading.tiff (float32), shape.png (the surface relit "
-                       "with uniform albedo: the true 3D profile) and false_shadow.png. Without DEPTH, IMAGE "
-                       "is a prism shot reconstructed with --calib first.")
+    p = _command(sub, "decamo", _cmd_decamo,
+                 help="remove camouflage using depth: albedo, shading, shape image, false shadows",
+                 description="Estimate the lighting (2nd-order spherical harmonics) from the image and "
+                 "the surface normals of its depth map, separate shading from the piecewise-constant "
+                 "paint, and write albedo.png, shading.tiff (float32), shape.png (the surface relit "
+                 "with uniform albedo: the true 3D profile) and false_shadow.png. Without DEPTH, IMAGE "
+                 "is a prism shot reconstructed with --calib first.")
     p.add_argument("image", type=Path, metavar="IMAGE")
     p.add_argument("depth", nargs="?", metavar="DEPTH",
                    help="depth map in mm: .tiff, .npy, .pfm or FILE.npz:KEY (e.g. truth.npz:depth_left_mm)")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT_DIR")
+    _output_option(p, "OUT_DIR")
     p.add_argument("--calib", type=Path, help="calibration/rig YAML giving the camera intrinsics")
     p.add_argument("--focal", type=float, metavar="PX", help="focal length in px (principal point at the centre)")
     p.add_argument("--view", choices=["left", "right"], default="left", help="which camera of --calib")
-    p.set_defaults(func=_cmd_decamo)
 
 
 def _cmd_features(args: argparse.Namespace) -> int:
@@ -586,18 +606,18 @@ def _cmd_features(args: argparse.Namespace) -> int:
 
 
 def _add_features(sub: Any) -> None:
-    p = sub.add_parser("features", help="size, profile, range and surface features -> Parquet",
-                       description="One row of named, unit-bearing features per model or scan (meshes: OBJ, "
-                       "PLY, GLB, OFF, STL; scans: PLY, PCD). Units and up axis are never guessed: give "
-                       "--units/--up, or a FILE.units.yaml sidecar. Columns are documented in docs/features.md.")
+    p = _command(sub, "features", _cmd_features,
+                 help="size, profile, range and surface features -> Parquet",
+                 description="One row of named, unit-bearing features per model or scan (meshes: OBJ, "
+                 "PLY, GLB, OFF, STL; scans: PLY, PCD). Units and up axis are never guessed: give "
+                 "--units/--up, or a FILE.units.yaml sidecar. Columns are documented in docs/features.md.")
     p.add_argument("inputs", nargs="+", type=Path, metavar="MODEL_OR_SCAN")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="FEATURES_PARQUET")
-    p.add_argument("--units", choices=["mm", "cm", "m", "in"], help="units of files that do not declare them")
-    p.add_argument("--up", choices=["y", "z"], help="up axis of files that do not declare it")
+    _output_option(p, "FEATURES_PARQUET")
+    p.add_argument("--units", choices=_UNITS, help="units of files that do not declare them")
+    p.add_argument("--up", choices=_UP_AXES, help="up axis of files that do not declare it")
     p.add_argument("--box", choices=["auto", "surface", "points"], default="auto",
                    help="scans: boxes of the fitted surface near the data (needs normals) or of every point; "
                    "auto (default): surface when the scan has normals and is dense (>= 200 point spacings across)")
-    p.set_defaults(func=_cmd_features)
 
 
 # --- ATR: render / bank ---------------------------------------------------------------------
@@ -622,12 +642,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _add_render(sub: Any) -> None:
-    p = sub.add_parser("render", help="render a model at many poses into training chips + manifest",
-                       description="Render MODEL (a mesh file or a built-in target name) at every azimuth x "
-                       "elevation x range into chips (intensity, depth mm, mask, shape image) and a Parquet "
-                       "manifest holding every pose and camera field.")
+    p = _command(sub, "render", _cmd_render,
+                 help="render a model at many poses into training chips + manifest",
+                 description="Render MODEL (a mesh file or a built-in target name) at every azimuth x "
+                 "elevation x range into chips (intensity, depth mm, mask, shape image) and a Parquet "
+                 "manifest holding every pose and camera field.")
     p.add_argument("model", metavar="MODEL", help="mesh file (OBJ/PLY/GLB/OFF/STL) or built-in target name")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR")
+    _output_option(p, "DIR")
     p.add_argument("--azimuth", default="0:360:10", metavar="A0:A1:STEP", help="degrees (default 0:360:10)")
     p.add_argument("--elevation", default="10:60:25", metavar="E0:E1:STEP", help="degrees (default 10:60:25)")
     p.add_argument("--range", metavar="R1,R2,...", help="camera distances, mm (default: 4 bounding radii)")
@@ -635,17 +656,15 @@ def _add_render(sub: Any) -> None:
     p.add_argument("--framing", choices=["fit", "range"], default="fit",
                    help="fit: fill the chip; range: fixed pixels per metre (size follows range)")
     p.add_argument("--pixels-per-m", type=float, help="with --framing range")
-    p.add_argument("--channels", nargs="+", default=["intensity", "depth", "mask", "shape"],
-                   choices=["intensity", "depth", "mask", "shape"])
-    p.add_argument("--units", choices=["mm", "cm", "m", "in"], help="units of a mesh file")
-    p.add_argument("--up", choices=["y", "z"], default="z", help="up axis of a mesh file (default z)")
+    p.add_argument("--channels", nargs="+", default=list(_CHANNELS), choices=_CHANNELS)
+    p.add_argument("--units", choices=_UNITS, help="units of a mesh file")
+    p.add_argument("--up", choices=_UP_AXES, default="z", help="up axis of a mesh file (default z)")
     p.add_argument("--format", choices=["npz", "png"], default="npz", help="chip files (default npz)")
     p.add_argument("--no-camouflage", dest="camouflage", action="store_false", help="uniform grey paint")
     p.add_argument("--clutter", choices=["ground", "noise"], help="background clutter")
     p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA", help="intensity noise std in [0, 1]")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--backend", choices=["raycast", "pyrender"], default="raycast")
-    p.set_defaults(func=_cmd_render)
 
 
 def _cmd_bank(args: argparse.Namespace) -> int:
@@ -679,11 +698,12 @@ def _cmd_bank(args: argparse.Namespace) -> int:
 
 
 def _add_bank(sub: Any) -> None:
-    p = sub.add_parser("bank", help="correlation filter banks: train on rendered models, evaluate",
-                       description="train: render the targets at the training poses and build one OT-MACH "
-                       "filter per class and aspect bin (parameters chosen on held-out views); eval: "
-                       "classify unseen poses (azimuths between the training ones) and report Pcc, confusion, "
-                       "per-aspect accuracy and ROC (results JSON + plots beside it).")
+    p = _command(sub, "bank", _cmd_bank,
+                 help="correlation filter banks: train on rendered models, evaluate",
+                 description="train: render the targets at the training poses and build one OT-MACH "
+                 "filter per class and aspect bin (parameters chosen on held-out views); eval: "
+                 "classify unseen poses (azimuths between the training ones) and report Pcc, confusion, "
+                 "per-aspect accuracy and ROC (results JSON + plots beside it).")
     p.add_argument("action", choices=["train", "eval"])
     p.add_argument("bank", nargs="?", type=Path, metavar="BANK_NPZ", help="eval: the bank file")
     p.add_argument("--targets", nargs="+", default=["builtin"],
@@ -699,11 +719,10 @@ def _add_bank(sub: Any) -> None:
     p.add_argument("--no-camouflage", dest="camouflage", action="store_false")
     p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA", help="eval: intensity noise std")
     p.add_argument("--clutter", action="store_true", help="eval: clutter backgrounds and clutter-only chips")
-    p.add_argument("--units", choices=["mm", "cm", "m", "in"], help="units of mesh files")
-    p.add_argument("--up", choices=["y", "z"], help="up axis of mesh files")
+    p.add_argument("--units", choices=_UNITS, help="units of mesh files")
+    p.add_argument("--up", choices=_UP_AXES, help="up axis of mesh files")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, metavar="RESULTS_JSON", help="eval: write results (+ plots beside it)")
-    p.set_defaults(func=_cmd_bank)
 
 
 # --- datasets: the target database ---------------------------------------------------------
@@ -757,39 +776,42 @@ def _cmd_db(args: argparse.Namespace) -> int:
 
 
 def _add_db(sub: Any) -> None:
-    p = sub.add_parser("db", help="the target database: init, add, render, features, info, verify",
-                       description="A target database is a folder (format: datasets/FORMAT.md) readable by "
-                       "pandas, pyarrow and DuckDB: targets, normalised models, render jobs (chips + Parquet "
-                       "manifests), feature tables. Jobs are split into units, resume where they stopped and "
-                       "run in-process or on a Dask cluster.")
+    p = _command(sub, "db", _cmd_db,
+                 help="the target database: init, add, render, features, info, verify",
+                 description="A target database is a folder (format: datasets/FORMAT.md) readable by "
+                 "pandas, pyarrow and DuckDB: targets, normalised models, render jobs (chips + Parquet "
+                 "manifests), feature tables. Jobs are split into units, resume where they stopped and "
+                 "run in-process or on a Dask cluster.")
     dsub = p.add_subparsers(dest="db_action", metavar="ACTION", required=True, parser_class=_Parser)
-    q = dsub.add_parser("init", help="create an empty database", description="Create an empty target database.")
-    q.add_argument("db", type=Path, metavar="DB")
-    q = dsub.add_parser("add", help="add mesh files (with --class) or the built-in targets",
-                        description="Add targets. Mesh files need --class, and --units/--up unless a "
-                        "FILE.units.yaml sidecar declares them (never guessed). Duplicates (same content hash) "
-                        "are skipped (--strict: an error).")
-    q.add_argument("db", type=Path, metavar="DB")
+
+    def action(name: str, help: str, description: str) -> argparse.ArgumentParser:
+        q = dsub.add_parser(name, help=help, description=description)
+        q.add_argument("db", type=Path, metavar="DB")
+        return q
+
+    action("init", "create an empty database", "Create an empty target database.")
+    q = action("add", "add mesh files (with --class) or the built-in targets",
+               "Add targets. Mesh files need --class, and --units/--up unless a "
+               "FILE.units.yaml sidecar declares them (never guessed). Duplicates (same content hash) "
+               "are skipped (--strict: an error).")
     q.add_argument("meshes", nargs="*", type=Path, metavar="MESH")
     q.add_argument("--builtin", nargs="*", metavar="NAME", help="add built-in targets (all when no names)")
     q.add_argument("--class", dest="target_class", metavar="C", help="class of the mesh files")
-    q.add_argument("--units", choices=["mm", "cm", "m", "in"])
-    q.add_argument("--up", choices=["y", "z"])
+    q.add_argument("--units", choices=_UNITS)
+    q.add_argument("--up", choices=_UP_AXES)
     q.add_argument("--length-mm", type=float, help="rescale each mesh to this length, mm")
     q.add_argument("--yaw", type=float, default=0.0, metavar="DEG", help="turn about up so x is forward")
     q.add_argument("--strict", action="store_true", help="a duplicate is an error")
-    q = dsub.add_parser("render", help="render job: chips of every target at every pose (resumable)",
-                        description="Render every target at azimuth x elevation x range into chips and "
-                        "manifest parts. Re-running resumes; --workers N uses a local Dask cluster, "
-                        "--scheduler an existing one.")
-    q.add_argument("db", type=Path, metavar="DB")
+    q = action("render", "render job: chips of every target at every pose (resumable)",
+               "Render every target at azimuth x elevation x range into chips and "
+               "manifest parts. Re-running resumes; --workers N uses a local Dask cluster, "
+               "--scheduler an existing one.")
     q.add_argument("--job", required=True, metavar="NAME")
     q.add_argument("--azimuth", default="0:360:30", metavar="A0:A1:STEP")
     q.add_argument("--elevation", default="20", metavar="E0:E1:STEP")
     q.add_argument("--range", metavar="R1,R2,...", help="camera distances, mm")
     q.add_argument("--size", type=int, default=128)
-    q.add_argument("--channels", nargs="+", default=["intensity", "depth", "mask", "shape"],
-                   choices=["intensity", "depth", "mask", "shape"])
+    q.add_argument("--channels", nargs="+", default=list(_CHANNELS), choices=_CHANNELS)
     q.add_argument("--targets", nargs="+", metavar="ID", help="only these target ids")
     q.add_argument("--classes", nargs="+", metavar="C", help="only these classes")
     q.add_argument("--framing", choices=["fit", "range"], default="fit")
@@ -797,21 +819,17 @@ def _add_db(sub: Any) -> None:
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--workers", type=int, default=0, help="local Dask workers (0 = in this process)")
     q.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler")
-    q = dsub.add_parser("features", help="features job over a render job's chips and the models",
-                        description="Compute view features of every chip of a render job (and model features "
-                        "of every target) into Parquet parts; resumable like render.")
-    q.add_argument("db", type=Path, metavar="DB")
+    q = action("features", "features job over a render job's chips and the models",
+               "Compute view features of every chip of a render job (and model features "
+               "of every target) into Parquet parts; resumable like render.")
     q.add_argument("--job", required=True, metavar="NAME")
     q.add_argument("--workers", type=int, default=0)
     q.add_argument("--scheduler", metavar="tcp://HOST:PORT")
-    q = dsub.add_parser("info", help="counts per table, class and job", description="Summarise the database.")
-    q.add_argument("db", type=Path, metavar="DB")
+    q = action("info", "counts per table, class and job", "Summarise the database.")
     q.add_argument("--json", action="store_true")
-    q = dsub.add_parser("verify", help="check files, hashes, paths and schema versions",
-                        description="Every manifest row has its files, hashes match, no path escapes the "
-                        "database folder, schema versions are known. Exit 1 listing problems.")
-    q.add_argument("db", type=Path, metavar="DB")
-    p.set_defaults(func=_cmd_db)
+    action("verify", "check files, hashes, paths and schema versions",
+           "Every manifest row has its files, hashes match, no path escapes the "
+           "database folder, schema versions are known. Exit 1 listing problems.")
 
 
 # --- registry ---------------------------------------------------------------------------
