@@ -126,6 +126,32 @@ def test_no_import_cycles_between_modules() -> None:
     assert cycles(library_modules()) == []
 
 
+def private_imports(files: dict[str, Path]) -> list[str]:
+    """``from other_module import _name`` of a private function or class (a package's
+    private *modules*, like ``_match_kernels``, may be imported by their package)."""
+    bad = []
+    for module, path in files.items():
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            base = package.split(".")
+            target = ".".join(base[: len(base) - node.level + 1] + ([node.module] if node.module else [])) \
+                if node.level else (node.module or "")
+            if not target.startswith("prism3d") or target == module:
+                continue
+            for a in node.names:
+                if a.name.startswith("_") and not a.name.startswith("__") and f"{target}.{a.name}" not in files:
+                    bad.append(f"{path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}:{node.lineno} "
+                               f"imports {target}.{a.name}")
+    return bad
+
+
+def test_private_helpers_stay_in_their_module() -> None:
+    """A helper another module needs is public (named without ``_``) or moves."""
+    assert private_imports(library_modules()) == []
+
+
 def test_a_planted_violation_is_caught(tmp_path: Path) -> None:
     """The check itself: a capture module importing atr, a root module importing a layer,
     a library module importing the CLI -- inside a function, relative and absolute."""
@@ -148,3 +174,7 @@ def test_a_planted_violation_is_caught(tmp_path: Path) -> None:
     b.write_text("from . import a\n")
     assert cycles({"prism3d.atr.a": a, "prism3d.atr.b": b, "prism3d.reconstruct.ok": ok}) == [
         ["prism3d.atr.a", "prism3d.atr.b"]]
+    (tmp_path / "_kern.py").write_text("")
+    b.write_text("from prism3d.atr.a import _helper\nfrom . import _kern\n")
+    found = private_imports({"prism3d.atr.a": a, "prism3d.atr.b": b, "prism3d.atr._kern": tmp_path / "_kern.py"})
+    assert len(found) == 1 and found[0].endswith("imports prism3d.atr.a._helper"), found
