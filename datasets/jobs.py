@@ -8,6 +8,7 @@ rerun skips finished units (resume). Units run in this process or on Dask worker
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -15,7 +16,7 @@ import logging
 import os
 import time
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -540,11 +541,25 @@ def _dask_config() -> dict[str, Any]:
     }
 
 
+@contextlib.contextmanager
+def _environ_restored() -> Iterator[None]:
+    """Undo what a local cluster's nannies set in this process's environment: they set
+    the workers' variables (``NUMBA_NUM_THREADS=1``...) here before spawning, and a later
+    numba config reload in the caller's process would then fail."""
+    saved = dict(os.environ)
+    try:
+        yield
+    finally:
+        for k in set(os.environ) - set(saved):
+            del os.environ[k]
+        os.environ.update(saved)
+
+
 def _run_dask(tasks: list[_Task], job: str, run: RunOptions, finish: _Tally) -> None:
     import dask
     from distributed import Client, LocalCluster, as_completed
 
-    with dask.config.set(_dask_config()):
+    with dask.config.set(_dask_config()), _environ_restored():
         if run.scheduler is not None:
             cluster = None
             client = Client(run.scheduler)

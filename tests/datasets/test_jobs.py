@@ -359,8 +359,11 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_dask_local_cluster(small_db, tmp_path: Path) -> None:
-    """Two spawn workers give the same manifest as the in-process run."""
+    """Two spawn workers give the same manifest as the in-process run, and the caller's
+    environment is left as it was (the nannies set the workers' variables in it)."""
+    env = dict(os.environ)
     rep = run_render_job(small_db, "jd", run=RunOptions(workers=2), **JOB)
+    assert dict(os.environ) == env
     assert rep.ok and rep.done_units == 6
     assert len({s["pid"] for s in rep.stats}) >= 1 and all(
         s["pid"] != os.getpid() for s in rep.stats
