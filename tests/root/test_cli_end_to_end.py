@@ -202,17 +202,17 @@ def test_db_init_add_render_features_info_verify(tmp_path):
 
 
 def test_trigger_simulate_then_ping_status_fire(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "prism3d.cli", "trigger", "simulate"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        port = proc.stdout.readline().strip()
-        assert port.startswith("/dev/"), port
-        for action in ("ping", "status", "fire"):
-            r = prism3d("trigger", action, port, "--timeout", "5")
-            assert r.returncode == 0, (action, r.stderr)
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
+    with subprocess.Popen([sys.executable, "-m", "prism3d.cli", "trigger", "simulate"],
+                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True) as proc:
+        try:
+            port = proc.stdout.readline().strip()
+            assert port.startswith("/dev/"), port
+            for action in ("ping", "status", "fire"):
+                r = prism3d("trigger", action, port, "--timeout", "5")
+                assert r.returncode == 0, (action, r.stderr)
+        finally:
+            proc.terminate()
+            proc.wait(timeout=30)
 
 
 def test_capture_with_the_virtual_camera(tmp_path):
