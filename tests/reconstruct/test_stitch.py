@@ -250,7 +250,10 @@ def test_ship_stereo_coverage_with_true_depth(tmp_path, hint):
     from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
 
     folder = tmp_path / "ship"
-    simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=0, supersample=1), target=builtin_target("ship_s3", seed=0))
+    # the ideal camera, as when the gap was measured: with the real-camera effects the
+    # matcher keeps more of the end-on view (its lever ratio 0.27, not weakly held)
+    simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=0, supersample=1, effects=None),
+                       target=builtin_target("ship_s3", seed=0))
     rig = StereoRig.load(folder / "rig.yaml")
     views = json.loads((folder / "poses.json").read_text())["views"]
     rng = np.random.default_rng(0)
