@@ -120,6 +120,13 @@ def check_in_range(value: float, name: str, lo: float, hi: float) -> float:
     return v
 
 
+def check_int(value: Any, name: str) -> int:
+    """``value`` as an int; a bool, float or anything else is an InputError."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"{name}: expected an integer, got {value!r} ({type(value).__name__})")
+    return int(value)
+
+
 def check_choice(value: Any, name: str, choices: Iterable[Any]) -> Any:
     """Raise unless ``value`` is one of ``choices``."""
     options = list(choices)

@@ -29,10 +29,11 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.checks import check_array, check_choice, check_same_shape
+from prism3d.checks import check_array, check_choice, check_int, check_same_shape
 from prism3d.errors import InputError, ReconstructionError
 
 from . import _match_kernels as _k
+from .match_options import MatchOptions
 from .photometric import GainField, fit_gain_field
 
 __all__ = ["C2F_AUTO_CELLS", "MatchOptions", "StereoResult", "match_files", "match_stereo", "match_stereo_full"]
@@ -57,8 +58,6 @@ _SPECKLE_PX, _SPECKLE_REF_AREA = 100, 450 * 375
 _SPECKLE_MIN, _SPECKLE_MAX = 4, 400
 #: Fine-search half-window beyond the coarse neighbourhood's +-scale (levels).
 _FINE_MARGIN = 4
-#: 3 channels x 8 paths x p2 must stay within the uint16 path sums' headroom.
-_P2_LIMIT = 40000
 #: Side of the box mean the band-pass subtracts before Lucas-Kanade (exposure offsets).
 _BANDPASS_BOX = 11
 #: Channel spread below which the right view's AD features keep gain 1.
@@ -92,79 +91,6 @@ class StereoResult:
     right_gain: GainField | None = None
 
 
-@dataclass(frozen=True)
-class MatchOptions:
-    """Options of :func:`match_stereo_full` (why these defaults: docs/matching.md)."""
-
-    coarse_to_fine: bool | None = None
-    """Force (True) or forbid (False) coarse-to-fine; None: above C2F_AUTO_CELLS cells."""
-    census_window: tuple[int, int] = (5, 5)
-    """Census window (rows, cols), odd sizes >= 3, at most 64 comparisons."""
-    p1: int = 10
-    """SGM penalty per colour channel for a 1-level disparity change."""
-    p2: int = 120
-    """SGM penalty per colour channel for larger changes (> p1, <= 1600)."""
-    p2_gamma: float = 20.0
-    """Intensity step (grey levels) at which the adaptive P2 is halved."""
-    paths: int = 4
-    """Aggregation paths, 4 or 8."""
-    uniqueness: float = 5.0
-    """Minimum margin (percent) between the best cost and the best outside +-1 level."""
-    lr_max_diff: float = 1.0
-    """Maximum left-right disagreement (px)."""
-    speckle_size: int | None = None
-    """Valid regions smaller than this (px) are dropped; None: 100 px at 450x375, scaled by area."""
-    speckle_range: float = 2.0
-    """Disparity step (px) that separates speckle regions."""
-    subpixel: str = "lk"
-    """Sub-pixel: "lk" (equiangular fit, then Lucas-Kanade) or "equiangular" (fit alone)."""
-    lk_window: int = 5
-    """Odd side (px) of the square Lucas-Kanade window."""
-    lk_iters: int = 1
-    """Maximum Gauss-Newton iterations (one suffices from the equiangular start)."""
-    fine_window: int | None = None
-    """Levels searched per pixel coarse-to-fine (>= 3); None: 2 * (scale + 4) + 1, or more."""
-    ad_weight: float = 1.0
-    """Weight (>= 0) of the colour-difference term added to the census cost; 0: census only."""
-    ad_trunc: float = 15.0
-    """Truncation (> 0, grey levels per channel) of the colour-difference term."""
-    ad_mode: str = "intensity"
-    """What the colour-difference term compares: "intensity" (after equalisation) or "gradient"."""
-    equalize: bool = True
-    """Bring the right view's exposure, colour balance and vignetting to the left's first."""
-
-    def __post_init__(self) -> None:
-        check_choice(self.paths, "paths", (4, 8))
-        check_choice(self.subpixel, "subpixel", ("lk", "equiangular"))
-        check_choice(self.ad_mode, "ad_mode", ("intensity", "gradient"))
-        if not (np.isfinite(self.ad_weight) and self.ad_weight >= 0):
-            raise InputError(f"ad_weight: expected a finite number >= 0, got {self.ad_weight!r}")
-        if not (np.isfinite(self.ad_trunc) and self.ad_trunc > 0):
-            raise InputError(f"ad_trunc: expected a finite number > 0, got {self.ad_trunc!r}")
-        if self.fine_window is not None and _as_int(self.fine_window, "fine_window") < 3:
-            raise InputError(f"fine_window: expected an integer >= 3, got {self.fine_window}")
-        _check_census_window(self.census_window)
-        if _as_int(self.lk_window, "lk_window") < 3 or self.lk_window % 2 == 0:
-            raise InputError(f"lk_window: expected an odd integer >= 3, got {self.lk_window}")
-        for nm, v in (("p1", self.p1), ("p2", self.p2)):
-            if _as_int(v, nm) <= 0:
-                raise InputError(f"{nm}: expected an integer > 0, got {v}")
-        if self.p2 <= self.p1:
-            raise InputError(f"p2: expected p2 > p1, got p1={self.p1}, p2={self.p2}")
-        if self.p2 * 3 * 8 > _P2_LIMIT:
-            raise InputError(f"p2: expected at most 1600, got {self.p2}")
-
-
-def _check_census_window(cw: Any) -> None:
-    if (
-        len(cw) != 2
-        or any(_as_int(c, "census_window") % 2 == 0 or c < 3 for c in cw)
-        or cw[0] * cw[1] - 1 > 64
-    ):
-        raise InputError(
-            f"census_window: expected two odd sizes >= 3 with rows*cols <= 65, got {cw!r}")
-
-
 class _Workspace(threading.local):
     """Per-thread scratch volumes reused between calls, at most ``CAP`` bytes (fresh
     large arrays cost page faults: docs/matching.md). Kernels overwrite them whole."""
@@ -196,12 +122,6 @@ class _Workspace(threading.local):
 
 
 _WS = _Workspace()
-
-
-def _as_int(value: Any, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"{name}: expected an integer, got {value!r} ({type(value).__name__})")
-    return int(value)
 
 
 def _prepare(img: Any, name: str) -> NDArray[np.uint8] | NDArray[np.float32]:
@@ -458,8 +378,8 @@ def _check_pair(left: Any, right: Any, min_disp: Any, num_disp: Any
     lf = _prepare(left, "left")
     rf = _prepare(right, "right")
     check_same_shape(lf, rf, ("left", "right"))
-    min_disp = _as_int(min_disp, "min_disp")
-    num_disp = _as_int(num_disp, "num_disp")
+    min_disp = check_int(min_disp, "min_disp")
+    num_disp = check_int(num_disp, "num_disp")
     if num_disp <= 0:
         raise InputError(f"num_disp: expected an integer > 0, got {num_disp}")
     if lf.shape[2] == 3 and _k.channels_equal(lf) and _k.channels_equal(rf):

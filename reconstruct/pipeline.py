@@ -25,11 +25,12 @@ from prism3d.errors import InputError, ReconstructionError
 from prism3d.io.atomic import atomic_path
 from prism3d.progress import ProgressFn, null_progress
 from prism3d.reconstruct.defaults import DEFAULT_MIN_CONFIDENCE
+from prism3d.reconstruct.match_options import MatchOptions
 from prism3d.reconstruct.meshing import mesh_from_grid, smooth_depth
 from prism3d.reconstruct.triangulate import Scan, scan_from_depth
 
 if TYPE_CHECKING:
-    from prism3d.reconstruct.match import MatchOptions, StereoResult
+    from prism3d.reconstruct.match import StereoResult
     from prism3d.reconstruct.rectify import RectifyMaps
     from prism3d.reconstruct.selection import Coverage
 
@@ -60,8 +61,6 @@ _SHOT_LK_WINDOW = 9
 
 
 def _shot_match_options() -> MatchOptions:
-    from prism3d.reconstruct.match import MatchOptions
-
     return MatchOptions(lk_window=_SHOT_LK_WINDOW)
 
 

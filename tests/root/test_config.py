@@ -61,3 +61,32 @@ def test_bad_yaml(tmp_path):
     (tmp_path / "d.yaml").write_text("!!python/object:os.system {}\n")
     with pytest.raises(InputError, match="not valid YAML"):
         load_config(tmp_path / "d.yaml", Opts)
+
+
+def _options_classes():
+    from prism3d.atr.chips import ChipSpec
+    from prism3d.capture.acquire import CaptureOptions
+    from prism3d.capture.scenes import BoardPoseOptions
+    from prism3d.capture.simulate import ShotOptions, SimulateOptions
+    from prism3d.datasets.jobs import RunOptions
+    from prism3d.reconstruct.calibrate import CalibrationOptions
+    from prism3d.reconstruct.match_options import MatchOptions
+    from prism3d.reconstruct.pipeline import ReconstructOptions
+    from prism3d.reconstruct.stitch import StitchOptions
+
+    return [ChipSpec, CaptureOptions, BoardPoseOptions, ShotOptions, SimulateOptions, CalibrationOptions,
+            MatchOptions, ReconstructOptions, StitchOptions, RunOptions]
+
+
+@pytest.mark.parametrize("cls", _options_classes(), ids=lambda c: c.__name__)
+def test_every_options_object_round_trips_through_yaml(tmp_path, cls):
+    """The stage options can live in a YAML file (defaults written, read back equal);
+    a typo in a key is an error naming it."""
+    import dataclasses
+
+    opts = cls()
+    save_config(tmp_path / "o.yaml", opts)
+    assert load_config(tmp_path / "o.yaml", cls) == opts
+    first = dataclasses.fields(cls)[0].name
+    with pytest.raises(InputError, match=f"{first}x"):
+        config_from_dict(cls, {f"{first}x": 1})
