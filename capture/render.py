@@ -313,9 +313,9 @@ class RaycastRenderer:
             None if extra is None else extra[:m],
         )
 
-    def albedo(self, hits: RayHits) -> NDArray[np.float64]:
-        """Albedo ``(N, 3)`` float64 at the hits (0 for misses), via ``SceneMesh.albedo_at``."""
-        return self._albedo(hits.object_id, hits.face_id, hits.bary_uv, hits.points)
+    def albedo(self, hits: RayHits | CameraHits, dtype: type = np.float64) -> NDArray:
+        """Albedo ``(N, 3)`` (``dtype``) at the hits (0 for misses), via ``SceneMesh.albedo_at``."""
+        return self._albedo(hits.object_id, hits.face_id, hits.bary_uv, hits.points, dtype)
 
     def _albedo(
         self,
@@ -356,19 +356,26 @@ class RaycastRenderer:
                 out[sel] = mesh.albedo_at(p_obj, face[sel], uv[sel])
         return out
 
+    @property
+    def meshes(self) -> tuple[SceneMesh, ...]:
+        """The scene's meshes, in object-id order."""
+        return tuple(self._meshes)
+
     def visible_from(
-        self, points_world: NDArray, source_world: NDArray, *, tol_mm: float = 1e-3
+        self, points_world: NDArray, source_world: NDArray, *, tol_mm: float = 1e-3,
+        subset: NDArray | None = None,
     ) -> NDArray[np.bool_]:
-        """True where the segment from ``source_world`` to a point is unobstructed.
+        """True where the segment from ``source_world`` to a point is unobstructed (for
+        the points ``points_world[subset]`` when ``subset``, an index array, is given).
 
         The first hit from the source must lie no nearer than the point (minus
         ``tol_mm + 1e-7 * distance``); NaN points give False. A float32 any-hit pass;
         only segments it reports blocked are re-decided in float64; a one-plane scene
         needs no rays (docs/capture.md).
         """
-        p = check_array(points_world, "points_world", shape=(None, 3)).astype(np.float64)
+        p = check_array(points_world, "points_world", shape=(None, 3))
         src = check_array(source_world, "source_world", shape=(3,)).astype(np.float64)
-        return self._visible(p, src, float(tol_mm))
+        return self._visible(p, src, float(tol_mm), subset)
 
     def _visible(
         self,

@@ -328,7 +328,7 @@ def _illumination(
     k, rgb, white, lit = projector._light(hits.points, hits.normals, flash)
     li = np.flatnonzero(lit)
     if len(li):
-        vis = renderer._visible(hits.points, projector.position_rig, SHADOW_EPS_MM, li)
+        vis = renderer.visible_from(hits.points, projector.position_rig, tol_mm=SHADOW_EPS_MM, subset=li)
         k[li[~vis]] = 0.0
     k[~lit] = 0.0
     return k, rgb, white
@@ -341,7 +341,7 @@ def _gloss_table(
     ks = np.zeros(renderer.n_objects)
     shin = np.ones(renderer.n_objects)
     if effects.specular:
-        for i, mesh in enumerate(renderer._meshes):
+        for i, mesh in enumerate(renderer.meshes):
             g = effects.gloss(mesh.metadata.get("material"))
             ks[i], shin[i] = g.coefficient, g.shininess
     return ks, shin
@@ -424,7 +424,7 @@ def _truth_pass(
     def truth_band(s: int, e: int, hb: CameraHits) -> None:
         if len(hb.index) == 0:
             return
-        alb = renderer._albedo(hb.object_id, hb.face_id, hb.bary_uv, hb.points, np.float32)
+        alb = renderer.albedo(hb, np.float32)
         k, rgb, white = _illumination(renderer, hb, projector, opts.flash)
         if spec is not None and gloss is not None and gloss[0].max() > 0:
             specular_weight(
@@ -476,7 +476,7 @@ def _colour_pass(
         b = band_img[: e - s]
         b.fill(opts.background)
         if len(hb.index):
-            alb_s = renderer._albedo(hb.object_id, hb.face_id, hb.bary_uv, hb.points, np.float32)
+            alb_s = renderer.albedo(hb, np.float32)
             k_s, rgb_s, _ = _illumination(renderer, hb, projector, opts.flash)
             _shade(hb.index - s, alb_s, k_s, rgb_s, opts.ambient, b, spec, s, ws, ss, w)
         r0 = s // ws // ss
