@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -107,6 +108,10 @@ class ChipPose:
             raise InputError(f"pose row: missing column {exc.args[0]!r}") from None
 
 
+#: Most values a range spec may give (a typo such as ``0:360:1e-7`` would be billions of poses).
+MAX_RANGE_VALUES = 100_000
+
+
 def parse_range(spec: str | float | Sequence[float]) -> list[float]:
     """Parse ``"A0:A1:STEP"``, ``"v1,v2,..."`` or numbers into a list of floats.
 
@@ -114,7 +119,7 @@ def parse_range(spec: str | float | Sequence[float]) -> list[float]:
     reached exactly that is not a full turn (``"10:60:25"`` -> 10, 35, 60).
     """
     if isinstance(spec, (int, float, np.integer, np.floating)) and not isinstance(spec, bool):
-        return [float(spec)]
+        return _finite([float(spec)], spec)
     if not isinstance(spec, str):
         try:
             vals = [float(v) for v in spec]
@@ -124,7 +129,7 @@ def parse_range(spec: str | float | Sequence[float]) -> list[float]:
             ) from None
         if not vals:
             raise InputError("range spec: empty list")
-        return vals
+        return _finite(vals, spec)
     text = spec.strip()
     try:
         if ":" in text:
@@ -134,13 +139,20 @@ def parse_range(spec: str | float | Sequence[float]) -> list[float]:
             a0, a1, step = parts
             if not step > 0:
                 raise InputError(f"range spec {spec!r}: STEP must be > 0, got {step}")
+            _finite(parts, spec)
             n = math.floor((a1 - a0) / step + 1e-9)
+            if n > MAX_RANGE_VALUES:  # n + 1 values before a full turn's end is dropped
+                raise InputError(f"range spec {spec!r}: {n + 1} values, more than {MAX_RANGE_VALUES}; "
+                                 "use a larger STEP")
             vals = [a0 + i * step for i in range(max(n, 0) + 1)]
             if vals and (
                 vals[-1] > a1 + 1e-9
                 or (abs(vals[-1] - a1) < 1e-9 and abs((a1 - a0) - 360.0) < 1e-9)
             ):
                 vals = vals[:-1]
+            if len(vals) > MAX_RANGE_VALUES:
+                raise InputError(f"range spec {spec!r}: {len(vals)} values, more than {MAX_RANGE_VALUES}; "
+                                 "use a larger STEP")
         else:
             vals = [float(p) for p in text.split(",") if p.strip()]
     except InputError:
@@ -151,7 +163,13 @@ def parse_range(spec: str | float | Sequence[float]) -> list[float]:
         ) from None
     if not vals:
         raise InputError(f"range spec {spec!r}: no values")
-    return [round(v, 9) for v in vals]
+    return [round(v, 9) for v in _finite(vals, spec)]
+
+
+def _finite(vals: list[float], spec: Any) -> list[float]:
+    if not all(math.isfinite(v) for v in vals):
+        raise InputError(f"range spec {spec!r}: values must be finite numbers")
+    return vals
 
 
 def grid_directions(

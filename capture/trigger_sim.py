@@ -172,6 +172,17 @@ class SimulatedDevice:
         return [self._err(seq, 2)]
 
 
+def _check_link(link: str | Path | None) -> Path | None:
+    """The link path; InputError when something other than a symlink is there (a link
+    only ever replaces a link: the file would be lost)."""
+    if link is None:
+        return None
+    p = Path(link)
+    if p.exists() and not p.is_symlink():
+        raise InputError(f"--link {p}: exists and is not a symlink; refusing to replace it")
+    return p
+
+
 def _point_link(link: Path, target: str) -> None:
     tmp = link.with_name(f".{link.name}.tmp{os.getpid()}")
     with contextlib.suppress(FileNotFoundError):
@@ -272,10 +283,10 @@ def run_simulator(
     unknown fault.
     """
     _check_fault(fault)
+    link_path = _check_link(link)
     stop = stop or threading.Event()
     rng = random.Random(seed)
     device = SimulatedDevice()
-    link_path = Path(link) if link is not None else None
     while not stop.is_set():
         master, slave = os.openpty()
         try:
@@ -323,7 +334,7 @@ class TriggerSimulator:
         start_timeout: float = 5.0,
     ) -> None:
         self.fault = _check_fault(fault)
-        self.link = Path(link) if link is not None else None
+        self.link = _check_link(link)
         self._kw = dict(fault=fault, link=link, slow_s=slow_s, reboot_s=reboot_s, seed=seed)
         self._start_timeout = start_timeout
         self._stop = threading.Event()

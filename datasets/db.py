@@ -250,10 +250,19 @@ class TargetDB:
 
     # -- tables ----------------------------------------------------------------------
     def targets(self) -> Any:
-        """The targets table (pandas DataFrame, columns :data:`TARGET_COLUMNS`)."""
+        """The targets table (pandas DataFrame, columns :data:`TARGET_COLUMNS`); every
+        ``target_id`` is checked to be a safe, unique name (ids become folder names)."""
         if not self.targets_file.is_file():
+            if self.targets_file.exists():
+                raise DatasetError(f"{self.targets_file}: not a file")
             return _empty_targets()
-        return read_table(self.targets_file)
+        t = read_table(self.targets_file)
+        for tid in t["target_id"]:
+            check_name(tid, f"{self.targets_file}: target_id")
+        dup = t["target_id"][t["target_id"].duplicated()]
+        if len(dup):
+            raise DatasetError(f"{self.targets_file}: duplicate target_id {dup.iloc[0]!r}")
+        return t
 
     def jobs(self) -> list[str]:
         """Names of the render jobs (folders under ``renders/`` with a ``job.yaml``)."""

@@ -46,6 +46,7 @@ __all__ = [
     "RenderSpec",
     "RunOptions",
     "Unit",
+    "check_scheduler",
     "database_info",
     "job_status",
     "plan_units",
@@ -303,6 +304,7 @@ def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str
     t0 = time.perf_counter()
     db = open_db(db_path)
     spec = RenderSpec.from_dict(spec_dict)
+    check_name(unit.target_id, "target_id")
     mesh, cls = _target_mesh(db, unit.target_id)
     chip_spec = replace(spec.chip_spec, seed=_unit_seed(spec.seed, unit))
     poses = spec_poses(mesh, spec.azimuth, spec.elevation, spec.range_mm, chip_spec)
@@ -315,7 +317,7 @@ def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str
         rel = f"renders/{spec.name}/chips/{unit.target_id}/{idx:06d}.npz"
         shas.append(
             write_npz_deterministic(
-                db.path / rel, {ch: chips.channels[ch][i] for ch in spec.channels}
+                db.resolve(rel, "chip file"), {ch: chips.channels[ch][i] for ch in spec.channels}
             )
         )
         files.append(rel)
@@ -335,7 +337,7 @@ def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str
         "pid": os.getpid(),
         "rss_mb": round(_rss_mb(), 1),
     }
-    part = db.job_dir(spec.name) / "manifest" / f"part-{unit.unit_id}.parquet"
+    part = db.resolve(f"renders/{spec.name}/manifest/part-{unit.unit_id}.parquet", "manifest part")
     write_table(
         table,
         part,
@@ -526,6 +528,25 @@ def _run_local(tasks: list[_Task], retries: int, finish: _Tally) -> None:
         finish(unit_id, what, res, err)
 
 
+#: Seconds to reach a Dask scheduler before a job gives up (it writes nothing then).
+SCHEDULER_TIMEOUT_S = 5.0
+
+
+def check_scheduler(address: str | None, timeout_s: float = SCHEDULER_TIMEOUT_S) -> None:
+    """DatasetError unless a TCP connection to the scheduler ``tcp://HOST:PORT`` opens
+    within ``timeout_s`` (None: no scheduler, nothing to check)."""
+    import socket
+
+    if address is None:
+        return
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"scheduler {address}: cannot connect ({exc}); is it running?") from None
+
+
 def _dask_config() -> dict[str, Any]:
     import dask
 
@@ -562,13 +583,14 @@ def _run_dask(tasks: list[_Task], job: str, run: RunOptions, finish: _Tally) -> 
     with dask.config.set(_dask_config()), _environ_restored():
         if run.scheduler is not None:
             cluster = None
-            client = Client(run.scheduler)
+            client = Client(run.scheduler, timeout=SCHEDULER_TIMEOUT_S)
         else:
             cluster = LocalCluster(
                 n_workers=run.workers,
                 threads_per_worker=1,
                 processes=True,
-                dashboard_address=":0",  # a free port: never clash with another cluster
+                host="127.0.0.1",  # scheduler and workers reachable from this machine only
+                dashboard_address="127.0.0.1:0",  # a free local port: never clash, never exposed
                 silence_logs=logging.ERROR,
             )
             client = Client(cluster)
@@ -645,6 +667,7 @@ def run_render_job(
     db = as_db(db)
     run = RunOptions() if run is None else run
     chosen = _select_targets(db, job, targets, classes)
+    check_scheduler(run.scheduler)  # before anything is written
     grid = {"azimuth": azimuth, "elevation": elevation, "range_mm": range_mm}
     spec = RenderSpec.create(
         job, chosen, grid, as_chip_spec(chip_spec), chips_per_unit
@@ -726,6 +749,7 @@ def run_features_job(
     db = as_db(db)
     run = RunOptions() if run is None else run
     spec = load_spec(db, job)
+    check_scheduler(run.scheduler)
     if "depth" not in spec.channels:
         raise DatasetError(
             f"job {job}: view features need the depth channel (rendered: {', '.join(spec.channels)})"

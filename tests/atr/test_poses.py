@@ -113,3 +113,16 @@ def test_make_poses_and_table_roundtrip():
         make_poses(dirs, [100.0], size=0)
     with pytest.raises(InputError, match="range_mm"):
         ChipPose(0, 0, 0.0, 0, np.eye(3), np.eye(4))
+
+
+@pytest.mark.parametrize("spec", ["nan", "0:nan:10", "1,inf", [1.0, float("nan")], float("inf")])
+def test_parse_range_refuses_non_finite(spec):
+    """``--azimuth nan`` rendered a chip at az NaN; now it is a clear error."""
+    with pytest.raises(InputError, match="finite"):
+        parse_range(spec)
+
+
+def test_parse_range_refuses_a_typo_of_billions_of_poses():
+    with pytest.raises(InputError, match="3600000001 values, more than 100000"):
+        parse_range("0:360:1e-7")
+    assert len(parse_range("0:360:0.0036")) == 100_000  # the limit itself is fine

@@ -274,3 +274,21 @@ def test_simulate_main_subprocess_sigterm(repo_root: Path) -> None:
             proc.kill()
             proc.wait(5)
         proc.stdout.close()
+
+
+def test_link_never_replaces_a_file(tmp_path: Path) -> None:
+    """``--link`` over an existing file is refused, the file kept; over a stale link it
+    is re-pointed (a link loses nothing)."""
+    f = tmp_path / "important.txt"
+    f.write_text("keep me")
+    with pytest.raises(InputError, match="exists and is not a symlink"):
+        TriggerSimulator(link=f)
+    r = subprocess.run([sys.executable, "-m", "prism3d.cli", "trigger", "simulate", "--link", str(f)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "refusing to replace" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert f.read_text() == "keep me"
+    stale = tmp_path / "port"
+    stale.symlink_to(tmp_path / "gone")
+    with TriggerSimulator(link=stale) as sim:
+        assert os.path.realpath(stale) == os.path.realpath(sim.port)
+    assert not stale.exists() and not stale.is_symlink()  # removed on exit, as before

@@ -358,12 +358,25 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_dask_local_cluster(small_db, tmp_path: Path) -> None:
+def test_dask_local_cluster(small_db, tmp_path: Path, monkeypatch) -> None:
     """Two spawn workers give the same manifest as the in-process run, and the caller's
     environment is left as it was (the nannies set the workers' variables in it)."""
+    import distributed
+
+    clusters = []
+
+    class Recorded(distributed.LocalCluster):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            clusters.append((self.scheduler_address, self.dashboard_link))
+
+    monkeypatch.setattr(distributed, "LocalCluster", Recorded)
     env = dict(os.environ)
     rep = run_render_job(small_db, "jd", run=RunOptions(workers=2), **JOB)
     assert dict(os.environ) == env
+    # reachable from this machine only: scheduler and dashboard on the loopback address
+    (addr, dash), = clusters
+    assert addr.startswith("tcp://127.0.0.1:") and dash.startswith("http://127.0.0.1:"), (addr, dash)
     assert rep.ok and rep.done_units == 6
     assert len({s["pid"] for s in rep.stats}) >= 1 and all(
         s["pid"] != os.getpid() for s in rep.stats
@@ -398,3 +411,52 @@ def test_cli_db_render_and_features_quiet(tmp_path: Path, capsys: pytest.Capture
     assert capsys.readouterr().out == ""
     assert main(render) == 0  # resumed: the summary is printed without --quiet
     assert "job q: 1/1 units done" in capsys.readouterr().out
+
+
+def test_tampered_target_id_writes_nothing_outside(tmp_path: Path) -> None:
+    """A target id is a folder name: one that climbs out of the database (a hand-edited
+    targets.parquet) is refused when read, and the job writes nothing anywhere."""
+    from prism3d.datasets.db import read_table, write_table
+
+    db = init_db(tmp_path / "db")
+    add_builtin(db, ["tank_t1"])
+    t = read_table(db.targets_file).drop(columns=["schema_version"])
+    t.loc[0, "target_id"] = "../../../../elsewhere/x"
+    write_table(t, db.targets_file, kind="targets")
+    before = sorted(p for p in tmp_path.rglob("*"))
+    with pytest.raises(DatasetError, match="target_id.*not a valid name"):
+        run_render_job(db, "j", **JOB)
+    assert sorted(p for p in tmp_path.rglob("*")) == before
+    assert verify_db(db)  # and verify reports it
+
+
+def test_symlinked_chip_folder_is_refused(tmp_path: Path) -> None:
+    """A chips/<target> folder that is a link to elsewhere is not written through."""
+    db = init_db(tmp_path / "db")
+    add_builtin(db, ["tank_t1"])
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    chips = db.path / "renders" / "j" / "chips"
+    chips.mkdir(parents=True)
+    (chips / "tank_t1").symlink_to(outside, target_is_directory=True)
+    rep = run_render_job(db, "j", **JOB)
+    assert not rep.ok and all("escapes the database folder" in f["error"] for f in rep.failed)
+    assert list(outside.iterdir()) == []
+
+
+def test_unreachable_scheduler_fails_fast_writing_nothing(tmp_path: Path) -> None:
+    """A scheduler nobody listens on: the job fails within seconds, before job.yaml."""
+    import socket
+
+    db = init_db(tmp_path / "db")
+    add_builtin(db, ["tank_t1"])
+    with socket.socket() as s:  # a port that was free a moment ago, now closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    before = sorted(tmp_path.rglob("*"))
+    t0 = time.time()
+    with pytest.raises(DatasetError, match=f"scheduler tcp://127.0.0.1:{port}: cannot connect"):
+        run_render_job(db, "j", run=RunOptions(scheduler=f"tcp://127.0.0.1:{port}"), **JOB)
+    assert time.time() - t0 < 60  # not the 30 s of Dask's own connect timeout per try, repeated
+    assert sorted(tmp_path.rglob("*")) == before
+
