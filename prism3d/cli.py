@@ -897,6 +897,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # the file system said no: read-only, not a folder, disk full...
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"prism3d {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     return int(rc or 0)
 
 

@@ -341,3 +341,17 @@ def test_match_rejects_bad_num_disp(plate, tmp_path):
     r = prism3d("match", plate / "shot.png", plate / "shot.png", "-o", tmp_path / "d.pfm", "--num-disp", "0")
     assert r.returncode == 2 and "num_disp" in r.stderr
     assert not (tmp_path / "d.pfm").exists()
+
+
+def test_output_under_a_file_is_one_line_exit_2(plate, stereo, tmp_path):
+    """The file system refusing an output (here: a folder that is a file) is a user
+    error like any other: one line naming the path, exit 2, no traceback, nothing written."""
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("x")
+    for args in (["features", stereo / "scan.ply", "--units", "mm", "--up", "y", "-o", blocker / "f.parquet"],
+                 ["reconstruct", plate / "shot.png", "--calib", plate / "rig.yaml", "-o", blocker / "s.ply"]):
+        r = prism3d(*args)
+        assert r.returncode == 2, r.stderr
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and "not_a_dir" in lines[0] and "Traceback" not in r.stderr, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["not_a_dir"]
