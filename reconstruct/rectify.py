@@ -262,18 +262,21 @@ def rectify_to_folder(
         raise InputError(f"{out}: output folder exists and is not a folder")
     rig = load_stereo_calibration(calib_paths,
                                   image_size=image_size).rig
+    # the readers name their file; what follows is about the views against the calibration
+    views = (read_image(left_path), read_image(right_path)) if two_files else (read_image(shot_path),)  # type: ignore[arg-type]
     try:
         if two_files:
-            la, ra = read_image(left_path), read_image(right_path)  # type: ignore[arg-type]
+            la, ra = views
             if la.shape != ra.shape:
                 raise InputError(f"the views are {la.shape[1]}x{la.shape[0]} and {ra.shape[1]}x{ra.shape[0]}; "
                                  "they must have the same size")
             left, right, rect = rectify_pair(la, ra, rig, alpha=alpha)
         else:
-            left, right, rect = rectify_shot(read_image(shot_path), rig, alpha=alpha)  # type: ignore[arg-type]
+            left, right, rect = rectify_shot(views[0], rig, alpha=alpha)
     except InputError as exc:
         src = f"{left_path}, {right_path}" if two_files else str(shot_path)
-        raise InputError(f"{src}: {exc} (calibration {calib_paths})") from exc
+        calib = ", ".join(map(str, calib_paths)) if isinstance(calib_paths, (list, tuple)) else str(calib_paths)
+        raise InputError(f"{src}: {exc} (calibration {calib})") from exc
     paths = {
         "left": out / "left.png",
         "right": out / "right.png",

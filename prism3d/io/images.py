@@ -16,7 +16,13 @@ from prism3d.checks import check_array, check_file
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 
-__all__ = ["read_image", "write_image", "read_depth", "write_depth", "split_npz_spec"]
+__all__ = ["DEFAULT_MAX_PIXELS", "max_pixels", "read_image", "write_image", "read_depth", "write_depth",
+           "split_npz_spec"]
+
+#: Largest image decoded unless ``PRISM3D_MAX_PIXELS`` says otherwise: 100 MP is twice
+#: the largest common camera sensors, ~300 MB as RGB; a small file claiming more (a
+#: decompression bomb) is refused from its header, before any memory is taken.
+DEFAULT_MAX_PIXELS = 100_000_000
 
 _IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".pnm", ".webp"}
 
@@ -30,6 +36,7 @@ def read_image(path: str | Path, *, grey: bool = False) -> NDArray[np.uint8]:
     import cv2
 
     path = check_file(path, "image")
+    _check_declared_size(path)
     buf = np.frombuffer(path.read_bytes(), dtype=np.uint8)
     img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if img is None:
@@ -49,6 +56,56 @@ def read_image(path: str | Path, *, grey: bool = False) -> NDArray[np.uint8]:
     if img.ndim == 2:
         img = np.repeat(img[:, :, None], 3, axis=2)
     return np.ascontiguousarray(img)
+
+
+def max_pixels() -> int:
+    """The pixel budget of one decoded image: ``PRISM3D_MAX_PIXELS`` or :data:`DEFAULT_MAX_PIXELS`."""
+    import os
+
+    text = os.environ.get("PRISM3D_MAX_PIXELS")
+    if text is None:
+        return DEFAULT_MAX_PIXELS
+    try:
+        value = int(float(text))
+    except ValueError:
+        raise InputError(f"PRISM3D_MAX_PIXELS: expected a number of pixels, got {text!r}") from None
+    if value <= 0:
+        raise InputError(f"PRISM3D_MAX_PIXELS: expected a number > 0, got {text!r}")
+    return value
+
+
+def _check_declared_size(path: Path) -> None:
+    """InputError when the image's header declares more than :func:`max_pixels` pixels
+    (read by Pillow without decoding; formats it does not read meet OpenCV's own limit)."""
+    import warnings
+
+    from PIL import Image
+
+    limit = max_pixels()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                w, h = im.size
+    except Image.DecompressionBombError as exc:  # Pillow's own, lower limit: its message has the count
+        import re
+
+        m = re.search(r"\((\d+) pixels\)", str(exc))
+        n = int(m.group(1)) if m else None
+        if n is not None and n <= limit:
+            return
+        declared = f"declares {_count(n)}" if n is not None else "declares too many pixels"
+        raise InputError(f"{path}: the image {declared}, more than the {_count(limit)} limit "
+                         "(set PRISM3D_MAX_PIXELS to raise it)") from None
+    except Exception:  # noqa: BLE001 - not a format Pillow reads: the decoder decides
+        return
+    if w * h > limit:
+        raise InputError(f"{path}: {w}x{h} is {_count(w * h)}, more than the {_count(limit)} limit "
+                         "(set PRISM3D_MAX_PIXELS to raise it)")
+
+
+def _count(n: int) -> str:
+    return f"{n / 1e6:,.0f} MP" if n >= 1_000_000 else f"{n:,} pixels"
 
 
 def write_image(path: str | Path, image: NDArray) -> None:

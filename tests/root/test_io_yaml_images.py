@@ -103,3 +103,33 @@ def test_depth_npz_keys(tmp_path):
 def _touch(p):
     p.write_bytes(b"x")
     return p
+
+
+def _png_header(w: int, h: int) -> bytes:
+    """A PNG whose header declares w x h RGB pixels, with almost no data (a bomb's shape)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+
+
+def test_image_claiming_60000_squared_is_refused_from_its_header(tmp_path, monkeypatch):
+    import resource
+
+    p = tmp_path / "bomb.png"
+    p.write_bytes(_png_header(60000, 60000))
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(InputError, match=r"bomb.png: the image declares 3,600 MP, more than the 100 MP limit"):
+        read_image(p)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 200_000  # KB: nothing decoded
+    monkeypatch.setenv("PRISM3D_MAX_PIXELS", "1000")
+    small = tmp_path / "small.png"
+    write_image(small, np.zeros((40, 40, 3), np.uint8))
+    with pytest.raises(InputError, match=r"small.png: 40x40 is 1,600 pixels, more than the 1,000 pixels limit"):
+        read_image(small)
+    monkeypatch.setenv("PRISM3D_MAX_PIXELS", "2000")
+    assert read_image(small).shape == (40, 40, 3)
