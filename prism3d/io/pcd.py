@@ -132,6 +132,11 @@ def _record_dtype(path: Path, header: dict[str, list[str]]) -> np.dtype:
     return np.dtype(fields)
 
 
+#: LZF's largest expansion: a 3-byte back-reference yields at most 264 bytes (88x), so a
+#: header claiming more from its compressed size is corrupt, refused before allocating.
+_LZF_MAX_RATIO = 88
+
+
 def _decode_binary_compressed(path: Path, body: bytes, dtype: np.dtype, n: int) -> np.ndarray:
     from prism3d.io._pcd_kernels import lzf_decompress
 
@@ -145,6 +150,9 @@ def _decode_binary_compressed(path: Path, body: bytes, dtype: np.dtype, n: int) 
         )
     if len(body) < 8 + comp:
         raise InputError(f"{path}: binary_compressed PCD is truncated ({len(body) - 8} < {comp} bytes)")
+    if uncomp > _LZF_MAX_RATIO * int(comp) + 64:
+        raise InputError(f"{path}: binary_compressed PCD claims {uncomp} bytes from {comp}, more than LZF "
+                         "can expand to; corrupt header")
     src = np.frombuffer(body[8 : 8 + int(comp)], dtype=np.uint8)
     out, status = lzf_decompress(src, int(uncomp))
     if status != uncomp:

@@ -115,3 +115,19 @@ def test_real_files_match_open3d(shared_data, name, n, has_color, has_normals):
         np.testing.assert_allclose(d.colors / 255.0, np.asarray(ref.colors), atol=1e-6)
     if name.startswith("pcl/table"):
         assert d.n_dropped == 640 * 480 - n and d.height == 480
+
+
+def test_compressed_pcd_claiming_gigabytes_is_refused_before_allocating(tmp_path):
+    """A 100-byte binary_compressed PCD whose header claims 300 M points (3.6 GB)."""
+    import resource
+    import struct
+
+    n = 300_000_000
+    header = (f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+              f"WIDTH {n}\nHEIGHT 1\nPOINTS {n}\nDATA binary_compressed\n").encode()
+    p = tmp_path / "bomb.pcd"
+    p.write_bytes(header + struct.pack("<II", 16, n * 12) + b"\x00" * 16)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(InputError, match="more than LZF can expand to"):
+        read_pcd(p)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 200_000  # KB
