@@ -207,10 +207,30 @@ def default_range_mm(mesh: SceneMesh) -> float:
     return DEFAULT_RANGE_RADII * bounding_sphere(mesh)[1]
 
 
+#: Largest chip side (px): correlation filters are trained on tens to hundreds of pixels;
+#: 4096 is far beyond any use, and one such chip with every channel is ~200 MB.
+MAX_CHIP_SIZE = 4096
+#: Memory the chips of one render_chips call may take (all channels, every pose); larger
+#: sets are rendered in parts (a database job splits them into units).
+CHIP_MEMORY_BUDGET = 1 << 30
+#: Bytes per chip pixel in the render buffers: depth + intensity + shape float32, mask.
+_BYTES_PER_CHIP_PIXEL = 13
+
+
 def _check_size(size: int) -> int:
     if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 8:
         raise InputError(f"size: expected an integer chip size >= 8 pixels, got {size!r}")
+    if size > MAX_CHIP_SIZE:
+        raise InputError(f"size: {size} px is more than the {MAX_CHIP_SIZE} px a chip may be")
     return int(size)
+
+
+def _check_chip_memory(n: int, size: int) -> None:
+    need = n * size * size * _BYTES_PER_CHIP_PIXEL
+    if need > CHIP_MEMORY_BUDGET:
+        raise InputError(f"{n} chips of {size}x{size} px need {need / 2**30:.1f} GiB, more than the "
+                         f"{CHIP_MEMORY_BUDGET / 2**30:.0f} GiB budget of one call; render fewer poses at "
+                         "once (prism3d db render splits a job into units)")
 
 
 def chip_poses(
@@ -408,6 +428,7 @@ def render_chips(
     if poses is None:
         poses = spec_poses(mesh, azimuth, elevation, range_mm, spec)
     poses = _check_poses(poses)
+    _check_chip_memory(len(poses), spec.size)
     rng = np.random.default_rng(spec.seed)
     n = len(poses)
     lights = _light_dirs(spec.light, spec.lighting_variation, n, rng)

@@ -256,3 +256,11 @@ def test_render_to_folder_and_mesh_file(tmp_path, builtin_tank):
         load_mesh_file(tmp_path / "box2.obj")
     with pytest.raises(InputError, match="units"):
         load_mesh_file(tmp_path / "box.obj", units="furlong")
+
+
+def test_absurd_chip_requests_are_refused_before_allocating(builtin_tank):
+    """``render --size 60000`` or a billion-chip grid ran out of memory; now one line."""
+    with pytest.raises(InputError, match="60000 px is more than the 4096 px"):
+        ChipSpec(size=60000)
+    with pytest.raises(InputError, match=r"32760 chips of 256x256 px need 26.0 GiB, more than the 1 GiB"):
+        render_chips(builtin_tank, azimuth="0:360:1", elevation="0:90:1", chip_spec=ChipSpec(size=256))
