@@ -118,6 +118,9 @@ def flatness_test(
     p = check_array(points, "points", shape=(None, 3), dtype_kind="fiu").astype(np.float64)
     p = p[np.all(np.isfinite(p), axis=1)]
     check_in_range(region_fraction, "region_fraction", 0.01, 0.5)
+    for name, v in (("focal_px", focal_px), ("baseline_mm", baseline_mm)):
+        if v is not None and not (np.isfinite(v) and v > 0):
+            raise InputError(f"{name}: expected a finite number > 0, got {v!r}")
     if len(p) < 5 * min_points:
         raise ReconstructionError(f"too few points for the flatness test: {len(p)}")
     x0, x1 = np.percentile(p[:, 0], list(_EXTENT_PERCENTILES))

@@ -331,10 +331,19 @@ class _Prepared:
         return icp_pyramids(self.pyramids[j], self.pyramids[i], init, first_scale=first_scale, last_scale=last_scale)
 
 
+#: Voxels across the scans' extent beyond which a voxel grid cannot be indexed (Open3D
+#: refuses; a voxel near the point spacing gives ~1e3-1e4).
+_MAX_VOXELS_ACROSS = 1e8
+
+
 def _prepare_scans(scans: list[Cloud], names: list[str], opts: StitchOptions) -> _Prepared:
     """Point spacing, registration copies, object centre and radius, pyramids."""
     spacings = [point_spacing(s[0], seed=opts.seed) for s in scans]
     spacing = float(np.median(spacings)) if opts.voxel is None else float(opts.voxel)
+    extent = max(float(np.ptp(s[0], axis=0).max()) for s in scans)
+    if extent / spacing > _MAX_VOXELS_ACROSS:
+        raise InputError(f"voxel: {spacing:g} is too small for scans {extent:g} across "
+                         f"(more than {_MAX_VOXELS_ACROSS:g} voxels); give a voxel near the point spacing")
     reg_pts, reg_sp = [], []
     for s in scans:
         p, v = _registration_copy(s[0], spacing, opts.max_registration_points)

@@ -314,6 +314,9 @@ def test_simulate_calib_board_option(tmp_path, small_rig):
         (["simulate", "calib", "out", "--square", "-3"], "square"),
         (["simulate", "plate", "out", "--blur", "-1"], "blur"),
         (["rectify", "nope.png", "--calib", "nope.yaml", "-o", "out"], "not found"),
+        (["render", "tank_t1", "-o", "chips", "--size", "60000"], "4096 px"),
+        (["render", "tank_t1", "-o", "chips", "--azimuth", "nan"], "finite"),
+        (["render", "tank_t1", "-o", "chips", "--azimuth", "0:360:1e-7"], "use a larger STEP"),
     ],
 )
 def test_bad_input_exit_2_one_line(tmp_path, args, match):
@@ -335,6 +338,16 @@ def test_reconstruct_rejects_wrong_shot_size(plate, tmp_path):
     r = prism3d("reconstruct", tmp_path / "small.png", "--calib", plate / "rig.yaml", "-o", tmp_path / "s.ply")
     assert r.returncode == 2 and "sensor" in r.stderr
     assert not (tmp_path / "s.ply").exists()
+
+
+def test_absurd_numbers_on_real_outputs_are_one_line(stereo, tmp_path):
+    """Numbers that used to give a wrong result or a traceback: a non-positive focal
+    length in the flatness test, a voxel far below the points' spacing in stitch."""
+    r = prism3d("flatness", stereo / "scan.ply", "--focal", "-5")
+    assert r.returncode == 2 and "focal_px: expected a finite number > 0" in r.stderr
+    r = prism3d("stitch", stereo / "scan.ply", stereo / "scan.ply", "-o", tmp_path / "m.ply", "--voxel", "1e-9")
+    assert r.returncode == 2 and "too small for scans" in r.stderr and "Traceback" not in r.stderr
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_match_rejects_bad_num_disp(plate, tmp_path):
