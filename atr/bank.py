@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -330,12 +331,12 @@ class FilterBank:
         from prism3d.checks import check_file
 
         p = check_file(path, "filter bank")
-        try:
-            with np.load(p, allow_pickle=False) as z:
+        try:  # our own handle: np.load leaves a file it fails to parse open
+            with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
                 meta = json.loads(bytes(z["meta_json"].astype(np.uint8)).decode("utf-8"))
                 arrays = {k: z[k] for k in ("freqs", "filter_class", "filter_az_deg", "params")}
-        except (OSError, ValueError, KeyError) as exc:
-            raise InputError(f"{p}: not a prism3d filter bank ({exc})") from None
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:  # empty, cut short, other
+            raise InputError(f"{p}: not a prism3d filter bank ({exc or type(exc).__name__})") from None
         ver = meta.get("schema_version")
         if ver != BANK_SCHEMA_VERSION:
             raise InputError(

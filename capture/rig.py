@@ -429,7 +429,7 @@ class StereoRig:
         taken to be two separate images of ``image_size`` (an ordinary stereo rig)
         laid side by side.
         """
-        version = int(values.get("schema_version", SCHEMA_VERSION))
+        version = _int_entry(values, "schema_version", SCHEMA_VERSION, source)
         if version > SCHEMA_VERSION:
             raise InputError(
                 f"{source}: schema_version {version} is newer than this prism3d understands "
@@ -462,14 +462,18 @@ class StereoRig:
                 vec("sensor_size", 2),
                 vec("roi_left", 4),  # type: ignore[arg-type]
                 vec("roi_right", 4),  # type: ignore[arg-type]
-                bool(int(values.get("flip_left", 0))),
-                bool(int(values.get("flip_right", 0))),
+                _flag_entry(values, "flip_left", source),
+                _flag_entry(values, "flip_right", source),
             )
         else:
             split = PrismSplit.side_by_side((2 * view[0], view[1]))
-        T_rig_left = np.asarray(values.get("T_rig_left", np.eye(4)), dtype=np.float64).reshape(4, 4)
-        left = CameraModel(np.asarray(values["K1"]).reshape(3, 3), np.asarray(values["D1"]).ravel(), view)
-        right = CameraModel(np.asarray(values["K2"]).reshape(3, 3), np.asarray(values["D2"]).ravel(), view)
+        try:
+            T_rig_left = np.asarray(values.get("T_rig_left", np.eye(4)), dtype=np.float64).reshape(4, 4)
+            left = CameraModel(np.asarray(values["K1"]).reshape(3, 3), np.asarray(values["D1"]).ravel(), view)
+            right = CameraModel(np.asarray(values["K2"]).reshape(3, 3), np.asarray(values["D2"]).ravel(), view)
+        except (ValueError, TypeError) as exc:  # a 2x2 K, a text where a matrix belongs...
+            raise InputError(f"{source}: K1, K2 must be 3x3, D1, D2 distortion vectors, T_rig_left "
+                             f"4x4 ({exc})") from None
         return cls(left, right, T, split, T_rig_left)
 
     def save(self, path: str | Path, extra: dict[str, Any] | None = None) -> None:
@@ -487,6 +491,20 @@ class StereoRig:
         from prism3d.io.opencv_yaml import read_filestorage
 
         return cls.from_filestorage(read_filestorage(path), source=str(path))
+
+
+def _int_entry(values: dict[str, Any], name: str, default: int, source: str) -> int:
+    try:
+        return int(values.get(name, default))
+    except (TypeError, ValueError):
+        raise InputError(f"{source}: {name} must be an integer, got {values.get(name)!r}") from None
+
+
+def _flag_entry(values: dict[str, Any], name: str, source: str) -> bool:
+    v = _int_entry(values, name, 0, source)
+    if v not in (0, 1):
+        raise InputError(f"{source}: {name} must be 0 or 1, got {v}")
+    return bool(v)
 
 
 def paper_rig(

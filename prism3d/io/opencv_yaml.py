@@ -89,6 +89,8 @@ def read_filestorage(path: str | Path, keys: list[str] | None = None) -> dict[st
         if not fs.isOpened():
             raise InputError(f"{path}: could not open as an OpenCV FileStorage file")
         root = fs.root()
+        if not root.isMap():
+            raise InputError(f"{path}: the FileStorage document holds no entries")
         names = list(root.keys()) if keys is None else keys
         out: dict[str, Any] = {}
         for name in names:
@@ -97,6 +99,9 @@ def read_filestorage(path: str | Path, keys: list[str] | None = None) -> dict[st
                 raise InputError(f"{path}: missing entry {name!r}")
             out[name] = _node_value(node, path, name)
         return out
+    except (cv2.error, SystemError) as exc:  # e.g. a matrix whose data does not fill rows x cols
+        msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "parse error"
+        raise InputError(f"{path}: malformed FileStorage file ({msg})") from None
     finally:
         fs.release()
 

@@ -164,6 +164,8 @@ def _parse_header(path: Path, raw: bytes) -> tuple[str, list[_Element], list[str
         elif tok[0] == "property":
             if not elements:
                 raise InputError(f"{path}: property before any element")
+            if len(tok) >= 3 and tok[-1] in {n for n, _, _ in elements[-1].props}:
+                raise InputError(f"{path}: property {tok[-1]!r} appears twice in element {elements[-1].name!r}")
             if len(tok) == 5 and tok[1] == "list":
                 if tok[2] not in _TYPES or tok[3] not in _TYPES:
                     raise InputError(f"{path}: unknown PLY list type in {line!r}")
@@ -315,6 +317,15 @@ def _read_ascii_element(path: Path, el: _Element, tokens: list[bytes], pos: int,
         raise InputError(f"{path}: truncated or malformed ASCII PLY in element {el.name!r}") from exc
     out: dict[str, NDArray | list] = {}
     for n, t, lt in el.props:
-        out[n] = np.asarray(cols[n], dtype=t) if lt is None else cols[n]
+        if lt is None:
+            v = np.asarray(cols[n], dtype=np.float64)
+            if np.dtype(t).kind in "iu" and len(v):
+                info = np.iinfo(np.dtype(t))
+                if not (np.isfinite(v).all() and v.min() >= info.min and v.max() <= info.max):
+                    raise InputError(f"{path}: property {n!r} of element {el.name!r} holds values outside "
+                                     f"its type {np.dtype(t).name} [{info.min}, {info.max}]")
+            out[n] = v.astype(t)
+        else:
+            out[n] = cols[n]
     data[el.name] = out
     return pos
