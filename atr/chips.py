@@ -655,10 +655,10 @@ def render_to_folder(
     ``fmt="npz"``: ``chips_<channel>.npz`` (one ``(N, S, S)`` array ``chips`` each);
     ``fmt="png"``: ``<channel>/chip_00000.png`` (8-bit; mask 0/255) and
     ``depth/chip_00000.tiff`` (float32 mm). Then ``manifest.parquet``: one row per chip
-    (poses table, light, file names, size, framing, schema_version). Every file is
-    written atomically. Returns the manifest path.
+    (poses table, light, file names, size, framing, schema_version). The files appear
+    together or not at all. Returns the manifest path.
     """
-    from prism3d.io.atomic import atomic_path
+    from prism3d.io.atomic import staged_folder
 
     spec = as_chip_spec(chip_spec)
     check_choice(fmt, "fmt", ("npz", "png"))
@@ -667,19 +667,16 @@ def render_to_folder(
     chips = render_chips(
         mesh, None, azimuth=azimuth, elevation=elevation, range_mm=range_mm, chip_spec=spec
     )
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     table = chips.table.copy()
     write = _write_npz_channel if fmt == "npz" else _write_image_channel
-    for ch, arr in chips.channels.items():
-        table[f"file_{ch}"] = write(out, ch, arr)
-    table["size"] = spec.size
-    table["framing"] = spec.framing
-    table["schema_version"] = CHIP_SCHEMA_VERSION
-    manifest = out / "manifest.parquet"
-    with atomic_path(manifest) as tmp:
-        table.to_parquet(tmp, index=False)
-    return manifest
+    with staged_folder(out_dir) as stage:  # the chips and their manifest together, or nothing
+        for ch, arr in chips.channels.items():
+            table[f"file_{ch}"] = write(stage, ch, arr)
+        table["size"] = spec.size
+        table["framing"] = spec.framing
+        table["schema_version"] = CHIP_SCHEMA_VERSION
+        table.to_parquet(stage / "manifest.parquet", index=False)
+    return Path(out_dir) / "manifest.parquet"
 
 
 def _write_npz_channel(out: Path, ch: str, arr: NDArray) -> list[str]:

@@ -379,24 +379,13 @@ def lmse(estimate: NDArray, truth: NDArray, mask: NDArray, *, window: int = 20) 
 def _write_outputs(res: DecamoResult, out_dir: Path, extra: dict[str, Any]) -> dict[str, Any]:
     import tifffile
 
-    from prism3d.io.atomic import atomic_path, atomic_write_text
+    from prism3d.io.atomic import staged_folder
     from prism3d.io.images import write_image
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     alb = np.nan_to_num(res.albedo, nan=0.0)
     alb_u8 = (np.clip(alb / max(float(alb.max()), 1e-9), 0, 1) * 255 + 0.5).astype(np.uint8)
-    paths = {
-        "albedo": out_dir / "albedo.png",
-        "shading": out_dir / "shading.tiff",
-        "shape": out_dir / "shape.png",
-        "false_shadow": out_dir / "false_shadow.png",
-        "light": out_dir / "light.json",
-    }
-    write_image(paths["albedo"], alb_u8)
-    with atomic_path(paths["shading"]) as tmp:
-        tifffile.imwrite(str(tmp), res.shading.astype(np.float32))
-    write_image(paths["shape"], (np.clip(res.shape, 0, 1) * 255 + 0.5).astype(np.uint8))
-    write_image(paths["false_shadow"], res.false_shadow)
+    names = {"albedo": "albedo.png", "shading": "shading.tiff", "shape": "shape.png",
+             "false_shadow": "false_shadow.png", "light": "light.json"}
     info = {
         "schema_version": 1,
         "sh_coeffs": [float(v) for v in res.light_coeffs],
@@ -405,8 +394,13 @@ def _write_outputs(res: DecamoResult, out_dir: Path, extra: dict[str, Any]) -> d
         "false_shadow_pixels": int(res.false_shadow.sum()),
         **extra,
     }
-    atomic_write_text(paths["light"], json.dumps(info, indent=2))
-    return {**{k: str(v) for k, v in paths.items()}, **info}
+    with staged_folder(out_dir) as stage:  # all five files, or none
+        write_image(stage / names["albedo"], alb_u8)
+        tifffile.imwrite(str(stage / names["shading"]), res.shading.astype(np.float32))
+        write_image(stage / names["shape"], (np.clip(res.shape, 0, 1) * 255 + 0.5).astype(np.uint8))
+        write_image(stage / names["false_shadow"], res.false_shadow)
+        (stage / names["light"]).write_text(json.dumps(info, indent=2))
+    return {**{k: str(out_dir / v) for k, v in names.items()}, **info}
 
 
 def _view_camera(image: NDArray, depth_spec: str | Path, depth_shape: tuple[int, int],

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
-__all__ = ["atomic_path", "atomic_open", "atomic_write_bytes", "atomic_write_text"]
+__all__ = ["atomic_path", "atomic_open", "atomic_write_bytes", "atomic_write_text", "staged_folder"]
 
 
 @contextlib.contextmanager
@@ -64,3 +64,35 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     """Write UTF-8 ``text`` to ``path`` atomically."""
     atomic_write_bytes(path, text.encode("utf-8"))
 
+
+
+@contextlib.contextmanager
+def staged_folder(out_dir: str | Path) -> Iterator[Path]:
+    """Yield a temporary folder beside ``out_dir`` to write a command's outputs into;
+    on success they move into ``out_dir`` together (one rename when it does not exist
+    yet), on any exception they are removed and ``out_dir`` is left as it was."""
+    import shutil
+
+    target = Path(out_dir)
+    if target.exists() and not target.is_dir():
+        from prism3d.errors import InputError
+
+        raise InputError(f"{target}: exists and is not a folder")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+    mask = os.umask(0)
+    os.umask(mask)
+    stage.chmod(0o777 & ~mask)  # as a folder made by mkdir would be, not mkdtemp's 0700
+    try:
+        yield stage
+        if not target.exists():
+            os.replace(stage, target)
+            return
+        for src in sorted(stage.rglob("*"), key=lambda p: len(p.parts)):  # folders before their files
+            dst = target / src.relative_to(stage)
+            if src.is_dir():
+                dst.mkdir(exist_ok=True)
+            else:
+                os.replace(src, dst)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

@@ -264,3 +264,17 @@ def test_absurd_chip_requests_are_refused_before_allocating(builtin_tank):
         ChipSpec(size=60000)
     with pytest.raises(InputError, match=r"32760 chips of 256x256 px need 26.0 GiB, more than the 1 GiB"):
         render_chips(builtin_tank, azimuth="0:360:1", elevation="0:90:1", chip_spec=ChipSpec(size=256))
+
+
+def test_render_to_folder_writes_all_or_nothing(builtin_tank, tmp_path, monkeypatch):
+    """A failure after the chips were written (here: the manifest) leaves no chips behind."""
+    import pandas as pd
+
+    def fail(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pd.DataFrame, "to_parquet", fail)
+    with pytest.raises(OSError):
+        render_to_folder(builtin_tank, tmp_path / "chips", azimuth="0:90:45", elevation=20,
+                         chip_spec=ChipSpec(size=16))
+    assert list(tmp_path.iterdir()) == []

@@ -88,3 +88,30 @@ def test_scalar_checks(tmp_path):
         check_file(tmp_path / "nope")
     with pytest.raises(InputError, match="directory"):
         check_file(tmp_path)
+
+
+def test_staged_folder_all_or_nothing(tmp_path):
+    """A command's outputs appear together: a failure half-way leaves the folder as it
+    was (absent, or with its old files untouched); success moves them all in."""
+    from prism3d.io.atomic import staged_folder
+
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError):
+        with staged_folder(out) as stage:
+            (stage / "a.txt").write_text("a")
+            raise RuntimeError("disk full, say")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no folder, no leftovers
+    with staged_folder(out) as stage:
+        (stage / "a.txt").write_text("a")
+        (stage / "sub").mkdir()
+        (stage / "sub" / "b.txt").write_text("b")
+    assert (out / "a.txt").read_text() == "a" and (out / "sub" / "b.txt").read_text() == "b"
+    with pytest.raises(RuntimeError):
+        with staged_folder(out) as stage:
+            (stage / "a.txt").write_text("new")
+            raise RuntimeError
+    assert (out / "a.txt").read_text() == "a"  # the old output kept
+    with staged_folder(out) as stage:
+        (stage / "a.txt").write_text("new")
+    assert (out / "a.txt").read_text() == "new" and (out / "sub" / "b.txt").read_text() == "b"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
