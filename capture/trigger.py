@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import secrets
 import time
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -127,7 +128,9 @@ class TriggerClient:
         self.baudrate = int(check_positive(baudrate, "baudrate"))
         self._ser: serial.SerialBase | None = None
         self._parser = LineParser()
-        self._seq = 0
+        # a random start: a late reply from an earlier process (which also started
+        # somewhere) does not carry the sequence number this one waits for
+        self._seq = secrets.randbelow(MAX_SEQ)
         self._events: collections.deque[Message] = collections.deque(maxlen=64)
         self.open()
 
@@ -210,6 +213,17 @@ class TriggerClient:
             raise self._vanished(exc) from exc
         return self._parser.feed(data) if data else []
 
+    def _stash_events(self, items: list[Message | FrameError]) -> list[Message | FrameError]:
+        """Keep the events of a batch of lines (a reply and its event often arrive in
+        one read: returning on the reply must not drop the event); return the rest."""
+        rest = []
+        for item in items:
+            if isinstance(item, Message) and item.is_event:
+                self._events.append(item)
+            else:
+                rest.append(item)
+        return rest
+
     def _discard_input(self) -> None:
         """Drop stale bytes and replies before a new command (events are kept)."""
         ser = self._port()
@@ -248,18 +262,18 @@ class TriggerClient:
                 raise self._vanished(exc) from exc
             deadline = time.monotonic() + self.timeout
             while time.monotonic() < deadline:
-                for item in self._read_items():
+                for item in self._stash_events(self._read_items()):
                     if isinstance(item, FrameError):
                         corrupted[item.reason] += 1
                         log.debug("%s: %s in %r", self.url, item.reason, item.raw)
-                        continue
-                    if item.is_event:
-                        self._events.append(item)
                         continue
                     if item.seq != seq or not item.is_reply:
                         log.debug("%s: ignoring stale line %s", self.url, item)
                         continue
                     if item.word == "OK":
+                        if not item.args or item.args[0] != word:  # a reply to another command
+                            log.debug("%s: ignoring reply %s to a command other than %s", self.url, item, word)
+                            continue
                         return item
                     code, text = self._error_of(item)
                     if code == 1 and attempt + 1 < tries:  # our line was garbled: resend

@@ -292,3 +292,48 @@ def test_link_never_replaces_a_file(tmp_path: Path) -> None:
     with TriggerSimulator(link=stale) as sim:
         assert os.path.realpath(stale) == os.path.realpath(sim.port)
     assert not stale.exists() and not stale.is_symlink()  # removed on exit, as before
+
+
+def test_fire_keeps_the_event_that_arrives_with_its_reply(sim: TriggerSimulator, caplog) -> None:
+    """The plain simulator sends ``OK FIRE`` and the ``FIRED`` event in one write; the
+    event was dropped with the rest of that read, and every FIRE then waited out its
+    timeout and asked STATUS (1.3-1.4 s a shot)."""
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="prism3d.capture.trigger"), TriggerClient(sim.port) as trig:
+        for shot in (1, 2, 3):
+            trig.arm(0)
+            rep = trig.fire(flash_delay_us=100, flash_us=200, shutter_us=1000)
+            assert rep.shot == shot and rep.t_flash_us == rep.t_shutter_us + 100
+    assert "lost" not in caplog.text
+
+
+def test_a_reply_to_another_command_is_not_taken(monkeypatch) -> None:
+    """A reply with the right sequence number but for another command (a late answer
+    from an earlier process) is ignored, and the call waits for its own."""
+    from prism3d.capture import trigger as trig_mod
+    from prism3d.capture.trigger_protocol import Message
+
+    client = trig_mod.TriggerClient.__new__(trig_mod.TriggerClient)
+    client.url, client.timeout, client.retries = "stub", 0.2, 0
+    client._parser, client._events, client._seq = trig_mod.LineParser(), __import__("collections").deque(), 41
+    sent = []
+
+    class Port:
+        def write(self, line): sent.append(line)
+        def flush(self): pass
+
+    batches = iter([[Message(42, "OK", ("ID", "model=X"))], [Message(42, "OK", ("STATUS", "armed=0"))]])
+    monkeypatch.setattr(client, "_port", lambda: Port())
+    monkeypatch.setattr(client, "_discard_input", lambda: None)
+    monkeypatch.setattr(client, "_read_items", lambda: next(batches, []))
+    assert client.request("STATUS").args[0] == "STATUS"
+    assert sent and sent[0].startswith(b"42 STATUS")
+
+
+def test_sequence_numbers_do_not_restart_at_1_per_process(sim: TriggerSimulator) -> None:
+    starts = set()
+    for _ in range(4):
+        with TriggerClient(sim.port) as trig:
+            starts.add(trig._seq)
+    assert len(starts) > 1  # random starts (equal by chance with probability ~1e-14)
