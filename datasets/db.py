@@ -128,7 +128,7 @@ def write_table(
     for k, v in (extra_meta or {}).items():
         meta[k.encode()] = str(v).encode()
     table = table.replace_schema_metadata(meta)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, keep_suffix=False) as tmp:  # a killed write never looks like a part
         pq.write_table(table, str(tmp))
 
 

@@ -672,7 +672,38 @@ def run_render_job(
     spec = RenderSpec.create(
         job, chosen, grid, as_chip_spec(chip_spec), chips_per_unit
     )
-    _store_spec(db, spec)
+    with _job_lock(db, job):
+        _store_spec(db, spec)
+        report = _run_units(db, spec, run)
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+@contextlib.contextmanager
+def _job_lock(db: TargetDB, job: str) -> Iterator[None]:
+    """Hold ``renders/<job>/.lock`` for a run: a second run of the same job is refused,
+    and the temporary files found on entry belong to no live writer (a killed run's),
+    so they are removed."""
+    import fcntl
+
+    jdir = db.resolve(f"renders/{job}", "job folder")
+    jdir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(jdir / ".lock", os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise DatasetError(f"job {job}: another process is running it; wait for it or stop it") from None
+        for f in jdir.rglob(".*.tmp*"):
+            f.unlink(missing_ok=True)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _run_units(db: TargetDB, spec: RenderSpec, run: RunOptions) -> JobReport:
+    """Run the units of a stored spec not yet done (resume)."""
+    job = spec.name
     units = plan_units(spec)
     report = JobReport(job=job, total_units=len(units))
     mdir = db.job_dir(job) / "manifest"
@@ -684,7 +715,6 @@ def run_render_job(
         else:
             tasks.append((u.unit_id, u.describe(), render_unit, (str(db.path), sd, u)))
     _execute(tasks, report, run)
-    report.seconds = time.perf_counter() - t0
     return report
 
 

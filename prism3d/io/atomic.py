@@ -16,17 +16,18 @@ __all__ = ["atomic_path", "atomic_open", "atomic_write_bytes", "atomic_write_tex
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, *, keep_suffix: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success move it onto ``path``.
 
     The temp name keeps the target's suffix so libraries that choose a format by
-    extension (OpenCV, Open3D) still work. On any exception the temp file is removed
-    and ``path`` is untouched.
+    extension (OpenCV, Open3D) still work; ``keep_suffix=False`` where a reader of the
+    folder globs by suffix (``*.parquet``) and must never see a half-written file. On
+    any exception the temp file is removed and ``path`` is untouched.
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(
-        prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent
+        prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}" if keep_suffix else ".tmp", dir=target.parent
     )
     os.close(fd)
     tmp_path = Path(tmp)

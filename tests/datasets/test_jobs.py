@@ -460,3 +460,31 @@ def test_unreachable_scheduler_fails_fast_writing_nothing(tmp_path: Path) -> Non
     assert time.time() - t0 < 60  # not the 30 s of Dask's own connect timeout per try, repeated
     assert sorted(tmp_path.rglob("*")) == before
 
+
+
+def test_resume_removes_a_killed_writers_temp_part_and_refuses_a_second_run(tmp_path: Path) -> None:
+    """A kill during a manifest write leaves a hidden temp part (0 bytes): it never
+    matches ``*.parquet`` (DuckDB's glob in FORMAT.md), the next run removes it and
+    verify is clean; a second run of a job already running is refused."""
+    import fcntl
+
+    db = init_db(tmp_path / "db")
+    add_builtin(db, ["tank_t1"])
+    kw = dict(JOB, azimuth="0:90:90", elevation=10)
+    assert run_render_job(db, "j", **kw).ok
+    mdir = db.job_dir("j") / "manifest"
+    dead = mdir / ".part-tank_t1-000000.x1y2.tmp"
+    dead.write_bytes(b"")
+    parts = list(mdir.glob("*.parquet"))
+    assert parts and dead not in parts
+    assert any("leftover temporary file" in p for p in verify_db(db))
+    rep = run_render_job(db, "j", **kw)
+    assert rep.ok and rep.done_units == 0 and not dead.exists()
+    assert verify_db(db) == []
+    fd = os.open(db.job_dir("j") / ".lock", os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running job holds it
+        with pytest.raises(DatasetError, match="another process is running it"):
+            run_render_job(db, "j", **kw)
+    finally:
+        os.close(fd)
