@@ -537,8 +537,8 @@ def read_units_sidecar(path: str | Path) -> dict[str, str] | None:
     if not side.is_file():
         return None
     try:
-        data = yaml.safe_load(side.read_text()) or {}
-    except yaml.YAMLError as exc:
+        data = yaml.safe_load(side.read_text(encoding="utf-8")) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise InputError(f"{side}: invalid YAML ({exc})") from exc
     if not isinstance(data, dict):
         raise InputError(f"{side}: expected a mapping with keys units, up")

@@ -479,7 +479,9 @@ def read_yaml(f: Path) -> Any:
     import yaml
 
     try:
-        return yaml.safe_load(f.read_text())
+        return yaml.safe_load(f.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise DatasetError(f"{f}: not UTF-8 text; not a prism3d YAML file") from None
     except yaml.YAMLError as exc:
         raise DatasetError(f"{f}: invalid YAML ({exc})") from None
 
@@ -542,14 +544,20 @@ def verify_db(db: TargetDB | str | Path, *, check_hashes: bool = True) -> list[s
         elif check_hashes and sha256_file(f) != r.model_sha256:
             problems.append(f"target {r.target_id}: model file {r.model_file} sha256 mismatch")
     for job in db.jobs():
+        problems += _job_yaml_problems(db, job)
         mdir = db.job_dir(job) / "manifest"
         referenced: set[Path] = set()
+        seen_chips: set[tuple[str, int]] = set()
         for part in sorted(mdir.glob("part-*.parquet")):
             try:
                 df = read_table(part)
             except DatasetError as exc:
                 problems.append(str(exc))
                 continue
+            keys = set(zip(df["target_id"], df["chip_index"].astype(int)))
+            if len(keys) < len(df) or keys & seen_chips:
+                problems.append(f"job {job}: duplicate manifest rows (target_id, chip_index) in {part.name}")
+            seen_chips |= keys
             for rel, sha in zip(df["chip_file"], df["sha256"]):
                 try:
                     f = db.resolve(rel, f"{part.relative_to(db.path)} chip_file")
@@ -588,6 +596,18 @@ def verify_db(db: TargetDB | str | Path, *, check_hashes: bool = True) -> list[s
             f"leftover temporary file {f.relative_to(db.path)} (interrupted write; safe to delete)"
         )
     return problems
+
+
+def _job_yaml_problems(db: TargetDB, job: str) -> list[str]:
+    """A job.yaml that does not parse, is not a mapping or has no schema_version."""
+    f = db.job_dir(job) / "job.yaml"
+    try:
+        d = read_yaml(f)
+    except DatasetError as exc:
+        return [str(exc)]
+    if not isinstance(d, dict) or "schema_version" not in d or "spec_hash" not in d:
+        return [f"job {job}: {f.name} is not a render job spec (no schema_version / spec_hash)"]
+    return []
 
 
 def format_info(info: dict[str, Any]) -> str:

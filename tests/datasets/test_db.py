@@ -298,3 +298,26 @@ def test_quaternius_vehicles_policy(shared_data: Path, tmp_path: Path) -> None:
         t.loc[n, "length_mm"] > t.loc[n, "width_mm"] for n in ("tank_1", "car_suv", "ship_boat")
     )
     assert add_quaternius_vehicles(db, folder, names=["tank_1"]).added == []
+
+
+def test_verify_finds_a_bad_job_yaml_and_duplicate_rows(tmp_path) -> None:
+    """Damage verify used to miss: an invalid job.yaml, a manifest row repeated."""
+    import shutil
+
+    from prism3d.atr.chips import ChipSpec
+    from prism3d.datasets.ingest import add_builtin
+    from prism3d.datasets.jobs import run_render_job
+
+    db = init_db(tmp_path / "db")
+    add_builtin(db, ["tank_t1"])
+    assert run_render_job(db, "j", azimuth="0:90:90", elevation=10, chip_spec=ChipSpec(size=16)).ok
+    assert verify_db(db) == []
+    mdir = db.job_dir("j") / "manifest"
+    part = sorted(mdir.glob("part-*.parquet"))[0]
+    shutil.copy(part, mdir / "part-copy-000000.parquet")
+    assert any("duplicate manifest rows" in p for p in verify_db(db))
+    (mdir / "part-copy-000000.parquet").unlink()
+    (db.job_dir("j") / "job.yaml").write_text("- just\n- a list\n")
+    assert any("not a render job spec" in p for p in verify_db(db))
+    (db.job_dir("j") / "job.yaml").write_bytes(b"\xff\xfe: [\n")
+    assert verify_db(db) and all("Traceback" not in p for p in verify_db(db))

@@ -31,7 +31,7 @@ def _readers() -> dict[str, tuple[str, Callable[[Path], object]]]:
         "ply": (".ply", read_ply), "pcd": (".pcd", read_pcd), "pfm": (".pfm", read_pfm),
         "rig": (".yaml", StereoRig.load), "calib": (".yaml", load_stereo_calibration),
         "calib_txt": (".txt", load_stereo_calibration), "bank": (".npz", FilterBank.load),
-        "units": (".units.yaml", read_units_sidecar), "image": (".png", read_image),
+        "units": (".units.yaml", lambda p: read_units_sidecar(Path(str(p).removesuffix(".units.yaml")))), "image": (".png", read_image),
     }
 
 
