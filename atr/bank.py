@@ -337,11 +337,13 @@ class FilterBank:
                 arrays = {k: z[k] for k in ("freqs", "filter_class", "filter_az_deg", "params")}
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:  # empty, cut short, other
             raise InputError(f"{p}: not a prism3d filter bank ({exc or type(exc).__name__})") from None
-        ver = meta.get("schema_version")
+        ver = meta.get("schema_version") if isinstance(meta, dict) else None
         if ver != BANK_SCHEMA_VERSION:
             raise InputError(
                 f"{p}: unknown filter bank schema_version {ver!r} (this prism3d reads {BANK_SCHEMA_VERSION})"
             )
+        if not np.all(np.isfinite(arrays["freqs"])):
+            raise InputError(f"{p}: the bank's filters hold NaN or infinite values; retrain it")
         return cls(
             list(meta["classes"]),
             meta["channel"],

@@ -679,6 +679,10 @@ def features_to_parquet(
 
     from prism3d.io.atomic import atomic_path
 
+    if Path(out_path).suffix.lower() != ".parquet":
+        raise InputError(f"{out_path}: the features are written as Parquet; name the file .parquet")
+    if Path(out_path).is_dir():
+        raise InputError(f"{out_path}: is a folder; give an output file name")
     df = features_table(paths, units=units, up=up, box=box, progress=progress)
     table = pa.Table.from_pandas(df, preserve_index=False)
     meta = dict(table.schema.metadata or {})

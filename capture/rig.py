@@ -39,6 +39,11 @@ __all__ = [
 SCHEMA_VERSION = 1
 
 
+#: Largest |coefficient| of (k1, k2, p1, p2, k3) accepted: real lenses, even wide-angle
+#: ones, stay within tens; 1e30 in a file is a corrupt or mistyped calibration.
+MAX_DISTORTION = 1e3
+
+
 def _frozen_array(a: NDArray, dtype: Any = np.float64) -> NDArray:
     out = np.array(a, dtype=dtype, copy=True)
     out.setflags(write=False)
@@ -74,6 +79,8 @@ class CameraModel:
         d = np.concatenate([d, np.zeros(5 - d.size)])
         if not np.all(np.isfinite(d)):
             raise InputError("dist: expected finite values")
+        if np.any(np.abs(d) > MAX_DISTORTION):
+            raise InputError(f"dist: coefficients of magnitude above {MAX_DISTORTION:g} describe no lens, got {d.tolist()}")
         try:
             w, h = (int(v) for v in self.size)
         except (TypeError, ValueError) as exc:

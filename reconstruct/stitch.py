@@ -782,6 +782,14 @@ def stitch_to_files(
     for p in paths:
         if not Path(p).is_file():
             raise InputError(f"{p}: scan file not found")
+    outs = [Path(out_model_ply)] + ([Path(mesh_out)] if mesh_out is not None else [])
+    for o in outs:
+        if o.suffix.lower() != ".ply":
+            raise InputError(f"{o}: the model and mesh are written as PLY; name them .ply")
+        if o.is_dir():
+            raise InputError(f"{o}: is a folder; give an output file name")
+    if len(outs) == 2 and outs[0].resolve() == outs[1].resolve():
+        raise InputError("the model and the mesh name the same file; give each its own path")
     opts = dataclasses.replace(StitchOptions() if options is None else options, mesh=mesh_out is not None)
     res = stitch_scans(paths, opts, progress=progress)
     out = Path(out_model_ply)

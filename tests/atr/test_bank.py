@@ -214,3 +214,21 @@ def test_real_meshes_tank_airplane_ship(shared_data):
         seed=99,
     )
     assert pcc >= 0.9
+
+
+def test_a_bank_of_nan_filters_is_refused(tmp_path):
+    """It scored 50 % on two classes instead of saying it was broken."""
+    from prism3d.atr.bank import FilterBank
+    from prism3d.errors import InputError
+
+    rng = np.random.default_rng(0)
+    freqs = rng.normal(size=(2, 8, 8)) + 1j * rng.normal(size=(2, 8, 8))
+    bank = FilterBank(["a", "b"], "depth", 8, 90.0, freqs, np.array([0, 1]), np.array([0.0, 0.0]),
+                      np.zeros((2, 3)), {}, "pce")
+    bank.save(tmp_path / "ok.npz")
+    assert FilterBank.load(tmp_path / "ok.npz").classes == ["a", "b"]
+    freqs[0, 0, 0] = np.nan
+    FilterBank(["a", "b"], "depth", 8, 90.0, freqs, np.array([0, 1]), np.array([0.0, 0.0]),
+               np.zeros((2, 3)), {}, "pce").save(tmp_path / "nan.npz")
+    with pytest.raises(InputError, match="NaN or infinite"):
+        FilterBank.load(tmp_path / "nan.npz")

@@ -189,3 +189,13 @@ def test_scaled_rig_geometry():
     assert rig.baseline_mm == pytest.approx(4000)
     rect = compute_rectification(rig)
     assert rect.baseline_mm == pytest.approx(4000)
+
+
+def test_absurd_distortion_is_refused():
+    """A calibration file with k1 = 1e30 was accepted and gave meaningless rectification."""
+    from prism3d.capture.rig import CameraModel
+
+    K = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
+    CameraModel(K, np.array([-0.3, 0.1, 0, 0, 0.05]), (640, 480))  # a real wide-angle lens
+    with pytest.raises(InputError, match="describe no lens"):
+        CameraModel(K, np.array([1e30, 0, 0, 0, 0]), (640, 480))

@@ -661,7 +661,11 @@ def test_calibrate_to_file_and_parse_board(tmp_path: Path) -> None:
     import cv2
 
     cv2.imwrite(str(blank), np.full((60, 80), 128, np.uint8))
+    blank2 = tmp_path / "blank2.png"
+    cv2.imwrite(str(blank2), np.full((60, 80), 120, np.uint8))
     out = tmp_path / "calib.yaml"
     with pytest.raises(CalibrationError, match="no 9x6 chessboard"):
+        calibrate_to_file([blank, blank2], out, board="9x6", pairs=True)
+    with pytest.raises(InputError, match="the same image as"):
         calibrate_to_file([blank, blank], out, board="9x6", pairs=True)
     assert not out.exists()

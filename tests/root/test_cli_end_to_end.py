@@ -315,6 +315,7 @@ def test_simulate_calib_board_option(tmp_path, small_rig):
         (["simulate", "plate", "out", "--blur", "-1"], "blur"),
         (["rectify", "nope.png", "--calib", "nope.yaml", "-o", "out"], "not found"),
         (["render", "tank_t1", "-o", "chips", "--size", "60000"], "4096 px"),
+        (["features", "nope.ply", "-o", "f.csv"], r"f.csv: .*Parquet"),
         (["render", "tank_t1", "-o", "chips", "--azimuth", "nan"], "finite"),
         (["render", "tank_t1", "-o", "chips", "--azimuth", "0:360:1e-7"], "use a larger STEP"),
     ],
@@ -347,6 +348,8 @@ def test_absurd_numbers_on_real_outputs_are_one_line(stereo, tmp_path):
     assert r.returncode == 2 and "focal_px: expected a finite number > 0" in r.stderr
     r = prism3d("stitch", stereo / "scan.ply", stereo / "scan.ply", "-o", tmp_path / "m.ply", "--voxel", "1e-9")
     assert r.returncode == 2 and "too small for scans" in r.stderr and "Traceback" not in r.stderr
+    r = prism3d("stitch", stereo / "scan.ply", stereo / "scan.ply", "-o", tmp_path / "m.pcd")
+    assert r.returncode == 2 and "m.pcd: the model and mesh are written as PLY" in r.stderr
     assert list(tmp_path.iterdir()) == []
 
 
@@ -368,3 +371,13 @@ def test_output_under_a_file_is_one_line_exit_2(plate, stereo, tmp_path):
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and "not_a_dir" in lines[0] and "Traceback" not in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["not_a_dir"]
+
+
+def test_calibrate_refuses_the_same_image_twice(tmp_path, plate):
+    """The same shot given three times returned a 312.8 mm baseline (true 197.9)."""
+    import shutil
+
+    shutil.copy(plate / "shot.png", tmp_path / "copy.png")
+    r = prism3d("calibrate", plate / "shot.png", tmp_path / "copy.png", "-o", tmp_path / "c.yaml")
+    assert r.returncode == 2 and "the same image as" in r.stderr and "give each board pose once" in r.stderr
+    assert not (tmp_path / "c.yaml").exists()
