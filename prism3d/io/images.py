@@ -8,6 +8,7 @@ or a key of an ``.npz`` (``file.npz:depth_left_mm``), or PFM.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -152,9 +153,11 @@ def read_depth(spec: str | Path) -> NDArray[np.float32]:
 
             arr = tifffile.imread(str(path))
         elif suffix == ".npy":
+            with open(path, "rb") as fh:
+                _check_npy_header(fh, path)
             arr = np.load(path, allow_pickle=False)
         elif suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
+            with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
                 names = list(z.files)
                 if key is None:
                     if len(names) != 1:
@@ -165,6 +168,8 @@ def read_depth(spec: str | Path) -> NDArray[np.float32]:
                     key = names[0]
                 if key not in names:
                     raise InputError(f"{path}: no array {key!r}; it holds {', '.join(names)}")
+                with z.zip.open(f"{key}.npy") as member:  # the shape, before decompressing it all
+                    _check_npy_header(member, f"{path}:{key}")
                 arr = z[key]
         elif suffix == ".pfm":
             from prism3d.io.pfm import read_pfm
@@ -182,6 +187,18 @@ def read_depth(spec: str | Path) -> NDArray[np.float32]:
     if arr.ndim != 2 or arr.dtype.kind not in "fiu":
         raise InputError(f"{path}: expected a 2-D numeric depth map, got shape {arr.shape} {arr.dtype}")
     return arr.astype(np.float32)
+
+
+def _check_npy_header(fh: Any, where: str | Path) -> None:
+    """InputError when an ``.npy`` stream declares more elements than :func:`max_pixels`
+    (a few compressed bytes can declare gigabytes)."""
+    fmt = np.lib.format
+    version = fmt.read_magic(fh)
+    shape, _, _ = (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(fh)
+    n = int(np.prod(shape, dtype=np.int64))
+    if n > max_pixels():
+        raise InputError(f"{where}: the array declares {_count(n)}, more than the {_count(max_pixels())} "
+                         "limit (set PRISM3D_MAX_PIXELS to raise it)")
 
 
 def write_depth(path: str | Path, depth_mm: NDArray) -> None:

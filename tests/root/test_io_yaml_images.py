@@ -133,3 +133,23 @@ def test_image_claiming_60000_squared_is_refused_from_its_header(tmp_path, monke
         read_image(small)
     monkeypatch.setenv("PRISM3D_MAX_PIXELS", "2000")
     assert read_image(small).shape == (40, 40, 3)
+
+
+def test_depth_npz_declaring_gigabytes_is_refused_before_decompressing(tmp_path):
+    """A 20000^2 float32 zero map compresses to ~1.5 MB; ``decamo`` took 3.2 GB to load
+    it. The array's header is read first."""
+    import resource
+    import zipfile
+
+    header = {"descr": "<f4", "fortran_order": False, "shape": (20000, 20000)}
+    buf = __import__("io").BytesIO()
+    np.lib.format.write_array_header_1_0(buf, header)
+    p = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(p, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        z.writestr("depth.npy", buf.getvalue() + b"\0" * 4096)  # the header is all that is read
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(InputError, match=r"bomb.npz:depth: the array declares 400 MP, more than the 100 MP limit"):
+        read_depth(f"{p}:depth")
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 200_000  # KB
+    np.save(tmp_path / "ok.npy", np.ones((4, 5), np.float32))
+    assert read_depth(tmp_path / "ok.npy").shape == (4, 5)

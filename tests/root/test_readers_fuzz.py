@@ -22,7 +22,7 @@ def _readers() -> dict[str, tuple[str, Callable[[Path], object]]]:
     from prism3d.atr.features import read_units_sidecar
     from prism3d.capture.calib_formats import load_stereo_calibration
     from prism3d.capture.rig import StereoRig
-    from prism3d.io.images import read_image
+    from prism3d.io.images import read_depth, read_image
     from prism3d.io.pcd import read_pcd
     from prism3d.io.pfm import read_pfm
     from prism3d.io.ply import read_ply
@@ -31,6 +31,7 @@ def _readers() -> dict[str, tuple[str, Callable[[Path], object]]]:
         "ply": (".ply", read_ply), "pcd": (".pcd", read_pcd), "pfm": (".pfm", read_pfm),
         "rig": (".yaml", StereoRig.load), "calib": (".yaml", load_stereo_calibration),
         "calib_txt": (".txt", load_stereo_calibration), "bank": (".npz", FilterBank.load),
+        "depth_npz": (".npz", read_depth),
         "units": (".units.yaml", lambda p: read_units_sidecar(Path(str(p).removesuffix(".units.yaml")))), "image": (".png", read_image),
     }
 
@@ -51,13 +52,15 @@ def valid(tmp_path_factory) -> dict[str, bytes]:
     write_image(d / "i.png", rng.integers(0, 255, (9, 11, 3), dtype=np.uint8))
     buf = io.BytesIO()
     np.savez(buf, meta_json=np.frombuffer(b'{"schema_version": 1}', np.uint8), freqs=np.zeros((1, 4, 3)))
+    dbuf = io.BytesIO()
+    np.savez_compressed(dbuf, depth=rng.random((5, 6)).astype(np.float32))
     pcd = (b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\n"
            b"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n1 2 3\n4 5 6\n")
     return {"ply": (d / "c.ply").read_bytes(), "pcd": pcd, "pfm": (d / "d.pfm").read_bytes(),
             "rig": (d / "rig.yaml").read_bytes(), "calib": (d / "rig.yaml").read_bytes(),
             "calib_txt": b"cam0=[1000 0 320; 0 1000 240; 0 0 1]\ncam1=[1000 0 330; 0 1000 240; 0 0 1]\n"
                          b"doffs=10\nbaseline=120\nwidth=640\nheight=480\n",
-            "bank": buf.getvalue(), "units": b"units: mm\nup: z\n", "image": (d / "i.png").read_bytes()}
+            "bank": buf.getvalue(), "depth_npz": dbuf.getvalue(), "units": b"units: mm\nup: z\n", "image": (d / "i.png").read_bytes()}
 
 
 def _probe_cases(valid: dict[str, bytes], reader: str) -> dict[str, bytes]:
