@@ -680,20 +680,18 @@ def render_to_folder(
 
 
 def _write_npz_channel(out: Path, ch: str, arr: NDArray) -> list[str]:
-    """``chips_<ch>.npz``; returns the per-chip references ``file#index``."""
-    from prism3d.io.atomic import atomic_path
-
+    """``chips_<ch>.npz`` in the staging folder ``out`` (made atomic as a whole); returns
+    the per-chip references ``file#index``."""
     fn = f"chips_{ch}.npz"
-    with atomic_path(out / fn) as tmp, open(tmp, "wb") as fh:
+    with open(out / fn, "wb") as fh:
         np.savez_compressed(fh, chips=arr)
     return [f"{fn}#{i}" for i in range(len(arr))]
 
 
 def _write_image_channel(out: Path, ch: str, arr: NDArray) -> list[str]:
-    """One PNG (depth: float32 TIFF) per chip under ``<ch>/``; returns the file names."""
+    """One PNG (depth: float32 TIFF) per chip under ``<ch>/`` of the staging folder
+    ``out``; returns the file names."""
     import cv2
-
-    from prism3d.io.atomic import atomic_path
 
     (out / ch).mkdir(exist_ok=True)
     names = []
@@ -711,7 +709,6 @@ def _write_image_channel(out: Path, ch: str, arr: NDArray) -> list[str]:
             ok, buf = cv2.imencode(".png", u8)
         if not ok:
             raise InputError(f"{out / fn}: image encoding failed")
-        with atomic_path(out / fn) as tmp:
-            tmp.write_bytes(buf.tobytes())
+        (out / fn).write_bytes(buf.tobytes())
         names.append(fn)
     return names

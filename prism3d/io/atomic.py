@@ -12,6 +12,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
+from prism3d.errors import InputError
+
 __all__ = ["atomic_path", "atomic_open", "atomic_write_bytes", "atomic_write_text", "staged_folder"]
 
 
@@ -76,8 +78,6 @@ def staged_folder(out_dir: str | Path) -> Iterator[Path]:
 
     target = Path(out_dir)
     if target.exists() and not target.is_dir():
-        from prism3d.errors import InputError
-
         raise InputError(f"{target}: exists and is not a folder")
     target.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
