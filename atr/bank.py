@@ -87,13 +87,25 @@ def check_targets(targets: Sequence[tuple[str, SceneMesh]]) -> list[tuple[str, S
     return items
 
 
-def check_bank_command(action: str, *, output: str | Path | None, bank: str | Path | None) -> None:
-    """Check a ``bank train`` (needs ``output``) or ``bank eval`` (needs ``bank``) request."""
+def check_bank_command(action: str, *, output: str | Path | None, bank: str | Path | None,
+                       results: str | Path | None = None) -> None:
+    """Check a ``bank train`` (needs ``output``, ``.npz``) or ``bank eval`` (needs
+    ``bank``; ``results`` JSON optional) request, outputs included, before any work."""
     check_choice(action, "action", ("train", "eval"))
     if action == "train" and output is None:
         raise InputError("bank train: give -o BANK.npz")
     if action == "eval" and bank is None:
         raise InputError("bank eval: give the bank file (bank eval BANK.npz ...)")
+    for path, suffix in ((output, ".npz"), (results, ".json")):
+        if path is None:
+            continue
+        p = Path(path)
+        if p.suffix.lower() != suffix:
+            raise InputError(f"{p}: expected a {suffix} file name")
+        if p.is_dir():
+            raise InputError(f"{p}: is a directory; give an output file name")
+        if bank is not None and p.resolve() == Path(bank).resolve():
+            raise InputError(f"{p}: is the bank being read; give another output name")
 
 
 def prepare_chips(

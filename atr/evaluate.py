@@ -270,27 +270,27 @@ def _conditions(spec: ChipSpec, azimuth: list[float]) -> dict:
 
 
 def _write_results(res: dict, df, path: Path) -> None:
-    import matplotlib
+    """The results JSON, the chip table and the four plots: written under temp names,
+    renamed together only when all of them were written (a failure leaves none)."""
+    import contextlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from prism3d.io.atomic import atomic_path
 
-    from prism3d.io.atomic import atomic_path, atomic_write_text
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(res, indent=1))
+    plt = _plt()
     stem = path.with_suffix("")
-    with atomic_path(Path(f"{stem}_chips.parquet")) as tmp:
-        df.to_parquet(tmp, index=False)
-    for name, fig in (
-        ("confusion", plot_confusion(res)),
-        ("aspect", plot_per_aspect(res)),
-        ("roc", plot_roc(res)),
-        ("psr", plot_psr_histograms(res)),
-    ):
-        with atomic_path(Path(f"{stem}_{name}.png")) as tmp:
-            fig.savefig(tmp, format="png", dpi=80)
-        plt.close(fig)
+    figs = {"confusion": plot_confusion(res), "aspect": plot_per_aspect(res),
+            "roc": plot_roc(res), "psr": plot_psr_histograms(res)}
+    try:
+        with contextlib.ExitStack() as stack:
+            tmp = stack.enter_context(atomic_path(path))
+            tmp.write_text(json.dumps(res, indent=1), encoding="utf-8")
+            df.to_parquet(stack.enter_context(atomic_path(Path(f"{stem}_chips.parquet"))), index=False)
+            for name, fig in figs.items():
+                fig.savefig(stack.enter_context(atomic_path(Path(f"{stem}_{name}.png"))),
+                            format="png", dpi=80)
+    finally:
+        for fig in figs.values():
+            plt.close(fig)
 
 
 def _plt():

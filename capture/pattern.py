@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array, check_positive
 from prism3d.errors import InputError
-from prism3d.io.atomic import atomic_path
 
 __all__ = [
     "DEFAULT_COLORS",
@@ -255,7 +254,7 @@ def check_window_unique(ids: NDArray, window: int) -> bool:
 
 def save_pattern_png(path: str | Path, pattern: NDArray) -> None:
     """Write an RGB ``(H, W, 3) uint8`` pattern as PNG, atomically."""
-    import cv2
+    from prism3d.io.images import write_image
 
     p = check_array(pattern, "pattern", ndim=(2, 3), dtype_kind="u")
     if p.dtype != np.uint8:
@@ -265,7 +264,4 @@ def save_pattern_png(path: str | Path, pattern: NDArray) -> None:
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise InputError(f"{path}: pattern files must end in .png")
-    img = p[:, :, ::-1] if p.ndim == 3 else p
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(img)):
-            raise InputError(f"{path}: could not write the PNG")
+    write_image(path, p)

@@ -46,7 +46,8 @@ from prism3d.capture.scenes import (
 
 from prism3d.checks import check_array, check_choice, check_in_range, check_positive
 from prism3d.errors import InputError
-from prism3d.io.atomic import atomic_path, atomic_write_text
+from prism3d.io.atomic import atomic_path, atomic_write_text, staged_folder
+from prism3d.io.images import write_image
 
 __all__ = [
     "TRUTH_SCHEMA_VERSION",
@@ -607,14 +608,6 @@ def _apply_view_optics(
 
 
 # -- files -----------------------------------------------------------------------------
-def _write_png(path: Path, rgb: NDArray[np.uint8]) -> None:
-    import cv2
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[:, :, ::-1])):
-            raise InputError(f"{path}: could not write the PNG")
-
-
 def _write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> None:
     """Write arrays as ``.npz`` atomically; ``compress``: deflate level 1 (sizes and
     times: docs/capture.md)."""
@@ -686,20 +679,20 @@ def simulate_to_folder(
             raise InputError(f"target: expected a SceneMesh, got {type(target).__name__}")
     use_pattern = (kind != "calib") if opts.pattern is None else bool(opts.pattern)
     projector = Projector.for_rig(rig, pattern=use_pattern, seed=opts.seed if opts.seed else None)
-    out.mkdir(parents=True, exist_ok=True)
     files: list[str] = []
     n = DEFAULT_VIEWS[kind] if opts.views is None else int(opts.views)
-    if kind == "plate":
-        shots = _plan_plate(rig, n, opts)
-    elif kind == "calib":
-        shots = _plan_calib(rig, n, opts)
-    else:
-        shots = _plan_scene(rig, target, n, opts, out)  # type: ignore[arg-type]  # validated above
-        files += ["target.ply", "poses.json"]
-    sim_entries = _effects_entries(opts.effects, float(opts.blur_sigma))
-    rig.save(out / "rig.yaml", extra={"simulated": 1, **sim_entries})
-    files.append("rig.yaml")
-    files += _write_shots(out, rig, shots, projector, opts, progress)
+    with staged_folder(out) as stage:  # every file appears at the end, or none (disk full...)
+        if kind == "plate":
+            shots = _plan_plate(rig, n, opts)
+        elif kind == "calib":
+            shots = _plan_calib(rig, n, opts)
+        else:
+            shots = _plan_scene(rig, target, n, opts, stage)  # type: ignore[arg-type]  # validated above
+            files += ["target.ply", "poses.json"]
+        sim_entries = _effects_entries(opts.effects, float(opts.blur_sigma))
+        rig.save(stage / "rig.yaml", extra={"simulated": 1, **sim_entries})
+        files.append("rig.yaml")
+        files += _write_shots(stage, rig, shots, projector, opts, progress)
     return {
         "kind": kind,
         "out_dir": str(out),
@@ -816,7 +809,7 @@ def _write_shots(
         truth = dict(shot.truth)
         truth.update({k2: np.asarray(v) for k2, v in extra.items()})
         truth["schema_version"] = np.array(TRUTH_SCHEMA_VERSION)
-        _write_png(out / png, shot.sensor_image)
+        write_image(out / png, shot.sensor_image)  # encoded in memory: a full disk is an OSError
         _write_npz(out / npz, truth, compress=opts.compress)
         files += [png, npz]
         if progress is not None:

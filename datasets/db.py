@@ -451,16 +451,13 @@ def init_db(path: str | Path) -> TargetDB:
     """
     import yaml
 
-    from prism3d.io.atomic import atomic_write_text
+    from prism3d.io.atomic import staged_folder
 
     p = Path(path)
     if (p / "db.yaml").exists():
         raise DatasetError(f"{p}: already a prism3d database (db.yaml exists)")
     if p.exists() and (not p.is_dir() or any(p.iterdir())):
         raise DatasetError(f"{p}: exists and is not an empty folder; choose a new path")
-    p.mkdir(parents=True, exist_ok=True)
-    for sub in ("models", "renders", "features", "evals"):
-        (p / sub).mkdir(exist_ok=True)
     meta = {
         "format": "prism3d-target-db",
         "schema_version": DB_SCHEMA_VERSION,
@@ -468,10 +465,12 @@ def init_db(path: str | Path) -> TargetDB:
         "created": utc_timestamp(),
         "prism3d_version": _prism3d_version(),
     }
-    db = TargetDB(p, meta)
-    write_table(_empty_targets(), db.targets_file, kind="targets")
-    atomic_write_text(p / "db.yaml", yaml.safe_dump(meta, sort_keys=False))
-    return db
+    with staged_folder(p) as stage:  # the database appears whole or not at all
+        for sub in ("models", "renders", "features", "evals"):
+            (stage / sub).mkdir()
+        write_table(_empty_targets(), TargetDB(stage, meta).targets_file, kind="targets")
+        (stage / "db.yaml").write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
+    return TargetDB(p, meta)
 
 
 def read_yaml(f: Path) -> Any:

@@ -227,8 +227,6 @@ def _commit(db: TargetDB, pending: list[_Pending], strict: bool) -> AddReport:
     """Under the DB lock: skip duplicates, write models, then the targets table."""
     import pandas as pd
 
-    from prism3d.io.atomic import atomic_write_bytes
-
     report = AddReport()
     with db.lock():
         table = db.targets()
@@ -251,40 +249,46 @@ def _commit(db: TargetDB, pending: list[_Pending], strict: bool) -> AddReport:
             ids.add(tid)
             by_sha[p.source_sha256] = tid
             rows.append((tid, p))
-        new_rows = []
-        for tid, p in rows:
-            rel = f"models/{tid}.ply"
-            atomic_write_bytes(db.path / rel, p.model_bytes)
-            new_rows.append(
-                {
-                    "target_id": tid,
-                    "class": p.target_class,
-                    "name": p.name,
-                    "source_kind": p.source_kind,
-                    "source_file": p.source_file,
-                    "source_sha256": p.source_sha256,
-                    "model_file": rel,
-                    "model_sha256": _sha_bytes(p.model_bytes),
-                    "units": p.units,
-                    "scale_to_mm": float(p.scale_to_mm),
-                    "up": p.up,
-                    "length_mm": p.dims[0],
-                    "width_mm": p.dims[1],
-                    "height_mm": p.dims[2],
-                    "n_vertices": p.n_vertices,
-                    "n_faces": p.n_faces,
-                    "provenance": p.provenance,
-                    "builtin_scale": float(p.builtin_scale),
-                    "added": utc_timestamp(),
-                    "schema_version": TABLE_SCHEMA_VERSION,
-                }
-            )
-            report.added.append(tid)
-        if new_rows:
-            new = pd.DataFrame(new_rows, columns=list(table.columns))
-            out = new if len(table) == 0 else pd.concat([table, new], ignore_index=True)
-            write_table(out, db.targets_file, kind="targets")
+        written: list[Path] = []  # removed again if the table cannot be written
+        try:
+            new_rows = _write_models(db, rows, written)
+            report.added.extend(r["target_id"] for r in new_rows)
+            if new_rows:
+                new = pd.DataFrame(new_rows, columns=list(table.columns))
+                out = new if len(table) == 0 else pd.concat([table, new], ignore_index=True)
+                write_table(out, db.targets_file, kind="targets")
+        except BaseException:
+            for f in written:
+                f.unlink(missing_ok=True)
+            raise
     return report
+
+
+def _write_models(db: TargetDB, rows: list[tuple[str, _Pending]], written: list[Path]) -> list[dict]:
+    """Write each new target's model file (appending to ``written`` the ones this call
+    created) and return the targets-table rows."""
+    from prism3d.io.atomic import atomic_write_bytes
+
+    new_rows = []
+    for tid, p in rows:
+        rel = f"models/{tid}.ply"
+        f = db.path / rel
+        existed = f.exists()
+        atomic_write_bytes(f, p.model_bytes)
+        if not existed:
+            written.append(f)
+        new_rows.append({
+            "target_id": tid, "class": p.target_class, "name": p.name,
+            "source_kind": p.source_kind, "source_file": p.source_file,
+            "source_sha256": p.source_sha256, "model_file": rel,
+            "model_sha256": _sha_bytes(p.model_bytes), "units": p.units,
+            "scale_to_mm": float(p.scale_to_mm), "up": p.up,
+            "length_mm": p.dims[0], "width_mm": p.dims[1], "height_mm": p.dims[2],
+            "n_vertices": p.n_vertices, "n_faces": p.n_faces, "provenance": p.provenance,
+            "builtin_scale": float(p.builtin_scale), "added": utc_timestamp(),
+            "schema_version": TABLE_SCHEMA_VERSION,
+        })
+    return new_rows
 
 
 def _sha_bytes(b: bytes) -> str:

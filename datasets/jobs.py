@@ -443,6 +443,13 @@ class JobReport:
         """0 when every unit is done, 1 when a unit failed."""
         return 0 if self.ok else 1
 
+    def failure_line(self) -> str:
+        """One line for a job with failed units: how many, the first error, how to resume."""
+        first = self.failed[0] if self.failed else {"unit": "-", "error": "-"}
+        return (f"job {self.job}: {len(self.failed)} of {self.total_units} units failed (first: "
+                f"{first['unit']}: {first['error']}); finished units are kept, run the same "
+                "command again to resume")
+
     def summary(self) -> str:
         head = (
             f"job {self.job}: {self.skipped_units + self.done_units}/{self.total_units} units done "

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from prism3d import __version__
-from prism3d.errors import InputError, Prism3dError
+from prism3d.errors import DatasetError, InputError, Prism3dError
 
 Handler = Callable[[argparse.Namespace], int | None]
 
@@ -673,7 +673,8 @@ def _cmd_bank(args: argparse.Namespace) -> int:
     from prism3d.atr.bank import check_bank_command
     from prism3d.datasets.resolve import resolve_targets
 
-    check_bank_command(args.action, output=args.output, bank=args.bank)
+    check_bank_command(args.action, output=args.output, bank=args.bank,
+                       results=args.json if args.action == "eval" else None)
     if args.action == "train":
         from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
 
@@ -753,15 +754,13 @@ def _cmd_db(args: argparse.Namespace) -> int:
         run = RunOptions(workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "render"))
         rep = run_render_job(args.db, args.job, azimuth=args.azimuth, elevation=args.elevation, range_mm=args.range,
                              chip_spec=spec, targets=args.targets, classes=args.classes, run=run)
-        _say(args, rep.summary())
-        return rep.exit_code
+        return _job_result(args, rep)
     if a == "features":
         from prism3d.datasets.jobs import RunOptions, run_features_job
 
         run = RunOptions(workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "features"))
         rep = run_features_job(args.db, args.job, run=run)
-        _say(args, rep.summary())
-        return rep.exit_code
+        return _job_result(args, rep)
     if a == "info":
         from prism3d.datasets.jobs import database_info
 
@@ -773,6 +772,14 @@ def _cmd_db(args: argparse.Namespace) -> int:
         print(p)
     _say(args, "verify: OK" if not problems else f"verify: {len(problems)} problem(s)")
     return 1 if problems else 0
+
+
+def _job_result(args: argparse.Namespace, rep: Any) -> int:
+    """Print a job's summary; a job with failed units is an error (exit 2, one line)."""
+    _say(args, rep.summary())
+    if not rep.ok:
+        raise DatasetError(rep.failure_line())
+    return 0
 
 
 def _add_db(sub: Any) -> None:

@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 from prism3d.capture.rig import CameraModel, Rectification, StereoRig, compute_rectification
 from prism3d.checks import check_array
 from prism3d.errors import InputError
-from prism3d.io.atomic import atomic_path
 
 __all__ = [
     "RectifyMaps",
@@ -217,19 +216,14 @@ def save_rectification(path: str | Path, rect: Rectification, rig: StereoRig | N
     write_filestorage(path, values)
 
 
-def _write_png(path: Path, image: NDArray, *, atomic: bool = True) -> None:
-    import contextlib
-
-    import cv2
+def _write_png(path: Path, image: NDArray) -> None:
+    """A rectified view (uint8, or float in [0, 1]) as PNG, atomically."""
+    from prism3d.io.images import write_image
 
     img = image
     if img.dtype.kind == "f":
         img = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
-        if not cv2.imwrite(str(tmp), img):
-            raise InputError(f"{path}: could not write the PNG (check the folder is writable)")
+    write_image(path, img)
 
 
 def rectify_to_folder(
@@ -249,9 +243,8 @@ def rectify_to_folder(
     Raises InputError for missing or unreadable files or views that do not fit the
     calibration.
     """
-    import contextlib
-
     from prism3d.capture.calib_formats import load_stereo_calibration
+    from prism3d.io.atomic import staged_folder
     from prism3d.io.images import read_image
 
     two_files = left_path is not None or right_path is not None
@@ -282,10 +275,8 @@ def rectify_to_folder(
         "right": out / "right.png",
         "rectification": out / "rectification.yaml",
     }
-    out.mkdir(parents=True, exist_ok=True)
-    with contextlib.ExitStack() as stack:
-        tmp = {k: stack.enter_context(atomic_path(p)) for k, p in paths.items()}
-        _write_png(tmp["left"], left, atomic=False)
-        _write_png(tmp["right"], right, atomic=False)
-        save_rectification(tmp["rectification"], rect, rig)
+    with staged_folder(out) as stage:  # all three appear together, or none (and no folder)
+        _write_png(stage / "left.png", left)
+        _write_png(stage / "right.png", right)
+        save_rectification(stage / "rectification.yaml", rect, rig)
     return paths

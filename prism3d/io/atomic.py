@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
-from prism3d.errors import InputError
+from prism3d.errors import InputError, Prism3dError
 
 __all__ = ["atomic_path", "atomic_open", "atomic_write_bytes", "atomic_write_text", "staged_folder"]
 
@@ -39,6 +39,13 @@ def atomic_path(path: str | Path, *, keep_suffix: bool = True) -> Iterator[Path]
     try:
         yield tmp_path
         os.replace(tmp_path, target)
+    except OSError as exc:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        renamed = _renamed(exc, str(tmp_path), str(target))  # e.g. disk full: name the output
+        if renamed is exc:
+            raise
+        raise renamed from exc
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
@@ -85,7 +92,13 @@ def staged_folder(out_dir: str | Path) -> Iterator[Path]:
     os.umask(mask)
     stage.chmod(0o777 & ~mask)  # as a folder made by mkdir would be, not mkdtemp's 0700
     try:
-        yield stage
+        try:
+            yield stage
+        except (OSError, Prism3dError) as exc:  # name the output, not the staging folder
+            renamed = _renamed(exc, str(stage), str(target))
+            if renamed is exc:
+                raise
+            raise renamed from exc
         if not target.exists():
             os.replace(stage, target)
             return
@@ -97,3 +110,22 @@ def staged_folder(out_dir: str | Path) -> Iterator[Path]:
                 os.replace(src, dst)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def _renamed(exc: BaseException, old: str, new: str) -> BaseException:
+    """``exc`` with the path prefix ``old`` replaced by ``new`` in its file name or
+    message, or ``new`` as the file name of an OSError that has none (the same
+    exception when there is nothing to change)."""
+    if isinstance(exc, OSError):
+        if exc.filename is None:  # a library's OSError without a file: say which output
+            return OSError(exc.errno or 0, exc.strerror or str(exc), new)
+        if old in str(exc.filename):
+            return OSError(exc.errno or 0, exc.strerror or str(exc), str(exc.filename).replace(old, new))
+        return exc
+    msg = str(exc)
+    if old not in msg:
+        return exc
+    try:
+        return type(exc)(msg.replace(old, new))
+    except TypeError:  # a subclass with another signature: keep it as it is
+        return exc

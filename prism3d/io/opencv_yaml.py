@@ -14,7 +14,7 @@ import numpy as np
 
 from prism3d.checks import check_file
 from prism3d.errors import InputError
-from prism3d.io.atomic import atomic_path
+from prism3d.io.atomic import atomic_write_text
 
 __all__ = ["write_filestorage", "read_filestorage"]
 
@@ -32,32 +32,35 @@ def write_filestorage(path: str | Path, values: Mapping[str, Any]) -> None:
     path = Path(path)
     if path.suffix.lower() not in (".yaml", ".yml", ".xml", ".json"):
         raise InputError(f"{path}: calibration files must end in .yaml, .yml, .xml or .json")
-    with atomic_path(path) as tmp:
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-        try:
-            for key, value in values.items():
-                if not key.isidentifier():
-                    raise InputError(f"{path}: invalid FileStorage key {key!r}")
-                if isinstance(value, bool | np.bool_):
-                    fs.write(key, int(value))
-                elif isinstance(value, int | np.integer):
-                    fs.write(key, int(value))
-                elif isinstance(value, float | np.floating):
-                    fs.write(key, float(value))
-                elif isinstance(value, str):
-                    fs.write(key, value)
+    # composed in memory, then written by Python: a full disk is an OSError, whereas
+    # FileStorage writing to a file leaves it empty and says nothing
+    fs = cv2.FileStorage(path.suffix.lower(), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    try:
+        for key, value in values.items():
+            if not key.isidentifier():
+                raise InputError(f"{path}: invalid FileStorage key {key!r}")
+            if isinstance(value, bool | np.bool_):
+                fs.write(key, int(value))
+            elif isinstance(value, int | np.integer):
+                fs.write(key, int(value))
+            elif isinstance(value, float | np.floating):
+                fs.write(key, float(value))
+            elif isinstance(value, str):
+                fs.write(key, value)
+            else:
+                arr = np.asarray(value)
+                if arr.dtype.kind in "iub":
+                    arr = arr.astype(np.int32)
                 else:
-                    arr = np.asarray(value)
-                    if arr.dtype.kind in "iub":
-                        arr = arr.astype(np.int32)
-                    else:
-                        arr = arr.astype(np.float64)
-                    if arr.ndim == 0:
-                        fs.write(key, arr.item())
-                    else:
-                        fs.write(key, np.ascontiguousarray(arr.reshape(arr.shape[0], -1)))
-        finally:
-            fs.release()
+                    arr = arr.astype(np.float64)
+                if arr.ndim == 0:
+                    fs.write(key, arr.item())
+                else:
+                    fs.write(key, np.ascontiguousarray(arr.reshape(arr.shape[0], -1)))
+    except BaseException:
+        fs.release()
+        raise
+    atomic_write_text(path, fs.releaseAndGetString())
 
 
 def read_filestorage(path: str | Path, keys: list[str] | None = None) -> dict[str, Any]:
