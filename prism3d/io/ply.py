@@ -54,6 +54,13 @@ class PlyData:
     comments: list[str] = field(default_factory=list)
 
 
+def _header_text(text: object) -> str:
+    """A comment as one ASCII header line: line breaks become spaces, other characters
+    ``\\uXXXX`` escapes (a PLY header is ASCII; a file name may not be)."""
+    one = str(text).replace("\r", " ").replace("\n", " ")
+    return one.encode("ascii", "backslashreplace").decode("ascii")
+
+
 def write_ply(
     path: str | Path,
     points: NDArray,
@@ -116,7 +123,7 @@ def write_ply(
         face_block = fb.tobytes()
     rev = {"f4": "float", "f8": "double", "u1": "uchar"}
     header = ["ply", "format binary_little_endian 1.0"]
-    header += [f"comment {c}" for c in (comments or [])]
+    header += [f"comment {_header_text(c)}" for c in (comments or [])]
     header.append(f"element vertex {n}")
     header += [f"property {rev[t]} {p}" for p, t in props]
     if faces is not None:
@@ -137,12 +144,16 @@ class _Element:
 
 
 def _parse_header(path: Path, raw: bytes) -> tuple[str, list[_Element], list[str], int]:
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
+    import re
+
+    # the header ends at a line that is "end_header" (a comment may contain the word)
+    m = re.search(rb"\nend_header[ \t\r]*(\n|$)", raw)
+    if not raw.startswith(b"ply") or m is None:
         raise InputError(f"{path}: not a PLY file (missing 'ply' magic or 'end_header')")
-    nl = raw.find(b"\n", end)
-    if nl < 0:
+    end = m.start() + 1
+    if not m.group(1):
         raise InputError(f"{path}: PLY header is not terminated by a newline")
+    nl = m.end() - 1
     lines = raw[:end].decode("ascii", errors="replace").replace("\r", "").split("\n")
     fmt = None
     elements: list[_Element] = []

@@ -110,6 +110,21 @@ def test_add_meshes_units_scale_and_duplicates(tmp_path: Path) -> None:
     assert r2["length_mm"] == pytest.approx(500.0) and r2["scale_to_mm"] == pytest.approx(500.0)
 
 
+def test_add_a_mesh_with_a_non_ascii_name(tmp_path: Path) -> None:
+    """The file name goes into the model's (ASCII) PLY header as an escape; the id is a
+    safe name, the table keeps the name as given."""
+    from prism3d.io.ply import read_ply
+
+    db = init_db(tmp_path / "db")
+    f = _box_obj(tmp_path / "üß中 tank.obj", (4.0, 2.0, 1.0))
+    rep = add_meshes(db, [f], target_class="tank", units="mm", up="z")
+    r = db.targets().iloc[0]
+    assert rep.added == [r["target_id"]] and r["target_id"].isascii() and r["name"] == "üß中 tank"
+    ply = read_ply(tmp_path / "db" / r["model_file"])
+    assert any("\\xfc\\xdf\\u4e2d tank.obj" in c for c in ply.comments), ply.comments
+    assert verify_db(db) == []
+
+
 def test_up_axis_y_and_sidecar(tmp_path: Path) -> None:
     db = init_db(tmp_path / "db")
     f = _box_obj(tmp_path / "tall.obj", (4.0, 3.0, 1.0))  # file y (3) is up

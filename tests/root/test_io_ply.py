@@ -30,6 +30,15 @@ def test_round_trip_full(tmp_path):
     assert d.comments == ["units mm"]
 
 
+def test_comments_stay_one_ascii_line(tmp_path):
+    """A comment cannot break the header: line breaks become spaces, non-ASCII escapes."""
+    pts, _, _ = _cloud()
+    write_ply(tmp_path / "c.ply", pts, comments=["source ü.obj\nend_header", "units mm"], double=True)
+    d = read_ply(tmp_path / "c.ply")
+    np.testing.assert_array_equal(d.points, pts)
+    assert d.comments == ["source \\xfc.obj end_header", "units mm"]
+
+
 def test_float32_default_and_float_colours(tmp_path):
     pts, _, _ = _cloud()
     write_ply(tmp_path / "p.ply", pts, colors=np.full((len(pts), 3), 0.5))
