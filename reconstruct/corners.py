@@ -59,6 +59,10 @@ XJ_RADIUS_FRACTION = 0.6
 XJ_MAX_RADIUS = 32.0
 #: OpenCV's detectors fail on views smaller than this (px).
 _MIN_IMAGE_PX = 16
+#: Views larger than this are searched for the board in an area-averaged copy of this
+#: size (OpenCV's search slows and grows with the pixel count; the corners are refined
+#: at full resolution). The paper's 5 MP sensor gives 2.5 MP views.
+DETECT_MAX_PIXELS = 8_000_000
 #: cornerSubPix stops after this many iterations or a move below this (px).
 _SUBPIX_MAX_ITER = 100
 _SUBPIX_EPS = 1e-4
@@ -159,7 +163,9 @@ def to_gray(image: NDArray) -> NDArray[np.uint8]:
             return np.ascontiguousarray(img[:, :, 0])
         if img.shape[2] not in (3, 4):
             raise InputError(f"image: expected 1, 3 or 4 channels, got {img.shape[2]}")
-        return cv2.cvtColor(np.ascontiguousarray(img[:, :, :3]), cv2.COLOR_RGB2GRAY)
+        # OpenCV takes a row-strided view (a prism view is a column slice) without a copy
+        src = img if img.shape[2] == 3 else np.ascontiguousarray(img[:, :, :3])
+        return cv2.cvtColor(src, cv2.COLOR_RGB2GRAY)
     return np.ascontiguousarray(img)
 
 
@@ -400,12 +406,15 @@ def load_image(path: str | Path) -> NDArray[np.uint8]:
     """Read an image file as RGB uint8 ``(H, W, 3)`` (grey files become 3 channels)."""
     import cv2
 
+    from prism3d.io.images import check_image_size
+
     p = check_file(path, "image")
+    check_image_size(p)  # the pixel budget, from the header, before decoding
     data = np.fromfile(p, dtype=np.uint8)
     img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
         raise InputError(f"{p}: not a readable image (expected PNG, JPEG, TIFF, ...)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB, dst=img)  # in place: one copy of a large image
 
 
 def detect_corners(
@@ -433,17 +442,41 @@ def detect_corners(
     if min(gray.shape) < _MIN_IMAGE_PX:
         return None
     try:
-        return _detect(
-            gray,
-            cols,
-            rows,
-            method,
-            None if window is None else int(window),
-            to_gray_float(image) if method == "xjunction" else None,
-        )
+        return _detect(gray, cols, rows, method, None if window is None else int(window), image)
     except cv2.error as exc:
         log.debug("OpenCV detector failed: %s", exc)
         return None
+
+
+def _detection_copy(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], float]:
+    """The view the board is searched in and its scale: the view itself up to
+    :data:`DETECT_MAX_PIXELS`, else an area-averaged copy of that size (corners are then
+    refined at full resolution), so a huge image costs neither minutes nor gigabytes."""
+    import cv2
+
+    n = gray.shape[0] * gray.shape[1]
+    if n <= DETECT_MAX_PIXELS:
+        return gray, 1.0
+    s = float(np.sqrt(DETECT_MAX_PIXELS / n))
+    return cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_AREA), s
+
+
+def _find(gray: NDArray[np.uint8], cols: int, rows: int, method: str) -> NDArray | None:
+    """OpenCV's board search: ``(N, 1, 2)`` float32 corners or None."""
+    import cv2
+
+    if method == "sb":
+        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+        ok, corners = cv2.findChessboardCornersSB(gray, (cols, rows), flags=flags)
+        return corners if ok else None
+    base = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    for flags in (base, base | cv2.CALIB_CB_FILTER_QUADS):
+        ok, corners = cv2.findChessboardCorners(gray, (cols, rows), flags=flags)
+        if ok:
+            return corners
+    # the sector-based detector finds some boards the classic one misses
+    ok, corners = cv2.findChessboardCornersSB(gray, (cols, rows), flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+    return corners if ok else None
 
 
 def _detect(
@@ -452,38 +485,45 @@ def _detect(
     rows: int,
     method: str,
     window: int | None,
-    fgray: NDArray[np.float64] | None = None,
+    image: NDArray,
 ) -> NDArray[np.float64] | None:
     import cv2
 
-    if method == "sb":
-        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-        ok, corners = cv2.findChessboardCornersSB(gray, (cols, rows), flags=flags)
-    else:
-        ok, corners = False, None
-        base = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-        for flags in (base, base | cv2.CALIB_CB_FILTER_QUADS):
-            ok, corners = cv2.findChessboardCorners(gray, (cols, rows), flags=flags)
-            if ok:
-                break
-        if not ok:  # the sector-based detector finds some boards the classic one misses
-            ok, corners = cv2.findChessboardCornersSB(
-                gray, (cols, rows), flags=cv2.CALIB_CB_NORMALIZE_IMAGE
-            )
-        if ok:
-            c = corners.reshape(rows, cols, 2)
-            sq = min(
-                float(np.median(np.linalg.norm(np.diff(c, axis=1), axis=2))),
-                float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=2))),
-            )
-            want = WINDOW_FRACTION * sq if window is None else window
-            w = max(1, min(round(want), int(sq / 2) - 1))
-            corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (w, w), (-1, -1), _subpix_criteria())
-            if method == "xjunction" and fgray is not None:
-                corners = refine_xjunction(fgray, corners.reshape(-1, 2), (cols, rows))
-    if not ok or corners is None or corners.reshape(-1, 2).shape[0] != cols * rows:
+    small, scale = _detection_copy(gray)
+    corners = _find(small, cols, rows, method)
+    if corners is None or corners.reshape(-1, 2).shape[0] != cols * rows:
         return None
+    if scale != 1.0:  # back to full-resolution pixel centres
+        corners = ((corners.astype(np.float64) + 0.5) / scale - 0.5).astype(np.float32)
+    if method != "sb" or scale != 1.0:
+        c = corners.reshape(rows, cols, 2)
+        sq = min(
+            float(np.median(np.linalg.norm(np.diff(c, axis=1), axis=2))),
+            float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=2))),
+        )
+        want = WINDOW_FRACTION * sq if window is None else window
+        w = max(1, min(round(want), int(sq / 2) - 1))
+        corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (w, w), (-1, -1), _subpix_criteria())
+        if method == "xjunction":
+            corners = _refine_xjunction_in(image, corners.reshape(-1, 2), (cols, rows), scale != 1.0)
     return canonical_order(corners.reshape(-1, 2).astype(np.float64), (cols, rows))
+
+
+def _refine_xjunction_in(image: NDArray, corners: NDArray, board: tuple[int, int], crop: bool
+                         ) -> NDArray[np.float64]:
+    """:func:`refine_xjunction` on the float grey of ``image``; with ``crop``, of the
+    board's bounding box only (plus the fit radius), which a huge view needs."""
+    if not crop:
+        return refine_xjunction(to_gray_float(image), corners, board)
+    h, w = image.shape[:2]
+    m = int(np.ceil(XJ_MAX_RADIUS)) + 2
+    x0 = max(0, int(np.floor(corners[:, 0].min())) - m)
+    y0 = max(0, int(np.floor(corners[:, 1].min())) - m)
+    x1 = min(w, int(np.ceil(corners[:, 0].max())) + m + 1)
+    y1 = min(h, int(np.ceil(corners[:, 1].max())) + m + 1)
+    off = np.array([x0, y0], dtype=np.float64)
+    fine = refine_xjunction(to_gray_float(image[y0:y1, x0:x1]), corners.astype(np.float64) - off, board)
+    return fine + off
 
 
 def _sharpness(gray: NDArray[np.uint8], board: tuple[int, int], corners: NDArray) -> float:
@@ -571,12 +611,13 @@ def detect_views(
     first_name = ""
     n_shots = len(items) // 2 if pairs else len(items)
     for s in range(n_shots):
-        if pairs:
-            views = [(get(2 * s), names[2 * s]), (get(2 * s + 1), names[2 * s + 1])]
+        if pairs:  # one view in memory at a time
+            views = ((get(k), names[k]) for k in (2 * s, 2 * s + 1))
         else:
-            views = _shot_views(get(s), names[s], split)
+            views = iter(_shot_views(get(s), names[s], split))
         pair = []
-        for (img, name), view in zip(views, ("left", "right"), strict=True):
+        for view in ("left", "right"):
+            img, name = next(views)
             check_array(img, name, ndim=(2, 3))
             size = (int(img.shape[1]), int(img.shape[0]))
             if view_size is None:
@@ -587,6 +628,7 @@ def detect_views(
                     f"({view_size[0]}x{view_size[1]}); all images must have the same size"
                 )
             pair.append(_detect_view(img, name, view, board, method, window))
+            del img
         out.append((pair[0], pair[1]))
         if progress is not None:
             progress(s + 1, n_shots)

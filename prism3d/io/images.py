@@ -17,8 +17,8 @@ from prism3d.checks import check_array, check_file
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 
-__all__ = ["DEFAULT_MAX_PIXELS", "max_pixels", "read_image", "write_image", "read_depth", "write_depth",
-           "split_npz_spec"]
+__all__ = ["DEFAULT_MAX_PIXELS", "max_pixels", "check_image_size", "read_image", "write_image", "read_depth",
+           "write_depth", "split_npz_spec"]
 
 #: Largest image decoded unless ``PRISM3D_MAX_PIXELS`` says otherwise: 100 MP is twice
 #: the largest common camera sensors, ~300 MB as RGB; a small file claiming more (a
@@ -37,7 +37,7 @@ def read_image(path: str | Path, *, grey: bool = False) -> NDArray[np.uint8]:
     import cv2
 
     path = check_file(path, "image")
-    _check_declared_size(path)
+    check_image_size(path)
     buf = np.frombuffer(path.read_bytes(), dtype=np.uint8)
     img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if img is None:
@@ -75,7 +75,7 @@ def max_pixels() -> int:
     return value
 
 
-def _check_declared_size(path: Path) -> None:
+def check_image_size(path: Path) -> None:
     """InputError when the image's header declares more than :func:`max_pixels` pixels
     (read by Pillow without decoding; formats it does not read meet OpenCV's own limit)."""
     import warnings

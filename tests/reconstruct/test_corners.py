@@ -94,6 +94,26 @@ def test_detect_corners_accuracy_against_truth(method: str, rms: float, worst: f
     assert err.max() < worst
 
 
+@pytest.mark.parametrize(("method", "rms", "worst"), [("xjunction", 0.03, 0.1), ("classic", 0.1, 0.3),
+                                                     ("sb", 0.1, 0.3)])
+def test_a_large_view_is_searched_small_and_refined_at_full_size(monkeypatch, method, rms, worst) -> None:
+    """Above DETECT_MAX_PIXELS the board is found in a reduced copy (here 0.1 MP, a
+    scale of 0.57) and the corners refined at full resolution: the same accuracy as the
+    direct search; the x-junction fit on the board's crop equals the whole-view fit."""
+    import prism3d.reconstruct.corners as C
+
+    cam = small_camera()
+    img, truth = render_board(cam, board_pose())
+    monkeypatch.setattr(C, "DETECT_MAX_PIXELS", 100_000)
+    assert C._detection_copy(img)[1] < 0.6
+    c = detect_corners(img, (9, 6), method=method)
+    assert c is not None and c.shape == (54, 2)
+    err = np.linalg.norm(c - truth, axis=1)
+    assert np.sqrt(np.mean(err**2)) < rms and err.max() < worst
+    whole = C._refine_xjunction_in(img, truth, (9, 6), crop=False)
+    np.testing.assert_allclose(C._refine_xjunction_in(img, truth, (9, 6), crop=True), whole, atol=1e-9)
+
+
 def test_refine_xjunction_beats_cornersubpix() -> None:
     """The X-junction fit on a strongly tilted, blurred, noisy board (float grey)."""
     import cv2
