@@ -337,3 +337,25 @@ def test_sequence_numbers_do_not_restart_at_1_per_process(sim: TriggerSimulator)
         with TriggerClient(sim.port) as trig:
             starts.add(trig._seq)
     assert len(starts) > 1  # random starts (equal by chance with probability ~1e-14)
+
+
+def test_a_late_reply_to_another_process_is_not_taken() -> None:
+    """Two processes on one slow device: the first gives up on ID (three tries, replies
+    2 s late); the second asks STATUS while those replies arrive, ignores them and
+    returns its own answer."""
+    import json
+    import subprocess
+    import sys
+
+    with TriggerSimulator(fault="slow", slow_s=2.0) as sim:
+        cli = [sys.executable, "-m", "prism3d.cli"]
+        a = subprocess.run([*cli, "trigger", "ping", sim.port, "--timeout", "0.3"],
+                           capture_output=True, text=True, timeout=60)
+        assert a.returncode == 2 and "no reply" in a.stderr
+        b = subprocess.run([*cli, "-vv", "trigger", "status", sim.port, "--timeout", "5"],
+                           capture_output=True, text=True, timeout=60)
+    assert b.returncode == 0, b.stderr
+    assert "ignoring" in b.stderr  # the first process's late ID replies reached the second
+    status = json.loads(b.stdout)
+    assert status["armed"] is False and status["shots"] == 0
+
