@@ -40,6 +40,43 @@ def test_filestorage_malformed(tmp_path, content, match):
         read_filestorage(p)
 
 
+@pytest.mark.parametrize("ext", ["yaml", "xml", "json"])
+def test_filestorage_reads_what_opencv_reads(tmp_path, ext):
+    """Our parser gives what cv2.FileStorage's nodes give, for each flavour OpenCV
+    writes: numbers, strings, matrices (multi-channel, int), 1-D nd-matrices, NaN, inf."""
+    import cv2
+
+    vals = {"a": 1, "b": 2.5, "c": "hello world", "e": np.eye(3), "f": np.arange(6).reshape(2, 3),
+            "h": -1e-30, "i": float("nan"), "l": float("inf"), "n": np.array([np.nan, -np.inf, 1.5])}
+    write_filestorage(tmp_path / f"w.{ext}", vals)
+    fs = cv2.FileStorage(str(tmp_path / "nd.yml"), cv2.FILE_STORAGE_WRITE)  # OpenCV's own 1-D and 3-channel
+    fs.write("d", np.arange(5.0))
+    fs.write("x", np.arange(24.0).reshape(2, 3, 4))
+    fs.release()
+    back = read_filestorage(tmp_path / f"w.{ext}")
+    assert (back["a"], back["b"], back["c"], back["h"]) == (1, 2.5, "hello world", -1e-30)
+    assert np.isnan(back["i"]) and back["l"] == np.inf
+    np.testing.assert_array_equal(back["e"], np.eye(3))
+    assert back["f"].dtype == np.int32 and back["f"].tolist() == [[0, 1, 2], [3, 4, 5]]
+    np.testing.assert_array_equal(back["n"].ravel(), vals["n"])
+    nd = read_filestorage(tmp_path / "nd.yml")
+    assert nd["d"].shape == (5,) and nd["x"].shape == (2, 3, 4)
+    np.testing.assert_array_equal(nd["x"], np.arange(24.0).reshape(2, 3, 4))
+
+
+def test_filestorage_matrix_that_overflows_opencv(tmp_path):
+    """A matrix whose rows x cols disagree with its data: OpenCV 5.0's reader overflows
+    its heap on it (malloc aborts the process, found by fuzzing); ours says so."""
+    write_filestorage(tmp_path / "c.yaml", {"T": np.array([1.0, 2.0, 3.0])})
+    p = tmp_path / "c.yaml"
+    p.write_text(p.read_text().replace("cols: 1", "dols: 1"))
+    with pytest.raises(InputError, match="'cols' must be a whole number"):
+        read_filestorage(p)
+    p.write_text(p.read_text().replace("dols: 1", "cols: 2"))
+    with pytest.raises(InputError, match="3 numbers for 3x2x1"):
+        read_filestorage(p)
+
+
 def test_filestorage_missing_key(tmp_path):
     write_filestorage(tmp_path / "c.yaml", {"a": 1})
     with pytest.raises(InputError, match="missing entry 'K1'"):

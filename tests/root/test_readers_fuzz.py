@@ -6,6 +6,7 @@ random mutations of valid files (hypothesis, bounded)."""
 from __future__ import annotations
 
 import io
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -15,6 +16,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from prism3d.errors import Prism3dError
+
+#: Mutated files per reader: 40 in the suite; ``PRISM3D_FUZZ_EXAMPLES=500`` gives the
+#: 5000-file run of docs/hardening.md (10 readers).
+FUZZ_EXAMPLES = int(os.environ.get("PRISM3D_FUZZ_EXAMPLES", "40"))
 
 
 def _readers() -> dict[str, tuple[str, Callable[[Path], object]]]:
@@ -115,7 +120,7 @@ def _mutation(draw, seed: bytes) -> bytes:
 def test_mutated_files_raise_our_errors(reader, valid, tmp_path):
     ext, read = _readers()[reader]
 
-    @settings(max_examples=40, deadline=None, derandomize=True,
+    @settings(max_examples=FUZZ_EXAMPLES, deadline=None, derandomize=True,
               suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
     @given(_mutation(valid[reader]))
     def check(data: bytes) -> None:
