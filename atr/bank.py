@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -342,32 +341,45 @@ class FilterBank:
         """Read a bank written by :meth:`save`; rejects unknown schema versions."""
         from prism3d.checks import check_file
 
+        from prism3d.io.images import check_npy_header
+
         p = check_file(path, "filter bank")
+        names = ("freqs", "filter_class", "filter_az_deg", "params")
         try:  # our own handle: np.load leaves a file it fails to parse open
             with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
                 meta = json.loads(bytes(z["meta_json"].astype(np.uint8)).decode("utf-8"))
-                arrays = {k: z[k] for k in ("freqs", "filter_class", "filter_az_deg", "params")}
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:  # empty, cut short, other
+                for k in names:  # declared sizes, before decompressing
+                    with z.zip.open(f"{k}.npy") as member:
+                        check_npy_header(member, f"{p}:{k}")
+                arrays = {k: z[k] for k in names}
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - zip/numpy/json raise many types on a corrupt file
             raise InputError(f"{p}: not a prism3d filter bank ({exc or type(exc).__name__})") from None
         ver = meta.get("schema_version") if isinstance(meta, dict) else None
         if ver != BANK_SCHEMA_VERSION:
             raise InputError(
                 f"{p}: unknown filter bank schema_version {ver!r} (this prism3d reads {BANK_SCHEMA_VERSION})"
             )
-        if not np.all(np.isfinite(arrays["freqs"])):
+        if arrays["freqs"].dtype.kind not in "fc" or not np.all(np.isfinite(arrays["freqs"])):
             raise InputError(f"{p}: the bank's filters hold NaN or infinite values; retrain it")
-        return cls(
-            list(meta["classes"]),
-            meta["channel"],
-            int(meta["size"]),
-            float(meta["bin_deg"]),
-            arrays["freqs"],
-            arrays["filter_class"],
-            arrays["filter_az_deg"],
-            arrays["params"],
-            dict(meta.get("metadata", {})),
-            str(meta.get("metric", "pce")),
-        )
+        try:
+            return cls(
+                list(meta["classes"]),
+                meta["channel"],
+                int(meta["size"]),
+                float(meta["bin_deg"]),
+                arrays["freqs"],
+                arrays["filter_class"],
+                arrays["filter_az_deg"],
+                arrays["params"],
+                dict(meta.get("metadata", {})),
+                str(meta.get("metric", "pce")),
+            )
+        except InputError as exc:
+            raise InputError(f"{p}: not a valid prism3d filter bank ({exc})") from None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"{p}: not a valid prism3d filter bank (bad or missing {exc})") from None
 
 
 def _psr_at_origin(plane: NDArray) -> float:

@@ -7,6 +7,7 @@ or a key of an ``.npz`` (``file.npz:depth_left_mm``), or PFM.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +18,8 @@ from prism3d.checks import check_array, check_file
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 
-__all__ = ["DEFAULT_MAX_PIXELS", "max_pixels", "check_image_size", "read_image", "write_image", "read_depth",
-           "write_depth", "split_npz_spec"]
+__all__ = ["DEFAULT_MAX_PIXELS", "max_pixels", "check_image_size", "check_npy_header", "read_image", "write_image",
+           "read_depth", "write_depth", "split_npz_spec"]
 
 #: Largest image decoded unless ``PRISM3D_MAX_PIXELS`` says otherwise: 100 MP is twice
 #: the largest common camera sensors, ~300 MB as RGB; a small file claiming more (a
@@ -154,7 +155,7 @@ def read_depth(spec: str | Path) -> NDArray[np.float32]:
             arr = tifffile.imread(str(path))
         elif suffix == ".npy":
             with open(path, "rb") as fh:
-                _check_npy_header(fh, path)
+                check_npy_header(fh, path)
             arr = np.load(path, allow_pickle=False)
         elif suffix == ".npz":
             with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
@@ -169,7 +170,7 @@ def read_depth(spec: str | Path) -> NDArray[np.float32]:
                 if key not in names:
                     raise InputError(f"{path}: no array {key!r}; it holds {', '.join(names)}")
                 with z.zip.open(f"{key}.npy") as member:  # the shape, before decompressing it all
-                    _check_npy_header(member, f"{path}:{key}")
+                    check_npy_header(member, f"{path}:{key}")
                 arr = z[key]
         elif suffix == ".pfm":
             from prism3d.io.pfm import read_pfm
@@ -189,13 +190,13 @@ def read_depth(spec: str | Path) -> NDArray[np.float32]:
     return arr.astype(np.float32)
 
 
-def _check_npy_header(fh: Any, where: str | Path) -> None:
+def check_npy_header(fh: Any, where: str | Path) -> None:
     """InputError when an ``.npy`` stream declares more elements than :func:`max_pixels`
     (a few compressed bytes can declare gigabytes)."""
     fmt = np.lib.format
     version = fmt.read_magic(fh)
     shape, _, _ = (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(fh)
-    n = int(np.prod(shape, dtype=np.int64))
+    n = math.prod(int(v) for v in shape)  # Python ints: a forged shape cannot overflow to small
     if n > max_pixels():
         raise InputError(f"{where}: the array declares {_count(n)}, more than the {_count(max_pixels())} "
                          "limit (set PRISM3D_MAX_PIXELS to raise it)")

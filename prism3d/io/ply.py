@@ -216,17 +216,18 @@ def read_ply(path: str | Path) -> PlyData:
     vert = data.get("vertex")
     if not isinstance(vert, dict) or not all(k in vert for k in "xyz"):
         raise InputError(f"{path}: PLY has no vertex element with x, y, z")
-    pts = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float64)
-    out = PlyData(points=pts, comments=comments)
-    if all(k in vert for k in ("nx", "ny", "nz")):
-        out.normals = np.stack([vert["nx"], vert["ny"], vert["nz"]], 1).astype(np.float32)
-    for names in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
-        if all(k in vert for k in names):
-            c = np.stack([vert[k] for k in names], 1)
-            if c.dtype.kind == "f":
-                c = np.clip(np.round(c * 255.0 if c.max(initial=0) <= 1.0 else c), 0, 255)
-            out.colors = c.astype(np.uint8)
-            break
+    with np.errstate(invalid="ignore", over="ignore"):  # a file's signalling NaNs stay NaN, quietly
+        pts = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float64)
+        out = PlyData(points=pts, comments=comments)
+        if all(k in vert for k in ("nx", "ny", "nz")):
+            out.normals = np.stack([vert["nx"], vert["ny"], vert["nz"]], 1).astype(np.float32)
+        for names in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+            if all(k in vert for k in names):
+                c = np.stack([vert[k] for k in names], 1)
+                if c.dtype.kind == "f":
+                    c = np.clip(np.round(np.nan_to_num(c * 255.0 if np.nanmax(c, initial=0) <= 1.0 else c)), 0, 255)
+                out.colors = c.astype(np.uint8)
+                break
     known = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "r", "g", "b", "alpha",
              "diffuse_red", "diffuse_green", "diffuse_blue"}
     out.extra = {k: v for k, v in vert.items() if k not in known}
