@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -872,6 +873,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"prism3d {__version__}")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summaries")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    parser.add_argument("--max-pixels", type=int, metavar="N",
+                        help="largest image or array decoded, pixels (default 100 MP; or PRISM3D_MAX_PIXELS)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for add in _COMMANDS:
         add(sub)
@@ -885,6 +888,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    if args.max_pixels is not None:
+        if args.max_pixels <= 0:
+            parser.error(f"--max-pixels: expected a number of pixels > 0, got {args.max_pixels}")
+        os.environ["PRISM3D_MAX_PIXELS"] = str(args.max_pixels)  # read where images are decoded
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     from prism3d.progress import compile_notice
@@ -900,8 +907,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"prism3d {args.command}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into e.g. `head`: not an error
-        import os
-
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as exc:  # the file system said no: read-only, not a folder, disk full...

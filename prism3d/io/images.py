@@ -98,16 +98,18 @@ def check_image_size(path: Path) -> None:
             return
         declared = f"declares {_count(n)}" if n is not None else "declares too many pixels"
         raise InputError(f"{path}: the image {declared}, more than the {_count(limit)} limit "
-                         "(set PRISM3D_MAX_PIXELS to raise it)") from None
+                         "(--max-pixels or PRISM3D_MAX_PIXELS raises it)") from None
     except Exception:  # noqa: BLE001 - not a format Pillow reads: the decoder decides
         return
     if w * h > limit:
         raise InputError(f"{path}: {w}x{h} is {_count(w * h)}, more than the {_count(limit)} limit "
-                         "(set PRISM3D_MAX_PIXELS to raise it)")
+                         "(--max-pixels or PRISM3D_MAX_PIXELS raises it)")
 
 
 def _count(n: int) -> str:
-    return f"{n / 1e6:,.0f} MP" if n >= 1_000_000 else f"{n:,} pixels"
+    if n >= 10_000_000:
+        return f"{n / 1e6:,.0f} MP"
+    return f"{n / 1e6:.1f} MP" if n >= 1_000_000 else f"{n:,} pixels"
 
 
 def write_image(path: str | Path, image: NDArray) -> None:
@@ -199,7 +201,7 @@ def check_npy_header(fh: Any, where: str | Path) -> None:
     n = math.prod(int(v) for v in shape)  # Python ints: a forged shape cannot overflow to small
     if n > max_pixels():
         raise InputError(f"{where}: the array declares {_count(n)}, more than the {_count(max_pixels())} "
-                         "limit (set PRISM3D_MAX_PIXELS to raise it)")
+                         "limit (--max-pixels or PRISM3D_MAX_PIXELS raises it)")
 
 
 def write_depth(path: str | Path, depth_mm: NDArray) -> None:

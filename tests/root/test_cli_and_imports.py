@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from prism3d.cli import main
@@ -90,6 +91,25 @@ def test_prism3d_error_maps_to_exit_2(monkeypatch, capsys):
     assert main(["demo", "x"]) == 2
     err = capsys.readouterr().err
     assert err == "prism3d demo: error: bad.png: something wrong\n"
+
+
+def test_max_pixels_flag_sets_the_image_budget(tmp_path, monkeypatch, capsys):
+    """A 1.2 MP image is refused under --max-pixels 1000000 (from its header, nothing
+    decoded or written), read under the default."""
+    from prism3d.io.images import write_image
+
+    monkeypatch.delenv("PRISM3D_MAX_PIXELS", raising=False)
+    img = tmp_path / "i.png"
+    write_image(img, np.zeros((1200, 1000, 3), np.uint8))
+    out = tmp_path / "d.pfm"
+    assert main(["--quiet", "--max-pixels", "1000000", "match", str(img), str(img), "--num-disp", "16",
+                 "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "1.2 MP, more than the 1.0 MP limit (--max-pixels" in err and not out.exists()
+    monkeypatch.delenv("PRISM3D_MAX_PIXELS", raising=False)
+    assert main(["--quiet", "match", str(img), str(img), "--num-disp", "16", "-o", str(out)]) == 0
+    with pytest.raises(SystemExit):
+        main(["--max-pixels", "0", "demo", "x"])
 
 
 def test_unexpected_error_keeps_traceback(monkeypatch):
