@@ -894,6 +894,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.environ["PRISM3D_MAX_PIXELS"] = str(args.max_pixels)  # read where images are decoded
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    _only_our_warnings(verbose=args.verbose > 0)
     from prism3d.progress import compile_notice
 
     try:
@@ -914,6 +915,27 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"prism3d {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     return int(rc or 0)
+
+
+class _OursOrErrors(logging.Filter):
+    """Without -v, stderr carries prism3d's own log records and other libraries' errors;
+    their warnings (and Python warnings: numpy, Pillow, tifffile...) only with -v."""
+
+    verbose = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return self.verbose or record.name.startswith("prism3d") or record.levelno >= logging.ERROR
+
+
+_FILTER = _OursOrErrors()
+
+
+def _only_our_warnings(*, verbose: bool) -> None:
+    logging.captureWarnings(True)  # warnings.warn -> the "py.warnings" logger
+    _FILTER.verbose = verbose
+    for h in logging.getLogger().handlers:
+        if _FILTER not in h.filters:
+            h.addFilter(_FILTER)
 
 
 def _print_json(obj: Any) -> None:

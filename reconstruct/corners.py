@@ -406,12 +406,12 @@ def load_image(path: str | Path) -> NDArray[np.uint8]:
     """Read an image file as RGB uint8 ``(H, W, 3)`` (grey files become 3 channels)."""
     import cv2
 
-    from prism3d.io.images import check_image_size
+    from prism3d.io.images import check_image_size, decode_image
 
     p = check_file(path, "image")
     check_image_size(p)  # the pixel budget, from the header, before decoding
     data = np.fromfile(p, dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    img = decode_image(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
         raise InputError(f"{p}: not a readable image (expected PNG, JPEG, TIFF, ...)")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB, dst=img)  # in place: one copy of a large image

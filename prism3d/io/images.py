@@ -7,7 +7,10 @@ or a key of an ``.npz`` (``file.npz:depth_left_mm``), or PFM.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +22,7 @@ from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 
 __all__ = ["DEFAULT_MAX_PIXELS", "max_pixels", "check_image_size", "check_npy_header", "read_image", "write_image",
-           "read_depth", "write_depth", "split_npz_spec"]
+           "read_depth", "write_depth", "split_npz_spec", "decode_image"]
 
 #: Largest image decoded unless ``PRISM3D_MAX_PIXELS`` says otherwise: 100 MP is twice
 #: the largest common camera sensors, ~300 MB as RGB; a small file claiming more (a
@@ -40,7 +43,7 @@ def read_image(path: str | Path, *, grey: bool = False) -> NDArray[np.uint8]:
     path = check_file(path, "image")
     check_image_size(path)
     buf = np.frombuffer(path.read_bytes(), dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    img = decode_image(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if img is None:
         raise InputError(f"{path}: cannot decode as an image (corrupt or unsupported format)")
     if img.dtype == np.uint16:
@@ -60,10 +63,35 @@ def read_image(path: str | Path, *, grey: bool = False) -> NDArray[np.uint8]:
     return np.ascontiguousarray(img)
 
 
+def decode_image(buf: NDArray[np.uint8], flags: int) -> NDArray | None:
+    """``cv2.imdecode`` with the C libraries' own messages (libpng's "PNG input buffer is
+    incomplete"...) kept off stderr: a corrupt file is reported once, by our error."""
+    import cv2
+
+    with _c_stderr_silenced():
+        return cv2.imdecode(buf, flags)
+
+
+@contextlib.contextmanager
+def _c_stderr_silenced() -> Iterator[None]:
+    """File descriptor 2 points at /dev/null for the block (what C code writes there)."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr at all
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
 def max_pixels() -> int:
     """The pixel budget of one decoded image: ``PRISM3D_MAX_PIXELS`` or :data:`DEFAULT_MAX_PIXELS`."""
-    import os
-
     text = os.environ.get("PRISM3D_MAX_PIXELS")
     if text is None:
         return DEFAULT_MAX_PIXELS
