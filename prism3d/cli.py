@@ -888,13 +888,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    if args.max_pixels is not None:
-        if args.max_pixels <= 0:
-            parser.error(f"--max-pixels: expected a number of pixels > 0, got {args.max_pixels}")
-        os.environ["PRISM3D_MAX_PIXELS"] = str(args.max_pixels)  # read where images are decoded
+    if args.max_pixels is not None and args.max_pixels <= 0:
+        parser.error(f"--max-pixels: expected a number of pixels > 0, got {args.max_pixels}")
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     _only_our_warnings(verbose=args.verbose > 0)
+    before = os.environ.get("PRISM3D_MAX_PIXELS")
+    if args.max_pixels is not None:
+        os.environ["PRISM3D_MAX_PIXELS"] = str(args.max_pixels)  # read where images are decoded
+    try:
+        return _run(args)
+    finally:  # main() called in-process leaves the environment as it found it
+        if before is None:
+            os.environ.pop("PRISM3D_MAX_PIXELS", None)
+        else:
+            os.environ["PRISM3D_MAX_PIXELS"] = before
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Run the chosen command; a Prism3dError or a file-system refusal is one line, exit 2."""
     from prism3d.progress import compile_notice
 
     try:
