@@ -116,10 +116,11 @@ class ChipSpec:
         check_choice(self.clutter, "clutter", (None, "ground", "noise"))
         if not 0 <= self.ambient < 1:
             raise InputError(f"ambient: expected a value in [0, 1), got {self.ambient}")
-        for nm in ("noise_sigma", "depth_noise_mm", "lighting_variation"):
+        for nm, hi in (("noise_sigma", MAX_NOISE_SIGMA), ("depth_noise_mm", MAX_DEPTH_NOISE_MM),
+                       ("lighting_variation", 180.0)):
             v = getattr(self, nm)
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"{nm}: expected a finite value >= 0, got {v}")
+            if not (math.isfinite(v) and 0 <= v <= hi):
+                raise InputError(f"{nm}: expected a value in [0, {hi:g}], got {v}")
         s = self.seed
         if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0:
             raise InputError(f"seed: expected a non-negative integer, got {s!r}")
@@ -210,6 +211,10 @@ def default_range_mm(mesh: SceneMesh) -> float:
 #: Largest chip side (px): correlation filters are trained on tens to hundreds of pixels;
 #: 4096 is far beyond any use, and one such chip with every channel is ~200 MB.
 MAX_CHIP_SIZE = 4096
+#: Intensity noise std is in [0, 1] units: 10 is ten times the whole range (pure noise).
+MAX_NOISE_SIGMA = 10.0
+#: Depth noise std, mm: 100 m hides any target.
+MAX_DEPTH_NOISE_MM = 1e5
 #: Memory the chips of one render_chips call may take (all channels, every pose); larger
 #: sets are rendered in parts (a database job splits them into units).
 CHIP_MEMORY_BUDGET = 1 << 30

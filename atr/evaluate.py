@@ -272,22 +272,19 @@ def _conditions(spec: ChipSpec, azimuth: list[float]) -> dict:
 def _write_results(res: dict, df, path: Path) -> None:
     """The results JSON, the chip table and the four plots: written under temp names,
     renamed together only when all of them were written (a failure leaves none)."""
-    import contextlib
-
-    from prism3d.io.atomic import atomic_path
+    from prism3d.io.atomic import atomic_paths
 
     plt = _plt()
     stem = path.with_suffix("")
     figs = {"confusion": plot_confusion(res), "aspect": plot_per_aspect(res),
             "roc": plot_roc(res), "psr": plot_psr_histograms(res)}
+    names = [path, Path(f"{stem}_chips.parquet"), *(Path(f"{stem}_{n}.png") for n in figs)]
     try:
-        with contextlib.ExitStack() as stack:
-            tmp = stack.enter_context(atomic_path(path))
-            tmp.write_text(json.dumps(res, indent=1), encoding="utf-8")
-            df.to_parquet(stack.enter_context(atomic_path(Path(f"{stem}_chips.parquet"))), index=False)
-            for name, fig in figs.items():
-                fig.savefig(stack.enter_context(atomic_path(Path(f"{stem}_{name}.png"))),
-                            format="png", dpi=80)
+        with atomic_paths(*names) as tmp:
+            tmp[0].write_text(json.dumps(res, indent=1), encoding="utf-8")
+            df.to_parquet(tmp[1], index=False)
+            for t, fig in zip(tmp[2:], figs.values(), strict=True):
+                fig.savefig(t, format="png", dpi=80)
     finally:
         for fig in figs.values():
             plt.close(fig)

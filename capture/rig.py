@@ -42,12 +42,27 @@ SCHEMA_VERSION = 1
 #: Largest |coefficient| of (k1, k2, p1, p2, k3) accepted: real lenses, even wide-angle
 #: ones, stay within tens; 1e30 in a file is a corrupt or mistyped calibration.
 MAX_DISTORTION = 1e3
+#: Largest |entry| of K, px: a 10 m lens on 0.1 um pixels; 1e300 is a corrupt file.
+MAX_K_PX = 1e8
+#: Largest distance between the cameras or from rig to camera, mm (100 km): beyond any
+#: stereo pair, survey pairs included; 1e300 is a corrupt file.
+MAX_TRANSLATION_MM = 1e8
 
 
 def _frozen_array(a: NDArray, dtype: Any = np.float64) -> NDArray:
     out = np.array(a, dtype=dtype, copy=True)
     out.setflags(write=False)
     return out
+
+
+def _check_pixels(w: int, h: int) -> None:
+    """A camera or sensor whose images would not fit the decode budget is refused where it
+    is declared, before anything is rendered or read at that size."""
+    from prism3d.io.images import max_pixels
+
+    if w * h > max_pixels():
+        raise InputError(f"size: {w}x{h} is {w * h / 1e6:,.0f} MP, more than the {max_pixels() / 1e6:,.0f} MP "
+                         "limit (--max-pixels or PRISM3D_MAX_PIXELS raises it)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,6 +80,8 @@ class CameraModel:
         K = check_array(self.K, "K", shape=(3, 3), dtype_kind="fiu").astype(np.float64)
         if not np.all(np.isfinite(K)):
             raise InputError("K: expected finite values")
+        if np.any(np.abs(K) > MAX_K_PX):
+            raise InputError(f"K: entries above {MAX_K_PX:g} px describe no camera, got {K.tolist()}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise InputError(f"K: focal lengths must be > 0, got fx={K[0, 0]}, fy={K[1, 1]}")
         if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
@@ -87,6 +104,7 @@ class CameraModel:
             raise InputError(f"size: expected (width, height), got {self.size!r}") from exc
         if w <= 0 or h <= 0:
             raise InputError(f"size: width and height must be > 0, got {(w, h)}")
+        _check_pixels(w, h)
         object.__setattr__(self, "K", _frozen_array(K))
         object.__setattr__(self, "dist", _frozen_array(d))
         object.__setattr__(self, "size", (w, h))
@@ -249,6 +267,7 @@ class PrismSplit:
             raise InputError(f"PrismSplit: sizes and ROIs must be integers ({exc})") from exc
         if sw <= 0 or sh <= 0:
             raise InputError(f"sensor_size: expected positive (width, height), got {(sw, sh)}")
+        _check_pixels(sw, sh)
         for name, roi in (("roi_left", rl), ("roi_right", rr)):
             if len(roi) != 4:
                 raise InputError(f"{name}: expected (x, y, w, h), got {roi}")
@@ -362,6 +381,9 @@ class StereoRig:
                 raise InputError(f"{name}: expected a finite rigid 4x4 transform")
             if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
                 raise InputError(f"{name}: rotation part is not a proper rotation (det {np.linalg.det(R):.3f})")
+            if np.linalg.norm(T[:3, 3]) > MAX_TRANSLATION_MM:
+                raise InputError(f"{name}: a translation of {np.linalg.norm(T[:3, 3]):.3g} mm is beyond any "
+                                 f"rig (at most {MAX_TRANSLATION_MM:g} mm); check the units")
             object.__setattr__(self, name, _frozen_array(T))
         if self.left.size != self.split.view_size or self.right.size != self.split.view_size:
             raise InputError(

@@ -44,7 +44,7 @@ from prism3d.capture.scenes import (
     turntable_poses,
 )
 
-from prism3d.checks import check_array, check_choice, check_in_range, check_positive
+from prism3d.checks import check_array, check_choice, check_in_range, check_positive, check_seed
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path, atomic_write_text, staged_folder
 from prism3d.io.images import write_image
@@ -86,6 +86,15 @@ SHOT_SEED_STRIDE = 1000
 
 
 # -- options ---------------------------------------------------------------------------
+#: Largest extra optical blur, px: beyond it a view is a smear (and OpenCV's kernel
+#: size overflows near 1e9).
+MAX_BLUR_SIGMA_PX = 100.0
+
+
+def _check_blur(value: float) -> float:
+    return check_in_range(value, "blur_sigma", 0.0, MAX_BLUR_SIGMA_PX)
+
+
 @dataclass(frozen=True)
 class ShotOptions:
     """How one flash shot is lit, sampled and recorded (image model: docs/capture.md)."""
@@ -116,7 +125,8 @@ class ShotOptions:
         if ss != self.supersample or ss < 1 or ss > 8:
             raise InputError(f"supersample: expected an integer in [1, 8], got {self.supersample!r}")
         setv(self, "supersample", ss)
-        setv(self, "blur_sigma", check_positive(self.blur_sigma, "blur_sigma", strict=False))
+        setv(self, "blur_sigma", _check_blur(self.blur_sigma))
+        setv(self, "seed", check_seed(self.seed))
         if not (self.noise is None or isinstance(self.noise, (bool, SensorNoise))):
             raise InputError(f"noise: expected a bool or SensorNoise, got {type(self.noise).__name__}")
         _check_effects(self.effects)
@@ -170,7 +180,8 @@ class SimulateOptions:
         if len(b) != 2 or any(int(x) != x or int(x) < 2 for x in b):
             raise InputError(f"board: expected (cols, rows) inner corners >= 2, got {b!r}")
         object.__setattr__(self, "square_mm", check_positive(self.square_mm, "square_mm"))
-        object.__setattr__(self, "blur_sigma", check_positive(self.blur_sigma, "blur_sigma", strict=False))
+        object.__setattr__(self, "blur_sigma", _check_blur(self.blur_sigma))
+        object.__setattr__(self, "seed", check_seed(self.seed))
         self.shot_options(0)  # validates supersample and noise now, not after the first file
 
     def shot_options(self, seed: int) -> ShotOptions:

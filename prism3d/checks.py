@@ -21,6 +21,7 @@ __all__ = [
     "check_positive",
     "check_in_range",
     "check_choice",
+    "check_seed",
     "check_file",
     "check_finite",
 ]
@@ -125,6 +126,14 @@ def check_int(value: Any, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise InputError(f"{name}: expected an integer, got {value!r} ({type(value).__name__})")
     return int(value)
+
+
+def check_seed(value: Any, name: str = "seed") -> int:
+    """A random seed: an integer in [0, 2**63) (numpy's generators take no negative seed)."""
+    v = check_int(value, name)
+    if not 0 <= v < 2**63:
+        raise InputError(f"{name}: expected an integer in [0, 2**63), got {v}")
+    return v
 
 
 def check_choice(value: Any, name: str, choices: Iterable[Any]) -> Any:

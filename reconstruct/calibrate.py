@@ -73,6 +73,18 @@ _POSE_AGREE_REL = 0.1
 # --------------------------------------------------------------------------------------
 # results
 # --------------------------------------------------------------------------------------
+#: Largest chessboard square, mm: a 100 m square is no calibration board (and 1e300
+#: overflows the float32 corner arithmetic).
+MAX_SQUARE_MM = 1e5
+
+
+def _check_square(square_mm: float) -> float:
+    v = check_positive(square_mm, "square_mm")
+    if v > MAX_SQUARE_MM:
+        raise InputError(f"square_mm: expected at most {MAX_SQUARE_MM:g} mm, got {square_mm!r}")
+    return v
+
+
 @dataclass(frozen=True, eq=False)
 class CameraCalibration:
     """Result of :func:`calibrate_camera`: the camera, RMS reprojection error (px,
@@ -959,7 +971,7 @@ def calibrate_stereo_points(
     ``(left, right)`` per view, flattened, carried into the report (right-view order
     corrected). Raises CalibrationError with fewer than ``MIN_VIEWS`` views in both cameras.
     """
-    check_positive(square_mm, "square_mm")
+    _check_square(square_mm)
     obj, L, Rt = _view_points(left_points, right_points, board, square_mm)
     size = (int(image_size[0]), int(image_size[1]))
     V = len(L)
@@ -1032,7 +1044,7 @@ class CalibrationOptions:
     """``cornerSubPix`` half-window, px; None: a fraction of the square size."""
 
     def __post_init__(self) -> None:
-        check_positive(self.square_mm, "square_mm")
+        _check_square(self.square_mm)
         check_choice(self.method, "method", DETECTORS)
         if self.window is not None and int(self.window) < 1:
             raise InputError(f"window: expected a half-window >= 1 pixel, got {self.window}")

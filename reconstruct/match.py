@@ -382,6 +382,13 @@ def _check_pair(left: Any, right: Any, min_disp: Any, num_disp: Any
     num_disp = check_int(num_disp, "num_disp")
     if num_disp <= 0:
         raise InputError(f"num_disp: expected an integer > 0, got {num_disp}")
+    # a disparity of the image width or more matches no pixel: search only what can match
+    w = lf.shape[1]
+    lo, hi = max(min_disp, -(w - 1)), min(min_disp + num_disp - 1, w - 1)
+    if lo > hi:
+        raise InputError(f"disparity range {min_disp}..{min_disp + num_disp - 1} lies outside what a "
+                         f"{w} px wide image can hold (-{w - 1}..{w - 1})")
+    min_disp, num_disp = lo, hi - lo + 1
     if lf.shape[2] == 3 and _k.channels_equal(lf) and _k.channels_equal(rf):
         lf = np.ascontiguousarray(lf[..., :1])
         rf = np.ascontiguousarray(rf[..., :1])
@@ -583,9 +590,12 @@ def match_files(
     ``valid_out``, the validity mask image. InputError: missing or unreadable files,
     different sizes, bad options; ReconstructionError: nothing matched.
     """
+    from prism3d.io.atomic import atomic_paths
     from prism3d.io.images import read_image, write_image
     from prism3d.io.pfm import write_pfm
 
+    outs = [Path(out_path)] + ([] if valid_out is None else [Path(valid_out)])
+    _check_match_outputs(outs)
     left = read_image(left_path)
     right = read_image(right_path)
     if left.shape != right.shape:
@@ -595,7 +605,26 @@ def match_files(
         )
     res = match_stereo_full(left, right, min_disp=min_disp, num_disp=num_disp, options=options)
     disp = res.disparity if dense else np.where(res.valid, res.disparity, np.nan).astype(np.float32)
-    write_pfm(out_path, disp)
-    if valid_out is not None:
-        write_image(valid_out, res.valid)
+    with atomic_paths(*outs) as tmp:  # the disparity and the mask appear together
+        write_pfm(tmp[0], disp)
+        if valid_out is not None:
+            write_image(tmp[1], res.valid)
     return res
+
+
+def _check_match_outputs(outs: list[Path]) -> None:
+    """The disparity ``.pfm`` and the optional mask image: file names, distinct, their
+    folders present, checked before any work."""
+    from prism3d.io.images import IMAGE_EXTENSIONS
+
+    if outs[0].suffix.lower() != ".pfm":
+        raise InputError(f"{outs[0]}: disparity is written as PFM (.pfm)")
+    if len(outs) > 1 and outs[1].suffix.lower() not in IMAGE_EXTENSIONS:
+        raise InputError(f"{outs[1]}: the validity mask is an image; use one of {', '.join(IMAGE_EXTENSIONS)}")
+    if len(outs) > 1 and outs[0].resolve() == outs[1].resolve():
+        raise InputError(f"{outs[1]}: the same file as the disparity output")
+    for o in outs:
+        if o.is_dir():
+            raise InputError(f"{o}: is a directory; give an output file name")
+        if not o.parent.is_dir():
+            raise InputError(f"{o.parent}: no such folder for {o.name}")

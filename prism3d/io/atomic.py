@@ -14,7 +14,7 @@ from typing import IO
 
 from prism3d.errors import InputError, Prism3dError
 
-__all__ = ["atomic_path", "atomic_open", "atomic_write_bytes", "atomic_write_text", "staged_folder"]
+__all__ = ["atomic_path", "atomic_paths", "atomic_open", "atomic_write_bytes", "atomic_write_text", "staged_folder"]
 
 
 @contextlib.contextmanager
@@ -50,6 +50,18 @@ def atomic_path(path: str | Path, *, keep_suffix: bool = True) -> Iterator[Path]
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+@contextlib.contextmanager
+def atomic_paths(*paths: str | Path) -> Iterator[list[Path]]:
+    """Temporary paths beside each of ``paths``, moved onto them together when the block
+    succeeds (one command's several files appear together); on any exception every temp
+    file is removed and no target is touched. Two names for one file are refused."""
+    targets = [Path(p) for p in paths]
+    if len({t.resolve() for t in targets}) != len(targets):
+        raise InputError(f"outputs: two of {', '.join(map(str, targets))} name the same file")
+    with contextlib.ExitStack() as stack:
+        yield [stack.enter_context(atomic_path(t)) for t in targets]
 
 
 @contextlib.contextmanager

@@ -21,7 +21,7 @@ from prism3d.checks import check_array, check_file
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 
-__all__ = ["DEFAULT_MAX_PIXELS", "max_pixels", "check_image_size", "check_npy_header", "read_image", "write_image",
+__all__ = ["DEFAULT_MAX_PIXELS", "IMAGE_EXTENSIONS", "max_pixels", "check_image_size", "check_npy_header", "read_image", "write_image",
            "read_depth", "write_depth", "split_npz_spec", "decode_image"]
 
 #: Largest image decoded unless ``PRISM3D_MAX_PIXELS`` says otherwise: 100 MP is twice
@@ -29,7 +29,9 @@ __all__ = ["DEFAULT_MAX_PIXELS", "max_pixels", "check_image_size", "check_npy_he
 #: decompression bomb) is refused from its header, before any memory is taken.
 DEFAULT_MAX_PIXELS = 100_000_000
 
-_IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".pnm", ".webp"}
+#: File extensions :func:`write_image` writes (OpenCV chooses the encoder by them).
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".pnm", ".webp")
+_IMAGE_EXT = set(IMAGE_EXTENSIONS)
 
 
 def read_image(path: str | Path, *, grey: bool = False) -> NDArray[np.uint8]:

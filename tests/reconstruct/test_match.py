@@ -279,9 +279,23 @@ def test_match_files_writes_pfm(tmp_path: Path) -> None:
 
 def test_nothing_matchable_raises() -> None:
     left, right = _pair(20, 40, 3.0)
-    # every candidate lies outside the right view: all costs tie, nothing is unique
-    with pytest.raises(ReconstructionError, match="no pixel passed the consistency checks"):
+    # every candidate lies outside the right view: refused before any cost is computed
+    with pytest.raises(InputError, match=r"range 100..107 lies outside what a 40 px wide image"):
         match_stereo(left, right, min_disp=100, num_disp=8)
+    # no pixel left after the checks (the assembly of an all-invalid raw disparity)
+    from prism3d.reconstruct import match as m
+
+    nan = np.full((20, 40), np.nan, np.float32)
+    with pytest.raises(ReconstructionError, match="no pixel passed the consistency checks"):
+        m._assemble(nan, np.zeros_like(nan), False, False, None, 0, 7)
+
+
+def test_a_range_wider_than_the_image_is_clipped_to_it() -> None:
+    """--num-disp 125 million on a 40 px image searches the 40 px that can match (no
+    gigabytes of cost volume) and gives what the in-image range gives."""
+    left, right = _pair(20, 40, 3.0)
+    np.testing.assert_array_equal(match_stereo(left, right, min_disp=0, num_disp=125_000_016),
+                                  match_stereo(left, right, min_disp=0, num_disp=40))
 
 
 # ------------------------------------------------------------- real data vs OpenCV SGBM
