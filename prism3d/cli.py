@@ -905,11 +905,36 @@ def main(argv: Sequence[str] | None = None) -> int:
             os.environ["PRISM3D_MAX_PIXELS"] = before
 
 
+#: Commands whose -o names a folder (the others write a file).
+_FOLDER_OUTPUT = {"rectify", "decamo", "render", "capture"}
+#: Arguments that name an output file when they hold a path.
+_FILE_OUTPUT_ARGS = ("output", "mesh", "depth_out", "disparity_out", "valid_out", "json", "link")
+
+
+def _check_command_outputs(args: argparse.Namespace) -> None:
+    """Every output a command names, checked before it starts work (atomic.check_outputs)."""
+    from prism3d.io.atomic import check_outputs
+
+    files, folders = [], []
+    for name in _FILE_OUTPUT_ARGS:
+        v = getattr(args, name, None)
+        if isinstance(v, Path):
+            (folders if name == "output" and args.command in _FOLDER_OUTPUT else files).append(v)
+    if isinstance(getattr(args, "out_dir", None), Path):
+        folders.append(args.out_dir)
+    if args.command == "db" and getattr(args, "db_action", None) == "init":
+        folders.append(args.db)
+    if args.command == "stitch" and isinstance(args.output, Path):
+        files.append(args.output.parent / "poses.json")
+    check_outputs(files, folders)
+
+
 def _run(args: argparse.Namespace) -> int:
     """Run the chosen command; a Prism3dError or a file-system refusal is one line, exit 2."""
     from prism3d.progress import compile_notice
 
     try:
+        _check_command_outputs(args)
         with compile_notice(quiet=args.quiet):  # one stderr line if kernels must compile
             rc = args.func(args)
     except Prism3dError as exc:

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.capture.rig import Rectification, StereoRig, compute_rectification
-from prism3d.checks import check_array, check_choice
+from prism3d.checks import check_array, check_choice, check_in_range
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.io.atomic import atomic_path
 from prism3d.progress import ProgressFn, null_progress
@@ -64,6 +64,11 @@ def _shot_match_options() -> MatchOptions:
     return MatchOptions(lk_window=_SHOT_LK_WINDOW)
 
 
+#: Largest depth smoothing sigma, px: beyond it the scan is a blur of itself (and the
+#: kernel's size grows with the square of it).
+MAX_SMOOTH_SIGMA_PX = 50.0
+
+
 @dataclass(frozen=True)
 class ReconstructOptions:
     """Options of :func:`reconstruct_pair` (why each default: docs/reconstruction.md)."""
@@ -104,6 +109,7 @@ class ReconstructOptions:
             raise InputError(f"min_confidence: expected a value in [0, 1), got {self.min_confidence!r}")
         if (self.min_disp is None) != (self.num_disp is None):
             raise InputError("give both min_disp and num_disp, or neither (then the depth range is used)")
+        check_in_range(self.smooth_sigma_px, "smooth_sigma_px", 0.0, MAX_SMOOTH_SIGMA_PX)
 
 
 def convergence_distance_mm(rig: StereoRig) -> float | None:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.checks import check_array, check_choice, check_in_range, check_positive
+from prism3d.checks import check_array, check_choice, check_in_range, check_int, check_positive
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import invert_transform, rotation_angle_deg, rotvec_from_matrix
 from prism3d.io.atomic import atomic_path, atomic_write_text
@@ -110,6 +110,12 @@ _RIGID_DET_TOL = 1e-6
 _LEVER_FACTOR_CAP = 100.0
 
 
+#: Most Taubin passes on a mesh: a few tens already round it; more is a typo.
+MAX_SMOOTH_ITERATIONS = 1000
+#: Deepest Poisson octree: depth 14 is 16384^3 cells, beyond any scan this rig takes.
+MAX_MESH_DEPTH = 14
+
+
 @dataclass(frozen=True)
 class StitchOptions:
     """Options of :func:`stitch_scans` (why each default: ``docs/stitching.md``)."""
@@ -173,6 +179,12 @@ class StitchOptions:
         check_in_range(self.min_confidence, "min_confidence", 0.0, 1.0)
         if self.voxel is not None:
             check_positive(self.voxel, "voxel")
+        it = check_int(self.smooth_iterations, "smooth_iterations")
+        if not 0 <= it <= MAX_SMOOTH_ITERATIONS:
+            raise InputError(f"smooth_iterations: expected 0 to {MAX_SMOOTH_ITERATIONS}, got {it}")
+        if self.mesh_depth is not None and not 1 <= check_int(self.mesh_depth, "mesh_depth") <= MAX_MESH_DEPTH:
+            raise InputError(f"mesh_depth: expected 1 to {MAX_MESH_DEPTH}, got {self.mesh_depth}")
+        check_in_range(self.mesh_trim_quantile, "mesh_trim_quantile", 0.0, 0.99)
 
 
 @dataclass

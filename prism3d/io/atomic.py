@@ -14,7 +14,7 @@ from typing import IO
 
 from prism3d.errors import InputError, Prism3dError
 
-__all__ = ["atomic_path", "atomic_paths", "atomic_open", "atomic_write_bytes", "atomic_write_text", "staged_folder"]
+__all__ = ["check_outputs", "atomic_path", "atomic_paths", "atomic_open", "atomic_write_bytes", "atomic_write_text", "staged_folder"]
 
 
 @contextlib.contextmanager
@@ -50,6 +50,40 @@ def atomic_path(path: str | Path, *, keep_suffix: bool = True) -> Iterator[Path]
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+def check_outputs(files: list[str | Path] | tuple = (), folders: list[str | Path] | tuple = ()) -> None:
+    """Before any work: each output file is not a folder, each output folder not a file,
+    no two outputs name one path, and a file can be created where each will go (a
+    throw-away temp file in its nearest existing folder: permissions, read-only and
+    pseudo file systems, a file where a folder should be). InputError names the output."""
+    outs = [(Path(p), False) for p in files] + [(Path(p), True) for p in folders]
+    seen: dict[Path, Path] = {}
+    for p, is_folder in outs:
+        r = p.resolve()
+        if r in seen:
+            raise InputError(f"{p}: named twice as an output (also {seen[r]})")
+        seen[r] = p
+        if not is_folder and p.is_dir():
+            raise InputError(f"{p}: is a directory; give an output file name")
+        if is_folder and p.exists() and not p.is_dir():
+            raise InputError(f"{p}: exists and is not a folder")
+    probed: set[Path] = set()
+    for p, is_folder in outs:
+        anc = p if is_folder and p.is_dir() else p.parent
+        while not anc.exists() and anc != anc.parent:
+            anc = anc.parent
+        if anc in probed:
+            continue
+        if not anc.is_dir():
+            raise InputError(f"{p}: {anc} is a file, not a folder")
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=".prism3d-write-check.", dir=anc)
+            os.close(fd)
+            os.unlink(tmp)
+        except OSError as exc:
+            raise InputError(f"{p}: cannot write in {anc} ({exc.strerror or exc})") from None
+        probed.add(anc)
 
 
 @contextlib.contextmanager
