@@ -95,6 +95,12 @@ def check_bank_command(action: str, *, output: str | Path | None, bank: str | Pa
         raise InputError("bank train: give -o BANK.npz")
     if action == "eval" and bank is None:
         raise InputError("bank eval: give the bank file (bank eval BANK.npz ...)")
+    if action == "eval" and output is not None:
+        raise InputError("bank eval writes no bank: -o is for bank train (results go to --json FILE)")
+    if action == "train" and results is not None:
+        raise InputError("bank train: --json is for bank eval")
+    if action == "train" and bank is not None:
+        raise InputError(f"bank train: unexpected argument {bank}; the bank is written to -o")
     for path, suffix in ((output, ".npz"), (results, ".json")):
         if path is None:
             continue

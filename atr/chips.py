@@ -34,6 +34,7 @@ __all__ = [
     "TerrainAlbedo",
     "as_chip_spec",
     "bounding_sphere",
+    "check_ranges",
     "chip_poses",
     "default_range_mm",
     "ground_mesh",
@@ -129,6 +130,8 @@ class ChipSpec:
         if not np.linalg.norm(light) > 0:
             raise InputError(f"light: expected a non-zero direction, got {tuple(self.light)}")
         object.__setattr__(self, "light", light)
+        if self.pixels_per_m is not None:
+            object.__setattr__(self, "pixels_per_m", _check_pixels_per_m(self.pixels_per_m))
         if self.backend == "pyrender" and self.clutter == "ground":
             raise InputError("clutter='ground' needs backend='raycast'")
 
@@ -211,6 +214,10 @@ def default_range_mm(mesh: SceneMesh) -> float:
 #: Largest chip side (px): correlation filters are trained on tens to hundreds of pixels;
 #: 4096 is far beyond any use, and one such chip with every channel is ~200 MB.
 MAX_CHIP_SIZE = 4096
+#: Farthest camera, mm: 100 km, beyond any sensor's range (1e300 is a typo).
+MAX_RANGE_MM = 1e8
+#: Largest "range" framing focal, px per metre at 1 m: a 10 m telephoto on 1 um pixels.
+MAX_PIXELS_PER_M = 1e7
 #: Intensity noise std is in [0, 1] units: 10 is ten times the whole range (pure noise).
 MAX_NOISE_SIGMA = 10.0
 #: Depth noise std, mm: 100 m hides any target.
@@ -236,6 +243,22 @@ def _check_chip_memory(n: int, size: int) -> None:
         raise InputError(f"{n} chips of {size}x{size} px need {need / 2**30:.1f} GiB, more than the "
                          f"{CHIP_MEMORY_BUDGET / 2**30:.0f} GiB budget of one call; render fewer poses at "
                          "once (prism3d db render splits a job into units)")
+
+
+def check_ranges(ranges_mm: str | float | Sequence[float]) -> list[float]:
+    """Camera ranges (a :func:`~prism3d.atr.poses.parse_range` spec), each in
+    (0, :data:`MAX_RANGE_MM`]; checked before a job writes anything."""
+    ranges = parse_range(ranges_mm)
+    for R in ranges:
+        if not 0 < R <= MAX_RANGE_MM:
+            raise InputError(f"ranges_mm: expected ranges in (0, {MAX_RANGE_MM:g}] mm, got {R:g}")
+    return ranges
+
+
+def _check_pixels_per_m(value: float) -> float:
+    if not (math.isfinite(value) and 0 < value <= MAX_PIXELS_PER_M):
+        raise InputError(f"pixels_per_m: expected a number in (0, {MAX_PIXELS_PER_M:g}], got {value}")
+    return float(value)
 
 
 def chip_poses(
@@ -269,7 +292,7 @@ def chip_poses(
         dirs = [(a, e) for e in el for a in az]
     else:
         dirs = [tuple(d) for d in check_array(directions_deg, "directions_deg", shape=(None, 2))]
-    ranges = parse_range(ranges_mm)
+    ranges = check_ranges(ranges_mm)
     rolls = parse_range(rolls_deg)
     for R in ranges:
         if not R > _MIN_RANGE_RADII * r:
@@ -285,9 +308,7 @@ def chip_poses(
         if pixels_per_m is None:
             f_range = fit_focal(min(ranges))
         else:
-            if not (math.isfinite(pixels_per_m) and pixels_per_m > 0):
-                raise InputError(f"pixels_per_m: expected a positive number, got {pixels_per_m}")
-            f_range = float(pixels_per_m)
+            f_range = _check_pixels_per_m(pixels_per_m)
     c0 = (size - 1) / 2.0
     out = []
     for R in ranges:

@@ -25,7 +25,7 @@ from prism3d.capture.trigger import (
     DEFAULT_SHUTTER_US,
     TriggerClient,
 )
-from prism3d.checks import check_positive
+from prism3d.checks import check_in_range, check_positive
 from prism3d.errors import DeviceError, InputError
 from prism3d.io.atomic import atomic_path
 
@@ -143,7 +143,7 @@ class CaptureOptions:
         if isinstance(c, bool) or not isinstance(c, int) or c < 1:
             raise InputError(f"count: expected an integer >= 1, got {c!r}")
         object.__setattr__(self, "interval_s", check_positive(self.interval_s, "interval_s", strict=False))
-        check_positive(self.grab_timeout, "grab_timeout")
+        check_in_range(check_positive(self.grab_timeout, "grab_timeout"), "grab_timeout", 0.0, 3600.0)
         p = self.pattern_id
         if isinstance(p, bool) or not isinstance(p, int) or not 0 <= p <= 15:
             raise InputError(f"pattern_id: expected an integer in [0, 15], got {p!r}")
@@ -190,8 +190,7 @@ def capture_shots(
     try:
         with TriggerClient(trigger_port, timeout=opts.trigger_timeout) as trig:
             device = asdict(trig.identify())
-            out.mkdir(parents=True, exist_ok=True)
-            first = _next_index(out)
+            first = _next_index(out) if out.is_dir() else 0  # the folder appears with the first shot
             t_start = time.monotonic()
             for k in range(opts.count):
                 wait = t_start + k * opts.interval_s - time.monotonic()
@@ -242,5 +241,6 @@ def _capture_one(
         "image": stats,
     }
     png = out / f"shot_{index:03d}.png"
+    out.mkdir(parents=True, exist_ok=True)
     _write_shot(png, png.with_suffix(".json"), image, meta)
     return png

@@ -89,6 +89,12 @@ SHOT_SEED_STRIDE = 1000
 #: Largest extra optical blur, px: beyond it a view is a smear (and OpenCV's kernel
 #: size overflows near 1e9).
 MAX_BLUR_SIGMA_PX = 100.0
+#: Most shots in one simulated folder: a turntable has 8, a calibration set 10-50.
+MAX_VIEWS = 1000
+#: Most inner corners along a simulated board's side (OpenCV's boards: 5-20).
+MAX_BOARD_CORNERS = 100
+#: Largest simulated board square, mm (a 100 m square is no board).
+MAX_SQUARE_MM = 1e5
 
 
 def _check_blur(value: float) -> float:
@@ -174,12 +180,13 @@ class SimulateOptions:
     def __post_init__(self) -> None:
         _check_effects(self.effects)
         v = self.views
-        if v is not None and (int(v) != v or int(v) < 1):
-            raise InputError(f"views: expected a positive integer, got {v!r}")
+        if v is not None and (int(v) != v or not 1 <= int(v) <= MAX_VIEWS):
+            raise InputError(f"views: expected an integer in [1, {MAX_VIEWS}], got {v!r}")
         b = self.board
-        if len(b) != 2 or any(int(x) != x or int(x) < 2 for x in b):
-            raise InputError(f"board: expected (cols, rows) inner corners >= 2, got {b!r}")
-        object.__setattr__(self, "square_mm", check_positive(self.square_mm, "square_mm"))
+        if len(b) != 2 or any(int(x) != x or not 2 <= int(x) <= MAX_BOARD_CORNERS for x in b):
+            raise InputError(f"board: expected (cols, rows) inner corners in [2, {MAX_BOARD_CORNERS}], got {b!r}")
+        object.__setattr__(self, "square_mm", check_in_range(check_positive(self.square_mm, "square_mm"),
+                                                             "square_mm", 0.0, MAX_SQUARE_MM))
         object.__setattr__(self, "blur_sigma", _check_blur(self.blur_sigma))
         object.__setattr__(self, "seed", check_seed(self.seed))
         self.shot_options(0)  # validates supersample and noise now, not after the first file

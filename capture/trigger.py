@@ -25,7 +25,7 @@ from prism3d.capture.trigger_protocol import (
     encode,
     parse_kv,
 )
-from prism3d.checks import check_positive
+from prism3d.checks import check_in_range, check_positive
 from prism3d.errors import DeviceError, InputError
 
 __all__ = [
@@ -50,6 +50,11 @@ DEFAULT_FLASH_US = 2000
 DEFAULT_FLASH_DELAY_US = 500
 
 _POLL_S = 0.02
+
+
+#: Longest wait for a reply or a reconnection, s: an hour; a serial device that takes
+#: longer is not answering (and 1e300 overflows the port's timer).
+MAX_TIMEOUT_S = 3600.0
 
 
 @dataclass(frozen=True)
@@ -121,7 +126,7 @@ class TriggerClient:
         self, url: str, *, timeout: float = 1.0, retries: int = 2, baudrate: int = 115200
     ) -> None:
         self.url = str(url)
-        self.timeout = check_positive(timeout, "timeout")
+        self.timeout = check_in_range(check_positive(timeout, "timeout"), "timeout", 0.0, MAX_TIMEOUT_S)
         if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
             raise InputError(f"retries: expected an integer >= 0, got {retries!r}")
         self.retries = retries
@@ -175,7 +180,8 @@ class TriggerClient:
         (after "port vanished"; use the stable ``/dev/serial/by-id`` name).
         """
         self.close()
-        deadline = time.monotonic() + check_positive(timeout, "timeout")
+        deadline = time.monotonic() + check_in_range(check_positive(timeout, "timeout"), "timeout", 0.0,
+                                                     MAX_TIMEOUT_S)
         while True:
             try:
                 self.open()

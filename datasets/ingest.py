@@ -90,6 +90,10 @@ class _Pending:
     builtin_scale: float = float("nan")
 
 
+#: Longest target accepted, mm: 1 km, beyond the largest ship; 1e300 is a typo.
+MAX_TARGET_LENGTH_MM = 1e6
+
+
 def _sanitize(name: str) -> str:
     s = re.sub(r"[^A-Za-z0-9_.\-]", "_", name).strip("._-") or "target"
     return s[:MAX_ID_LEN]
@@ -185,8 +189,9 @@ def _load_file(
         raise DatasetError(f"{path}: cannot load mesh ({exc})") from None
     scale = UNITS_MM[u]
     if length_mm is not None:
-        if not (isinstance(length_mm, (int, float)) and math.isfinite(length_mm) and length_mm > 0):
-            raise DatasetError(f"length_mm: expected a positive length, got {length_mm!r}")
+        if not (isinstance(length_mm, (int, float)) and math.isfinite(length_mm)
+                and 0 < length_mm <= MAX_TARGET_LENGTH_MM):
+            raise DatasetError(f"length_mm: expected a length in (0, {MAX_TARGET_LENGTH_MM:g}] mm, got {length_mm!r}")
         ext = float(np.max(np.ptp(mesh.vertices[:, :2], axis=0)))
         if not ext > 0:
             raise DatasetError(f"{path}: degenerate mesh (zero horizontal extent)")
@@ -338,6 +343,8 @@ def add_meshes(
         paths = [paths]
     if not paths:
         raise DatasetError("add: no mesh files given")
+    if not math.isfinite(float(yaw_deg)):
+        raise DatasetError(f"yaw_deg: expected a finite angle, got {yaw_deg!r}")
     pending = [
         _load_file(Path(p), target_class, units, up, length_mm, float(yaw_deg)) for p in paths
     ]

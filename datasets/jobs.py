@@ -99,6 +99,7 @@ class RenderSpec:
     backend: str = ChipSpec.backend
 
     def __post_init__(self) -> None:
+        from prism3d.atr.chips import check_ranges
         from prism3d.atr.poses import parse_range
 
         check_name(self.name, "job")
@@ -107,7 +108,7 @@ class RenderSpec:
         for nm in ("azimuth", "elevation") + (("range_mm",) if self.range_mm is not None else ()):
             v = getattr(self, nm)
             try:
-                parse_range(str(v))
+                (check_ranges if nm == "range_mm" else parse_range)(str(v))
             except Prism3dError as exc:
                 raise DatasetError(f"{nm}: {exc}") from None
             object.__setattr__(self, nm, str(v))

@@ -675,7 +675,7 @@ def _cmd_bank(args: argparse.Namespace) -> int:
     from prism3d.datasets.resolve import resolve_targets
 
     check_bank_command(args.action, output=args.output, bank=args.bank,
-                       results=args.json if args.action == "eval" else None)
+                       results=args.json)
     if args.action == "train":
         from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
 
@@ -892,17 +892,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--max-pixels: expected a number of pixels > 0, got {args.max_pixels}")
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    _only_our_warnings(verbose=args.verbose > 0)
+    levels = _quiet_other_libraries(level, verbose=args.verbose > 0)
     before = os.environ.get("PRISM3D_MAX_PIXELS")
     if args.max_pixels is not None:
         os.environ["PRISM3D_MAX_PIXELS"] = str(args.max_pixels)  # read where images are decoded
     try:
         return _run(args)
-    finally:  # main() called in-process leaves the environment as it found it
+    finally:  # main() called in-process leaves the environment and logging as it found them
         if before is None:
             os.environ.pop("PRISM3D_MAX_PIXELS", None)
         else:
             os.environ["PRISM3D_MAX_PIXELS"] = before
+        for name, lvl in levels.items():
+            logging.getLogger(name).setLevel(lvl)
 
 
 #: Commands whose -o names a folder (the others write a file).
@@ -954,25 +956,22 @@ def _run(args: argparse.Namespace) -> int:
     return int(rc or 0)
 
 
-class _OursOrErrors(logging.Filter):
-    """Without -v, stderr carries prism3d's own log records and other libraries' errors;
-    their warnings (and Python warnings: numpy, Pillow, tifffile...) only with -v."""
-
-    verbose = False
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return self.verbose or record.name.startswith("prism3d") or record.levelno >= logging.ERROR
-
-
-_FILTER = _OursOrErrors()
-
-
-def _only_our_warnings(*, verbose: bool) -> None:
+def _quiet_other_libraries(level: int, *, verbose: bool) -> dict[str, int]:
+    """prism3d's own records at ``level``; other libraries' warnings (numpy, Pillow,
+    tifffile, Python ``warnings``, OpenCV's own log) only with -v: set on the loggers,
+    so it holds whatever handlers a host (a notebook, a test runner) installed. Returns
+    the levels it replaced, for :func:`main` to put back."""
     logging.captureWarnings(True)  # warnings.warn -> the "py.warnings" logger
-    _FILTER.verbose = verbose
-    for h in logging.getLogger().handlers:
-        if _FILTER not in h.filters:
-            h.addFilter(_FILTER)
+    root, ours = logging.getLogger(), logging.getLogger("prism3d")
+    old = {"": root.level, "prism3d": ours.level}
+    ours.setLevel(level)
+    root.setLevel(level if verbose else logging.ERROR)
+    if not verbose and "OPENCV_LOG_LEVEL" not in os.environ:  # "[ WARN:0] can't open camera"
+        os.environ["OPENCV_LOG_LEVEL"] = "ERROR"  # read when cv2 loads
+        cv2 = sys.modules.get("cv2")
+        if cv2 is not None:
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    return old
 
 
 def _print_json(obj: Any) -> None:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from prism3d.errors import InputError
 from prism3d.progress import ProgressFn, null_progress
 from prism3d.report import Report, Section
 
@@ -545,6 +546,10 @@ def run_demo(
     failed : list of str
         Names of stages that raised (their traceback is in the report).
     """
+    names = [n for n, _ in STAGES]
+    unknown = [n for n in (only or []) if n not in names]
+    if unknown:
+        raise InputError(f"--only: unknown stage(s) {', '.join(unknown)}; the stages are {', '.join(names)}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ctx = DemoContext(out, seed=seed, fast=fast)

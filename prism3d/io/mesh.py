@@ -92,4 +92,8 @@ def read_mesh(path: str | Path) -> MeshData:
     v = np.concatenate(verts)
     if not np.all(np.isfinite(v)):
         raise InputError(f"{p}: vertices contain NaN or inf")
-    return MeshData(v, np.concatenate(faces), np.clip(np.concatenate(cols), 0, 1) if any_colour else None)
+    f = np.concatenate(faces)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    if not np.any(np.linalg.norm(np.cross(b - a, c - a), axis=1) > 0):
+        raise InputError(f"{p}: every triangle has zero area (the vertices coincide or lie on a line)")
+    return MeshData(v, f, np.clip(np.concatenate(cols), 0, 1) if any_colour else None)

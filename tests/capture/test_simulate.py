@@ -356,7 +356,11 @@ def test_simulate_to_folder_errors(tmp_path):
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"views": 1.5}, "views: expected a positive integer"),
+        ({"views": 1.5}, r"views: expected an integer in \[1, 1000\]"),
+        ({"views": 10**9}, r"views: expected an integer in \[1, 1000\]"),
+        ({"board": (1000, 1000)}, r"board: expected \(cols, rows\) inner corners in \[2, 100\]"),
+        ({"blur_sigma": 1e9}, r"blur_sigma: expected a value in \[0.0, 100.0\]"),
+        ({"seed": -1}, r"seed: expected an integer in \[0, 2\*\*63\)"),
         ({"board": (1, 6)}, r"board: expected \(cols, rows\)"),
         ({"board": (9, 6, 2)}, r"board: expected \(cols, rows\)"),
         ({"square_mm": 0}, "square_mm"),

@@ -177,7 +177,9 @@ def test_add_builtin(tmp_path: Path) -> None:
         ({"units": "mm"}, None, "up axis unknown"),
         ({"units": "mm", "up": "x"}, None, "up: expected one of"),
         ({"units": "mm", "up": "z"}, "this is not a mesh\n\x00\x01garbage", "cannot load mesh"),
-        ({"units": "mm", "up": "z", "length_mm": -3.0}, None, "length_mm: expected a positive"),
+        ({"units": "mm", "up": "z", "length_mm": -3.0}, None, r"length_mm: expected a length in \(0, 1e\+06\]"),
+        ({"units": "mm", "up": "z", "length_mm": 1e300}, None, r"length_mm: expected a length in \(0, 1e\+06\]"),
+        ({"units": "mm", "up": "z", "yaw_deg": float("inf")}, None, "yaw_deg: expected a finite angle"),
     ],
 )
 def test_bad_input_changes_nothing(
