@@ -186,6 +186,7 @@ def capture_shots(
     cam: CameraSource = open_source(source, resolver=resolver) if isinstance(source, str) else source
     owns_source = isinstance(source, str)
     saved: list[Path] = []
+    created = not out.exists()
     cam.open()
     try:
         with TriggerClient(trigger_port, timeout=opts.trigger_timeout) as trig:
@@ -201,6 +202,11 @@ def capture_shots(
                 log.info("saved %s", png)
                 if progress is not None:
                     progress(k + 1, opts.count)
+    except BaseException:
+        # shots taken stay (each is whole); a run that saved none leaves no empty folder
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
     finally:
         if owns_source:
             cam.close()

@@ -551,10 +551,24 @@ def run_demo(
     if unknown:
         raise InputError(f"--only: unknown stage(s) {', '.join(unknown)}; the stages are {', '.join(names)}")
     out = Path(out_dir)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _run_stages(out, [(n, f) for n, f in STAGES if only is None or n in only], seed, fast,
+                           progress)
+    except BaseException:
+        # the report grows stage by stage (an interrupted demo keeps what it did), but a
+        # run that could write nothing leaves no empty folder behind
+        if created and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
+def _run_stages(out: Path, stages: list, seed: int, fast: bool, progress: ProgressFn
+                ) -> tuple[Path, list[str]]:
+    """Run ``stages`` into ``out``, writing ``report.html`` after each one."""
     ctx = DemoContext(out, seed=seed, fast=fast)
     report = Report("prism3d demo: one flash photograph to a metric 3D model, and ATR on top")
-    stages = [(n, f) for n, f in STAGES if only is None or n in only]
     failed: list[str] = []
     for i, (name, fn) in enumerate(stages):
         progress(i, len(stages), name)

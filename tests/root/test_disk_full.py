@@ -1,4 +1,4 @@
-"""Disk full: every writing command, its outputs on a 2 MiB tmpfs filled to the brim (or
+"""Disk full: every writing command (trigger and flatness write no file), its outputs on a 2 MiB tmpfs filled to the brim (or
 to a little free space, so some files fit and the next does not), exits 2 with one line,
 leaves nothing half-written and no new file, and keeps an earlier output byte for byte.
 
@@ -31,6 +31,14 @@ def mnt(tmp_path_factory) -> Path:
     subprocess.run(["umount", "-l", str(d)], capture_output=True)
 
 
+@pytest.fixture(scope="module")
+def trigger() -> str:
+    from prism3d.capture.trigger_sim import TriggerSimulator
+
+    with TriggerSimulator() as sim:
+        yield sim.port
+
+
 def _cli(*args) -> int:
     return main(["--quiet", *map(str, args)])
 
@@ -56,6 +64,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     write_ply(d / "b.ply", transform_points(T, P))
     assert _cli("bank", "train", "--targets", "tank_t1", "jet_j1", "-o", d / "bank.npz", "--azimuth",
                 "0:360:90", "--elevation", "20:20:1", "--size", "32", "--no-camouflage") == 0
+    assert _cli("simulate", "calib", d / "cal", "--rig", d / "rig.yaml", "--supersample", "1", "--views", "4") == 0
     assert _cli("db", "init", d / "db") == 0
     assert _cli("db", "add", d / "db", "--builtin", "jet_j1") == 0
     assert _cli("db", "render", d / "db", "--job", "j", "--azimuth", "0:90:90", "--elevation", "20:20:1",
@@ -86,6 +95,11 @@ def _cases(i: dict[str, Path], m: Path) -> dict[str, tuple[list, Path]]:
                         "--elevation", "20:20:1", "--size", "32", "--no-camouflage"], m / "bank.npz"),
         "bank-eval": (["bank", "eval", d / "bank.npz", "--targets", "tank_t1", "jet_j1", "--azimuth",
                        "0:360:90", "--elevation", "20:20:1", "--json", m / "res.json"], m / "res.json"),
+        "calibrate": (["calibrate", *sorted((d / "cal").glob("calib_*.png")), "--board", "9x6", "-o",
+                       m / "c.yaml"], m / "c.yaml"),
+        "capture": (["capture", "--trigger", "{trigger}", "--camera", f"folder:{d / 'cal'}", "-o", m / "shots",
+                     "--count", "2"], m / "shots"),
+        "demo": (["demo", m / "demo", "--fast", "--only", "environment"], m / "demo"),
         "db-init": (["db", "init", m / "newdb"], m / "newdb"),
         "db-add": (["db", "add", m / "db", "--builtin", "tank_t1", "truck_k1"], m / "db"),
         "db-render": (["db", "render", m / "db", "--job", "k", *render], m / "db"),
@@ -120,13 +134,15 @@ def _fill(m: Path, free: int) -> None:
 
 @pytest.mark.parametrize("free", [0, 200_000])
 @pytest.mark.parametrize("earlier", [False, True], ids=["new", "earlier-output"])
-@pytest.mark.parametrize("name", ["simulate", "convert-calib", "rectify", "match", "reconstruct", "triangulate",
-                                  "stitch", "decamo", "features", "render", "bank-train", "bank-eval",
-                                  "db-init", "db-add", "db-render", "db-features"])
-def test_disk_full(mnt, inputs, name, earlier, free, capsys):
+@pytest.mark.parametrize("name", ["simulate", "calibrate", "convert-calib", "rectify", "match", "reconstruct",
+                                  "triangulate", "stitch", "decamo", "features", "render", "bank-train",
+                                  "bank-eval", "capture", "demo", "db-init", "db-add", "db-render",
+                                  "db-features"])
+def test_disk_full(mnt, inputs, trigger, name, earlier, free, capsys):
     for p in list(mnt.iterdir()):
         shutil.rmtree(p) if p.is_dir() else p.unlink()
     argv, out = _cases(inputs, mnt)[name]
+    argv = [str(a).replace("{trigger}", trigger) for a in argv]
     if name.startswith("db-") and name != "db-init":
         shutil.copytree(inputs["d"] / "db", out)
     elif earlier:  # an earlier output where this run writes: it must survive
