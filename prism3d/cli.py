@@ -528,9 +528,14 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
     if args.min_confidence is not None:
         opts["min_confidence"] = args.min_confidence
     res = stitch_to_files(args.scans, args.output, StitchOptions(**opts), mesh_out=args.mesh,
-                          progress=_progress(args, "stitch"))
+                          progress=_progress(args, "stitch"), frame=args.frame)
     _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
                + (f", mesh {args.mesh}" if args.mesh else ""))
+    of = res.diagnostics.get("object_frame")
+    if of:
+        L, W, H = of["extent_mm"]
+        _say(args, f"object frame: up from the {of['up_from']}; {L:.1f} x {W:.1f} x {H:.1f} mm (L x W x H)"
+                   + ("; front and back may be swapped" if of["forward_ambiguous"] else ""))
     pairs = res.diagnostics.get("pairs", [])
     if pairs:
         _say(args, "registered pairs (pairwise -> in the model; off the surface: spread along the normals, "
@@ -561,6 +566,9 @@ def _add_stitch(sub: Any) -> None:
     p.add_argument("--smooth", type=int, default=0, metavar="N", help="mesh smoothing iterations (default 0)")
     p.add_argument("--min-confidence", type=float, metavar="C", help="use the scans' points whose confidence "
                    "property reaches this (default 0.9: disparity within 1 px with 90 %% chance; 0 = all)")
+    p.add_argument("--frame", choices=["scan", "object"], default="scan",
+                   help="scan: the first scan's camera frame (default); object: z up (turntable axis or "
+                   "support plane), x along the longest horizontal extent, origin on the support")
 
 
 # --- ATR: decamo / features ------------------------------------------------------------------

@@ -781,11 +781,16 @@ def stitch_to_files(
     *,
     mesh_out: str | Path | None = None,
     progress: ProgressFn | None = None,
+    frame: str = "scan",
 ) -> StitchResult:
     """Stitch ``.ply`` / ``.pcd`` scan files (the ``prism3d stitch`` command) and write, all or
     none: ``out_model_ply`` (fused cloud), ``mesh_out`` when given (``options.mesh`` follows it)
     and ``poses.json`` beside the model (``schema_version``, ``model``, ``scans`` with ``path``
-    and ``T_model_scan``, ``pairs`` as in the diagnostics)."""
+    and ``T_model_scan``, ``pairs`` as in the diagnostics). ``frame`` ``"scan"``: the model in
+    the first scan's camera frame; ``"object"``: in the object frame
+    (:func:`~prism3d.reconstruct.object_frame.object_frame`: z up, x forward, origin on the
+    support; PLY header ``up z``), with ``object_frame`` (``T_object_model`` ...) in
+    poses.json; ``T_model_scan`` stays in the first scan's frame."""
     from prism3d.io.ply import write_ply
 
     if isinstance(scan_paths, (str, Path)):
@@ -802,6 +807,7 @@ def stitch_to_files(
             raise InputError(f"{o}: is a folder; give an output file name")
     if len(outs) == 2 and outs[0].resolve() == outs[1].resolve():
         raise InputError("the model and the mesh name the same file; give each its own path")
+    check_choice(frame, "frame", ("scan", "object"))
     opts = dataclasses.replace(StitchOptions() if options is None else options, mesh=mesh_out is not None)
     res = stitch_scans(paths, opts, progress=progress)
     out = Path(out_model_ply)
@@ -811,14 +817,24 @@ def stitch_to_files(
         "scans": [{"path": p, "T_model_scan": T.tolist()} for p, T in zip(paths, res.T_model_scan, strict=True)],
         "pairs": res.diagnostics["pairs"],
     }
+    T_out, where = np.eye(4), ["frame of the first scan"]
+    if frame == "object":
+        from prism3d.reconstruct.object_frame import object_frame
+
+        of = object_frame(res.points, res.T_model_scan)  # before anything is written
+        T_out, doc["object_frame"] = of.T_object_model, of.to_dict()
+        where = [f"object frame: z up (from the {of.up_from}), x forward, origin on the support", "up z"]
+        res.diagnostics["object_frame"] = of.to_dict()
+    R, t = T_out[:3, :3], T_out[:3, 3]
     with contextlib.ExitStack() as stack:
         tmp_model = stack.enter_context(atomic_path(out))
         tmp_poses = stack.enter_context(atomic_path(out.parent / "poses.json"))
         tmp_mesh = stack.enter_context(atomic_path(mesh_out)) if mesh_out is not None else None
-        write_ply(tmp_model, res.points, colors=res.colors, normals=res.normals,
-                  comments=["prism3d stitch: fused model", "units mm", "frame of the first scan"])
+        write_ply(tmp_model, res.points @ R.T + t, colors=res.colors,
+                  normals=None if res.normals is None else res.normals @ R.T.astype(np.float32),
+                  comments=["prism3d stitch: fused model", "units mm", *where])
         atomic_write_text(tmp_poses, json.dumps(doc, indent=1))
         if tmp_mesh is not None:
-            write_ply(tmp_mesh, res.mesh_vertices, faces=res.mesh_faces, colors=res.mesh_colors,
-                      comments=["prism3d stitch: Poisson mesh", "units mm", "frame of the first scan"])
+            write_ply(tmp_mesh, res.mesh_vertices @ R.T + t, faces=res.mesh_faces, colors=res.mesh_colors,
+                      comments=["prism3d stitch: Poisson mesh", "units mm", *where])
     return res
