@@ -68,14 +68,18 @@ def read_mesh(path: str | Path) -> MeshData:
     verts, faces, cols = [], [], []
     any_colour = False
     off = 0
+    gltf = _gltf_base_colours(p) if p.suffix.lower() in (".glb", ".gltf") else {}
     for g in geoms:
         vc = None
         try:
             vis = g.visual
             material = getattr(vis, "material", None)
             if vis.kind == "texture" and getattr(vis, "uv", None) is None and material is not None:
-                # a material colour without a texture (OBJ Kd, glTF baseColorFactor)
-                rgb = np.asarray(material.main_color, dtype=np.float64)[:3] / 255.0
+                # a material colour without a texture (OBJ Kd, glTF baseColorFactor; trimesh
+                # loses the latter when a material also has the specular-glossiness extension)
+                rgb = gltf.get(getattr(material, "name", None))
+                if rgb is None:
+                    rgb = np.asarray(material.main_color, dtype=np.float64)[:3] / 255.0
                 vc = np.broadcast_to(rgb, (len(g.vertices), 3)).copy()
             elif vis.kind is not None:
                 vc = np.asarray(vis.to_color().vertex_colors, dtype=np.float64)[:, :3] / 255.0
@@ -97,3 +101,37 @@ def read_mesh(path: str | Path) -> MeshData:
     if not np.any(np.linalg.norm(np.cross(b - a, c - a), axis=1) > 0):
         raise InputError(f"{p}: every triangle has zero area (the vertices coincide or lie on a line)")
     return MeshData(v, f, np.clip(np.concatenate(cols), 0, 1) if any_colour else None)
+
+
+def _gltf_base_colours(path: Path) -> dict[str, NDArray[np.float64]]:
+    """Material name -> base colour RGB (linear, as OBJ's Kd) of the untextured materials
+    of a ``.glb``/``.gltf`` file, read from its JSON: ``pbrMetallicRoughness.baseColorFactor``,
+    else ``KHR_materials_pbrSpecularGlossiness.diffuseFactor``. Empty when unreadable."""
+    import json
+    import struct
+
+    try:
+        raw = path.read_bytes()
+        if raw[:4] == b"glTF":
+            n, kind = struct.unpack("<II", raw[12:20])
+            doc = json.loads(raw[20:20 + n]) if kind == 0x4E4F534A else {}
+        else:
+            doc = json.loads(raw)
+    except (OSError, ValueError, struct.error, UnicodeDecodeError):
+        return {}
+    out: dict[str, NDArray[np.float64]] = {}
+    for m in doc.get("materials", []) if isinstance(doc, dict) else []:
+        if not isinstance(m, dict) or not isinstance(m.get("name"), str):
+            continue
+        pbr = m.get("pbrMetallicRoughness") or {}
+        sg = (m.get("extensions") or {}).get("KHR_materials_pbrSpecularGlossiness") or {}
+        if pbr.get("baseColorTexture") or sg.get("diffuseTexture"):
+            continue  # textured: trimesh samples the texture
+        f = pbr.get("baseColorFactor", sg.get("diffuseFactor"))
+        try:
+            rgb = np.asarray(f, dtype=np.float64).ravel()[:3] if f is not None else None
+        except (TypeError, ValueError):
+            rgb = None
+        if rgb is not None and rgb.size == 3 and np.all(np.isfinite(rgb)):
+            out[m["name"]] = np.clip(rgb, 0.0, 1.0)
+    return out
