@@ -35,6 +35,7 @@ from prism3d.io.units import declared_units
 from prism3d.errors import DatasetError, Prism3dError
 
 __all__ = [
+    "mesh_units",
     "KIT_SCALE",
     "MESH_SUFFIXES",
     "QUATERNIUS_VEHICLES",
@@ -112,8 +113,11 @@ def _file_units(path: Path) -> tuple[str | None, str | None]:
     return declared_units(ply.comments)
 
 
-def _resolve_units(path: Path, units: str | None, up: str | None) -> tuple[str, str]:
-    """Units and up axis of a mesh file from flags, sidecar or PLY comment (never guessed)."""
+def mesh_units(path: Path, units: str | None, up: str | None) -> tuple[str, str]:
+    """Units and up axis of a mesh file, one rule for every command that reads one:
+    the given ``units``/``up`` (flags or a per-target spec), a ``FILE.units.yaml`` sidecar
+    or a PLY's ``units``/``up`` comments; a contradiction is an error, and nothing is
+    guessed (DatasetError naming what to pass)."""
     from prism3d.atr.features import read_units_sidecar
 
     try:
@@ -182,7 +186,7 @@ def _load_file(
         raise DatasetError(
             f"{path}: unsupported mesh format {path.suffix!r}; expected one of {' '.join(MESH_SUFFIXES)}"
         )
-    u, up_v = _resolve_units(path, units, up)
+    u, up_v = mesh_units(path, units, up)
     try:
         mesh = load_mesh_file(path, units=u, up=up_v, yaw_deg=yaw_deg)
     except Prism3dError as exc:

@@ -2,8 +2,11 @@
 
 The ATR layer works on meshes; the CLI lets users name targets three ways:
 ``builtin`` (every built-in target), a built-in name (``tank_t1``), or a mesh file,
-optionally with its class after ``=`` (``tank_1.glb=tank``; without it the class is
-the file name up to the first ``_`` or digit: ``tank_1.glb`` -> ``tank``).
+optionally with its class, units and up axis after ``=``: ``FILE[=CLASS[:UNITS[:UP]]]``
+(``tank_1.glb=tank:m:y``; without a class it is the file name up to the first ``_`` or
+digit: ``tank_1.glb`` -> ``tank``). Units and up follow one rule
+(:func:`~prism3d.datasets.ingest.mesh_units`): this spec, else the command's flags, else
+the file's sidecar or PLY header; never guessed.
 """
 
 from __future__ import annotations
@@ -31,17 +34,25 @@ def resolve_model(
     """One target spec -> ``(class, SceneMesh)`` (see the module docstring)."""
     from prism3d.atr.chips import load_mesh_file
 
-    path_text, _, cls = spec.partition("=")
+    from prism3d.datasets.ingest import mesh_units
+
+    path_text, _, rest = spec.partition("=")
+    parts = rest.split(":") if rest else []
+    if len(parts) > 3:
+        raise InputError(f"{spec}: expected FILE[=CLASS[:UNITS[:UP]]]")
+    cls, t_units, t_up = ([*parts, "", "", ""])[:3]
     if path_text in list_builtin_targets():
+        if t_units or t_up:
+            raise InputError(f"{spec}: built-in targets are in mm, z up; give no units or up")
         mesh = builtin_target(path_text, camouflage=camouflage, seed=seed)
         return (cls or str(mesh.metadata["class"])), mesh
     path = Path(path_text)
     if not path.is_file():
         valid = ", ".join(list_builtin_targets())
         raise InputError(f"{path_text}: neither a mesh file nor a built-in target ({valid})")
-    if units is None:
-        raise InputError(f"{path}: give --units (mm, cm, m, in): mesh files do not say their units")
-    mesh = load_mesh_file(path, units=units, up=up or "z")
+    # this target's own units/up win over the command's flags
+    u, up_v = mesh_units(path, t_units or units, t_up or up)
+    mesh = load_mesh_file(path, units=u, up=up_v)
     return (cls or _class_from_stem(path.stem)), mesh
 
 

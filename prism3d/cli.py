@@ -634,17 +634,19 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from prism3d.atr.chips import ChipSpec, render_to_folder
     from prism3d.datasets.resolve import resolve_model
 
+    units, up = args.units, args.up
     if Path(args.model).is_file():
-        if args.units is None:
-            raise InputError(f"{args.model}: give --units (mm, cm, m, in): mesh files do not say their units")
+        from prism3d.datasets.ingest import mesh_units
+
         model: Any = args.model
+        units, up = mesh_units(Path(args.model), args.units, args.up)  # flags, sidecar, PLY header
     else:
         model = resolve_model(args.model, seed=args.seed)[1]  # painted; ChipSpec.camouflage decides
     spec = ChipSpec(size=args.size, framing=args.framing, pixels_per_m=args.pixels_per_m, channels=args.channels,
                     camouflage=args.camouflage, clutter=args.clutter, noise_sigma=args.noise, seed=args.seed,
                     backend=args.backend)
     manifest = render_to_folder(model, args.output, azimuth=args.azimuth, elevation=args.elevation,
-                                range_mm=args.range, chip_spec=spec, units=args.units or "mm", up=args.up,
+                                range_mm=args.range, chip_spec=spec, units=units or "mm", up=up,
                                 fmt=args.format)
     _say(args, f"wrote chips and {manifest}")
     return 0
@@ -717,7 +719,7 @@ def _add_bank(sub: Any) -> None:
     p.add_argument("action", choices=["train", "eval"])
     p.add_argument("bank", nargs="?", type=Path, metavar="BANK_NPZ", help="eval: the bank file")
     p.add_argument("--targets", nargs="+", default=["builtin"],
-                   help="'builtin', built-in names, or mesh files FILE[=CLASS] (default builtin)")
+                   help="'builtin', built-in names, or mesh files FILE[=CLASS[:UNITS[:UP]]] (default builtin)")
     p.add_argument("-o", "--output", type=Path, metavar="BANK_NPZ", help="train: output bank")
     p.add_argument("--channel", choices=["intensity", "depth", "shape"], default="depth")
     p.add_argument("--azimuth", default=None, metavar="A0:A1:STEP",

@@ -225,3 +225,22 @@ def test_export_errors(tmp_path) -> None:
     with pytest.raises(InputError, match=r"unknown built-in target"):
         export_builtin_target("nope", tmp_path / "t.ply")
     assert not any(tmp_path.iterdir())  # no partial output
+
+
+@pytest.mark.realdata
+def test_mixed_up_axes_in_one_bank_command(shared_data, tmp_path):
+    """Quaternius' tanks are y up, its cars z up: per-target FILE=CLASS:UNITS:UP specs
+    stand each upright (height the smallest extent) and one `bank train` takes both."""
+    from prism3d.cli import main
+    from prism3d.datasets.resolve import resolve_targets
+
+    glb = shared_data / "meshes" / "quaternius_vehicles_cc0" / "glb"
+    specs = [f"{glb / 'tank_1.glb'}=tank:m:y", f"{glb / 'car_normal_1.glb'}=vehicle:m:z"]
+    for cls, mesh in resolve_targets(specs):
+        ext = mesh.extent_mm
+        assert ext[2] < min(ext[0], ext[1]), (cls, ext)  # upright: lower than long or wide
+    out = tmp_path / "b.npz"
+    assert main(["--quiet", "bank", "train", "--targets", *specs, "-o", str(out), "--azimuth", "0:360:90",
+                 "--elevation", "20:20:1", "--size", "32", "--no-camouflage"]) == 0
+    with pytest.raises(Exception, match="FILE\\[=CLASS"):
+        resolve_targets([f"{glb / 'tank_1.glb'}=tank:m:y:extra"])
