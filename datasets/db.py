@@ -58,7 +58,7 @@ TARGET_COLUMNS: dict[str, str] = {
     "target_id": "str",
     "class": "str",
     "name": "str",
-    "source_kind": "str",  # "file" or "builtin"
+    "source_kind": "str",  # "file", "scan" (a prism3d stitch model) or "builtin"
     "source_file": "str",
     "source_sha256": "str",
     "model_file": "str",
@@ -73,6 +73,7 @@ TARGET_COLUMNS: dict[str, str] = {
     "n_faces": "int64",
     "provenance": "str",
     "builtin_scale": "float64",  # built-ins: ratio to full size; NaN for files
+    "coverage": "float64",  # scans: share of the view sphere observed; NaN otherwise
     "added": "str",
     "schema_version": "int64",
 }

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from prism3d.datasets.db import (
     TABLE_SCHEMA_VERSION,
     TargetDB,
@@ -89,6 +90,7 @@ class _Pending:
     n_faces: int
     provenance: str
     builtin_scale: float = float("nan")
+    coverage: float = float("nan")
 
 
 #: Longest target accepted, mm: 1 km, beyond the largest ship; 1e300 is a typo.
@@ -215,10 +217,14 @@ def _load_file(
         f"source {path.name} sha256 {sha}",
         f"scale_to_mm {scale:.9g}",
     ]
+    kind, provenance, coverage = "file", f"file {path.name}", float("nan")
+    if _is_scan(path):
+        kind = "scan"
+        provenance, coverage = _scan_provenance(path, mesh.vertices)
     return _Pending(
         name=path.stem,
         target_class=target_class,
-        source_kind="file",
+        source_kind=kind,
         source_file=str(path.resolve()),
         source_sha256=sha,
         model_bytes=_model_bytes(mesh, comments),
@@ -228,8 +234,66 @@ def _load_file(
         dims=dims,  # type: ignore[arg-type]
         n_vertices=len(mesh.vertices),
         n_faces=len(mesh.faces),
-        provenance=f"file {path.name}",
+        provenance=provenance,
+        coverage=coverage,
     )
+
+
+#: A direction of the view sphere counts as observed within this angle of a camera's.
+COVERAGE_ANGLE_DEG = 45.0
+_COVERAGE_SAMPLES = 2000
+
+
+def _is_scan(path: Path) -> bool:
+    """A model ``prism3d stitch`` wrote (its PLY header says so)."""
+    if path.suffix.lower() != ".ply":
+        return False
+    from prism3d.io.ply import read_ply
+
+    try:
+        return any(c.startswith("prism3d stitch") for c in read_ply(path).comments)
+    except Prism3dError:
+        return False
+
+
+def _scan_provenance(path: Path, vertices: NDArray) -> tuple[str, float]:
+    """What a scanned model came from (``poses.json`` beside it: its hash, the scans' hashes)
+    and its coverage: the share of the view sphere within COVERAGE_ANGLE_DEG of a camera,
+    and the elevation below which nothing was seen. Without poses.json: unknown (NaN)."""
+    import json
+
+    poses = path.parent / "poses.json"
+    if not poses.is_file():
+        return f"scan {path.name}; no poses.json beside it: views and coverage unknown", float("nan")
+    try:
+        doc = json.loads(poses.read_text(encoding="utf-8"))
+        Ts = [np.asarray(s["T_model_scan"], np.float64) for s in doc["scans"]]
+        T_om = np.asarray(doc.get("object_frame", {}).get("T_object_model", np.eye(4)), np.float64)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(f"{poses}: not a prism3d stitch poses file ({exc})") from None
+    scan_hashes = []
+    for s_ in doc["scans"]:
+        f = Path(s_.get("path", ""))
+        f = f if f.is_absolute() else poses.parent / f
+        scan_hashes.append(sha256_file(f) if f.is_file() else "missing")
+    import hashlib
+
+    views = hashlib.sha256(" ".join(scan_hashes).encode()).hexdigest()
+    centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
+    cams = np.array([(T_om @ T[:, 3])[:3] for T in Ts]) - centre
+    cams /= np.linalg.norm(cams, axis=1, keepdims=True)
+    k = np.arange(_COVERAGE_SAMPLES) + 0.5
+    z = 1 - 2 * k / _COVERAGE_SAMPLES  # a Fibonacci sphere: equal-area directions
+    phi = np.pi * (1 + 5**0.5) * k
+    sphere = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    seen = (sphere @ cams.T).max(axis=1) >= np.cos(np.radians(COVERAGE_ANGLE_DEG))
+    coverage = float(seen.mean())
+    lowest = float(np.degrees(np.arcsin(z[seen].min()))) if seen.any() else 90.0
+    missing = sum(h == "missing" for h in scan_hashes)
+    text = (f"scan of {len(Ts)} views (poses.json sha256 {sha256_file(poses)}, scans sha256 {views}"
+            + (f", {missing} scan files not found" if missing else "")
+            + f"); coverage {coverage:.2f} of the view sphere, nothing seen below {lowest:.0f} deg elevation")
+    return text, coverage
 
 
 def _commit(db: TargetDB, pending: list[_Pending], strict: bool) -> AddReport:
@@ -294,7 +358,7 @@ def _write_models(db: TargetDB, rows: list[tuple[str, _Pending]], written: list[
             "scale_to_mm": float(p.scale_to_mm), "up": p.up,
             "length_mm": p.dims[0], "width_mm": p.dims[1], "height_mm": p.dims[2],
             "n_vertices": p.n_vertices, "n_faces": p.n_faces, "provenance": p.provenance,
-            "builtin_scale": float(p.builtin_scale), "added": utc_timestamp(),
+            "builtin_scale": float(p.builtin_scale), "coverage": float(p.coverage), "added": utc_timestamp(),
             "schema_version": TABLE_SCHEMA_VERSION,
         })
     return new_rows

@@ -338,3 +338,31 @@ def test_verify_finds_a_bad_job_yaml_and_duplicate_rows(tmp_path) -> None:
     assert any("not a render job spec" in p for p in verify_db(db))
     (db.job_dir("j") / "job.yaml").write_bytes(b"\xff\xfe: [\n")
     assert verify_db(db) and all("Traceback" not in p for p in verify_db(db))
+
+
+def test_a_stitched_scan_becomes_a_target_without_flags(tmp_path: Path) -> None:
+    """stitch --frame object --mesh, then db add MESH --class tank: units and up from the
+    PLY header, source_kind scan, provenance with the poses' and scans' hashes, coverage
+    of a turntable ring seen from 17 deg above (the underside unobserved)."""
+    from prism3d.cli import main
+    from prism3d.io.ply import write_ply
+    from tests.reconstruct.test_stitch import _raycast_views
+
+    scans, _, _, _ = _raycast_views(views=8, W=360, H=270, f=1500.0)
+    paths = []
+    for k, (p, c, _) in enumerate(scans):
+        paths.append(tmp_path / "scan" / f"s{k}.ply")
+        paths[-1].parent.mkdir(exist_ok=True)
+        write_ply(paths[-1], p, colors=c)
+    model, mesh = tmp_path / "scan" / "model.ply", tmp_path / "scan" / "mesh.ply"
+    assert main(["--quiet", "stitch", *map(str, paths), "-o", str(model), "--mesh", str(mesh),
+                 "--turntable-step", "45", "--frame", "object"]) == 0
+    db = init_db(tmp_path / "db")
+    add_meshes(db, [mesh], target_class="tank")  # no units, no up: the header says mm, z up
+    r = db.targets().iloc[0]
+    assert r["source_kind"] == "scan" and (r["units"], r["up"]) == ("mm", "z")
+    assert "poses.json sha256" in r["provenance"] and "scan files not found" not in r["provenance"]
+    assert 0.4 < r["coverage"] < 0.9, r["coverage"]  # a ring of views: not the whole sphere
+    assert "nothing seen below" in r["provenance"]
+    assert 200 < r["length_mm"] < 290  # tank_t1, 243.8 mm long
+    assert verify_db(db) == []
