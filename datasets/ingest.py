@@ -37,6 +37,8 @@ from prism3d.errors import DatasetError, Prism3dError
 
 __all__ = [
     "mesh_units",
+    "size_warning",
+    "CLASS_LENGTH_M",
     "KIT_SCALE",
     "MESH_SUFFIXES",
     "QUATERNIUS_VEHICLES",
@@ -209,6 +211,9 @@ def _load_file(
     dims = tuple(float(x) for x in np.ptp(mesh.vertices, axis=0))
     if not all(math.isfinite(d) for d in dims) or max(dims) <= 0:
         raise DatasetError(f"{path}: degenerate mesh (extents {dims})")
+    warning = size_warning(path.name, target_class, max(dims[0], dims[1]), u)
+    if warning:
+        log.warning("%s", warning)
     sha = sha256_file(path)
     comments = [
         "units mm",
@@ -237,6 +242,28 @@ def _load_file(
         provenance=provenance,
         coverage=coverage,
     )
+
+
+#: Full-size length range per class, m (main battle tanks, fighters to airliners, boats
+#: to the largest ships, trucks, cars to buses); a model is plausible from a 1:700 kit
+#: (the smallest hobby scale) to full size.
+CLASS_LENGTH_M = {"tank": (4.0, 12.0), "jet": (8.0, 40.0), "aircraft": (5.0, 85.0),
+                  "ship": (3.0, 460.0), "truck": (4.0, 25.0), "vehicle": (2.5, 25.0)}
+SMALLEST_KIT_SCALE = 1 / 700
+
+
+def size_warning(name: str, target_class: str, length_mm: float, units: str) -> str | None:
+    """A warning when a mesh's length in its stated ``units`` is implausible for its class
+    (a ModelNet airplane read as metres is a 357 m biplane); None when plausible or the
+    class is not one of :data:`CLASS_LENGTH_M`."""
+    rng = CLASS_LENGTH_M.get(target_class)
+    if rng is None or not math.isfinite(length_mm):
+        return None
+    lo, hi = rng[0] * 1000 * SMALLEST_KIT_SCALE, rng[1] * 1000
+    if lo <= length_mm <= hi:
+        return None
+    return (f"{name}: {length_mm / 1000:.4g} m long with units {units!r} is implausible for the class {target_class!r} "
+            f"(a model of one is {lo / 1000:.3g}-{hi / 1000:.3g} m); check the units or give --length-mm")
 
 
 #: A direction of the view sphere counts as observed within this angle of a camera's.

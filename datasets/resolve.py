@@ -11,14 +11,19 @@ the file's sidecar or PLY header; never guessed.
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
+
+import numpy as np
 
 from prism3d.capture.mesh import SceneMesh
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 
 __all__ = ["resolve_targets", "resolve_model"]
+
+log = logging.getLogger(__name__)
 
 
 def _class_from_stem(stem: str) -> str:
@@ -34,7 +39,7 @@ def resolve_model(
     """One target spec -> ``(class, SceneMesh)`` (see the module docstring)."""
     from prism3d.atr.chips import load_mesh_file
 
-    from prism3d.datasets.ingest import mesh_units
+    from prism3d.datasets.ingest import mesh_units, size_warning
 
     path_text, _, rest = spec.partition("=")
     parts = rest.split(":") if rest else []
@@ -53,7 +58,11 @@ def resolve_model(
     # this target's own units/up win over the command's flags
     u, up_v = mesh_units(path, t_units or units, t_up or up)
     mesh = load_mesh_file(path, units=u, up=up_v)
-    return (cls or _class_from_stem(path.stem)), mesh
+    cls = cls or _class_from_stem(path.stem)
+    warning = size_warning(path.name, cls, float(np.max(mesh.extent_mm[:2])), u)
+    if warning:
+        log.warning("%s", warning)
+    return cls, mesh
 
 
 def resolve_targets(

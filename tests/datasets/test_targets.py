@@ -244,3 +244,25 @@ def test_mixed_up_axes_in_one_bank_command(shared_data, tmp_path):
                  "--elevation", "20:20:1", "--size", "32", "--no-camouflage"]) == 0
     with pytest.raises(Exception, match="FILE\\[=CLASS"):
         resolve_targets([f"{glb / 'tank_1.glb'}=tank:m:y:extra"])
+
+
+def test_size_warning_by_class():
+    """A length implausible for the class in its stated units is named; kits to full size pass."""
+    from prism3d.datasets.ingest import size_warning
+
+    assert size_warning("a.off", "aircraft", 357_000.0, "m") is not None  # a 357 m biplane
+    assert "357 m long with units 'm'" in size_warning("a.off", "aircraft", 357_000.0, "m")
+    assert size_warning("t.obj", "tank", 7500.0, "mm") is None  # full size
+    assert size_warning("t.obj", "tank", 215.0, "mm") is None  # a 1:35 kit
+    assert size_warning("t.obj", "tank", 2.0, "mm") is not None  # smaller than any kit
+    assert size_warning("x.obj", "robot", 1e9, "mm") is None  # a class without a known size
+
+
+@pytest.mark.realdata
+def test_modelnet_airplane_in_metres_is_flagged(shared_data, caplog):
+    from prism3d.datasets.resolve import resolve_targets
+
+    f = shared_data / "meshes" / "modelnet_airplane" / "airplane_0001.off"
+    with caplog.at_level("WARNING"):
+        resolve_targets([f"{f}=aircraft:m:z"])
+    assert "implausible for the class 'aircraft'" in caplog.text
