@@ -291,9 +291,8 @@ def _write_results(res: dict, df, path: Path) -> None:
 
 
 def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
+    # no backend forced: headless, matplotlib picks Agg itself; in a notebook the figures
+    # stay inline (forcing Agg here silenced them)
     import matplotlib.pyplot as plt
 
     return plt

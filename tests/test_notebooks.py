@@ -26,3 +26,7 @@ def test_notebook_runs(path, tmp_path):
         if o.get("output_type") == "error"
     ]
     assert not errors
+    figures = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+               if "image/png" in o.get("data", {})]
+    if path.stem == "recognition_evaluation":  # its chips, confusion matrices, ROC... drawn inline
+        assert len(figures) >= 5, len(figures)
