@@ -527,6 +527,8 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
         opts["smooth_iterations"] = args.smooth
     if args.min_confidence is not None:
         opts["min_confidence"] = args.min_confidence
+    if args.mesh_max_distance is not None:
+        opts["mesh_max_spacings"] = args.mesh_max_distance
     res = stitch_to_files(args.scans, args.output, StitchOptions(**opts), mesh_out=args.mesh,
                           progress=_progress(args, "stitch"), frame=args.frame)
     _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
@@ -566,6 +568,9 @@ def _add_stitch(sub: Any) -> None:
     p.add_argument("--smooth", type=int, default=0, metavar="N", help="mesh smoothing iterations (default 0)")
     p.add_argument("--min-confidence", type=float, metavar="C", help="use the scans' points whose confidence "
                    "property reaches this (default 0.9: disparity within 1 px with 90 %% chance; 0 = all)")
+    p.add_argument("--mesh-max-distance", type=float, metavar="SPACINGS",
+                   help="drop the mesh farther than this many point spacings from the data (default: keep "
+                   "the closed surface; 2 for a training target: the closed one balloons where nothing was seen)")
     p.add_argument("--frame", choices=["scan", "object"], default="scan",
                    help="scan: the first scan's camera frame (default); object: z up (turntable axis or "
                    "support plane), x along the longest horizontal extent, origin on the support")

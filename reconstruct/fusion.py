@@ -198,12 +198,15 @@ def poisson_mesh(
     depth: int | None = None,
     trim_quantile: float = 0.0,
     smooth_iterations: int = 0,
+    max_distance: float | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.uint8] | None]:
     """Screened Poisson surface (Kazhdan and Hoppe, 2013) of points and outward unit
     normals ``(N, 3)``: vertices ``(V, 3)`` float64, faces ``(F, 3)`` int64, colours
     ``(V, 3)`` uint8 or None. ``spacing``: the point spacing (default octree cells of 2
     spacings). ``trim_quantile``: drop vertices of the lowest Poisson density (0 keeps
-    the surface closed, guessed where no scan saw it). ``smooth_iterations``: Taubin."""
+    the surface closed, guessed where no scan saw it). ``smooth_iterations``: Taubin.
+    ``max_distance``: drop the surface farther than this from every input point (the
+    closed surface balloons where nothing was seen: under a model, around thin wings)."""
     o3d = _o3d()
     P = np.asarray(check_array(points, "points", shape=(None, 3), dtype_kind="fiu"), dtype=np.float64)
     N = np.asarray(check_array(normals, "normals", shape=(len(P), 3), dtype_kind="f"), dtype=np.float64)
@@ -224,7 +227,24 @@ def poisson_mesh(
     # to run, and features computed from the surface must repeat exactly (~6 % slower).
     mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=int(depth), linear_fit=False,
                                                                            n_threads=1)
-    return _finish_mesh(mesh, dens, trim_quantile, smooth_iterations, colors is not None)
+    V, F, C = _finish_mesh(mesh, dens, trim_quantile, smooth_iterations, colors is not None)
+    if max_distance is None:
+        return V, F, C
+    return _trim_far(V, F, C, P, check_positive(max_distance, "max_distance"))
+
+
+def _trim_far(V: NDArray, F: NDArray, C: NDArray | None, P: NDArray, d: float
+              ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.uint8] | None]:
+    """The mesh without its vertices farther than ``d`` from the points ``P`` (and the faces
+    that used them), reindexed."""
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(P).query(V, k=1, distance_upper_bound=d)[0] <= d
+    F = F[near[F].all(axis=1)]
+    used = np.zeros(len(V), bool)
+    used[F.ravel()] = True
+    index = np.cumsum(used) - 1
+    return V[used], index[F].astype(np.int64), None if C is None else C[used]
 
 
 def mesh_is_closed(faces: NDArray) -> bool:

@@ -130,6 +130,10 @@ class StitchOptions:
     """Poisson octree depth; default from extent / spacing."""
     mesh_trim_quantile: float = 0.0
     """Density-quantile trimming of the mesh; 0 keeps it closed (watertight)."""
+    mesh_max_spacings: float | None = None
+    """Drop the mesh farther than this many point spacings from the fused points (None:
+    keep the closed surface, guessed where nothing was seen; a scanned training target
+    wants 3: docs/stitching.md, "Object frame")."""
     smooth_iterations: int = 0
     """Taubin smoothing passes on the mesh."""
     min_fitness: float = 0.2
@@ -185,6 +189,8 @@ class StitchOptions:
         if self.mesh_depth is not None and not 1 <= check_int(self.mesh_depth, "mesh_depth") <= MAX_MESH_DEPTH:
             raise InputError(f"mesh_depth: expected 1 to {MAX_MESH_DEPTH}, got {self.mesh_depth}")
         check_in_range(self.mesh_trim_quantile, "mesh_trim_quantile", 0.0, 0.99)
+        if self.mesh_max_spacings is not None:
+            check_in_range(self.mesh_max_spacings, "mesh_max_spacings", 0.5, 1000.0)
 
 
 @dataclass
@@ -709,10 +715,12 @@ def _fuse(prep: _Prepared, opts: StitchOptions, run: _Run, T_model: list[NDArray
     if opts.mesh:
         t0 = time.perf_counter()
         mv, mf, mc = poisson_mesh(pts, nrm, colors=col, spacing=prep.spacing, depth=opts.mesh_depth,
-                                  trim_quantile=opts.mesh_trim_quantile, smooth_iterations=opts.smooth_iterations)
+                                  trim_quantile=opts.mesh_trim_quantile, smooth_iterations=opts.smooth_iterations,
+                                  max_distance=None if opts.mesh_max_spacings is None
+                                  else opts.mesh_max_spacings * prep.spacing)
         run.seconds["mesh"] = time.perf_counter() - t0
         mesh_closed = mesh_is_closed(mf)
-        if not mesh_closed and opts.mesh_trim_quantile == 0:
+        if not mesh_closed and opts.mesh_trim_quantile == 0 and opts.mesh_max_spacings is None:
             log.warning("the Poisson mesh is not closed")
     run.tick("mesh")
     return pts, col, nrm, mv, mf, mc, mesh_closed
