@@ -35,6 +35,11 @@ class MeshData:
     """(N, 3) in [0, 1], or None when the file has no colours."""
 
 
+#: Largest vertex coordinate accepted, in the file's units: 1e12 mm is a million km;
+#: 1e30 is a corrupt file, whose squares overflow later arithmetic.
+MAX_COORDINATE = 1e12
+
+
 def read_mesh(path: str | Path) -> MeshData:
     """Read a triangle mesh; a multi-part scene is concatenated in its world frame.
 
@@ -96,6 +101,9 @@ def read_mesh(path: str | Path) -> MeshData:
     v = np.concatenate(verts)
     if not np.all(np.isfinite(v)):
         raise InputError(f"{p}: vertices contain NaN or inf")
+    if np.abs(v).max() > MAX_COORDINATE:
+        raise InputError(f"{p}: vertex coordinates up to {np.abs(v).max():.3g} are beyond any model "
+                         f"(at most {MAX_COORDINATE:g} in the file's units); the file is corrupt")
     f = np.concatenate(faces)
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     if not np.any(np.linalg.norm(np.cross(b - a, c - a), axis=1) > 0):
