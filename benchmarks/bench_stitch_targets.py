@@ -5,7 +5,7 @@ view pose against the truth.
 Run::
 
     .venv/bin/python benchmarks/bench_stitch_targets.py [--targets tank_t1 ...] [--ideal-camera]
-        [--window ROWSxCOLS] [--min-confidence C] [--supersample N] [--cache DIR]
+        [--window ROWSxCOLS] [--min-confidence C] [--supersample N] [--cache DIR] [--object-frame]
 
 Shots are rendered once into ``--cache`` (default /tmp/prism3d_stitch_targets) and reused.
 For each target: the worst view's rotation error (deg) and the RMS motion of the true
@@ -51,7 +51,25 @@ def render(name: str, folder: Path, *, ideal: bool, supersample: int) -> None:
     ), target=builtin_target(name, seed=0))
 
 
-def run(name: str, folder: Path, options: dict) -> dict:
+def frame_errors(res, T_world_model, V) -> dict:
+    """The object frame of a stitched model against the truth (world = turntable frame, z
+    up, the target's x forward): up and forward angles (forward modulo front/back), the
+    origin's offset from the true footprint centre on the support, relative sizes."""
+    from prism3d.reconstruct.object_frame import object_frame
+
+    fr = object_frame(res.points, res.T_model_scan)
+    T = fr.T_object_model @ np.linalg.inv(T_world_model)
+    R = T[:3, :3]
+    lo, hi = V.min(0), V.max(0)
+    origin_true = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+    return {"up_deg": float(np.degrees(np.arccos(np.clip(R[2] @ [0, 0, 1], -1, 1)))),
+            "forward_deg": float(np.degrees(np.arccos(np.clip(abs(R[0] @ [1, 0, 0]), -1, 1)))),
+            "ambiguous": bool(fr.forward_ambiguous),
+            "origin_mm": float(np.linalg.norm((np.linalg.inv(T) @ [0, 0, 0, 1])[:3] - origin_true)),
+            "size_rel": (fr.extent_mm / (hi - lo) - 1).tolist()}
+
+
+def run(name: str, folder: Path, options: dict, frame_check: bool = False) -> dict:
     from prism3d.capture.rig import StereoRig
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
@@ -78,6 +96,8 @@ def run(name: str, folder: Path, options: dict) -> dict:
             continue
         errs = pose_errors(res.T_model_scan, poses, V)
         key = "hint" if hint else "nohint"
+        if hint and frame_check:
+            out["frame"] = frame_errors(res, poses[0], V)
         out[key] = {"worst_deg": max(a for a, _ in errs), "worst_motion_mm": max(b for _, b in errs),
                     "worst_view": int(np.argmax([a for a, _ in errs])),
                     "warnings": list(res.diagnostics.get("warnings", []))}
@@ -94,6 +114,7 @@ def main() -> None:
     ap.add_argument("--window", default=None, help="refinement window ROWSxCOLS")
     ap.add_argument("--min-confidence", type=float, default=None)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/prism3d_stitch_targets"))
+    ap.add_argument("--object-frame", action="store_true", help="also the object frame against the truth")
     a = ap.parse_args()
     options: dict = {}
     if a.window:
@@ -108,7 +129,7 @@ def main() -> None:
     for name in a.targets:
         folder = a.cache / tag / name
         render(name, folder, ideal=a.ideal_camera, supersample=a.supersample)
-        r = run(name, folder, options)
+        r = run(name, folder, options, a.object_frame)
         rows.append(r)
         h, n = r["hint"], r["nohint"]
         warn = "; ".join(sorted(set(h["warnings"] + n["warnings"])))[:80]
@@ -116,6 +137,16 @@ def main() -> None:
               f"{n['worst_deg']:.3f} | {n['worst_motion_mm']:.3f} | {warn} | {r['reconstruct_s']:.1f} |", flush=True)
     ok = sum(bool(max(r["hint"]["worst_deg"], r["nohint"]["worst_deg"]) <= 0.05) for r in rows)
     print(f"\n{ok} of {len(rows)} targets within 0.05 deg in both modes")
+    if a.object_frame:
+        print("\n| target | up deg | forward deg | ambiguous | origin mm | L / W / H error |\n|---|---:|---:|---|---:|---|")
+        for r in rows:
+            f = r.get("frame")
+            if f is None:
+                print(f"| {r['target']} | - | - | - | - | stitching failed |")
+                continue
+            rel = " / ".join(f"{100 * v:+.1f}" for v in f["size_rel"])
+            print(f"| {r['target']} | {f['up_deg']:.3f} | {f['forward_deg']:.2f} | {'yes' if f['ambiguous'] else 'no'} | "
+                  f"{f['origin_mm']:.2f} | {rel} % |")
 
 
 if __name__ == "__main__":
