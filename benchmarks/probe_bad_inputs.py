@@ -34,13 +34,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from tests.probe.cases import (  # noqa: E402
-    EXPECT_CODES,
     Case,
     build_fixtures,
     cases,
     command_of,
-    diff_snapshots,
     file_hash,
+    outcome_problems,
     prepare_work,
     shared_data_dir,
     snapshot,
@@ -123,20 +122,7 @@ def run_case(case: Case, fx: Path, work: Path, trigger: str, timeout: float) -> 
         last = next((ln for ln in reversed(lines) if re.match(r"^[\w.]+(Error|Exception|Interrupt|Exit)\b", ln)),
                     lines[-1] if lines else "")
         problems.append(f"traceback: {last.strip()[:200]}")
-    if rc not in EXPECT_CODES[case.expect]:
-        problems.append(f"exit {rc} (expected {case.expect})")
-    if rc == 2 and (len(lines) != 1 or not lines[0].startswith("prism3d ")):
-        problems.append(f"exit 2 with {len(lines)} stderr lines" + (f": {lines[0][:120]!r}" if lines else ""))
-    if rc != 0:
-        changes = diff_snapshots(before, snapshot(work))
-        if changes:
-            problems.append(f"exit {rc} but the work folder changed: {', '.join(changes[:4])}")
-    fx_changes = diff_snapshots(fx_before, snapshot(fx, hashes=False))
-    if fx_changes:
-        problems.append(f"fixtures changed: {', '.join(fx_changes[:4])}")
-    for p, h in prot.items():
-        if not (work / p).is_file() or file_hash(work / p) != h:
-            problems.append(f"protected {p} changed or removed")
+    problems += outcome_problems(case, rc, lines, work, before, fx, fx_before, prot)
     if peak_mb >= MEMORY_BUDGET_MB:
         problems.append(f"peak RSS {peak_mb:.0f} MB >= 1 GB")
     return {"id": case.id, "command": command_of(case.id), "expect": case.expect, "rc": rc,

@@ -10,7 +10,6 @@ References
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import logging
@@ -26,7 +25,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array, check_choice, check_in_range, check_int, check_positive
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import invert_transform, rotation_angle_deg, rotvec_from_matrix
-from prism3d.io.atomic import atomic_path, atomic_write_text
+from prism3d.io.atomic import atomic_paths, atomic_write_text
 from prism3d.progress import ProgressFn
 from prism3d.reconstruct.fusion import fuse_clouds, mesh_is_closed, poisson_mesh
 from prism3d.reconstruct.registration import (
@@ -834,10 +833,10 @@ def stitch_to_files(
         where = [f"object frame: z up (from the {of.up_from}), x forward, origin on the support", "up z"]
         res.diagnostics["object_frame"] = of.to_dict()
     R, t = T_out[:3, :3], T_out[:3, 3]
-    with contextlib.ExitStack() as stack:
-        tmp_model = stack.enter_context(atomic_path(out))
-        tmp_poses = stack.enter_context(atomic_path(out.parent / "poses.json"))
-        tmp_mesh = stack.enter_context(atomic_path(mesh_out)) if mesh_out is not None else None
+    names = [out, out.parent / "poses.json"] + ([Path(mesh_out)] if mesh_out is not None else [])
+    with atomic_paths(*names) as tmp:  # all of them, or none
+        tmp_model, tmp_poses = tmp[0], tmp[1]
+        tmp_mesh = tmp[2] if mesh_out is not None else None
         write_ply(tmp_model, res.points @ R.T + t, colors=res.colors,
                   normals=None if res.normals is None else res.normals @ R.T.astype(np.float32),
                   comments=["prism3d stitch: fused model", "units mm", *where])

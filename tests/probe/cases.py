@@ -126,6 +126,29 @@ def diff_snapshots(before: dict[str, str], after: dict[str, str]) -> list[str]:
 
 
 # --------------------------------------------------------------------------- fixtures
+def outcome_problems(case: Case, rc: int | str, lines: list[str], work: Path, before: dict[str, str],
+                     fx: Path, fx_before: dict[str, str], protect: dict[str, str]) -> list[str]:
+    """What is wrong with one run of ``case`` (both runners judge alike): the exit code,
+    exactly one ``prism3d ...`` stderr line on exit 2, the work folder unchanged after a
+    failure, the fixtures and the ``protect`` files (name -> hash) untouched."""
+    problems = []
+    if rc not in EXPECT_CODES[case.expect]:
+        problems.append(f"exit {rc} (expected {case.expect})")
+    if rc == 2 and (len(lines) != 1 or not lines[0].startswith("prism3d ")):
+        problems.append(f"exit 2 with {len(lines)} stderr lines: {lines[:3]}")
+    if rc != 0:
+        changes = diff_snapshots(before, snapshot(work))
+        if changes:
+            problems.append(f"exit {rc} but the work folder changed: {changes[:5]}")
+    fx_changes = diff_snapshots(fx_before, snapshot(fx, hashes=False))
+    if fx_changes:
+        problems.append(f"the input fixtures changed: {fx_changes[:5]}")
+    for p, h in protect.items():
+        if not (work / p).is_file() or file_hash(work / p) != h:
+            problems.append(f"protected file {p} changed or removed")
+    return problems
+
+
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 

@@ -37,12 +37,11 @@ from pathlib import Path
 import pytest
 
 from tests.probe.cases import (
-    EXPECT_CODES,
     Case,
     build_fixtures,
     cases,
-    diff_snapshots,
     file_hash,
+    outcome_problems,
     prepare_work,
     shared_data_dir,
     snapshot,
@@ -213,24 +212,12 @@ def run_in_process(case: Case, fx: Path, work: Path, trigger: str, capfd) -> dic
     seconds = time.perf_counter() - t0
     _, err = capfd.readouterr()
 
-    problems = []
-    if rc not in EXPECT_CODES[case.expect]:
-        problems.append(f"exit {rc} (expected {case.expect}){': ' + error if error else ''}")
     lines = err.strip().splitlines()
-    if rc == 2 and (len(lines) != 1 or not lines[0].startswith("prism3d ")):
-        problems.append(f"exit 2 with {len(lines)} stderr lines: {lines[:3]}")
+    problems = outcome_problems(case, rc, lines, work, before, fx, fx_before, prot)
+    if error:
+        problems.append(error)
     if "Traceback (most recent call last)" in err:
         problems.append("traceback on stderr")
-    if rc != 0:
-        changes = diff_snapshots(before, snapshot(work))
-        if changes:
-            problems.append(f"exit {rc} but the work folder changed: {changes[:5]}")
-    fx_changes = diff_snapshots(fx_before, snapshot(fx, hashes=False))
-    if fx_changes:
-        problems.append(f"the input fixtures changed: {fx_changes[:5]}")
-    for p, h in prot.items():
-        if not (work / p).is_file() or file_hash(work / p) != h:
-            problems.append(f"protected file {p} changed or removed")
     if peak >= MEMORY_BUDGET:
         problems.append(f"peak traced memory {peak / 2**20:.0f} MiB >= 1 GiB")
     return {"rc": rc, "stderr": lines, "error": error, "peak_mb": peak / 2**20, "seconds": seconds,
