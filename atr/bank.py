@@ -38,6 +38,8 @@ __all__ = [
     "DEFAULT_PARAM_GRID",
     "Detection",
     "FilterBank",
+    "INTENSITY_PREP",
+    "INTENSITY_PREPS",
     "check_bank_command",
     "check_targets",
     "prepare_chips",
@@ -62,6 +64,15 @@ DEFAULT_PARAM_GRID: tuple[tuple[float, float, float], ...] = (
 METRICS = ("pce", "psr", "peak")
 #: Default training chips: 64 px resolve the targets' aspects and keep a bank small.
 BANK_CHIP_SPEC = ChipSpec(size=64)
+#: How intensity chips enter the filters. A bank trained on targets over a black
+#: background and shown the same target over a brighter one sees its silhouette's contrast
+#: flip sign (target-vs-clutter ROC AUC 0.48 with noise clutter, 0.00-0.05 across
+#: backgrounds): ``"gradient"`` correlates the gradient magnitude, the same either way
+#: (docs/atr.md "Intensity"). ``"raw"``: banks saved before it (no ``intensity_prep``).
+INTENSITY_PREPS = ("gradient", "raw")
+INTENSITY_PREP = "gradient"
+#: Gaussian scale of the gradient (px at the chip size).
+GRADIENT_SIGMA_PX = 1.0
 #: Seed stride between classes (a prime): no two classes share lighting/noise draws.
 _CLASS_SEED_STRIDE = 1009
 #: Seed offset of the held-out views: their noise differs from the training chips'.
@@ -114,13 +125,17 @@ def check_bank_command(action: str, *, output: str | Path | None, bank: str | Pa
 
 
 def prepare_chips(
-    images: NDArray, channel: str, fx: NDArray | float | None = None
+    images: NDArray, channel: str, fx: NDArray | float | None = None, *,
+    intensity_prep: str = INTENSITY_PREP,
 ) -> NDArray[np.float64]:
     """Chips ``(N, S, S)`` -> zero-mean, unit-energy filter inputs (module docstring).
 
-    ``fx`` (focal length per chip, px) is required for ``depth``.
+    ``fx`` (focal length per chip, px) is required for ``depth``. ``intensity_prep``:
+    ``"gradient"`` (intensity chips become their gradient magnitude: which side of the
+    silhouette is brighter no longer matters) or ``"raw"`` (banks saved before it).
     """
     check_choice(channel, "channel", FILTER_CHANNELS)
+    check_choice(intensity_prep, "intensity_prep", INTENSITY_PREPS)
     x = check_array(images, "images", ndim=3, dtype_kind="fiub").astype(np.float64)
     n, h, w = x.shape
     if channel == "depth":
@@ -143,6 +158,11 @@ def prepare_chips(
         x = out
     else:
         x = np.nan_to_num(x, nan=0.0)
+        if channel == "intensity" and intensity_prep == "gradient":
+            from scipy.ndimage import gaussian_filter
+
+            s = (0.0, GRADIENT_SIGMA_PX, GRADIENT_SIGMA_PX)  # never across chips
+            x = np.hypot(gaussian_filter(x, s, order=(0, 1, 0)), gaussian_filter(x, s, order=(0, 0, 1)))
     x = x - x.mean(axis=(1, 2), keepdims=True)
     e = np.sqrt(np.sum(x**2, axis=(1, 2), keepdims=True))
     return x / np.maximum(e, 1e-12)
@@ -182,6 +202,7 @@ class FilterBank:
     def __post_init__(self) -> None:
         check_choice(self.channel, "channel", FILTER_CHANNELS)
         check_choice(self.metric, "metric", METRICS)
+        check_choice(self.intensity_prep, "intensity_prep", INTENSITY_PREPS)
         k = len(self.freqs)
         if (
             self.freqs.shape != (k, self.size, self.size)
@@ -192,6 +213,12 @@ class FilterBank:
 
     def __len__(self) -> int:
         return len(self.freqs)
+
+    @property
+    def intensity_prep(self) -> str:
+        """How this bank's intensity chips were prepared (``INTENSITY_PREPS``); banks saved
+        before the choice existed were trained on raw intensity."""
+        return str(self.metadata.get("intensity_prep", "raw"))
 
     # -- responses ----------------------------------------------------------------
     def _inputs(self, chips: ChipSet | NDArray, fx: NDArray | float | None) -> NDArray[np.float64]:
@@ -207,7 +234,7 @@ class FilterBank:
         x = check_array(imgs, "chips", ndim=3)
         if x.shape[1:] != (self.size, self.size):
             raise InputError(f"chips: expected (N, {self.size}, {self.size}) chips, got {x.shape}")
-        return prepare_chips(x, self.channel, fx)
+        return prepare_chips(x, self.channel, fx, intensity_prep=self.intensity_prep)
 
     def responses(
         self, chips: ChipSet | NDArray, fx: NDArray | float | None = None
@@ -272,7 +299,7 @@ class FilterBank:
             raise InputError(
                 f"scene: expected at least {S}x{S} pixels (the chip size), got {H}x{W}"
             )
-        x = prepare_chips(g[None], self.channel, fx)[0]
+        x = prepare_chips(g[None], self.channel, fx, intensity_prep=self.intensity_prep)[0]
         G = np.fft.fft2(x)
         spat = np.fft.ifft2(self.freqs, axes=(-2, -1)).real
         pad = np.zeros((len(self), H, W))
@@ -624,6 +651,7 @@ def train_bank(
         "chosen_params": [float(v) for v in chosen[0]],
         "psr_window": PSR_WINDOW,
         "psr_exclude": PSR_EXCLUDE,
+        "intensity_prep": INTENSITY_PREP,
     }
     return FilterBank(
         classes,

@@ -232,3 +232,27 @@ def test_a_bank_of_nan_filters_is_refused(tmp_path):
                np.zeros((2, 3)), {}, "pce").save(tmp_path / "nan.npz")
     with pytest.raises(InputError, match="NaN or infinite"):
         FilterBank.load(tmp_path / "nan.npz")
+
+
+def test_intensity_prep_is_polarity_free_and_old_banks_stay_raw(tmp_path):
+    """A bright target on a dark ground and the same target on a brighter ground give
+    nearly the same gradient input; a bank saved without ``intensity_prep`` keeps raw."""
+    import dataclasses
+
+    from prism3d.atr.bank import FilterBank, prepare_chips
+
+    yy, xx = np.mgrid[:48, :48]
+    body = ((yy - 24) ** 2 / 100 + (xx - 24) ** 2 / 300) < 1
+    dark = np.where(body, 0.3, 0.0)[None]
+    bright = np.where(body, 0.3, 0.6)[None]
+    g = [prepare_chips(x, "intensity")[0] for x in (dark, bright)]
+    r = [prepare_chips(x, "intensity", intensity_prep="raw")[0] for x in (dark, bright)]
+    assert float(np.sum(g[0] * g[1])) > 0.99  # unit energy: this is the correlation
+    assert float(np.sum(r[0] * r[1])) < -0.99  # raw: the contrast flips sign
+    b = FilterBank(["a", "b"], "intensity", 8, 180.0, np.ones((2, 8, 8), complex), np.array([0, 1]),
+                   np.array([0.0, 0.0]), np.ones((2, 3)), {})
+    assert b.intensity_prep == "raw"
+    b2 = FilterBank.load(b.save(tmp_path / "old.npz"))
+    assert b2.intensity_prep == "raw"
+    with pytest.raises(InputError, match="intensity_prep"):
+        dataclasses.replace(b, metadata={"intensity_prep": "edges"})
