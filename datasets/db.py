@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import fcntl
-import hashlib
 import json
 import logging
 import os
@@ -22,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.errors import DatasetError, InputError
+from prism3d.io.hashes import sha256_file  # noqa: F401 - re-exported: callers import it from here
 
 __all__ = [
     "DB_SCHEMA_VERSION",
@@ -79,15 +79,6 @@ TARGET_COLUMNS: dict[str, str] = {
 }
 
 _DB_YAML_KEYS = {"schema_version", "units", "created", "prism3d_version", "format"}
-
-
-def sha256_file(path: str | Path) -> str:
-    """Hex SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def utc_timestamp() -> str:

@@ -283,6 +283,17 @@ def _is_scan(path: Path) -> bool:
         return False
 
 
+def _ply_meta(path: Path) -> dict[str, str]:
+    """``key value`` comments of a PLY header (the scan's metadata); {} when unreadable."""
+    from prism3d.io.ply import read_ply
+
+    try:
+        comments = read_ply(path).comments
+    except Prism3dError:
+        return {}
+    return dict(c.split(" ", 1) for c in comments if " " in c)
+
+
 def _scan_provenance(path: Path, vertices: NDArray) -> tuple[str, float]:
     """What a scanned model came from (``poses.json`` beside it: its hash, the scans' hashes)
     and its coverage: the share of the view sphere within COVERAGE_ANGLE_DEG of a camera,
@@ -298,14 +309,24 @@ def _scan_provenance(path: Path, vertices: NDArray) -> tuple[str, float]:
         T_om = np.asarray(doc.get("object_frame", {}).get("T_object_model", np.eye(4)), np.float64)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise DatasetError(f"{poses}: not a prism3d stitch poses file ({exc})") from None
-    scan_hashes = []
+    scan_hashes, shots, calibs = [], [], []
     for s_ in doc["scans"]:
         f = Path(s_.get("path", ""))
         f = f if f.is_absolute() else poses.parent / f
         scan_hashes.append(sha256_file(f) if f.is_file() else "missing")
+        if f.is_file():  # what `prism3d reconstruct` wrote in the scan's header
+            meta = _ply_meta(f)
+            shots.append(meta.get("shot_sha256", "unknown"))
+            calibs.append(meta.get("calibration_sha256", "unknown"))
     import hashlib
 
     views = hashlib.sha256(" ".join(scan_hashes).encode()).hexdigest()
+    shot_text = (f", shots sha256 {hashlib.sha256(' '.join(shots).encode()).hexdigest()}"
+                 if shots and "unknown" not in shots else ", shots unknown")
+    cal_set = sorted(set(calibs))
+    cal_text = (f", calibration sha256 {cal_set[0]}" if len(cal_set) == 1 and cal_set[0] != "unknown"
+                else ", calibration unknown" if not cal_set or "unknown" in cal_set
+                else f", calibrations sha256 {' '.join(cal_set)}")
     centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
     cams = np.array([(T_om @ T[:, 3])[:3] for T in Ts]) - centre
     cams /= np.linalg.norm(cams, axis=1, keepdims=True)
@@ -318,6 +339,7 @@ def _scan_provenance(path: Path, vertices: NDArray) -> tuple[str, float]:
     lowest = float(np.degrees(np.arcsin(z[seen].min()))) if seen.any() else 90.0
     missing = sum(h == "missing" for h in scan_hashes)
     text = (f"scan of {len(Ts)} views (poses.json sha256 {sha256_file(poses)}, scans sha256 {views}"
+            + shot_text + cal_text
             + (f", {missing} scan files not found" if missing else "")
             + f"); coverage {coverage:.2f} of the view sphere, nothing seen below {lowest:.0f} deg elevation")
     return text, coverage

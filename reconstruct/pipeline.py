@@ -705,6 +705,12 @@ def reconstruct_to_files(
         rec = reconstruct_pair(*views, cal.rig, opts, progress=progress)
     except InputError as exc:
         raise InputError(f"{source}: {exc}") from exc
+    from prism3d.io.hashes import sha256_files
+
+    # what the scan came from, in its header: a model stitched from it can say so
+    shots = [shot_path] if shot_path is not None else [left_path, right_path]
+    calibs = list(calib_paths) if isinstance(calib_paths, (list, tuple)) else [calib_paths]
+    rec.scan.meta.update(shot_sha256=sha256_files(shots), calibration_sha256=sha256_files(calibs))
     _write_outputs(rec, outs, out_ply, disparity_out, depth_out, mesh_out)  # type: ignore[arg-type]
     return rec
 

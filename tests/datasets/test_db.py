@@ -353,7 +353,8 @@ def test_a_stitched_scan_becomes_a_target_without_flags(tmp_path: Path) -> None:
     for k, (p, c, _) in enumerate(scans):
         paths.append(tmp_path / "scan" / f"s{k}.ply")
         paths[-1].parent.mkdir(exist_ok=True)
-        write_ply(paths[-1], p, colors=c)
+        write_ply(paths[-1], p, colors=c,  # the hashes `prism3d reconstruct` writes
+                  comments=["prism3d scan", f"shot_sha256 {k:064x}", "calibration_sha256 " + "c" * 64])
     model, mesh = tmp_path / "scan" / "model.ply", tmp_path / "scan" / "mesh.ply"
     assert main(["--quiet", "stitch", *map(str, paths), "-o", str(model), "--mesh", str(mesh),
                  "--turntable-step", "45", "--frame", "object"]) == 0
@@ -364,5 +365,6 @@ def test_a_stitched_scan_becomes_a_target_without_flags(tmp_path: Path) -> None:
     assert "poses.json sha256" in r["provenance"] and "scan files not found" not in r["provenance"]
     assert 0.4 < r["coverage"] < 0.9, r["coverage"]  # a ring of views: not the whole sphere
     assert "nothing seen below" in r["provenance"]
+    assert "shots sha256 " in r["provenance"] and "calibration sha256 " + "c" * 64 in r["provenance"]
     assert 200 < r["length_mm"] < 290  # tank_t1, 243.8 mm long
     assert verify_db(db) == []

@@ -79,6 +79,12 @@ def test_rectify_match_reconstruct_flatness(plate, stereo):
     assert np.median(np.abs(d[both] - truth[both])) < 0.1  # ~202 px, sub-pixel accurate
     for f in ("scan.ply", "disp.pfm", "depth.tiff", "mesh.ply"):
         assert (stereo / f).exists(), f
+    from prism3d.io.hashes import sha256_file
+    from prism3d.io.ply import read_ply
+
+    header = read_ply(stereo / "scan.ply").comments  # the scan says what it came from
+    assert f"shot_sha256 {sha256_file(plate / 'shot.png')}" in header
+    assert f"calibration_sha256 {sha256_file(plate / 'rig.yaml')}" in header
     r = prism3d("flatness", stereo / "scan.ply", "--json")
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
