@@ -1,11 +1,13 @@
 """The object frame of a scanned model, chosen from the data (docs/stitching.md, "Object frame").
 
 ``z`` up: the turntable's axis when the views came from one, else the normal of the
-support plane the object stands on; ``x`` forward: the long side of the smallest
-rectangle around the footprint (the longest horizontal extent); ``y = z x x``; origin:
-the footprint's centre on the support (the lowest surface point along ``z``). Which end
-of ``x`` is the front cannot be told from shape alone for a symmetric object: the choice
-is stated (``forward_ambiguous``), not hidden.
+support plane the object stands on; ``x`` forward: the footprint's mirror axis or the
+axis across it, whichever is longer (the longest horizontal extent; the smallest
+rectangle around the footprint when it has no mirror symmetry); ``y = z x x``; origin:
+the footprint's centre on the support (the lowest surface point along ``z``). Extents
+are measured on the surface, not on the noisiest points (each extreme point projected on
+the plane of its neighbourhood). Which end of ``x`` is the front cannot be told from
+shape alone for a symmetric object: the choice is stated (``forward_ambiguous``).
 """
 
 from __future__ import annotations
@@ -34,11 +36,30 @@ SUPPORT_TILT_DEG = 30.0
 #: beneath it.
 SUPPORT_MIN_SHARE = 0.05
 BELOW_SHARE = 0.02
-#: The lowest point is taken at this quantile of the heights (a stray point below the
-#: object does not move the origin; its thin extremities are kept: no trimming above).
-TRIM_QUANTILE = 0.001
-#: Grid of the footprint's area, cells along its longer side.
-FOOTPRINT_CELLS = 200
+#: Grid of the footprint's area (cells along its longer side), closed over gaps of this
+#: many cells (sparse or unseen patches) and with its holes filled.
+FOOTPRINT_CELLS = 400
+FOOTPRINT_CLOSE_CELLS = 5
+#: Mirror-axis search: candidate angles every MIRROR_STEP_DEG, refined to
+#: MIRROR_FINE_DEG; the axis may pass up to MIRROR_SHIFT_CELLS from the footprint's
+#: centroid (an unevenly scanned side moves the centroid).
+MIRROR_STEP_DEG = 1.0
+MIRROR_FINE_DEG = 0.02
+MIRROR_SHIFT_CELLS = 4.0
+#: A footprint is mirror-symmetric when its reflection about the best axis lies, on
+#: average, at most this share of the typical (median-angle) misfit from it.
+MIRROR_MAX_RATIO = 0.6
+#: Footprint cells reflected per trial axis (an even subsample of them).
+MIRROR_SAMPLES = 20000
+#: Extreme points are projected on the plane of their neighbourhood before extents are
+#: taken (moving least squares; the extremes of raw points are the noise's): points within
+#: EXTREME_BAND_SPACINGS of an extreme, neighbourhoods of MLS_NEIGHBOURS points of a
+#: 1-in-MLS_STRIDE subsample (about 9 point spacings across, far wider than the noise).
+EXTREME_BAND_SPACINGS = 10.0
+MLS_NEIGHBOURS = 64
+MLS_STRIDE = 4
+#: At most this many of the points near the extremes are projected (an even subsample).
+MLS_CANDIDATES = 100_000
 #: |skewness| of the points along x below which front and back are a coin toss.
 AMBIGUOUS_SKEW = 0.15
 
@@ -75,20 +96,34 @@ def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None)
     upright = _upright(poses)
     notes: list[str] = []
     up = _turntable_up(poses, upright)
+    plane = None
     if up is not None:
         up_from = "turntable"
-        heights = P @ up
-        lo = float(np.quantile(heights, TRIM_QUANTILE))
     else:
-        up, lo, tol = _support_up(P, upright)
+        up, plane, tol = _support_up(P, upright)
         up_from = "support plane"
-        P = P[P @ up > lo + tol]  # the support itself is no part of the object
-        heights = P @ up
-    hi = float(heights.max())
+        P = P[P @ up > plane + tol]  # the support itself is no part of the object
+        if len(P) < 100:
+            raise ReconstructionError("object frame: almost nothing stands on the support plane")
     e1, e2 = _basis(up)
     uv = np.stack([P @ e1, P @ e2], axis=1)
-    centre, x2, (length, width) = _footprint(uv)
+    x2, symmetric = _footprint_axis(uv)
+    if not symmetric:
+        notes.append("the footprint has no mirror symmetry; x is the long side of the smallest "
+                     "rectangle around it")
     x = x2[0] * e1 + x2[1] * e2
+    y0 = np.cross(up, x)
+    lo3, hi3 = _surface_extents(P, np.stack([x, y0, up]))
+    if hi3[1] - lo3[1] > hi3[0] - lo3[0]:  # x is the longer horizontal extent
+        x, y0 = y0, -x
+        lo3, hi3 = np.array([lo3[1], -hi3[0], lo3[2]]), np.array([hi3[1], -lo3[0], hi3[2]])
+        x2 = np.array([x @ e1, x @ e2])
+    lo = float(lo3[2]) if plane is None else float(plane)
+    hi = float(hi3[2])
+    cx, cy = (lo3[:2] + hi3[:2]) / 2
+    centre_xyz = cx * x + cy * y0
+    centre = np.array([centre_xyz @ e1, centre_xyz @ e2])
+    length, width = float(hi3[0] - lo3[0]), float(hi3[1] - lo3[1])
     skew = _skewness((uv - centre) @ x2)
     if skew < 0:  # the heavier tail forward (a stated convention, not a truth)
         x = -x
@@ -170,22 +205,87 @@ def _basis(u: NDArray) -> tuple[NDArray, NDArray]:
     return e1, np.cross(u, e1)
 
 
-def _footprint(uv: NDArray) -> tuple[NDArray, NDArray, tuple[float, float]]:
-    """Centre (2,), long direction (2,) and (length, width) of the footprint: the long
-    direction is the major axis of the footprint's area (the points binned on a
-    FOOTPRINT_CELLS grid, so that how densely a side was scanned does not weigh), the
-    extents are those of the points along it and across."""
-    span = np.ptp(uv, axis=0).max()
+def _footprint_axis(uv: NDArray) -> tuple[NDArray[np.float64], bool]:
+    """A unit direction (2,) of the footprint's main horizontal axis and whether it is a
+    mirror axis. The footprint: the points' cells on a FOOTPRINT_CELLS grid, closed and
+    filled (how densely a side was scanned does not weigh). The mirror axis: the line
+    about which the reflected footprint lies closest to itself (mean distance, cells);
+    without one, the long side of the smallest rectangle around the footprint."""
+    import cv2
+
+    span = float(np.ptp(uv, axis=0).max())
     cell = max(span / FOOTPRINT_CELLS, 1e-9)
-    occ = np.unique(np.floor(uv / cell).astype(np.int64), axis=0).astype(np.float64) * cell
-    cov = np.cov((occ - occ.mean(axis=0)).T)
-    w, v = np.linalg.eigh(cov)
-    d = v[:, int(np.argmax(w))]
-    axes = np.stack([d, [-d[1], d[0]]], axis=1)
-    q = uv @ axes
-    lo, hi = q.min(axis=0), q.max(axis=0)
-    centre = axes @ ((lo + hi) / 2)
-    return centre, d, (float(hi[0] - lo[0]), float(hi[1] - lo[1]))
+    pad = FOOTPRINT_CLOSE_CELLS + 2
+    ij = np.floor((uv - uv.min(axis=0)) / cell).astype(np.int64) + pad
+    shape = tuple(int(v) for v in ij.max(axis=0) + pad + 1)
+    img = np.zeros(shape, np.uint8)
+    img[ij[:, 0], ij[:, 1]] = 1
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (FOOTPRINT_CLOSE_CELLS, FOOTPRINT_CLOSE_CELLS))
+    img = cv2.morphologyEx(img, cv2.MORPH_CLOSE, k)
+    outside = img.copy()
+    cv2.floodFill(outside, np.zeros((shape[0] + 2, shape[1] + 2), np.uint8), (0, 0), 1)
+    img |= 1 - outside  # holes (an unseen patch inside the outline) are footprint too
+    occ = np.argwhere(img > 0).astype(np.float64) + 0.5
+    dist = cv2.distanceTransform((1 - img).astype(np.uint8), cv2.DIST_L2, 5)
+    c = occ.mean(axis=0)
+    X = (occ - c)[:: max(1, len(occ) // MIRROR_SAMPLES)]
+    hi_idx = np.array(shape) - 1
+
+    def misfit(th: float) -> float:
+        d = np.array([np.cos(th), np.sin(th)])
+        n = np.array([-d[1], d[0]])
+        s = X @ n
+        best = np.inf
+        for t in np.arange(-MIRROR_SHIFT_CELLS, MIRROR_SHIFT_CELLS + 1e-9, 0.5):
+            q = np.clip(np.floor(c + X - 2 * (s - t)[:, None] * n).astype(np.int64), 0, hi_idx)
+            best = min(best, float(np.mean(np.minimum(dist[q[:, 0], q[:, 1]], 10.0))))
+        return best
+
+    angles = np.radians(np.arange(0.0, 180.0, MIRROR_STEP_DEG))
+    scores = np.array([misfit(a) for a in angles])
+    th = float(angles[int(np.argmin(scores))])
+    step = np.radians(MIRROR_STEP_DEG)
+    while step > np.radians(MIRROR_FINE_DEG):
+        step /= 5.0
+        cand = th + step * np.arange(-5, 6)
+        th = float(cand[int(np.argmin([misfit(a) for a in cand]))])
+    if misfit(th) <= MIRROR_MAX_RATIO * float(np.median(scores)):
+        return np.array([np.cos(th), np.sin(th)]), True
+    (_, _), (w, h), ang = cv2.minAreaRect(occ.astype(np.float32))
+    a = np.radians(ang)
+    d = np.array([np.cos(a), np.sin(a)])
+    return (d if w >= h else np.array([-d[1], d[0]])), False
+
+
+def _surface_extents(P: NDArray, R: NDArray) -> tuple[NDArray, NDArray]:
+    """Lowest and highest surface coordinates (3,) along the rows of ``R``: the points
+    within EXTREME_BAND_SPACINGS of each extreme, projected on the plane of their
+    neighbourhood (moving least squares), then their extremes."""
+    from scipy.spatial import cKDTree
+
+    from prism3d.reconstruct.registration import point_spacing
+
+    Q = P @ R.T
+    band = EXTREME_BAND_SPACINGS * point_spacing(P)
+    near = np.zeros(len(P), bool)
+    for a in range(3):
+        near |= (Q[:, a] < Q[:, a].min() + band) | (Q[:, a] > Q[:, a].max() - band)
+    idx = np.flatnonzero(near)
+    idx = idx[:: max(1, len(idx) // MLS_CANDIDATES)]
+    sub = Q[::MLS_STRIDE] if len(Q) >= MLS_STRIDE * MLS_NEIGHBOURS else Q
+    k = min(MLS_NEIGHBOURS, len(sub))
+    tree = cKDTree(sub)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for s in range(0, len(idx), 4096):  # (4096, k, 3) at a time
+        q = Q[idx[s : s + 4096]]
+        _, nb = tree.query(q, k=k, workers=-1)
+        N = sub[nb]
+        cen = N.mean(axis=1)
+        D = N - cen[:, None]
+        n = np.linalg.eigh(np.einsum("mki,mkj->mij", D, D))[1][:, :, 0]
+        proj = q - np.sum((q - cen) * n, axis=1)[:, None] * n
+        lo, hi = np.minimum(lo, proj.min(axis=0)), np.maximum(hi, proj.max(axis=0))
+    return lo, hi
 
 
 def _skewness(s: NDArray) -> float:
