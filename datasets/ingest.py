@@ -117,11 +117,20 @@ def _file_units(path: Path) -> tuple[str | None, str | None]:
     return declared_units(ply.comments)
 
 
-def mesh_units(path: Path, units: str | None, up: str | None) -> tuple[str, str]:
+def check_length_mm(length_mm: object) -> float:
+    """A stated target length (mm): finite, positive, at most MAX_TARGET_LENGTH_MM."""
+    if not (isinstance(length_mm, (int, float)) and not isinstance(length_mm, bool) and math.isfinite(length_mm)
+            and 0 < length_mm <= MAX_TARGET_LENGTH_MM):
+        raise DatasetError(f"length_mm: expected a length in (0, {MAX_TARGET_LENGTH_MM:g}] mm, got {length_mm!r}")
+    return float(length_mm)
+
+
+def mesh_units(path: Path, units: str | None, up: str | None, *, rescaled: bool = False) -> tuple[str, str]:
     """Units and up axis of a mesh file, one rule for every command that reads one:
     the given ``units``/``up`` (flags or a per-target spec), a ``FILE.units.yaml`` sidecar
     or a PLY's ``units``/``up`` comments; a contradiction is an error, and nothing is
-    guessed (DatasetError naming what to pass)."""
+    guessed (DatasetError naming what to pass). ``rescaled``: the mesh is rescaled to a
+    stated length, so undeclared units do not matter (read as mm)."""
     from prism3d.atr.features import read_units_sidecar
 
     try:
@@ -138,6 +147,8 @@ def mesh_units(path: Path, units: str | None, up: str | None) -> tuple[str, str]
             f"{path}: declares units {declared!r} (sidecar or PLY comment) but units={units!r} was given"
         )
     u = declared if declared is not None else units
+    if u is None and rescaled:
+        u = "mm"
     if u is None:
         raise DatasetError(
             f"{path}: units unknown; pass --units (mm, cm, m, in) or write {path.name}.units.yaml "
@@ -190,16 +201,14 @@ def _load_file(
         raise DatasetError(
             f"{path}: unsupported mesh format {path.suffix!r}; expected one of {' '.join(MESH_SUFFIXES)}"
         )
-    u, up_v = mesh_units(path, units, up)
+    u, up_v = mesh_units(path, units, up, rescaled=length_mm is not None)
     try:
         mesh = load_mesh_file(path, units=u, up=up_v, yaw_deg=yaw_deg)
     except Prism3dError as exc:
         raise DatasetError(f"{path}: cannot load mesh ({exc})") from None
     scale = UNITS_MM[u]
     if length_mm is not None:
-        if not (isinstance(length_mm, (int, float)) and math.isfinite(length_mm)
-                and 0 < length_mm <= MAX_TARGET_LENGTH_MM):
-            raise DatasetError(f"length_mm: expected a length in (0, {MAX_TARGET_LENGTH_MM:g}] mm, got {length_mm!r}")
+        check_length_mm(length_mm)
         ext = float(np.max(np.ptp(mesh.vertices[:, :2], axis=0)))
         if not ext > 0:
             raise DatasetError(f"{path}: degenerate mesh (zero horizontal extent)")
@@ -262,8 +271,10 @@ def size_warning(name: str, target_class: str, length_mm: float, units: str) -> 
     lo, hi = rng[0] * 1000 * SMALLEST_KIT_SCALE, rng[1] * 1000
     if lo <= length_mm <= hi:
         return None
-    return (f"{name}: {length_mm / 1000:.4g} m long with units {units!r} is implausible for the class {target_class!r} "
-            f"(a model of one is {lo / 1000:.3g}-{hi / 1000:.3g} m); check the units or give --length-mm")
+    how, fix = ((f"with units {units!r}", "check the units or give --length-mm") if units != "--length-mm"
+                else ("as --length-mm says", "check the length"))
+    return (f"{name}: {length_mm / 1000:.4g} m long {how} is implausible for the class {target_class!r} "
+            f"(a model of one is {lo / 1000:.3g}-{hi / 1000:.3g} m); {fix}")
 
 
 #: A direction of the view sphere counts as observed within this angle of a camera's.

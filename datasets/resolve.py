@@ -34,12 +34,18 @@ def _class_from_stem(stem: str) -> str:
 
 
 def resolve_model(
-    spec: str, *, units: str | None = None, up: str | None = None, camouflage: bool = True, seed: int = 0
+    spec: str, *, units: str | None = None, up: str | None = None, camouflage: bool = True, seed: int = 0,
+    length_mm: float | None = None,
 ) -> tuple[str, SceneMesh]:
-    """One target spec -> ``(class, SceneMesh)`` (see the module docstring)."""
+    """One target spec -> ``(class, SceneMesh)`` (see the module docstring). ``length_mm``:
+    a mesh file is rescaled to this length (its longest horizontal extent; units it does
+    not declare then do not matter); built-in targets keep theirs."""
     from prism3d.atr.chips import load_mesh_file
 
-    from prism3d.datasets.ingest import mesh_units, size_warning
+    from prism3d.datasets.ingest import check_length_mm, mesh_units, size_warning
+
+    if length_mm is not None:
+        check_length_mm(length_mm)
 
     path_text, _, rest = spec.partition("=")
     parts = rest.split(":") if rest else []
@@ -56,10 +62,11 @@ def resolve_model(
         valid = ", ".join(list_builtin_targets())
         raise InputError(f"{path_text}: neither a mesh file nor a built-in target ({valid})")
     # this target's own units/up win over the command's flags
-    u, up_v = mesh_units(path, t_units or units, t_up or up)
-    mesh = load_mesh_file(path, units=u, up=up_v)
+    u, up_v = mesh_units(path, t_units or units, t_up or up, rescaled=length_mm is not None)
+    mesh = load_mesh_file(path, units=u, up=up_v, length_mm=length_mm)
     cls = cls or _class_from_stem(path.stem)
-    warning = size_warning(path.name, cls, float(np.max(mesh.extent_mm[:2])), u)
+    warning = size_warning(path.name, cls, float(np.max(mesh.extent_mm[:2])),
+                           u if length_mm is None else "--length-mm")
     if warning:
         log.warning("%s", warning)
     return cls, mesh
@@ -67,9 +74,10 @@ def resolve_model(
 
 def resolve_targets(
     specs: list[str], *, units: str | None = None, up: str | None = None, camouflage: bool = True,
-    seed: int = 0,
+    seed: int = 0, length_mm: float | None = None,
 ) -> list[tuple[str, SceneMesh]]:
-    """Target specs (``builtin``, names, ``FILE[=CLASS]``) -> ``[(class, SceneMesh), ...]``."""
+    """Target specs (``builtin``, names, ``FILE[=CLASS]``) -> ``[(class, SceneMesh), ...]``;
+    ``length_mm`` rescales every mesh file (:func:`resolve_model`)."""
     if not specs:
         raise InputError("no targets given (use 'builtin', built-in names or mesh files)")
     out: list[tuple[str, SceneMesh]] = []
@@ -77,5 +85,6 @@ def resolve_targets(
         if spec == "builtin":
             out += [resolve_model(n, camouflage=camouflage, seed=seed) for n in list_builtin_targets()]
         else:
-            out.append(resolve_model(spec, units=units, up=up, camouflage=camouflage, seed=seed))
+            out.append(resolve_model(spec, units=units, up=up, camouflage=camouflage, seed=seed,
+                                     length_mm=length_mm))
     return out

@@ -641,11 +641,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     units, up = args.units, args.up
     if Path(args.model).is_file():
-        from prism3d.datasets.ingest import mesh_units
-
-        model: Any = args.model
-        units, up = mesh_units(Path(args.model), args.units, args.up)  # flags, sidecar, PLY header
+        model: Any = resolve_model(args.model, units=args.units, up=args.up, seed=args.seed,
+                                   length_mm=args.length_mm)[1]  # flags, sidecar, PLY header; rescaled
+        units, up = "mm", "z"
     else:
+        if args.length_mm is not None:
+            raise InputError(f"--length-mm: {args.model} is a built-in target (its length is fixed); "
+                             "the flag rescales mesh files")
         model = resolve_model(args.model, seed=args.seed)[1]  # painted; ChipSpec.camouflage decides
     spec = ChipSpec(size=args.size, framing=args.framing, pixels_per_m=args.pixels_per_m, channels=args.channels,
                     camouflage=args.camouflage, clutter=args.clutter, noise_sigma=args.noise, seed=args.seed,
@@ -674,7 +676,9 @@ def _add_render(sub: Any) -> None:
     p.add_argument("--pixels-per-m", type=float, help="with --framing range")
     p.add_argument("--channels", nargs="+", default=list(_CHANNELS), choices=_CHANNELS)
     p.add_argument("--units", choices=_UNITS, help="units of a mesh file")
-    p.add_argument("--up", choices=_UP_AXES, default="z", help="up axis of a mesh file (default z)")
+    p.add_argument("--up", choices=_UP_AXES, help="up axis of a mesh file that does not declare it")
+    p.add_argument("--length-mm", type=float, metavar="MM",
+                   help="rescale a mesh file to this length (longest horizontal extent); its units then do not matter")
     p.add_argument("--format", choices=["npz", "png"], default="npz", help="chip files (default npz)")
     p.add_argument("--no-camouflage", dest="camouflage", action="store_false", help="uniform grey paint")
     p.add_argument("--clutter", choices=["ground", "noise"], help="background clutter")
@@ -694,7 +698,8 @@ def _cmd_bank(args: argparse.Namespace) -> int:
     if args.action == "train":
         from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
 
-        targets = resolve_targets(args.targets, units=args.units, up=args.up, seed=args.seed)
+        targets = resolve_targets(args.targets, units=args.units, up=args.up, seed=args.seed,
+                                  length_mm=args.length_mm)
         grid = {k: v for k, v in (("azimuth", args.azimuth), ("elevation", args.elevation)) if v is not None}
         spec = replace(BANK_CHIP_SPEC, size=args.size, camouflage=args.camouflage)
         bank = train_bank(targets, channel=args.channel, bin_deg=args.bin_deg, chip_spec=spec, **grid)
@@ -705,7 +710,8 @@ def _cmd_bank(args: argparse.Namespace) -> int:
     from prism3d.atr.evaluate import EVAL_CHIP_SPEC, evaluate_bank, format_results, heldout_seed
 
     bank = FilterBank.load(args.bank)
-    targets = resolve_targets(args.targets, units=args.units, up=args.up, seed=heldout_seed(args.seed))
+    targets = resolve_targets(args.targets, units=args.units, up=args.up, seed=heldout_seed(args.seed),
+                              length_mm=args.length_mm)
     spec = replace(EVAL_CHIP_SPEC, camouflage=args.camouflage, noise_sigma=args.noise,
                    clutter="noise" if args.clutter else None)
     res = evaluate_bank(bank, targets, azimuth=args.azimuth, elevation=args.elevation, chip_spec=spec,
@@ -738,6 +744,8 @@ def _add_bank(sub: Any) -> None:
     p.add_argument("--clutter", action="store_true", help="eval: clutter backgrounds and clutter-only chips")
     p.add_argument("--units", choices=_UNITS, help="units of mesh files")
     p.add_argument("--up", choices=_UP_AXES, help="up axis of mesh files")
+    p.add_argument("--length-mm", type=float, metavar="MM",
+                   help="rescale every mesh file to this length (longest horizontal extent); units then do not matter")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, metavar="RESULTS_JSON", help="eval: write results (+ plots beside it)")
 

@@ -266,3 +266,36 @@ def test_modelnet_airplane_in_metres_is_flagged(shared_data, caplog):
     with caplog.at_level("WARNING"):
         resolve_targets([f"{f}=aircraft:m:z"])
     assert "implausible for the class 'aircraft'" in caplog.text
+
+
+def test_length_mm_rescales_mesh_files_whatever_their_units(tmp_path, capsys):
+    """--length-mm on render and bank: an OFF file in arbitrary units (ModelNet's) becomes
+    a target of the stated length without --units; built-in targets refuse it; without
+    it the undeclared units are an error (never guessed)."""
+    from prism3d.cli import main
+    from prism3d.datasets.resolve import resolve_targets
+
+    box = trimesh.creation.box([3.0, 1.0, 0.8])
+    box.apply_translation([0, 0, 0.4])
+    f = tmp_path / "crate_1.off"
+    box.export(f)
+    [(cls, mesh)] = resolve_targets([f"{f}=tank::z"], length_mm=215.0)
+    assert cls == "tank" and mesh.extent_mm[0] == pytest.approx(215.0, rel=1e-6)
+    assert mesh.extent_mm[2] == pytest.approx(215.0 * 0.8 / 3.0, rel=1e-6)
+    assert main(["--quiet", "render", str(f), "-o", str(tmp_path / "chips"), "--up", "z", "--length-mm", "215",
+                 "--azimuth", "0:360:180", "--elevation", "20:20:1", "--size", "32"]) == 0
+    import pandas as pd
+
+    man = pd.read_parquet(next((tmp_path / "chips").glob("*.parquet")))
+    assert len(man) == 2
+    assert main(["--quiet", "bank", "train", "--targets", f"{f}=tank", "tank_t1=other", "--up", "z",
+                 "--length-mm", "215", "-o", str(tmp_path / "b.npz"), "--azimuth", "0:360:90",
+                 "--elevation", "20:20:1", "--size", "32"]) == 0
+    capsys.readouterr()
+    assert main(["--quiet", "render", str(f), "-o", str(tmp_path / "c2"), "--up", "z"]) == 2
+    assert "units unknown" in capsys.readouterr().err
+    assert main(["--quiet", "render", "tank_t1", "-o", str(tmp_path / "c3"), "--length-mm", "100"]) == 2
+    assert "built-in target" in capsys.readouterr().err
+    assert not (tmp_path / "c2").exists() and not (tmp_path / "c3").exists()
+    with pytest.raises(Exception, match="length_mm"):
+        resolve_targets([f"{f}=tank::z"], length_mm=-1.0)
