@@ -298,12 +298,16 @@ def _plt():
     return plt
 
 
-def plot_confusion(res: dict):  # -> matplotlib Figure
-    """Confusion matrix (row-normalised colours, counts printed)."""
+def plot_confusion(res: dict, *, ax=None, title: str | None = None):  # -> matplotlib Figure
+    """Confusion matrix (row-normalised colours, counts printed); into ``ax`` when given
+    (matrices side by side), with ``title`` before the Pcc."""
     plt = _plt()
     m = np.asarray(res["confusion"], dtype=float)
     cls = res["classes"]
-    fig, ax = plt.subplots(figsize=(4, 3.5))
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(4, 3.5))
+    else:
+        fig = ax.figure
     norm = m / np.maximum(m.sum(axis=1, keepdims=True), 1)
     ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
     for i in range(len(cls)):
@@ -320,7 +324,7 @@ def plot_confusion(res: dict):  # -> matplotlib Figure
     ax.set_yticks(range(len(cls)), cls)
     ax.set_xlabel("predicted")
     ax.set_ylabel("true")
-    ax.set_title(f"{res.get('channel', '')}: Pcc = {100 * res['pcc']:.1f}%")
+    ax.set_title(f"{title or res.get('channel', '')}: Pcc = {100 * res['pcc']:.1f}%")
     fig.tight_layout()
     return fig
 
