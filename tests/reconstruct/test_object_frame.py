@@ -128,3 +128,28 @@ def test_a_mesh_kept_near_the_data_does_not_balloon():
     d, _ = cKDTree(res.points).query(res.mesh_vertices)
     spacing = res.diagnostics["spacing"]
     assert np.max(d) <= 2.0 * spacing * 1.01 + 1e-9
+
+
+def test_stitch_cli_refuses_an_object_frame_it_cannot_find(stitched_tank, tmp_path, capsys):
+    """Two views of a floating object, not turned about one axis, no support under it:
+    `stitch --frame object` names what is missing in one line, exits 2 and writes nothing."""
+    from prism3d.cli import main
+    from prism3d.geometry import rotation_about
+    from prism3d.io.ply import write_ply
+
+    res, _, _ = stitched_tank
+    P = res.points[::4]
+    paths = []
+    for k, axis in enumerate(([0, 0, 1], [1, 0, 0])):  # two unrelated small turns: no common axis
+        T = np.eye(4)
+        T[:3, :3] = rotation_about(axis, np.radians(3.0 * k))
+        paths.append(tmp_path / f"s{k}.ply")
+        write_ply(paths[-1], P @ T[:3, :3].T)
+    out = tmp_path / "out" / "m.ply"
+    out.parent.mkdir()
+    capsys.readouterr()
+    rc = main(["--quiet", "stitch", *map(str, paths), "-o", str(out), "--frame", "object"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert "turntable" in err[0] and "support plane" in err[0]
+    assert not any(out.parent.iterdir())
