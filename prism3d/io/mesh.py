@@ -86,7 +86,9 @@ def read_mesh(path: str | Path) -> MeshData:
                 if rgb is None:
                     rgb = np.asarray(material.main_color, dtype=np.float64)[:3] / 255.0
                 vc = np.broadcast_to(rgb, (len(g.vertices), 3)).copy()
-            elif vis.kind is not None:
+            elif vis.kind in ("vertex", "face"):  # colours per vertex (PLY, OFF) or per face
+                vc = np.asarray(vis.vertex_colors, dtype=np.float64)[:, :3] / 255.0
+            elif vis.kind is not None:  # a texture: its colours sampled at the vertices
                 vc = np.asarray(vis.to_color().vertex_colors, dtype=np.float64)[:, :3] / 255.0
         except Exception:  # textures trimesh cannot convert: no colour
             vc = None

@@ -47,6 +47,8 @@ def test_scanned_chips_match_the_true_mesh(scanned):
         # no background through a hole: where the scan's chip sees a surface, so does the truth's
         assert (ma & ~mb).sum() < 0.03 * ma.sum(), name
         assert np.all(np.isfinite(a["depth"][ma])), name
+        # the mesh keeps the colours the scans saw (the raycast scans' paint: 90, 110, 60)
+        np.testing.assert_allclose(np.median(scan.vertex_albedo, axis=0), np.array([90, 110, 60]) / 255, atol=2 / 255)
 
 
 def test_bank_from_scans_classifies_the_true_meshes(scanned):

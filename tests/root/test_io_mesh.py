@@ -85,3 +85,23 @@ def test_glb_keeps_its_base_colours_like_the_obj(shared_data):
         diff = np.abs(paint(g) - paint(o)) * 255
         assert diff.max() < 2.0, (glb.name, diff)
     assert compared >= len(pairs) // 2, compared
+
+
+def test_vertex_colours_of_ply_and_off_files_are_read(tmp_path):
+    """A coloured PLY (a stitched scan's mesh, an exported built-in target; colours per
+    vertex or per face) keeps its colours (they read as 0.7 grey before: trimesh's per-vertex colour
+    visuals have no texture conversion)."""
+    import trimesh
+
+    from prism3d.datasets.targets import builtin_target, export_builtin_target
+
+    export_builtin_target("tank_t1", tmp_path / "t.ply")
+    d = read_mesh(tmp_path / "t.ply")
+    true = builtin_target("tank_t1").vertex_colors()
+    assert d.vertex_colors is not None
+    assert np.abs(np.median(d.vertex_colors, axis=0) - np.median(true, axis=0)).max() < 1.5 / 255
+    box = trimesh.creation.box([1, 1, 1])
+    box.visual = trimesh.visual.ColorVisuals(box, face_colors=[200, 10, 10, 255])
+    box.export(tmp_path / "b.ply")  # colours per face
+    d = read_mesh(tmp_path / "b.ply")
+    np.testing.assert_allclose(d.vertex_colors.mean(axis=0), np.array([200, 10, 10]) / 255, atol=1 / 255)
