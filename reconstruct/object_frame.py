@@ -1,9 +1,10 @@
 """The object frame of a scanned model, chosen from the data (docs/stitching.md, "Object frame").
 
 ``z`` up: the turntable's axis when the views came from one, else the normal of the
-support plane the object stands on; ``x`` forward: the footprint's mirror axis or the
-axis across it, whichever is longer (the longest horizontal extent; the smallest
-rectangle around the footprint when it has no mirror symmetry); ``y = z x x``; origin:
+support plane the object stands on; ``x`` forward: an axis of the smallest rectangle around the footprint
+when it is also a mirror axis (box-like hulls), else the footprint's mirror axis (swept
+wings), else the rectangle's; of it and the axis across, the longer (the longest
+horizontal extent); ``y = z x x``; origin:
 the footprint's centre on the support (the lowest surface point along ``z``). Extents
 are measured on the surface, not on the noisiest points (each extreme point projected on
 the plane of its neighbourhood). Which end of ``x`` is the front cannot be told from
@@ -49,6 +50,11 @@ MIRROR_SHIFT_CELLS = 4.0
 #: A footprint is mirror-symmetric when its reflection about the best axis lies, on
 #: average, at most this share of the typical (median-angle) misfit from it.
 MIRROR_MAX_RATIO = 0.6
+#: The smallest rectangle's axes are preferred when one reflects the footprint within this
+#: many cells (mean) of the best mirror axis: exact on box-like hulls, whose small
+#: asymmetric fittings can tilt the best mirror line (ship_s3: 1.6 deg); a swept planform
+#: (jets) has no such rectangle axis (misfit 3-5 cells against 0.3-2).
+RECT_MIRROR_TOL_CELLS = 0.5
 #: Footprint cells reflected per trial axis (an even subsample of them).
 MIRROR_SAMPLES = 20000
 #: Extreme points are projected on the plane of their neighbourhood before extents are
@@ -209,8 +215,9 @@ def _footprint_axis(uv: NDArray) -> tuple[NDArray[np.float64], bool]:
     """A unit direction (2,) of the footprint's main horizontal axis and whether it is a
     mirror axis. The footprint: the points' cells on a FOOTPRINT_CELLS grid, closed and
     filled (how densely a side was scanned does not weigh). The mirror axis: the line
-    about which the reflected footprint lies closest to itself (mean distance, cells);
-    without one, the long side of the smallest rectangle around the footprint."""
+    about which the reflected footprint lies closest to itself (mean distance, cells).
+    An axis of the smallest rectangle around the footprint that mirrors it about as well
+    (RECT_MIRROR_TOL_CELLS) wins; without any mirror axis, the rectangle's long side."""
     import cv2
 
     span = float(np.ptp(uv, axis=0).max())
@@ -249,12 +256,15 @@ def _footprint_axis(uv: NDArray) -> tuple[NDArray[np.float64], bool]:
         step /= 5.0
         cand = th + step * np.arange(-5, 6)
         th = float(cand[int(np.argmin([misfit(a) for a in cand]))])
-    if misfit(th) <= MIRROR_MAX_RATIO * float(np.median(scores)):
-        return np.array([np.cos(th), np.sin(th)]), True
     (_, _), (w, h), ang = cv2.minAreaRect(occ.astype(np.float32))
-    a = np.radians(ang)
-    d = np.array([np.cos(a), np.sin(a)])
-    return (d if w >= h else np.array([-d[1], d[0]])), False
+    a = np.radians(ang) + (0.0 if w >= h else np.pi / 2)  # the rectangle's long side
+    rect = min((a, a + np.pi / 2), key=misfit)
+    best = misfit(th)
+    if misfit(rect) <= best + RECT_MIRROR_TOL_CELLS:  # a box-like hull: the rectangle is exact
+        return np.array([np.cos(rect), np.sin(rect)]), True
+    if best <= MIRROR_MAX_RATIO * float(np.median(scores)):
+        return np.array([np.cos(th), np.sin(th)]), True
+    return np.array([np.cos(a), np.sin(a)]), False
 
 
 def _surface_extents(P: NDArray, R: NDArray) -> tuple[NDArray, NDArray]:
