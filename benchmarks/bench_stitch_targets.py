@@ -51,14 +51,18 @@ def render(name: str, folder: Path, *, ideal: bool, supersample: int) -> None:
     ), target=builtin_target(name, seed=0))
 
 
-def frame_errors(res, T_world_model, V) -> dict:
+def frame_errors(res, poses, V) -> dict:
     """The object frame of a stitched model against the truth (world = turntable frame, z
     up, the target's x forward): up and forward angles (forward modulo front/back), the
-    origin's offset from the true footprint centre on the support, relative sizes."""
+    origin's offset from the true footprint centre on the support, relative sizes; and
+    whether x points forward when the view that faced the front is named."""
     from prism3d.reconstruct.object_frame import object_frame
 
     fr = object_frame(res.points, res.T_model_scan)
-    T = fr.T_object_model @ np.linalg.inv(T_world_model)
+    front = int(np.argmax([T[0, 3] / max(np.hypot(T[0, 3], T[1, 3]), 1e-300) for T in poses]))
+    fr_front = object_frame(res.points, res.T_model_scan, front_view=front)
+    x_right = bool((fr_front.T_object_model @ np.linalg.inv(poses[0]))[0, 0] > 0)
+    T = fr.T_object_model @ np.linalg.inv(poses[0])
     R = T[:3, :3]
     lo, hi = V.min(0), V.max(0)
     origin_true = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
@@ -66,7 +70,7 @@ def frame_errors(res, T_world_model, V) -> dict:
             "forward_deg": float(np.degrees(np.arccos(np.clip(abs(R[0] @ [1, 0, 0]), -1, 1)))),
             "ambiguous": bool(fr.forward_ambiguous),
             "origin_mm": float(np.linalg.norm((np.linalg.inv(T) @ [0, 0, 0, 1])[:3] - origin_true)),
-            "size_rel": (fr.extent_mm / (hi - lo) - 1).tolist()}
+            "size_rel": (fr.extent_mm / (hi - lo) - 1).tolist(), "front_view": front, "x_right": x_right}
 
 
 def run(name: str, folder: Path, options: dict, frame_check: bool = False) -> dict:
@@ -97,7 +101,7 @@ def run(name: str, folder: Path, options: dict, frame_check: bool = False) -> di
         errs = pose_errors(res.T_model_scan, poses, V)
         key = "hint" if hint else "nohint"
         if hint and frame_check:
-            out["frame"] = frame_errors(res, poses[0], V)
+            out["frame"] = frame_errors(res, poses, V)
         out[key] = {"worst_deg": max(a for a, _ in errs), "worst_motion_mm": max(b for _, b in errs),
                     "worst_view": int(np.argmax([a for a, _ in errs])),
                     "warnings": list(res.diagnostics.get("warnings", []))}
@@ -138,15 +142,16 @@ def main() -> None:
     ok = sum(bool(max(r["hint"]["worst_deg"], r["nohint"]["worst_deg"]) <= 0.05) for r in rows)
     print(f"\n{ok} of {len(rows)} targets within 0.05 deg in both modes")
     if a.object_frame:
-        print("\n| target | up deg | forward deg | ambiguous | origin mm | L / W / H error |\n|---|---:|---:|---|---:|---|")
+        print("\n| target | up deg | forward deg (mod front/back) | origin mm | L / W / H error | front view given: "
+              "x forward |\n|---|---:|---:|---:|---|---|")
         for r in rows:
             f = r.get("frame")
             if f is None:
-                print(f"| {r['target']} | - | - | - | - | stitching failed |")
+                print(f"| {r['target']} | - | - | - | stitching failed | - |")
                 continue
             rel = " / ".join(f"{100 * v:+.1f}" for v in f["size_rel"])
-            print(f"| {r['target']} | {f['up_deg']:.3f} | {f['forward_deg']:.2f} | {'yes' if f['ambiguous'] else 'no'} | "
-                  f"{f['origin_mm']:.2f} | {rel} % |")
+            print(f"| {r['target']} | {f['up_deg']:.3f} | {f['forward_deg']:.2f} | {f['origin_mm']:.2f} | {rel} % | "
+                  f"{'yes' if f['x_right'] else 'NO'} (view {f['front_view']}) |")
 
 
 if __name__ == "__main__":

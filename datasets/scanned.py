@@ -92,17 +92,32 @@ def scan_builtin_target(
     model, mesh = out / "model.ply", out / "mesh.ply"
     opts = StitchOptions(turntable_step_deg=360.0 / views, mesh_max_spacings=SCAN_MESH_MAX_SPACINGS)
     notes: list[str] = []
+    front = _front_view(shots / "poses.json")
     try:
-        res = stitch_to_files(scans, model, opts, mesh_out=mesh, frame="object")
+        res = stitch_to_files(scans, model, opts, mesh_out=mesh, frame="object", front_view=front)
     except ReconstructionError as exc:
         notes.append(f"stitching refused ({exc}); stitched again on points of confidence >= "
                      f"{SCAN_RETRY_CONFIDENCE} with the checks as warnings")
         res = stitch_to_files(scans, model, dataclasses.replace(
-            opts, min_confidence=SCAN_RETRY_CONFIDENCE, on_failure="warn"), mesh_out=mesh, frame="object")
+            opts, min_confidence=SCAN_RETRY_CONFIDENCE, on_failure="warn"), mesh_out=mesh, frame="object",
+            front_view=front)
     notes += list(res.diagnostics.get("warnings", []))
     notes += list(res.diagnostics.get("object_frame", {}).get("notes", []))
     progress(views + 1, views + 1, f"{name}: done")
     return ScannedTarget(name, mesh, model, out / "poses.json", scans, shots, notes)
+
+
+def _front_view(poses_json: Path) -> int:
+    """The simulated view whose camera faced the target's front (+x of the turntable
+    frame), as the person at a real turntable knows which shot faced the front."""
+    import json
+
+    import numpy as np
+
+    views = json.loads(poses_json.read_text())["views"]
+    pos = np.array([np.asarray(v["T_world_cam"], np.float64)[:3, 3] for v in views])
+    horiz = pos[:, :2] / np.maximum(np.linalg.norm(pos[:, :2], axis=1, keepdims=True), 1e-300)
+    return int(np.argmax(horiz[:, 0]))
 
 
 def compare_scan_banks(

@@ -530,7 +530,7 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
     if args.mesh_max_distance is not None:
         opts["mesh_max_spacings"] = args.mesh_max_distance
     res = stitch_to_files(args.scans, args.output, StitchOptions(**opts), mesh_out=args.mesh,
-                          progress=_progress(args, "stitch"), frame=args.frame)
+                          progress=_progress(args, "stitch"), frame=args.frame, front_view=args.front_view)
     _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
                + (f", mesh {args.mesh}" if args.mesh else ""))
     of = res.diagnostics.get("object_frame")
@@ -574,6 +574,9 @@ def _add_stitch(sub: Any) -> None:
     p.add_argument("--frame", choices=["scan", "object"], default="scan",
                    help="scan: the first scan's camera frame (default); object: z up (turntable axis or "
                    "support plane), x along the longest horizontal extent, origin on the support")
+    p.add_argument("--front-view", type=int, metavar="K",
+                   help="with --frame object: scan K (0 = the first given) faced the object's front, so x "
+                   "points at it (without it front and back are a stated guess)")
 
 
 # --- ATR: decamo / features ------------------------------------------------------------------

@@ -789,6 +789,7 @@ def stitch_to_files(
     mesh_out: str | Path | None = None,
     progress: ProgressFn | None = None,
     frame: str = "scan",
+    front_view: int | None = None,
 ) -> StitchResult:
     """Stitch ``.ply`` / ``.pcd`` scan files (the ``prism3d stitch`` command) and write, all or
     none: ``out_model_ply`` (fused cloud), ``mesh_out`` when given (``options.mesh`` follows it)
@@ -797,7 +798,8 @@ def stitch_to_files(
     the first scan's camera frame; ``"object"``: in the object frame
     (:func:`~prism3d.reconstruct.object_frame.object_frame`: z up, x forward, origin on the
     support; PLY header ``up z``), with ``object_frame`` (``T_object_model`` ...) in
-    poses.json; ``T_model_scan`` stays in the first scan's frame."""
+    poses.json; ``T_model_scan`` stays in the first scan's frame. ``front_view``: the scan
+    (index) that faced the object's front, which sets x's sign (else a stated guess)."""
     from prism3d.io.ply import write_ply
 
     if isinstance(scan_paths, (str, Path)):
@@ -815,6 +817,10 @@ def stitch_to_files(
     if len(outs) == 2 and outs[0].resolve() == outs[1].resolve():
         raise InputError("the model and the mesh name the same file; give each its own path")
     check_choice(frame, "frame", ("scan", "object"))
+    if front_view is not None and frame != "object":
+        raise InputError("front_view: only with the object frame (--frame object)")
+    if front_view is not None and not (isinstance(front_view, int) and 0 <= front_view < len(paths)):
+        raise InputError(f"front_view: expected a scan index in [0, {len(paths) - 1}], got {front_view!r}")
     opts = dataclasses.replace(StitchOptions() if options is None else options, mesh=mesh_out is not None)
     res = stitch_scans(paths, opts, progress=progress)
     out = Path(out_model_ply)
@@ -828,7 +834,7 @@ def stitch_to_files(
     if frame == "object":
         from prism3d.reconstruct.object_frame import object_frame
 
-        of = object_frame(res.points, res.T_model_scan)  # before anything is written
+        of = object_frame(res.points, res.T_model_scan, front_view=front_view)  # before anything is written
         T_out, doc["object_frame"] = of.T_object_model, of.to_dict()
         where = [f"object frame: z up (from the {of.up_from}), x forward, origin on the support", "up z"]
         res.diagnostics["object_frame"] = of.to_dict()

@@ -39,7 +39,7 @@ def test_turntable_scans_give_the_true_frame(stitched_tank):
     res, poses, V = stitched_tank
     fr = object_frame(res.points, res.T_model_scan)
     up, fwd, origin, rel = _truth_errors(fr, poses[0], V)
-    assert fr.up_from == "turntable"
+    assert fr.up_from == "turntable" and fr.forward_ambiguous  # no front given: a stated guess
     assert up < 0.2 and fwd < 2.0 and origin < 1.0, (up, fwd, origin)
     # the extents of the surface, not of the noise (0.15 mm along the rays: the raw
     # points' width was 1.5 % wide)
@@ -153,3 +153,20 @@ def test_stitch_cli_refuses_an_object_frame_it_cannot_find(stitched_tank, tmp_pa
     assert rc == 2 and len(err) == 1, err
     assert "turntable" in err[0] and "support plane" in err[0]
     assert not any(out.parent.iterdir())
+
+
+def test_the_front_view_sets_which_end_is_forward(stitched_tank):
+    """View 2 of the raycast turntable looks at the tank from +x (its front): x points there,
+    and the frame is no longer ambiguous; a view from the side is refused with its angle."""
+    from prism3d.errors import InputError
+
+    res, poses, V = stitched_tank
+    fr = object_frame(res.points, res.T_model_scan, front_view=2)
+    T = fr.T_object_model @ np.linalg.inv(poses[0])
+    assert T[0, :3] @ [1, 0, 0] > 0.999 and not fr.forward_ambiguous
+    fr6 = object_frame(res.points, res.T_model_scan, front_view=6)  # from -x: the back
+    assert (fr6.T_object_model @ np.linalg.inv(poses[0]))[0, :3] @ [1, 0, 0] < -0.999
+    with pytest.raises(InputError, match="looks at a side"):
+        object_frame(res.points, res.T_model_scan, front_view=0)
+    with pytest.raises(InputError, match="scan index"):
+        object_frame(res.points, res.T_model_scan, front_view=8)
