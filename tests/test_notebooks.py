@@ -30,3 +30,5 @@ def test_notebook_runs(path, tmp_path):
                if "image/png" in o.get("data", {})]
     if path.stem == "recognition_evaluation":  # its chips, confusion matrices, ROC... drawn inline
         assert len(figures) >= 5, len(figures)
+    if path.stem == "scanned_targets":  # matrices side by side, mask IoU, two ROCs
+        assert len(figures) >= 4, len(figures)
