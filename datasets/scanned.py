@@ -59,7 +59,7 @@ def scan_builtin_target(
     progress: ProgressFn = null_progress,
 ) -> ScannedTarget:
     """Scan the built-in target ``name`` on the simulated turntable into ``out_dir``
-    (``shots/``, ``scans/``, ``model.ply``, ``mesh.ply``, ``poses.json``); files already
+    (``shots/``, ``scans/``, ``model.ply``, the mesh ``<name>.ply``, ``poses.json``); files already
     there are reused (an interrupted run resumes). ``rig``: the simulated rig (None: the
     simulator's); ``calib_rig``: the rig the shots are reconstructed with (None: the true
     one, as written beside the shots)."""
@@ -89,7 +89,7 @@ def scan_builtin_target(
             reconstruct_to_files(shots / f"shot_{k:02d}.png", calib, p)
         scans.append(p)
     progress(views, views + 1, f"{name}: stitch")
-    model, mesh = out / "model.ply", out / "mesh.ply"
+    model, mesh = out / "model.ply", out / f"{name}.ply"  # the mesh names the target in a database
     opts = StitchOptions(turntable_step_deg=360.0 / views, mesh_max_spacings=SCAN_MESH_MAX_SPACINGS)
     notes: list[str] = []
     front = _front_view(shots / "poses.json")

@@ -567,8 +567,8 @@ def _stage_scanned_bank(ctx: DemoContext) -> Section:
             s.paragraphs.append(f"<b>{n}:</b> " + "; ".join(notes[n]))
     s.paragraphs.append(
         "Each target: 8 shots through the simulated prism rig on a turntable, each reconstructed, stitched with the "
-        "turntable step into a mesh in its object frame (z up from the turntable axis, x along the mirror axis, "
-        "origin on the support) kept within 2 point spacings of the data and coloured by the shots, then added to "
+        "turntable step into a mesh in its object frame (z up from the turntable axis, x along the longest "
+        "horizontal extent and towards the shot that faced the front, origin on the support) kept within 2 point spacings of the data and coloured by the shots, then added to "
         "the database without flags. Banks are trained on the database's scans and on the true meshes (the paint "
         f"the scanner saw), both tested on the true meshes in a new paint. The scanned meshes have "
         f"{np.mean([len(m.vertices) for _, m in scanned]):.0f} vertices on average."
