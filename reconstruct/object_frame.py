@@ -257,18 +257,18 @@ def _footprint_axis(uv: NDArray) -> tuple[NDArray[np.float64], bool]:
     X = (occ - c)[:: max(1, len(occ) // MIRROR_SAMPLES)]
     hi_idx = np.array(shape) - 1
 
-    def misfit(th: float) -> float:
+    def misfit(th: float, shift_step: float = 0.5) -> float:
         d = np.array([np.cos(th), np.sin(th)])
         n = np.array([-d[1], d[0]])
         s = X @ n
         best = np.inf
-        for t in np.arange(-MIRROR_SHIFT_CELLS, MIRROR_SHIFT_CELLS + 1e-9, 0.5):
+        for t in np.arange(-MIRROR_SHIFT_CELLS, MIRROR_SHIFT_CELLS + 1e-9, shift_step):
             q = np.clip(np.floor(c + X - 2 * (s - t)[:, None] * n).astype(np.int64), 0, hi_idx)
             best = min(best, float(np.mean(np.minimum(dist[q[:, 0], q[:, 1]], 10.0))))
         return best
 
     angles = np.radians(np.arange(0.0, 180.0, MIRROR_STEP_DEG))
-    scores = np.array([misfit(a) for a in angles])
+    scores = np.array([misfit(a, 2.0) for a in angles])  # coarse offsets, then fine near the best
     th = float(angles[int(np.argmin(scores))])
     step = np.radians(MIRROR_STEP_DEG)
     while step > np.radians(MIRROR_FINE_DEG):
