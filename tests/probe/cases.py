@@ -647,6 +647,9 @@ def cases(fx: Path | str | None = None) -> list[Case]:
     b.add("stitch/--mesh/named_poses.json", base + ["--mesh", "poses.json"], "2", outs)
     b.add("stitch/--mesh/wrong_suffix", base + ["--mesh", "mesh.obj"], "2", outs + ["mesh.obj"])
     b.add("stitch/--mesh/read_only", base + ["--mesh", f"{READ_ONLY_DIR}/mesh.ply"], "2", outs)
+    b.numbers("stitch", base + ["--frame", "object"], "--front-view",
+              {"negative": "-1", "past_the_scans": "2", "huge": "1000000000000", "not_int": "1.5"}, outs)
+    b.add("stitch/--front-view/without_object_frame", base + ["--front-view", "0"], "2", outs)
 
     # decamo --------------------------------------------------------------------------
     base = ["decamo", f"{F}/plate/shot.png", f"{F}/plate/truth.npz:depth_left_mm", "-o", "dc", "--calib",
@@ -673,6 +676,9 @@ def cases(fx: Path | str | None = None) -> list[Case]:
     meshbase = _sub(base, 1, f"{F}/box.obj") + ("--units", "mm")
     b.files("render/MODEL", list(meshbase), 1, "obj", ["chips"], ok={"coords_1e30"})
     b.add("render/MODEL/unknown_name", _sub(base, 1, "no_such_target"), "2", ["chips"])
+    b.numbers("render", list(meshbase) + ["--up", "z"], "--length-mm",
+              {**NAN_INF, "zero": "0", "negative": "-5", "huge": "1e300"}, ["chips"])
+    b.add("render/--length-mm/builtin_target", base + ["--length-mm", "100"], "2", ["chips"])
     b.add("render/MODEL/path_like_name", _sub(base, 1, "../../x"), "2", ["chips"])
     b.numbers("render", base, "--azimuth", RANGE_SPECS, ["chips"])
     b.numbers("render", base, "--elevation", {**RANGE_SPECS, "over_90": "100:120:10"}, ["chips"],
