@@ -77,18 +77,21 @@ class ObjectFrame:
     """Where a model stands: ``T_object_model`` (4, 4) maps model coordinates (mm) into the
     object frame; ``up_from`` ``"turntable"`` or ``"support plane"``; ``extent_mm`` (3,)
     length, width, height along x, y, z; ``forward_ambiguous`` True when front and back
-    could be swapped; ``notes`` what else a user should know."""
+    could be swapped; ``front_view`` the scan that set the front (None: a guess); ``notes``
+    what else a user should know."""
 
     T_object_model: NDArray[np.float64]
     up_from: str
     extent_mm: NDArray[np.float64]
     forward_ambiguous: bool
     notes: list[str] = field(default_factory=list)
+    front_view: int | None = None
 
     def to_dict(self) -> dict:
         return {"T_object_model": self.T_object_model.tolist(), "up_from": self.up_from,
                 "extent_mm": [float(v) for v in self.extent_mm],
-                "forward_ambiguous": bool(self.forward_ambiguous), "notes": list(self.notes)}
+                "forward_ambiguous": bool(self.forward_ambiguous), "front_view": self.front_view,
+                "notes": list(self.notes)}
 
 
 def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None, *,
@@ -162,7 +165,8 @@ def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None,
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = -R @ origin
-    return ObjectFrame(T, up_from, np.array([length, width, hi - lo]), ambiguous, notes)
+    return ObjectFrame(T, up_from, np.array([length, width, hi - lo]), ambiguous, notes,
+                       None if front_view is None else int(front_view))
 
 
 def _upright(poses: list[NDArray]) -> NDArray[np.float64]:

@@ -163,7 +163,7 @@ def test_the_front_view_sets_which_end_is_forward(stitched_tank):
     res, poses, V = stitched_tank
     fr = object_frame(res.points, res.T_model_scan, front_view=2)
     T = fr.T_object_model @ np.linalg.inv(poses[0])
-    assert T[0, :3] @ [1, 0, 0] > 0.999 and not fr.forward_ambiguous
+    assert T[0, :3] @ [1, 0, 0] > 0.999 and not fr.forward_ambiguous and fr.to_dict()["front_view"] == 2
     fr6 = object_frame(res.points, res.T_model_scan, front_view=6)  # from -x: the back
     assert (fr6.T_object_model @ np.linalg.inv(poses[0]))[0, :3] @ [1, 0, 0] < -0.999
     with pytest.raises(InputError, match="looks at a side"):
