@@ -1,0 +1,158 @@
+"""Whole-scene detection scores: probability of detection against false positives per
+image (FPPI), as JPL's OT-MACH work reports detection, with identification among the hits
+(MSTAR-style). Inputs follow the scene contract (docs/atr.md "Scene scoring"): a truth
+``{"targets": [{"class", "confuser", "box_rc": [r0, c0, r1, c1], "xyz_mm"?, ...}]}`` and
+detections ``{"detections": [{"row", "col", "class", "score", "xyz_mm"?, ...}]}``.
+
+A detection hits a target when its pixel lies in the target's box, or its 3D position is
+within the target's ``radius_mm`` of the target's ``xyz_mm`` (both given). Detections are
+matched greedily in descending score, each target at most once; a detection on a confuser
+(a vehicle or crate not in the bank) or on nothing, or a second one on a matched target, is
+a false positive. Every threshold is a prefix of that order, so one matching serves the
+whole Pd-FPPI curve.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from prism3d.errors import InputError
+
+__all__ = ["score_scenes", "FPPI_POINTS"]
+
+#: FPPI operating points reported (Pd and identification accuracy at each).
+FPPI_POINTS = (0.1, 1.0)
+
+
+def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
+    """Score ``[(detections_doc, truth_doc), ...]`` (one pair per image).
+
+    Returns a JSON-ready dict: ``n_images``, ``n_targets`` (bank targets, not confusers),
+    ``curve`` (``threshold``, ``pd``, ``fppi``, ``id_accuracy`` lists, descending
+    threshold), ``at_fppi`` (per :data:`FPPI_POINTS`: ``pd``, ``id_accuracy``,
+    ``threshold``, ``confusers_called``: the share of confusers with a detection at or
+    above that threshold, each carrying a bank class), ``n_confusers`` and ``pd_max``.
+    """
+    if not isinstance(scenes, Sequence) or isinstance(scenes, (str, bytes)) or not scenes:
+        raise InputError("scenes: expected a non-empty list of (detections, truth) pairs")
+    events = []  # (score, kind, correct_id): kind "hit", "fp", "confuser"
+    n_targets = n_confusers = 0
+    for k, pair in enumerate(scenes):
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
+            raise InputError(f"scenes[{k}]: expected a (detections, truth) pair")
+        dets, targets = _detections(pair[0], k), _targets(pair[1], k)
+        n_targets += sum(not t["confuser"] for t in targets)
+        n_confusers += sum(t["confuser"] for t in targets)
+        taken = [False] * len(targets)
+        for d in sorted(dets, key=lambda d: -d["score"]):
+            j = _match(d, targets, taken)
+            if j is None:
+                events.append((d["score"], "fp", False))
+            elif targets[j]["confuser"]:
+                taken[j] = True
+                events.append((d["score"], "confuser", False))
+            else:
+                taken[j] = True
+                events.append((d["score"], "hit", d["class"] == targets[j]["class"]))
+    n_images = len(scenes)
+    events.sort(key=lambda e: -e[0])
+    th, pd, fppi, ida = [], [], [], []
+    hits = fps = correct = 0
+    for i, (score, kind, ok) in enumerate(events):
+        hits += kind == "hit"
+        fps += kind != "hit"
+        correct += kind == "hit" and ok
+        if i + 1 < len(events) and events[i + 1][0] == score:
+            continue  # equal scores pass a threshold together
+        th.append(float(score))
+        pd.append(hits / n_targets if n_targets else float("nan"))
+        fppi.append(fps / n_images)
+        ida.append(correct / hits if hits else float("nan"))
+    at = {}
+    for x in FPPI_POINTS:
+        ok = [i for i, f in enumerate(fppi) if f <= x]
+        if ok:
+            i = max(ok, key=lambda i: (pd[i], -i))
+            called = sum(e[1] == "confuser" and e[0] >= th[i] for e in events)
+            at[f"{x:g}"] = {"pd": pd[i], "id_accuracy": ida[i], "threshold": th[i],
+                            "confusers_called": called / n_confusers if n_confusers else float("nan")}
+        else:
+            at[f"{x:g}"] = {"pd": 0.0, "id_accuracy": float("nan"), "threshold": None,
+                            "confusers_called": 0.0 if n_confusers else float("nan")}
+    return {
+        "n_images": n_images,
+        "n_targets": n_targets,
+        "n_confusers": n_confusers,
+        "curve": {"threshold": th, "pd": pd, "fppi": fppi, "id_accuracy": ida},
+        "at_fppi": at,
+        "pd_max": pd[-1] if pd else 0.0,
+    }
+
+
+def _finite(v: object, what: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise InputError(f"{what}: expected a finite number, got {v!r}")
+    return float(v)
+
+
+def _xyz(v: object, what: str) -> np.ndarray | None:
+    if v is None:
+        return None
+    if not isinstance(v, (list, tuple)) or len(v) != 3:
+        raise InputError(f"{what}: expected [x, y, z] or null, got {v!r}")
+    return np.array([_finite(c, what) for c in v])
+
+
+def _detections(doc: object, k: int) -> list[dict]:
+    if not isinstance(doc, dict) or not isinstance(doc.get("detections"), list):
+        raise InputError(f"scenes[{k}]: detections: expected {{\"detections\": [...]}}")
+    out = []
+    for i, d in enumerate(doc["detections"]):
+        w = f"scenes[{k}].detections[{i}]"
+        if not isinstance(d, dict) or not isinstance(d.get("class"), str):
+            raise InputError(f"{w}: expected an object with row, col, class, score")
+        out.append({"row": _finite(d.get("row"), f"{w}.row"), "col": _finite(d.get("col"), f"{w}.col"),
+                    "class": d["class"], "score": _finite(d.get("score"), f"{w}.score"),
+                    "xyz": _xyz(d.get("xyz_mm"), f"{w}.xyz_mm")})
+    return out
+
+
+def _targets(doc: object, k: int) -> list[dict]:
+    if not isinstance(doc, dict) or not isinstance(doc.get("targets"), list):
+        raise InputError(f"scenes[{k}]: truth: expected {{\"targets\": [...]}}")
+    out = []
+    for i, t in enumerate(doc["targets"]):
+        w = f"scenes[{k}].targets[{i}]"
+        if not isinstance(t, dict) or not isinstance(t.get("class"), str):
+            raise InputError(f"{w}: expected an object with class, confuser, box_rc")
+        box = t.get("box_rc")
+        if not isinstance(box, (list, tuple)) or len(box) != 4:
+            raise InputError(f"{w}.box_rc: expected [r0, c0, r1, c1], got {box!r}")
+        r0, c0, r1, c1 = (_finite(v, f"{w}.box_rc") for v in box)
+        if r1 < r0 or c1 < c0:
+            raise InputError(f"{w}.box_rc: expected r0 <= r1 and c0 <= c1, got {box!r}")
+        radius = t.get("radius_mm")
+        out.append({"class": t["class"], "confuser": bool(t.get("confuser", False)), "box": (r0, c0, r1, c1),
+                    "xyz": _xyz(t.get("xyz_mm"), f"{w}.xyz_mm"),
+                    "radius": None if radius is None else _finite(radius, f"{w}.radius_mm")})
+    return out
+
+
+def _match(d: dict, targets: list[dict], taken: list[bool]) -> int | None:
+    """The free target the detection falls on (nearest box centre first), or None."""
+    best, best_d = None, math.inf
+    for j, t in enumerate(targets):
+        if taken[j]:
+            continue
+        r0, c0, r1, c1 = t["box"]
+        inside = r0 <= d["row"] <= r1 and c0 <= d["col"] <= c1
+        near = (d["xyz"] is not None and t["xyz"] is not None and t["radius"] is not None
+                and float(np.linalg.norm(d["xyz"] - t["xyz"])) <= t["radius"])
+        if inside or near:
+            dist = math.hypot(d["row"] - (r0 + r1) / 2, d["col"] - (c0 + c1) / 2)
+            if dist < best_d:
+                best, best_d = j, dist
+    return best
