@@ -106,28 +106,30 @@ def _xyz(v: object, what: str) -> np.ndarray | None:
     return np.array([_finite(c, what) for c in v])
 
 
-def _detections(doc: object, k: int) -> list[dict]:
-    if not isinstance(doc, dict) or not isinstance(doc.get("detections"), list):
-        raise InputError(f"scenes[{k}]: detections: expected {{\"detections\": [...]}}")
+def _items(doc: object, key: str, k: int, fields: str, what: str) -> list[tuple[str, dict]]:
+    """``doc[key]`` of scene ``k``: (name for messages, item) pairs, each an object with a
+    string ``class``."""
+    if not isinstance(doc, dict) or not isinstance(doc.get(key), list):
+        raise InputError(f"scenes[{k}]: {what}: expected {{\"{key}\": [...]}}")
     out = []
-    for i, d in enumerate(doc["detections"]):
-        w = f"scenes[{k}].detections[{i}]"
-        if not isinstance(d, dict) or not isinstance(d.get("class"), str):
-            raise InputError(f"{w}: expected an object with row, col, class, score")
-        out.append({"row": _finite(d.get("row"), f"{w}.row"), "col": _finite(d.get("col"), f"{w}.col"),
-                    "class": d["class"], "score": _finite(d.get("score"), f"{w}.score"),
-                    "xyz": _xyz(d.get("xyz_mm"), f"{w}.xyz_mm")})
+    for i, item in enumerate(doc[key]):
+        w = f"scenes[{k}].{key}[{i}]"
+        if not isinstance(item, dict) or not isinstance(item.get("class"), str):
+            raise InputError(f"{w}: expected an object with {fields}")
+        out.append((w, item))
     return out
 
 
+def _detections(doc: object, k: int) -> list[dict]:
+    return [{"row": _finite(d.get("row"), f"{w}.row"), "col": _finite(d.get("col"), f"{w}.col"),
+             "class": d["class"], "score": _finite(d.get("score"), f"{w}.score"),
+             "xyz": _xyz(d.get("xyz_mm"), f"{w}.xyz_mm")}
+            for w, d in _items(doc, "detections", k, "row, col, class, score", "detections")]
+
+
 def _targets(doc: object, k: int) -> list[dict]:
-    if not isinstance(doc, dict) or not isinstance(doc.get("targets"), list):
-        raise InputError(f"scenes[{k}]: truth: expected {{\"targets\": [...]}}")
     out = []
-    for i, t in enumerate(doc["targets"]):
-        w = f"scenes[{k}].targets[{i}]"
-        if not isinstance(t, dict) or not isinstance(t.get("class"), str):
-            raise InputError(f"{w}: expected an object with class, confuser, box_rc")
+    for w, t in _items(doc, "targets", k, "class, confuser, box_rc", "truth"):
         box = t.get("box_rc")
         if not isinstance(box, (list, tuple)) or len(box) != 4:
             raise InputError(f"{w}.box_rc: expected [r0, c0, r1, c1], got {box!r}")

@@ -642,11 +642,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from prism3d.atr.chips import ChipSpec, render_to_folder
     from prism3d.datasets.resolve import resolve_model
 
-    units, up = args.units, args.up
     if Path(args.model).is_file():
         model: Any = resolve_model(args.model, units=args.units, up=args.up, seed=args.seed,
                                    length_mm=args.length_mm)[1]  # flags, sidecar, PLY header; rescaled
-        units, up = "mm", "z"
     else:
         if args.length_mm is not None:
             raise InputError(f"--length-mm: {args.model} is a built-in target (its length is fixed); "
@@ -656,8 +654,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
                     camouflage=args.camouflage, clutter=args.clutter, noise_sigma=args.noise, seed=args.seed,
                     backend=args.backend)
     manifest = render_to_folder(model, args.output, azimuth=args.azimuth, elevation=args.elevation,
-                                range_mm=args.range, chip_spec=spec, units=units or "mm", up=up,
-                                fmt=args.format)
+                                range_mm=args.range, chip_spec=spec, fmt=args.format)
     _say(args, f"wrote chips and {manifest}")
     return 0
 

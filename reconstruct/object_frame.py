@@ -275,15 +275,16 @@ def _footprint_axis(uv: NDArray) -> tuple[NDArray[np.float64], bool]:
     scores = np.array([misfit(a, 2.0) for a in angles])  # coarse offsets, then fine near the best
     th = float(angles[int(np.argmin(scores))])
     step = np.radians(MIRROR_STEP_DEG)
+    best = np.inf
     while step > np.radians(MIRROR_FINE_DEG):
         step /= 5.0
         cand = th + step * np.arange(-5, 6)
-        th = float(cand[int(np.argmin([misfit(a) for a in cand]))])
+        fits = [misfit(a) for a in cand]
+        th, best = float(cand[int(np.argmin(fits))]), float(min(fits))
     (_, _), (w, h), ang = cv2.minAreaRect(occ.astype(np.float32))
     a = np.radians(ang) + (0.0 if w >= h else np.pi / 2)  # the rectangle's long side
-    rect = min((a, a + np.pi / 2), key=misfit)
-    best = misfit(th)
-    if misfit(rect) <= best + RECT_MIRROR_TOL_CELLS:  # a box-like hull: the rectangle is exact
+    rect_fit, rect = min((misfit(r), r) for r in (a, a + np.pi / 2))
+    if rect_fit <= best + RECT_MIRROR_TOL_CELLS:  # a box-like hull: the rectangle is exact
         return np.array([np.cos(rect), np.sin(rect)]), True
     if best <= MIRROR_MAX_RATIO * float(np.median(scores)):
         return np.array([np.cos(th), np.sin(th)]), True
