@@ -58,6 +58,7 @@ __all__ = [
     "simulate_shot",
     "simulate_to_folder",
     "working_distance_mm",
+    "effects_entries",
 ]
 
 #: Version of the truth ``.npz`` / ``poses.json`` layout.
@@ -707,7 +708,7 @@ def simulate_to_folder(
         else:
             shots = _plan_scene(rig, target, n, opts, stage)  # type: ignore[arg-type]  # validated above
             files += ["target.ply", "poses.json"]
-        sim_entries = _effects_entries(opts.effects, float(opts.blur_sigma))
+        sim_entries = effects_entries(opts.effects, float(opts.blur_sigma))
         rig.save(stage / "rig.yaml", extra={"simulated": 1, **sim_entries})
         files.append("rig.yaml")
         files += _write_shots(stage, rig, shots, projector, opts, progress)
@@ -835,7 +836,7 @@ def _write_shots(
     return files
 
 
-def _effects_entries(effects: CameraEffects | None, blur_sigma: float) -> dict[str, Any]:
+def effects_entries(effects: CameraEffects | None, blur_sigma: float) -> dict[str, Any]:
     """The camera effects of a simulated folder as flat ``rig.yaml`` ``sim_*`` entries
     (list: docs/capture.md)."""
     out: dict[str, Any] = {"sim_ideal_camera": 1, "sim_blur_sigma_px": float(blur_sigma)}
