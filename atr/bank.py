@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from prism3d.atr.chips import ChipSet, ChipSpec, as_chip_spec, render_chips, spec_poses
+from prism3d.atr.chips import ChipSet, ChipSpec, as_chip_spec, bounding_sphere, render_chips, spec_poses
 from prism3d.atr.filters import PSR_EXCLUDE, PSR_WINDOW, otmach_from_moments, peak_metrics
 from prism3d.atr.poses import parse_range
 from prism3d.capture.mesh import SceneMesh
@@ -42,9 +42,12 @@ __all__ = [
     "INTENSITY_PREPS",
     "check_bank_command",
     "check_targets",
+    "class_scale_facts",
+    "depth_relief",
     "prepare_chips",
     "render_class_chips",
     "train_bank",
+    "spectrum_metrics",
 ]
 
 log = logging.getLogger(__name__)
@@ -101,12 +104,12 @@ def check_bank_command(action: str, *, output: str | Path | None, bank: str | Pa
                        results: str | Path | None = None) -> None:
     """Check a ``bank train`` (needs ``output``, ``.npz``) or ``bank eval`` (needs
     ``bank``; ``results`` JSON optional) request, outputs included, before any work."""
-    check_choice(action, "action", ("train", "eval"))
+    check_choice(action, "action", ("train", "eval", "eval-scenes"))
     if action == "train" and output is None:
         raise InputError("bank train: give -o BANK.npz")
-    if action == "eval" and bank is None:
-        raise InputError("bank eval: give the bank file (bank eval BANK.npz ...)")
-    if action == "eval" and output is not None:
+    if action != "train" and bank is None:
+        raise InputError(f"bank {action}: give the bank file (bank {action} BANK.npz ...)")
+    if action != "train" and output is not None:
         raise InputError("bank eval writes no bank: -o is for bank train (results go to --json FILE)")
     if action == "train" and results is not None:
         raise InputError("bank train: --json is for bank eval")
@@ -141,21 +144,7 @@ def prepare_chips(
     if channel == "depth":
         if fx is None:
             raise InputError("prepare_chips: depth chips need fx (the chip focal length, px)")
-        f = np.broadcast_to(np.asarray(fx, dtype=np.float64), (n,))
-        out = np.zeros_like(x)
-        q0, q1 = h // 2 - h // 8, h // 2 + h // 8 + 1
-        for i in range(n):
-            centre = x[i, q0:q1, q0:q1]
-            fin = centre[np.isfinite(centre)]
-            if fin.size == 0:
-                fin = x[i][np.isfinite(x[i])]
-            if fin.size == 0:
-                continue
-            zc = float(np.median(fin))
-            half = (w / 2.0) * zc / f[i]
-            rel = (zc + half - x[i]) / (2 * half)
-            out[i] = np.clip(np.nan_to_num(rel, nan=0.0), 0.0, 1.0)
-        x = out
+        x = depth_relief(x, fx)
     else:
         x = np.nan_to_num(x, nan=0.0)
         if channel == "intensity" and intensity_prep == "gradient":
@@ -166,6 +155,30 @@ def prepare_chips(
     x = x - x.mean(axis=(1, 2), keepdims=True)
     e = np.sqrt(np.sum(x**2, axis=(1, 2), keepdims=True))
     return x / np.maximum(e, 1e-12)
+
+
+def depth_relief(images: NDArray, fx: NDArray | float) -> NDArray[np.float64]:
+    """Depth chips ``(N, S, S)`` mm -> relief in [0, 1]: 1 at the near side of the chip's
+    depth slab, 0 at its far side and where there is no surface. The slab is centred on
+    the median depth of the chip's central quarter and is as deep as the chip is wide at
+    that depth (``fx`` px per chip), so relief does not depend on range."""
+    x = check_array(images, "images", ndim=3, dtype_kind="fiub").astype(np.float64)
+    n, h, w = x.shape
+    f = np.broadcast_to(np.asarray(fx, dtype=np.float64), (n,))
+    out = np.zeros_like(x)
+    q0, q1 = h // 2 - h // 8, h // 2 + h // 8 + 1
+    for i in range(n):
+        centre = x[i, q0:q1, q0:q1]
+        fin = centre[np.isfinite(centre)]
+        if fin.size == 0:
+            fin = x[i][np.isfinite(x[i])]
+        if fin.size == 0:
+            continue
+        zc = float(np.median(fin))
+        half = (w / 2.0) * zc / f[i]
+        rel = (zc + half - x[i]) / (2 * half)
+        out[i] = np.clip(np.nan_to_num(rel, nan=0.0), 0.0, 1.0)
+    return out
 
 
 @dataclass(eq=False)
@@ -243,7 +256,7 @@ class FilterBank:
         chip against every filter."""
         x = self._inputs(chips, fx)
         spectra = np.fft.fft2(x, axes=(-2, -1))
-        return _metrics(spectra, self.freqs)
+        return spectrum_metrics(spectra, self.freqs)
 
     def classify(self, chips: ChipSet | NDArray, fx: NDArray | float | None = None):  # -> DataFrame
         """Classify chips by the best score (``self.metric``) over all filters.
@@ -433,7 +446,7 @@ def _psr_at_origin(plane: NDArray) -> float:
     return (c[r0, c0] - side.mean()) / max(side.std(), 1e-300)
 
 
-def _metrics(spectra: NDArray, freqs: NDArray, chunk: int = 8) -> dict[str, NDArray]:
+def spectrum_metrics(spectra: NDArray, freqs: NDArray, chunk: int = 8) -> dict[str, NDArray]:
     """Peak metrics ``(N, K)`` of spectra ``(N, S, S)`` against filters ``(K, S, S)``."""
     n, k = len(spectra), len(freqs)
     out = {m: np.empty((n, k)) for m in ("peak", "psr", "pce", "row", "col")}
@@ -563,7 +576,7 @@ def _search_params(
             )
             if vs.size == 0 or fs.size == 0:
                 continue
-            v = _metrics(spec_v[vs], freqs[fs])[metric]
+            v = spectrum_metrics(spec_v[vs], freqs[fs])[metric]
             own = gcls[fs][None, :] == labv[vs][:, None]
             s_in = np.where(own, v, -np.inf).max(axis=1)
             s_out = np.where(~own, v, -np.inf).max(axis=1)
@@ -594,6 +607,29 @@ def _heldout_views(
     return spec_v, labv, _az_bin(azv, bin_deg)
 
 
+def class_scale_facts(
+    items: Sequence[tuple[str, SceneMesh]], labels: Sequence[str], fx: NDArray, range_mm: NDArray,
+) -> dict[str, dict]:
+    """What a scene detector needs to put each class's chips at the right scale:
+    ``chip_px_per_mm`` (median chip focal / range over the class's training chips: chip
+    pixels per mm at the target), ``class_radius_mm`` (bounding radius of its mesh) and
+    ``class_full_scale`` (the mesh's ratio to full size: a built-in kit model's
+    ``metadata["scale"]``, 1 for a mesh taken as it is), ``class_extent_mm`` (the mesh's
+    x, y, z extents, z up)."""
+    lab = np.asarray(labels)
+    ratio = np.asarray(fx, dtype=np.float64) / np.asarray(range_mm, dtype=np.float64)
+    out: dict[str, dict] = {"chip_px_per_mm": {}, "class_radius_mm": {}, "class_full_scale": {},
+                            "class_extent_mm": {}}
+    for cls, mesh in items:
+        if cls in out["chip_px_per_mm"]:
+            continue
+        out["chip_px_per_mm"][cls] = float(np.median(ratio[lab == cls]))
+        out["class_radius_mm"][cls] = float(bounding_sphere(mesh)[1])
+        out["class_full_scale"][cls] = float(mesh.metadata.get("scale", 1.0) or 1.0)
+        out["class_extent_mm"][cls] = [float(v) for v in mesh.extent_mm]
+    return out
+
+
 def train_bank(
     targets: Sequence[tuple[str, SceneMesh]],
     *,
@@ -619,7 +655,7 @@ def train_bank(
     classes = _check_bank_args(items, channel, metric, bin_deg, params)
     nbins = round(360.0 / bin_deg)
     az_train = parse_range(azimuth)
-    X, labels, az, _, _, fx = render_class_chips(
+    X, labels, az, _, rng, fx = render_class_chips(
         items, channel=channel, azimuth=az_train, elevation=elevation, range_mm=range_mm,
         chip_spec=spec,
     )
@@ -637,6 +673,7 @@ def train_bank(
         sep = float("nan")
     freqs = np.stack([otmach_from_moments(*mo, *prm).freq for mo in moments])
     chosen = np.tile(np.asarray(prm), (len(groups), 1))
+    fclass = np.array([g[0] for g in groups], dtype=np.int64)
     meta = {
         "azimuth": [float(a) for a in az_train],
         "elevation": [float(e) for e in parse_range(elevation)],
@@ -652,6 +689,7 @@ def train_bank(
         "psr_window": PSR_WINDOW,
         "psr_exclude": PSR_EXCLUDE,
         "intensity_prep": INTENSITY_PREP,
+        **class_scale_facts(items, labels, fx, rng),
     }
     return FilterBank(
         classes,
@@ -659,7 +697,7 @@ def train_bank(
         int(spec.size),
         float(bin_deg),
         freqs,
-        np.array([g[0] for g in groups], dtype=np.int64),
+        fclass,
         np.array([g[1] * bin_deg for g in groups], dtype=np.float64),
         chosen,
         meta,

@@ -8,8 +8,9 @@ A detection hits a target when its pixel lies in the target's box, or its 3D pos
 within the target's ``radius_mm`` of the target's ``xyz_mm`` (both given). Detections are
 matched greedily in descending score, each target at most once; a detection on a confuser
 (a vehicle or crate not in the bank) or on nothing, or a second one on a matched target, is
-a false positive. Every threshold is a prefix of that order, so one matching serves the
-whole Pd-FPPI curve.
+a false positive. A target marked ``difficult`` (mostly hidden) is neither counted nor
+missed, and detections on it are ignored (PASCAL VOC's rule). Every threshold is a prefix
+of that order, so one matching serves the whole Pd-FPPI curve.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from prism3d.errors import InputError
 
-__all__ = ["score_scenes", "FPPI_POINTS"]
+__all__ = ["FPPI_POINTS", "check_scene_folders", "eval_scene_folders", "score_scenes"]
 
 #: FPPI operating points reported (Pd and identification accuracy at each).
 FPPI_POINTS = (0.1, 1.0)
@@ -44,11 +45,13 @@ def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
         if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
             raise InputError(f"scenes[{k}]: expected a (detections, truth) pair")
         dets, targets = _detections(pair[0], k), _targets(pair[1], k)
-        n_targets += sum(not t["confuser"] for t in targets)
-        n_confusers += sum(t["confuser"] for t in targets)
+        n_targets += sum(not t["confuser"] and not t["difficult"] for t in targets)
+        n_confusers += sum(t["confuser"] and not t["difficult"] for t in targets)
         taken = [False] * len(targets)
         for d in sorted(dets, key=lambda d: -d["score"]):
             j = _match(d, targets, taken)
+            if j is not None and targets[j]["difficult"]:
+                continue  # mostly hidden: neither found nor missed, nor a false alarm
             if j is None:
                 events.append((d["score"], "fp", False))
             elif targets[j]["confuser"]:
@@ -138,6 +141,7 @@ def _targets(doc: object, k: int) -> list[dict]:
             raise InputError(f"{w}.box_rc: expected r0 <= r1 and c0 <= c1, got {box!r}")
         radius = t.get("radius_mm")
         out.append({"class": t["class"], "confuser": bool(t.get("confuser", False)), "box": (r0, c0, r1, c1),
+                    "difficult": bool(t.get("difficult", False)),
                     "xyz": _xyz(t.get("xyz_mm"), f"{w}.xyz_mm"),
                     "radius": None if radius is None else _finite(radius, f"{w}.radius_mm")})
     return out
@@ -158,3 +162,62 @@ def _match(d: dict, targets: list[dict], taken: list[bool]) -> int | None:
             if dist < best_d:
                 best, best_d = j, dist
     return best
+
+
+def check_scene_folders(scenes: Sequence[str]) -> list:
+    """Scene folders (``shot.png``, ``rig.yaml``, ``truth.json`` each), all checked first."""
+    from pathlib import Path
+
+    if not scenes:
+        raise InputError("eval-scenes: no scenes given (folders written by 'prism3d simulate field')")
+    out = []
+    for s in scenes:
+        p = Path(s)
+        if not p.is_dir():
+            raise InputError(f"{p}: not a folder (expected a scene from 'prism3d simulate field')")
+        for name in ("shot.png", "rig.yaml", "truth.json"):
+            if not (p / name).is_file():
+                raise InputError(f"{p}: has no {name} (expected a scene from 'prism3d simulate field')")
+        out.append(p)
+    return out
+
+
+def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progress=None) -> dict:
+    """``prism3d bank eval-scenes``: detect with the bank in every scene folder and score
+    (:func:`score_scenes`); results (with each scene's detections and timings) go to
+    ``out_json`` atomically when given."""
+    import json
+    import time
+    from pathlib import Path
+
+    from prism3d.atr.bank import FilterBank
+    from prism3d.atr.detect import bank_scale, detect_shot
+    from prism3d.capture.rig import StereoRig
+    from prism3d.io.atomic import atomic_write_text
+    from prism3d.io.images import read_image
+
+    if out_json is not None and Path(out_json).suffix.lower() != ".json":
+        raise InputError(f"{out_json}: expected a .json file name for the results")
+    folders = check_scene_folders(scenes)
+    bank = FilterBank.load(bank_path)
+    bank_scale(bank)
+    truths = []
+    for p in folders:
+        try:
+            truths.append(json.loads((p / "truth.json").read_text()))
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{p / 'truth.json'}: not readable JSON ({exc})") from None
+    pairs, per_scene = [], []
+    t0 = time.perf_counter()
+    for k, (p, truth) in enumerate(zip(folders, truths)):
+        dets, times = detect_shot(bank, read_image(p / "shot.png"), StereoRig.load(p / "rig.yaml"))
+        pairs.append(({"detections": dets}, truth))
+        per_scene.append({"scene": str(p), "timings_s": times, "detections": dets})
+        if progress is not None:
+            progress(k + 1, len(folders), p.name)
+    res = score_scenes(pairs)
+    res.update({"bank": str(bank_path), "channel": bank.channel, "classes": bank.classes,
+                "seconds": time.perf_counter() - t0, "scenes": per_scene})
+    if out_json is not None:
+        atomic_write_text(Path(out_json), json.dumps(res, indent=1, default=float))
+    return res

@@ -132,6 +132,16 @@ def _virtual_resolver(name: str) -> Any:
 
 # --- simulate ------------------------------------------------------------------------------
 def _cmd_simulate(args: argparse.Namespace) -> int:
+    if args.kind == "field":
+        from prism3d.datasets.field import FieldOptions, simulate_field
+
+        fo = FieldOptions(targets=args.targets, confusers=args.confusers, seed=args.seed, noise=args.noise,
+                          supersample=1 if args.supersample is None else args.supersample,
+                          **({"classes": tuple(args.classes)} if args.classes else {}))
+        summary = simulate_field(args.out_dir, fo, progress=_progress(args, "simulate field"))
+        _say(args, f"wrote a field scene ({summary['n_targets']} targets, {summary['n_confusers']} confusers) "
+                   f"to {args.out_dir} in {summary['seconds']:.1f} s")
+        return 0
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
 
     rig = None
@@ -158,7 +168,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     board = parse_board(args.board)
     summary = simulate_to_folder(args.kind, args.out_dir, SimulateOptions(
         pattern=args.pattern, camouflage=args.camouflage, views=args.views, seed=args.seed, noise=args.noise,
-        supersample=args.supersample, compress=args.compress, board=board, square_mm=args.square,
+        supersample=2 if args.supersample is None else args.supersample, compress=args.compress, board=board, square_mm=args.square,
         blur_sigma=args.blur, effects=effects,
     ), rig=rig, target=target, progress=_progress(args, f"simulate {args.kind}"))
     _say(args, f"wrote {summary['n_shots']} shot(s) and ground truth to {args.out_dir} "
@@ -174,8 +184,10 @@ def _add_simulate(sub: Any) -> None:
                  "truth.npz (depth_left_mm, depth_right_mm, mask, albedo, shading, true "
                  "rectified disparity...). plate: the paper's 30x30 cm plate at 1250 mm; calib: "
                  "5 chessboard shots (9x6 inner corners, 25 mm); scene: a built-in target on a "
-                 "turntable, 8 views at 45 deg (also target.ply and poses.json).")
-    p.add_argument("kind", choices=["plate", "calib", "scene"])
+                 "turntable, 8 views at 45 deg (also target.ply and poses.json); field: full-size "
+                 "camouflaged targets, confusers and clutter on terrain under the sun, through a 4 m "
+                 "baseline rig (shot.png, rig.yaml, truth.json, truth.npz).")
+    p.add_argument("kind", choices=["plate", "calib", "scene", "field"])
     p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     p.add_argument("--target", default="tank_t1", help="scene: built-in target name (default tank_t1)")
     p.add_argument("--pattern", dest="pattern", action="store_true", default=None,
@@ -188,7 +200,11 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--noise", dest="noise", action="store_true", default=True, help="sensor noise (default)")
     p.add_argument("--no-noise", dest="noise", action="store_false")
-    p.add_argument("--supersample", type=int, default=2, help="anti-aliasing factor (default 2)")
+    p.add_argument("--supersample", type=int, default=None, help="anti-aliasing factor (default 2; field: 1)")
+    p.add_argument("--targets", type=int, help="field: bank-class targets (default 3-6, drawn)")
+    p.add_argument("--confusers", type=int, help="field: confusers (default 1-3, drawn)")
+    p.add_argument("--classes", nargs="+", metavar="NAME",
+                   help="field: built-in targets the bank knows (default tank_t1 jet_j1 ship_s1 truck_k1)")
     p.add_argument("--rig", type=Path, help="rig/calibration YAML to simulate (default: the paper's rig)")
     p.add_argument("--compress", action=argparse.BooleanOptionalAction, default=True,
                    help="deflate the truth .npz files (default; --no-compress writes them plain, "
@@ -695,6 +711,19 @@ def _cmd_bank(args: argparse.Namespace) -> int:
 
     check_bank_command(args.action, output=args.output, bank=args.bank,
                        results=args.json)
+    if args.action == "eval-scenes":
+        from prism3d.atr.scene_eval import eval_scene_folders
+
+        res = eval_scene_folders(args.bank, args.scenes, out_json=args.json,
+                                 progress=_progress(args, "bank eval-scenes"))
+        for x, v in res["at_fppi"].items():
+            _say(args, f"at {x} false positives per image: Pd {v['pd']:.3f}, identification "
+                       f"{v['id_accuracy']:.3f}, confusers called {v['confusers_called']:.3f}")
+        _say(args, f"{res['n_images']} scenes, {res['n_targets']} targets, {res['n_confusers']} confusers; "
+                   f"highest Pd {res['pd_max']:.3f}")
+        return 0
+    if args.scenes:
+        raise InputError(f"bank {args.action}: unexpected arguments {' '.join(args.scenes)}")
     if args.action == "train":
         from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
 
@@ -727,8 +756,10 @@ def _add_bank(sub: Any) -> None:
                  "filter per class and aspect bin (parameters chosen on held-out views); eval: "
                  "classify unseen poses (azimuths between the training ones) and report Pcc, confusion, "
                  "per-aspect accuracy and ROC (results JSON + plots beside it).")
-    p.add_argument("action", choices=["train", "eval"])
-    p.add_argument("bank", nargs="?", type=Path, metavar="BANK_NPZ", help="eval: the bank file")
+    p.add_argument("action", choices=["train", "eval", "eval-scenes"])
+    p.add_argument("bank", nargs="?", type=Path, metavar="BANK_NPZ", help="eval, eval-scenes: the bank file")
+    p.add_argument("scenes", nargs="*", metavar="SCENE_DIR",
+                   help="eval-scenes: scene folders from 'prism3d simulate field' (detect, then Pd vs FPPI)")
     p.add_argument("--targets", nargs="+", default=["builtin"],
                    help="'builtin', built-in names, or mesh files FILE[=CLASS[:UNITS[:UP]]] (default builtin)")
     p.add_argument("-o", "--output", type=Path, metavar="BANK_NPZ", help="train: output bank")
@@ -748,6 +779,49 @@ def _add_bank(sub: Any) -> None:
                    help="rescale every mesh file to this length (longest horizontal extent); units then do not matter")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, metavar="RESULTS_JSON", help="eval: write results (+ plots beside it)")
+
+
+# --- detect ----------------------------------------------------------------------------------
+def _parse_depth_range(text: str | None) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    try:
+        a, b = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise InputError(f"--depth-range: expected NEAR:FAR in metres, got {text!r}") from None
+    if not (0 < a < b):
+        raise InputError(f"--depth-range: expected 0 < NEAR < FAR, got {text!r}")
+    return a * 1000.0, b * 1000.0
+
+
+def _cmd_detect(args: argparse.Namespace) -> int:
+    from prism3d.atr.detect import detect_to_file
+
+    doc = detect_to_file(args.bank, args.output, shot=args.shot, calib=args.calib, image=args.image,
+                         depth=args.depth, fx=args.fx, depth_range_mm=_parse_depth_range(args.depth_range))
+    t = doc["timings_s"]
+    _say(args, f"wrote {args.output}: {len(doc['detections'])} detections (channel {doc['channel']}; "
+               + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in t.items()) + ")")
+    return 0
+
+
+def _add_detect(sub: Any) -> None:
+    p = _command(sub, "detect", _cmd_detect,
+                 help="find and identify a bank's targets in a whole shot (or image + depth map)",
+                 description="Reconstruct the shot, find the ground and the objects standing on it, "
+                 "then slide every filter of the bank over the scene at the scale the range at each "
+                 "pixel gives (one bank serves all ranges). Writes detections (pixel, 3D point, class, "
+                 "aspect, score), best first, down to a low score: threshold them, or score them with "
+                 "'bank eval-scenes'. Method: docs/atr.md.")
+    p.add_argument("shot", nargs="?", type=Path, metavar="SHOT", help="prism shot (with --calib)")
+    p.add_argument("--calib", type=Path, help="rig or calibration YAML of the shot")
+    p.add_argument("--bank", type=Path, required=True, help="filter bank (.npz from 'bank train')")
+    p.add_argument("--image", type=Path, help="instead of a shot: an image ...")
+    p.add_argument("--depth", type=Path, help="... with its depth map in mm (.npy, .tiff, .pfm, .npz[:key])")
+    p.add_argument("--fx", type=float, help="focal length of --image, px")
+    p.add_argument("--depth-range", metavar="NEAR:FAR",
+                   help="shot: depths searched, metres (default 0.3x to 10x the rig's convergence distance)")
+    _output_option(p, "DETECTIONS_JSON")
 
 
 # --- datasets: the target database ---------------------------------------------------------
@@ -879,6 +953,7 @@ _COMMANDS: list[Callable[[Any], None]] = [
     _add_features,
     _add_render,
     _add_bank,
+    _add_detect,
     _add_db,
     _add_trigger,
     _add_capture,

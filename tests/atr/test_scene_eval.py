@@ -73,3 +73,16 @@ def test_confusers_called_at_an_operating_point():
     dets = {"detections": [_d(25, 25, "truck", 9.0), _d(5, 5, "tank", 8.0)]}
     a = score_scenes([(dets, truth)])["at_fppi"]["1"]
     assert (a["pd"], a["threshold"], a["confusers_called"], a["id_accuracy"]) == (1.0, 8.0, 1.0, 1.0)
+
+
+def test_difficult_targets_are_neither_found_nor_missed():
+    truth = {"targets": [
+        {"class": "tank", "confuser": False, "box_rc": [0, 0, 10, 10]},
+        {"class": "tank", "confuser": False, "box_rc": [20, 20, 30, 30], "difficult": True},
+    ]}
+    dets = {"detections": [{"row": 25, "col": 25, "class": "tank", "score": 9.0},
+                           {"row": 26, "col": 26, "class": "tank", "score": 8.0},
+                           {"row": 5, "col": 5, "class": "tank", "score": 1.0}]}
+    r = score_scenes([(dets, truth)])
+    assert r["n_targets"] == 1
+    assert r["at_fppi"]["0.1"]["pd"] == 1.0  # the two detections on the hidden target cost nothing

@@ -255,6 +255,7 @@ COMMANDS = {
     "features": "test_features_of_a_scan",
     "render": "test_render_a_builtin_target",
     "bank": "test_bank_train_and_eval",
+    "detect": "test_detect_on_an_image_and_depth_map",
     "db": "test_db_init_add_render_features_info_verify",
     "trigger": "test_trigger_simulate_then_ping_status_fire",
     "capture": "test_capture_with_the_virtual_camera",
@@ -387,3 +388,37 @@ def test_calibrate_refuses_the_same_image_twice(tmp_path, plate):
     r = prism3d("calibrate", plate / "shot.png", tmp_path / "copy.png", "-o", tmp_path / "c.yaml")
     assert r.returncode == 2 and "the same image as" in r.stderr and "give each board pose once" in r.stderr
     assert not (tmp_path / "c.yaml").exists()
+
+
+def test_detect_on_an_image_and_depth_map(tmp_path):
+    """`detect --image --depth --fx` on a small field scene's left view and true depth:
+    detections in the contract; a depth map of another size is one line, exit 2."""
+    import json
+
+    import numpy as np
+
+    from prism3d.capture.rig import StereoRig
+    from prism3d.datasets.field import FieldOptions, simulate_field
+    from prism3d.io.images import read_image, write_image
+
+    scene = tmp_path / "field"
+    simulate_field(scene, FieldOptions(seed=5, targets=2, confusers=0, clutter=5, sensor_size=(720, 540),
+                                       focal_px=600.0))
+    rig = StereoRig.load(scene / "rig.yaml")
+    left = rig.split.split(read_image(scene / "shot.png"))[0]
+    write_image(tmp_path / "left.png", left)
+    r = prism3d("bank", "train", "--targets", "tank_t1", "truck_k1", "--azimuth", "0:360:60", "--bin-deg", "60",
+                "--channel", "depth", "-o", tmp_path / "b.npz")
+    assert r.returncode == 0, r.stderr
+    r = prism3d("detect", "--image", tmp_path / "left.png", "--depth", f"{scene / 'truth.npz'}:depth_left_mm",
+                "--fx", rig.left.fx, "--bank", tmp_path / "b.npz", "-o", tmp_path / "det.json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "det.json").read_text())
+    scores = [d["score"] for d in doc["detections"]]
+    assert scores == sorted(scores, reverse=True)
+    assert all(d["class"] in ("tank", "truck") for d in doc["detections"])
+    np.save(tmp_path / "small.npy", np.ones((10, 10), dtype=np.float32))
+    r = prism3d("detect", "--image", tmp_path / "left.png", "--depth", tmp_path / "small.npy", "--fx", "600",
+                "--bank", tmp_path / "b.npz", "-o", tmp_path / "det2.json")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "det2.json").exists()
