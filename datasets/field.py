@@ -376,7 +376,6 @@ def simulate_field(out_dir: str | Path, options: FieldOptions | None = None, *,
     from prism3d.capture.camera_effects import CameraEffects
     from prism3d.io.atomic import atomic_write_text, staged_folder
     from prism3d.io.images import write_image
-    import cv2
 
     o = FieldOptions() if options is None else options
     out = Path(out_dir)
@@ -433,7 +432,6 @@ def simulate_field(out_dir: str | Path, options: FieldOptions | None = None, *,
         atomic_write_text(stage / "truth.json", json.dumps(doc, indent=1))
     if progress:
         progress(3, 3, "written")
-    del cv2
     return {"out_dir": str(out), "n_targets": sum(not t["confuser"] for t in targets),
             "n_confusers": sum(t["confuser"] for t in targets), "seconds": time.perf_counter() - t0,
             "files": ["rig.yaml", "shot.png", "truth.json", "truth.npz"]}
