@@ -151,15 +151,6 @@ class SceneChannels:
         raise InputError(f"channel: expected intensity, depth or shape, got {name!r}")
 
 
-def _points(depth: NDArray, K: NDArray) -> NDArray[np.float64]:
-    h, w = depth.shape
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    x = (u - K[0, 2] - K[0, 1] * (v - K[1, 2]) / K[1, 1]) / K[0, 0]
-    y = (v - K[1, 2]) / K[1, 1]
-    z = depth.astype(np.float64)
-    return np.stack([x * z, y * z, z], axis=-1)
-
-
 def _ground_plane(P: NDArray, valid: NDArray, rng: np.random.Generator) -> tuple[NDArray, float]:
     """Dominant plane ``(n, d)`` (n . p + d = height, camera above: d > 0) by RANSAC on
     a sample, tolerance growing with depth (stereo error grows as Z^2)."""
@@ -202,6 +193,8 @@ def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: Detect
     import cv2
     from scipy import ndimage
 
+    from prism3d.atr.geometry import depth_to_points
+
     o = DetectOptions() if options is None else options
     g = check_array(grey, "image", ndim=2).astype(np.float32)
     d = check_array(depth_mm, "depth", ndim=2).astype(np.float32)
@@ -220,7 +213,7 @@ def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: Detect
         ds = np.where(np.isfinite(d), ds, np.nan).astype(np.float32)
         ds = np.where(np.abs(ds - d) > 0.05 * np.nan_to_num(d, nan=1.0), d, ds)
     valid = np.isfinite(ds)
-    P = _points(ds, K)
+    P = depth_to_points(ds, K)
     n, dd = _ground_plane(P, valid, np.random.default_rng(seed))
     height = np.where(valid, P @ n + dd, np.nan)
     # local ground: low percentile per cell of the plane, opened over the window
