@@ -96,7 +96,8 @@ class SceneChannels:
     is near), ``height_mm`` above the local ground, ``figure`` mask, ``labels`` (objects,
     0 = none), ``object_depth_mm`` and ``object_dims_mm`` (length, width, height: the
     smallest footprint rectangle of its points and its 98th height percentile) and
-    ``object_rc`` (pixel centroid) per label, ``up`` (the ground's normal, camera frame),
+    ``object_rc`` (pixel centroid) and ``object_xyz_mm`` (median 3D point, camera frame)
+    per label, ``up`` (the ground's normal, camera frame),
     ``smooth_depth_mm`` (the median-filtered depth; ``normals`` are computed from it on
     first use)."""
 
@@ -112,6 +113,7 @@ class SceneChannels:
     object_dims_mm: NDArray[np.float64]
     object_rc: NDArray[np.float64]
     smooth_depth_mm: NDArray[np.float32] | None = None
+    object_xyz_mm: NDArray[np.float64] | None = None
     _normals: NDArray[np.float32] | None = None
     _object_depth: tuple[NDArray, NDArray] | None = None
 
@@ -257,8 +259,13 @@ def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: Detect
     centres = np.zeros((nlab + 1, 2))
     if nlab:
         centres[1:] = np.asarray(ndimage.center_of_mass(figure, labels, np.arange(1, nlab + 1)))
+    xyz = np.full((nlab + 1, 3), np.nan)
+    if nlab:
+        on = labels * (valid & figure)
+        for k in range(3):
+            xyz[1:, k] = ndimage.median(P[..., k], on, index=np.arange(1, nlab + 1))
     rng_map = _fill_nearest(ds)
-    return SceneChannels(g, d, K, rng_map, hag, figure, labels.astype(np.int32), zobj, n, dims, centres, ds)
+    return SceneChannels(g, d, K, rng_map, hag, figure, labels.astype(np.int32), zobj, n, dims, centres, ds, xyz)
 
 
 #: Progressive morphological ground filter (Zhang et al. 2003): window sides (m) and the
@@ -473,14 +480,17 @@ def _class_extents(meta: dict, classes: Sequence[str]) -> dict[str, list[float] 
 
 
 def _finish(cands: list, scene: SceneChannels, classes: Sequence[str], ppm: dict[str, float], S: int,
-            extent: dict, gate: bool, o: DetectOptions, aspect: Any) -> list[dict]:
+            extent: dict, gate: bool, o: DetectOptions, aspect: Any, radius: dict[str, float]) -> list[dict]:
     """Greedy non-maximum suppression (half a chip, at the smaller of two detections'
-    scales), the 3D size gate, and the detection records, best first."""
+    scales), the 3D size gate, one detection per object placed at the object's median
+    point, none within a found target's radius (``radius``: class -> mm, full size; the
+    smaller of the two classes'), and the detection records, best first."""
     f = float(scene.K[0, 0])
     H, W = scene.range_mm.shape
     cands = sorted(cands, key=lambda t: -t[0])
     out: list[dict] = []
     kept: list[tuple[float, float, float]] = []
+    kept_xyz: list[tuple[NDArray, float]] = []
     taken: set[int] = set()
     for score, r, c, k, ci in cands:
         ri, cj = int(round(min(max(r, 0), H - 1))), int(round(min(max(c, 0), W - 1)))
@@ -491,15 +501,26 @@ def _finish(cands: list, scene: SceneChannels, classes: Sequence[str], ppm: dict
         rad = o.nms_fraction * (S / 2.0) / sc
         if any(math.hypot(r - a, c - b2) < min(rad, rr) for a, b2, rr in kept):
             continue
+        xyz = _xyz(scene, ri, cj)
         if gate:
             lab = _object_under(scene, ri, cj, NEAR_CHIP_PX / sc)
             if lab in taken or not _size_fits(scene, ri, cj, extent[classes[ci]], NEAR_CHIP_PX / sc):
                 continue  # one detection per object; and the object must fit the class
+            if scene.object_xyz_mm is not None and np.isfinite(scene.object_xyz_mm[lab]).all():
+                # the object, not the window, locates the target (a window peak may sit
+                # on its shadow or beside it)
+                p = scene.object_xyz_mm[lab]
+                rad3 = radius.get(classes[ci])
+                if rad3 and any(np.linalg.norm(p - q) < min(rad3, rq) for q, rq in kept_xyz):
+                    continue  # a part of a target already found (objects split at depth steps)
+                kept_xyz.append((p, rad3 or 0.0))
+                xyz = [float(v) for v in p]
+                r, c = _project(scene.K, p)
             taken.add(lab)
         kept.append((r, c, rad))
         out.append({"row": float(r), "col": float(c), "class": classes[ci],
                     "aspect_deg": aspect(k), "score": float(score),
-                    "range_mm": z, "xyz_mm": _xyz(scene, ri, cj)})
+                    "range_mm": z, "xyz_mm": xyz})
         if len(out) >= o.max_detections:
             break
     return out
@@ -540,7 +561,7 @@ def detect_scene(bank: Any, scene: SceneChannels, options: DetectOptions | None 
     if o.verify and cands:
         cands = _verify(bank, scene, cands, ppm, images, f, extent)
     return _finish(cands, scene, bank.classes, ppm, S, extent, need_figure, o,
-                   lambda k: float(bank.filter_az_deg[k]))
+                   lambda k: float(bank.filter_az_deg[k]), _class_radii(bank.metadata, bank.classes))
 
 
 def detect_scene_hog(model: Any, scene: SceneChannels, options: DetectOptions | None = None) -> list[dict]:
@@ -564,7 +585,8 @@ def detect_scene_hog(model: Any, scene: SceneChannels, options: DetectOptions | 
     o2 = DetectOptions(**{**o.__dict__, "min_score": -np.inf})  # SVM values are signed
     cands = _band_scan(scene, model.classes, ppm, S, images, need_figure, o2, score_fn)
     extent = _class_extents(model.metadata, model.classes)
-    return _finish(cands, scene, model.classes, ppm, S, extent, need_figure, o, lambda k: float("nan"))
+    return _finish(cands, scene, model.classes, ppm, S, extent, need_figure, o, lambda k: float("nan"),
+                   _class_radii(model.metadata, model.classes))
 
 
 #: An object under a detection may be this much smaller (occlusion, the hidden far side,
@@ -703,6 +725,19 @@ def _verify(bank: Any, scene: SceneChannels, cands: list, ppm: dict[str, float],
         if np.isfinite(best[0]):
             out.append((best[0], r, c, best[1], best[2]))
     return out
+
+
+def _project(K: NDArray, p: NDArray) -> tuple[float, float]:
+    """Pixel (row, col) of a camera-frame point."""
+    u = K @ p
+    return float(u[1] / u[2]), float(u[0] / u[2])
+
+
+def _class_radii(meta: dict, classes: Sequence[str]) -> dict[str, float]:
+    """Full-size bounding radius per class, mm (absent when the model does not record it)."""
+    full = meta.get("class_full_scale", {})
+    rad = meta.get("class_radius_mm") or {}
+    return {c: float(rad[c]) / float(full.get(c, 1.0) or 1.0) for c in classes if c in rad}
 
 
 def _xyz(scene: SceneChannels, r: int, c: int) -> list[float] | None:

@@ -22,7 +22,7 @@ import numpy as np
 
 from prism3d.errors import InputError
 
-__all__ = ["FPPI_POINTS", "check_scene_folders", "eval_scene_folders", "score_scenes"]
+__all__ = ["FPPI_POINTS", "check_scene_folders", "plot_fppi", "score_scenes", "write_scene_results"]
 
 #: FPPI operating points reported (Pd and identification accuracy at each).
 FPPI_POINTS = (0.1, 1.0)
@@ -182,42 +182,44 @@ def check_scene_folders(scenes: Sequence[str]) -> list:
     return out
 
 
-def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progress=None) -> dict:
-    """``prism3d bank eval-scenes``: detect with the bank in every scene folder and score
-    (:func:`score_scenes`); results (with each scene's detections and timings) go to
-    ``out_json`` atomically when given."""
+def plot_fppi(*results: dict, labels: Sequence[str] | None = None):  # -> matplotlib Figure
+    """Pd (and identification among hits, dashed) against false positives per image, one
+    curve per result of :func:`score_scenes`, FPPI on a log axis with 0.1 and 1 marked."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    for k, res in enumerate(results):
+        cv = res["curve"]
+        lab = labels[k] if labels else res.get("channel", f"run {k + 1}")
+        x = np.maximum(np.asarray(cv["fppi"], dtype=float), 1e-3)
+        line, = ax.step(x, cv["pd"], where="post", label=f"{lab}: Pd")
+        ax.step(x, cv["id_accuracy"], where="post", ls="--", lw=0.8, color=line.get_color(),
+                label=f"{lab}: identified")
+    for v in FPPI_POINTS:
+        ax.axvline(v, color="0.7", lw=0.6)
+    ax.set_xscale("log")
+    ax.set_xlim(1e-3, 20)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("false positives per image")
+    ax.set_ylabel("Pd / identification")
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
+def write_scene_results(res: dict, path) -> None:
+    """The results JSON and its Pd-FPPI plot (``<stem>_fppi.png``), renamed together."""
     import json
-    import time
     from pathlib import Path
 
-    from prism3d.atr.bank import FilterBank
-    from prism3d.atr.detect import bank_scale, detect_shot
-    from prism3d.capture.rig import StereoRig
-    from prism3d.io.atomic import atomic_write_text
-    from prism3d.io.images import read_image
+    import matplotlib.pyplot as plt
 
-    if out_json is not None and Path(out_json).suffix.lower() != ".json":
-        raise InputError(f"{out_json}: expected a .json file name for the results")
-    folders = check_scene_folders(scenes)
-    bank = FilterBank.load(bank_path)
-    bank_scale(bank)
-    truths = []
-    for p in folders:
-        try:
-            truths.append(json.loads((p / "truth.json").read_text()))
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{p / 'truth.json'}: not readable JSON ({exc})") from None
-    pairs, per_scene = [], []
-    t0 = time.perf_counter()
-    for k, (p, truth) in enumerate(zip(folders, truths)):
-        dets, times = detect_shot(bank, read_image(p / "shot.png"), StereoRig.load(p / "rig.yaml"))
-        pairs.append(({"detections": dets}, truth))
-        per_scene.append({"scene": str(p), "timings_s": times, "detections": dets})
-        if progress is not None:
-            progress(k + 1, len(folders), p.name)
-    res = score_scenes(pairs)
-    res.update({"bank": str(bank_path), "channel": bank.channel, "classes": bank.classes,
-                "seconds": time.perf_counter() - t0, "scenes": per_scene})
-    if out_json is not None:
-        atomic_write_text(Path(out_json), json.dumps(res, indent=1, default=float))
-    return res
+    from prism3d.io.atomic import atomic_paths
+
+    fig = plot_fppi(res)
+    try:
+        with atomic_paths(path, Path(f"{path.with_suffix('')}_fppi.png")) as tmp:
+            tmp[0].write_text(json.dumps(res, indent=1, default=float), encoding="utf-8")
+            fig.savefig(tmp[1], format="png", dpi=80)
+    finally:
+        plt.close(fig)

@@ -8,6 +8,10 @@ too large for it (a full-size ship) floats on the water zone beyond (``water_ran
 Confusers are the built-in vehicles not among ``classes`` and vehicle-size crates and
 fuel tanks; clutter is rocks, bushes, trees and buildings. Every target is painted with
 a camouflage seed no bank trains on.
+
+Batches of scenes (``simulate field OUT --count N``) and their evaluation with a bank
+(``bank eval-scenes``) run as independent units in this process or on Dask, through the
+database jobs' runner (:func:`prism3d.datasets.jobs.run_tasks`).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +34,10 @@ from prism3d.datasets._primitives import Part, box, cylinder, ellipse, loft, pri
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 
-__all__ = ["FIELD_SCHEMA_VERSION", "FieldOptions", "FieldScene", "plan_field", "simulate_field"]
+__all__ = [
+    "FIELD_SCHEMA_VERSION", "FieldOptions", "FieldScene", "detect_scene_folder", "eval_scene_folders", "plan_field",
+    "scene_folder_name", "simulate_field", "simulate_field_batch",
+]
 
 FIELD_SCHEMA_VERSION = 1
 #: Camouflage seeds of scene targets start here: no bank is trained on them.
@@ -450,3 +457,131 @@ def _silhouette(mesh: SceneMesh, T_rig_obj: NDArray, rig: StereoRig) -> NDArray[
 
     r.stream_camera(rig.left, rig.T_rig_left, band)
     return mask.reshape(h, w)
+
+
+#: Files a complete field scene folder holds (``simulate_field`` writes them together).
+SCENE_FILES = ("rig.yaml", "shot.png", "truth.json", "truth.npz")
+
+
+def scene_folder_name(seed: int) -> str:
+    """The folder of the scene with ``seed`` in a batch: ``scene_0042``."""
+    return f"scene_{seed:04d}"
+
+
+def _field_unit(out_dir: str, options: dict[str, Any]) -> dict[str, Any]:
+    """One batch unit (a Dask task): the scene of ``options`` into ``out_dir``."""
+    opts = FieldOptions(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in options.items()})
+    return simulate_field(out_dir, opts)
+
+
+def simulate_field_batch(out_dir: str | Path, count: int, options: FieldOptions | None = None,
+                         run: Any = None) -> Any:
+    """``count`` field scenes with seeds ``options.seed``, ``+1``... into
+    ``out_dir/scene_<seed>`` as independent units, in this process or on Dask
+    (``run``: :class:`~prism3d.datasets.jobs.RunOptions`). Each scene appears whole or not
+    at all, so a rerun resumes: complete scene folders are kept and counted as skipped;
+    ``batch.json`` (seeds, options, seconds, scenes per minute) is rewritten at the end.
+    Returns the :class:`~prism3d.datasets.jobs.JobReport`."""
+    from prism3d.datasets.jobs import RunOptions, run_tasks
+    from prism3d.io.atomic import atomic_write_text
+
+    o = FieldOptions() if options is None else options
+    if isinstance(count, bool) or int(count) != count or not 1 <= int(count) <= 100_000:
+        raise InputError(f"count: expected an integer in [1, 100000], got {count!r}")
+    run = RunOptions() if run is None else run
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    seeds = [o.seed + k for k in range(int(count))]
+    opts_doc = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(o).items()}
+    old = out / "batch.json"
+    if old.is_file():  # a resumed batch must not mix scenes made with other options
+        try:
+            before = json.loads(old.read_text()).get("options", {})
+        except (OSError, ValueError):
+            before = None
+        if before != opts_doc:
+            raise InputError(f"{out}: holds a batch made with other options ({old}); give a new folder")
+    tasks, done = [], 0
+    for s in seeds:
+        d = out / scene_folder_name(s)
+        if d.is_dir() and all((d / f).is_file() for f in SCENE_FILES):
+            done += 1
+            continue
+        if d.exists():
+            raise InputError(f"{d}: exists but is not a complete field scene; remove it and run again")
+        tasks.append((d.name, "field scene", _field_unit, (str(d), asdict(replace(o, seed=s)))))
+    report = run_tasks("field", tasks, run)
+    report.total_units, report.skipped_units = len(seeds), done
+    made = [st for st in report.stats if st]
+    busy = sum(st["seconds"] for st in made)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "batch.json", json.dumps({
+        "scenes": [scene_folder_name(s) for s in seeds], "seeds": seeds,
+        "options": opts_doc,
+        "made_now": len(made), "resumed": done, "failed": report.failed,
+        "wall_seconds": round(report.seconds, 2), "scene_seconds": round(busy, 2),
+        "scenes_per_minute": round(60.0 * len(made) / report.seconds, 2) if made and report.seconds > 0 else None,
+        "workers": run.workers, "scheduler": run.scheduler,
+    }, indent=1))
+    return report
+
+
+# -- evaluation jobs ---------------------------------------------------------------
+
+
+def detect_scene_folder(bank_path: str, scene: str) -> dict:
+    """One unit of ``eval-scenes`` (a Dask task): the bank's detections in one scene folder
+    (``scene``, ``detections``, ``timings_s``)."""
+    from prism3d.atr.bank import FilterBank
+    from prism3d.atr.detect import detect_shot
+    from prism3d.capture.rig import StereoRig
+    from prism3d.io.images import read_image
+
+    p = Path(scene)
+    dets, times = detect_shot(FilterBank.load(bank_path), read_image(p / "shot.png"), StereoRig.load(p / "rig.yaml"))
+    return {"scene": str(p), "timings_s": times, "detections": dets}
+
+
+def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progress=None, run=None) -> dict:
+    """``prism3d bank eval-scenes``: detect with the bank in every scene folder and score
+    (:func:`~prism3d.atr.scene_eval.score_scenes`); scenes are independent units run in
+    this process or on Dask (``run``: :class:`~prism3d.datasets.jobs.RunOptions`; its
+    progress wins over ``progress``); results (with each scene's detections and timings) go to ``out_json``
+    atomically when given. A scene that fails stops the evaluation (a score over fewer
+    scenes would not be the score asked for)."""
+    from prism3d.atr.bank import FilterBank
+    from prism3d.atr.detect import bank_scale
+    from prism3d.atr.scene_eval import check_scene_folders, score_scenes, write_scene_results
+    from prism3d.datasets.jobs import RunOptions, run_tasks
+
+    if out_json is not None and Path(out_json).suffix.lower() != ".json":
+        raise InputError(f"{out_json}: expected a .json file name for the results")
+    folders = check_scene_folders(scenes)
+    bank = FilterBank.load(bank_path)
+    bank_scale(bank)
+    truths = []
+    for p in folders:
+        try:
+            truths.append(json.loads((p / "truth.json").read_text()))
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{p / 'truth.json'}: not readable JSON ({exc})") from None
+    run = RunOptions() if run is None else run
+    if run.progress is None and progress is not None:
+        run = replace(run, progress=progress)
+    t0 = time.perf_counter()
+    tasks = [(p.name, "detect", detect_scene_folder, (str(bank_path), str(p))) for p in folders]
+    report = run_tasks("eval-scenes", tasks, replace(run, retries=0))
+    if report.failed:
+        f = report.failed[0]
+        raise InputError(f"eval-scenes: {len(report.failed)} of {len(folders)} scenes failed "
+                         f"(first: {f['unit']}: {f['error']}); nothing written")
+    by_scene = {r["scene"]: r for r in report.stats}
+    per_scene = [by_scene[str(p)] for p in folders]
+    pairs = [({"detections": r["detections"]}, truth) for r, truth in zip(per_scene, truths)]
+    res = score_scenes(pairs)
+    res.update({"bank": str(bank_path), "channel": bank.channel, "classes": bank.classes,
+                "seconds": time.perf_counter() - t0, "workers": run.workers, "scenes": per_scene})
+    if out_json is not None:
+        write_scene_results(res, Path(out_json))
+    return res

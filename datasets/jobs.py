@@ -52,6 +52,7 @@ __all__ = [
     "plan_units",
     "run_features_job",
     "run_render_job",
+    "run_tasks",
     "unit_stats",
     "write_npz_deterministic",
 ]
@@ -520,6 +521,20 @@ def _execute(tasks: list[_Task], report: JobReport, run: RunOptions) -> None:
         _run_local(tasks, run.retries, finish)
     else:
         _run_dask(tasks, report.job, run, finish)
+
+
+def run_tasks(job: str, tasks: Sequence[_Task], run: RunOptions | None = None) -> JobReport:
+    """Run independent tasks ``(unit_id, what, fn, args)`` (``fn`` importable, ``args``
+    picklable) in this process or on Dask as ``run`` says, with its retries and progress;
+    each task's return value lands in the report's ``stats`` (completion order), and one
+    task's failure is reported, never raised."""
+    t0 = time.perf_counter()
+    run = RunOptions() if run is None else run
+    check_scheduler(run.scheduler)
+    report = JobReport(job=job, total_units=len(tasks))
+    _execute(list(tasks), report, run)
+    report.seconds = time.perf_counter() - t0
+    return report
 
 
 def _run_local(tasks: list[_Task], retries: int, finish: _Tally) -> None:

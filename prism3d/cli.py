@@ -138,6 +138,18 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         fo = FieldOptions(targets=args.targets, confusers=args.confusers, seed=args.seed, noise=args.noise,
                           supersample=1 if args.supersample is None else args.supersample,
                           **({"classes": tuple(args.classes)} if args.classes else {}))
+        if args.count is not None:
+            from prism3d.datasets.field import simulate_field_batch
+            from prism3d.datasets.jobs import RunOptions
+
+            report = simulate_field_batch(args.out_dir, args.count, fo, RunOptions(
+                workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "simulate field")))
+            _say(args, report.summary())
+            if not report.ok:
+                print(f"prism3d: {report.failure_line()}", file=sys.stderr)
+            return report.exit_code
+        if args.workers or args.scheduler:
+            raise InputError("simulate field: --workers and --scheduler go with --count (a batch of scenes)")
         summary = simulate_field(args.out_dir, fo, progress=_progress(args, "simulate field"))
         _say(args, f"wrote a field scene ({summary['n_targets']} targets, {summary['n_confusers']} confusers) "
                    f"to {args.out_dir} in {summary['seconds']:.1f} s")
@@ -205,6 +217,10 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--confusers", type=int, help="field: confusers (default 1-3, drawn)")
     p.add_argument("--classes", nargs="+", metavar="NAME",
                    help="field: built-in targets the bank knows (default tank_t1 jet_j1 ship_s1 truck_k1)")
+    p.add_argument("--count", type=int, help="field: a batch of this many scenes, seeds SEED, SEED+1... in "
+                   "OUT_DIR/scene_<seed> (a rerun resumes; batch.json has the scenes per minute)")
+    p.add_argument("--workers", type=int, default=0, help="field --count: local Dask workers (0 = in this process)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="field --count: an existing Dask scheduler")
     p.add_argument("--rig", type=Path, help="rig/calibration YAML to simulate (default: the paper's rig)")
     p.add_argument("--compress", action=argparse.BooleanOptionalAction, default=True,
                    help="deflate the truth .npz files (default; --no-compress writes them plain, "
@@ -712,10 +728,12 @@ def _cmd_bank(args: argparse.Namespace) -> int:
     check_bank_command(args.action, output=args.output, bank=args.bank,
                        results=args.json)
     if args.action == "eval-scenes":
-        from prism3d.atr.scene_eval import eval_scene_folders
+        from prism3d.datasets.field import eval_scene_folders
 
-        res = eval_scene_folders(args.bank, args.scenes, out_json=args.json,
-                                 progress=_progress(args, "bank eval-scenes"))
+        from prism3d.datasets.jobs import RunOptions
+
+        res = eval_scene_folders(args.bank, args.scenes, out_json=args.json, run=RunOptions(
+            workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "bank eval-scenes")))
         for x, v in res["at_fppi"].items():
             _say(args, f"at {x} false positives per image: Pd {v['pd']:.3f}, identification "
                        f"{v['id_accuracy']:.3f}, confusers called {v['confusers_called']:.3f}")
@@ -724,6 +742,8 @@ def _cmd_bank(args: argparse.Namespace) -> int:
         return 0
     if args.scenes:
         raise InputError(f"bank {args.action}: unexpected arguments {' '.join(args.scenes)}")
+    if args.workers or args.scheduler:
+        raise InputError(f"bank {args.action}: --workers and --scheduler are for eval-scenes")
     if args.action == "train":
         from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
 
@@ -778,7 +798,11 @@ def _add_bank(sub: Any) -> None:
     p.add_argument("--length-mm", type=float, metavar="MM",
                    help="rescale every mesh file to this length (longest horizontal extent); units then do not matter")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", type=Path, metavar="RESULTS_JSON", help="eval: write results (+ plots beside it)")
+    p.add_argument("--json", type=Path, metavar="RESULTS_JSON",
+                   help="eval, eval-scenes: write results (+ plots beside it)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="eval-scenes: local Dask workers, one scene each (0 = in this process)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="eval-scenes: an existing Dask scheduler")
 
 
 # --- detect ----------------------------------------------------------------------------------

@@ -93,6 +93,27 @@ def test_detections_follow_the_contract(field, small_bank):
         assert 0 <= d["row"] < sc.depth_mm.shape[0] and 0 <= d["col"] < sc.depth_mm.shape[1]
 
 
+def test_one_detection_per_target_placed_on_it(field, small_bank):
+    """On the true depth: a detection near a true target (within its radius) sits inside
+    its box (the object, not the window peak, places it), and no two detections fall
+    within one target (objects split at depth steps are one target)."""
+    _, truth, _, _, _, _ = field
+    sc = _scene(field)
+    dets = detect_scene(small_bank, sc)
+    near_any = 0
+    for t in truth["targets"]:
+        if t["difficult"]:
+            continue
+        on = [d for d in dets if d["xyz_mm"] is not None
+              and np.linalg.norm(np.subtract(d["xyz_mm"], t["xyz_mm"])) < 0.5 * t["radius_mm"]]
+        assert len(on) <= 1, (t["name"], on)
+        r0, c0, r1, c1 = t["box_rc"]
+        for d in on:
+            near_any += 1
+            assert r0 - 2 <= d["row"] <= r1 + 2 and c0 - 2 <= d["col"] <= c1 + 2, (t["name"], d, t["box_rc"])
+    assert near_any >= 1
+
+
 def test_field_truth_boxes_hold_their_targets(field):
     _, truth, _, oid, rig, _ = field
     assert truth["targets"]
