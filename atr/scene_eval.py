@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from prism3d.errors import InputError
 
-__all__ = ["FPPI_POINTS", "check_scene_folders", "plot_fppi", "score_scenes", "write_scene_results"]
+__all__ = ["FPPI_POINTS", "check_scene_folders", "plot_fppi", "plot_scene", "score_scenes", "write_scene_results"]
 
 #: FPPI operating points reported (Pd and identification accuracy at each).
 FPPI_POINTS = (0.1, 1.0)
@@ -203,6 +204,37 @@ def plot_fppi(*results: dict, labels: Sequence[str] | None = None):  # -> matplo
     ax.set_xlabel("false positives per image")
     ax.set_ylabel("Pd / identification")
     ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
+def plot_scene(image: Any, truth: dict | None, detections: Sequence[dict], *, top: int = 8,
+               title: str | None = None):  # -> matplotlib Figure
+    """An image (the left view) with the true targets' boxes (green; confusers orange;
+    dashed: difficult) when ``truth`` is given, and the ``top`` best detections (a cross,
+    rank, class, score)."""
+    import matplotlib.pyplot as plt
+
+    img = np.asarray(image)
+    h, w = img.shape[:2]
+    fig, ax = plt.subplots(figsize=(6.4, 6.4 * h / w + 0.4))
+    ax.imshow(img, cmap="gray" if img.ndim == 2 else None)
+    for t in (truth or {}).get("targets", []):
+        r0, c0, r1, c1 = t["box_rc"]
+        col = "orange" if t.get("confuser") else "lime"
+        ax.add_patch(plt.Rectangle((c0, r0), c1 - c0, r1 - r0, fill=False, ec=col, lw=1.2,
+                                   ls="--" if t.get("difficult") else "-"))
+        ax.text(c0, r1 + 0.012 * h, t["class"] + (" (confuser)" if t.get("confuser") else ""), color=col,
+                fontsize=6, va="top")
+    for k, d in enumerate(list(detections)[:top]):
+        ax.plot(d["col"], d["row"], "+", color="red", ms=10, mew=1.5)
+        ax.text(d["col"] + 0.01 * w, d["row"] - 0.01 * h, f"{k + 1}. {d['class']} {d['score']:.3f}", color="red",
+                fontsize=6)
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    ax.set_axis_off()
+    if title:
+        ax.set_title(title, fontsize=8)
     fig.tight_layout()
     return fig
 

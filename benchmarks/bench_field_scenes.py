@@ -5,9 +5,13 @@ one bank per channel with the defaults of ``bank train`` on the four default cla
 reconstructs each shot once and runs every bank on it, then scores with
 :func:`prism3d.atr.scene_eval.score_scenes`. Prints Pd / identification / confusers at
 0.1 and 1 FPPI, detection time per shot (reconstruction excluded) and scenes per minute;
-writes ``benchmarks/results/field_scenes.json``.
+writes ``benchmarks/results/field_scenes.json`` (with each run's Pd-FPPI curve).
 
-    python benchmarks/bench_field_scenes.py --n 20 --work /tmp/field_bench
+``--true-depth`` adds the best 3D bank on the simulator's exact depth (the recogniser's
+own limit, stereo taken out); ``--rate N`` generates N more scenes as a batch job in this
+process and on 2 Dask workers (scenes per minute, 1 vs 2 workers).
+
+    python benchmarks/bench_field_scenes.py --n 20 --work /tmp/field_bench --true-depth --rate 4
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ from prism3d.atr.detect import detect_scene, detect_scene_hog, scene_channels
 from prism3d.atr.hog_svm import HogSvm
 from prism3d.atr.scene_eval import score_scenes
 from prism3d.capture.rig import StereoRig
-from prism3d.datasets.field import FieldOptions, simulate_field
+from prism3d.datasets.field import FieldOptions, simulate_field, simulate_field_batch
+from prism3d.datasets.jobs import RunOptions
 from prism3d.datasets.resolve import resolve_targets
 from prism3d.io.images import read_image
 from prism3d.reconstruct.pipeline import ReconstructOptions, convergence_distance_mm, reconstruct_shot
@@ -39,6 +44,9 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/field_bench"))
     ap.add_argument("--channels", nargs="+", default=["depth", "shape", "intensity"])
     ap.add_argument("--no-hog", action="store_true", help="skip the HOG + SVM baseline")
+    ap.add_argument("--true-depth", action="store_true", help="also the shape bank on the exact depth")
+    ap.add_argument("--rate", type=int, default=0, metavar="N",
+                    help="generate N scenes as a batch job, in-process and on 2 Dask workers")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "field_scenes.json")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
@@ -55,6 +63,9 @@ def main() -> None:
     banks = {c: train_bank(targets, channel=c, chip_spec=BANK_CHIP_SPEC) for c in a.channels}
     hogs = {} if a.no_hog else {c: HogSvm.train(targets, channel=c, chip_spec=BANK_CHIP_SPEC) for c in a.channels}
     runs = [(c, "bank", b) for c, b in banks.items()] + [(c, "hog", m) for c, m in hogs.items()]
+    best3d = "shape" if "shape" in banks else next((c for c in banks if c != "intensity"), None)
+    if a.true_depth and best3d is not None:
+        runs.append((best3d, "bank-true-depth", banks[best3d]))
     pairs = {(c, k): [] for c, k, _ in runs}
     det_s = {(c, k): [] for c, k, _ in runs}
     rec_s, ch_s = [], []
@@ -76,11 +87,15 @@ def main() -> None:
         t3 = time.perf_counter()
         ch_s.append(t3 - t2)
         R1 = np.asarray(z["R1"])
+        sc_true = _true_scene(d, rig) if any(k == "bank-true-depth" for _, k, _ in runs) else None
         for c, kind, model in runs:
             t4 = time.perf_counter()
-            dets = detect_scene(model, sc) if kind == "bank" else detect_scene_hog(model, sc)
+            if kind == "bank-true-depth":
+                dets = detect_scene(model, sc_true)  # already in the left view
+            else:
+                dets = detect_scene(model, sc) if kind == "bank" else detect_scene_hog(model, sc)
             det_s[(c, kind)].append(time.perf_counter() - t4)
-            for dt in dets:  # rectified grid -> left view, as detect_shot does
+            for dt in dets if kind != "bank-true-depth" else []:  # rectified grid -> left view, as detect_shot does
                 if dt["xyz_mm"] is not None:
                     p = R1.T @ np.asarray(dt["xyz_mm"])
                     dt["xyz_mm"] = [float(v) for v in p]
@@ -94,7 +109,6 @@ def main() -> None:
            "channels_s_median": float(np.median(ch_s)), "runs": {}}
     for (c, kind), pr in pairs.items():
         r = score_scenes(pr)
-        r.pop("curve", None)
         r["detect_s_median"] = float(np.median(det_s[(c, kind)]))
         out["runs"][f"{kind}:{c}"] = r
         for x, v in r["at_fppi"].items():
@@ -102,10 +116,36 @@ def main() -> None:
                   f"confusers called {v['confusers_called']:.3f}")
         print(f"{kind:4s} {c:9s} Pd max {r['pd_max']:.3f}; detect {r['detect_s_median']:.2f} s/shot "
               f"(+ channels {out['channels_s_median']:.2f} s)")
+    if a.rate:
+        out["batch_rate"] = _batch_rate(a.work / "rate", a.seed0 + 10_000, a.rate)
+        print("batch generation, scenes/min:", out["batch_rate"])
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(out, indent=1, default=float))
     if made:
         print("generation:", f"{out['scenes_per_minute']:.1f} scenes/min")
+
+
+def _true_scene(d: Path, rig: StereoRig):
+    """The scene's channels from the simulator's exact left-view depth and the left view."""
+    z = np.load(d / "truth.npz")
+    left = rig.split.split(read_image(d / "shot.png"))[0].astype(np.float32)
+    grey = left @ np.array([0.299, 0.587, 0.114], dtype=np.float32) if left.ndim == 3 else left
+    depth = z["depth_left_mm"].astype(np.float32)
+    depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
+    return scene_channels(grey / 255.0, depth, rig.left.K)
+
+
+def _batch_rate(root: Path, seed: int, n: int) -> dict:
+    """Scenes per minute of ``simulate field --count n`` in this process and on 2 workers."""
+    import shutil
+
+    rates = {}
+    for workers in (0, 2):
+        folder = root / f"workers_{workers}"
+        shutil.rmtree(folder, ignore_errors=True)
+        rep = simulate_field_batch(folder, n, FieldOptions(seed=seed), RunOptions(workers=workers))
+        rates[f"workers_{workers}"] = round(60.0 * rep.done_units / rep.seconds, 2)
+    return rates
 
 
 if __name__ == "__main__":

@@ -586,32 +586,6 @@ Stage = Callable[[DemoContext], Section]
 DEMO_SCENE_DRAWN = 8
 
 
-def scene_figure(left: Any, truth: dict, dets: list[dict], title: str) -> bytes:
-    """The left view with the true targets (green; confusers orange; dashed: under half
-    visible) and the best detections (class, rank and score at a cross)."""
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    from prism3d.report import figure_png
-
-    fig, ax = plt.subplots(figsize=(6.4, 8.4))
-    ax.imshow(np.asarray(left), cmap="gray" if np.asarray(left).ndim == 2 else None)
-    for t in truth["targets"]:
-        r0, c0, r1, c1 = t["box_rc"]
-        col = "orange" if t["confuser"] else "lime"
-        ax.add_patch(plt.Rectangle((c0, r0), c1 - c0, r1 - r0, fill=False, ec=col, lw=1.2,
-                                   ls="--" if t.get("difficult") else "-"))
-        ax.text(c0, r1 + 14, t["class"] + (" (confuser)" if t["confuser"] else ""), color=col, fontsize=6,
-                va="top")
-    for k, d in enumerate(dets[:DEMO_SCENE_DRAWN]):
-        ax.plot(d["col"], d["row"], "+", color="red", ms=10, mew=1.5)
-        ax.text(d["col"] + 12, d["row"] - 12, f"{k + 1}. {d['class']} {d['score']:.3f}", color="red", fontsize=6)
-    ax.set_axis_off()
-    ax.set_title(title, fontsize=8)
-    fig.tight_layout()
-    return figure_png(fig)
-
-
 def _stage_scene(ctx: DemoContext) -> Section:
     """A whole field scene: camouflaged full-size targets among confusers and clutter,
     reconstructed, and the shape bank's detections drawn against the truth."""
@@ -620,12 +594,13 @@ def _stage_scene(ctx: DemoContext) -> Section:
     from prism3d.atr.bank import FilterBank, train_bank
     from prism3d.atr.chips import ChipSpec
     from prism3d.atr.detect import detect_shot
-    from prism3d.atr.scene_eval import score_scenes
+    from prism3d.atr.scene_eval import plot_scene, score_scenes
     from prism3d.capture.rig import StereoRig
     from prism3d.datasets.field import FieldOptions, simulate_field
     from prism3d.datasets.resolve import resolve_targets
     from prism3d.io.atomic import atomic_write_text
     from prism3d.io.images import read_image
+    from prism3d.report import figure_png
 
     s = Section("Whole-scene ATR: camouflaged targets found in a field shot (shape channel)")
     folder = ctx.path("field")
@@ -647,7 +622,8 @@ def _stage_scene(ctx: DemoContext) -> Section:
     res = score_scenes([({"detections": dets}, truth)])
     left = rig.split.split(shot)[0]
     s.figure("left view: true targets (green), confusers (orange), the best detections (red, rank, class, score)",
-             scene_figure(left, truth, dets, f"{len(dets)} detections; the best {DEMO_SCENE_DRAWN} drawn"))
+             figure_png(plot_scene(left, truth, dets, top=DEMO_SCENE_DRAWN,
+                                   title=f"{len(dets)} detections; the best {DEMO_SCENE_DRAWN} drawn")))
     rows = []
     for t in truth["targets"]:
         hit = next((k for k, d in enumerate(dets) if _on_target(d, t)), None)

@@ -32,3 +32,5 @@ def test_notebook_runs(path, tmp_path):
         assert len(figures) >= 5, len(figures)
     if path.stem == "scanned_targets":  # matrices side by side, mask IoU, two ROCs
         assert len(figures) >= 4, len(figures)
+    if path.stem == "scene_detection":  # the recorded Pd-FPPI curves and the live scene
+        assert len(figures) >= 2, len(figures)
