@@ -4,24 +4,27 @@ class's filters scaled by the range at every pixel, so one bank serves all range
 Method (docs/atr.md "Detection in scenes"):
 
 1. Ground: a plane fitted to the scene's points (RANSAC), then the local ground under
-   every point (low percentile per 2 m cell, a progressive morphological filter); a pixel is *figure* where
-   it stands ``min_height_mm`` above it, grown down to ``low_height_mm`` (hysteresis).
+   every point (low percentile per 2 m cell, a progressive morphological filter); a
+   pixel is *figure* where it stands ``min_height_mm`` above it, grown down to
+   ``low_height_mm`` (hysteresis).
    Figure pixels group into connected objects.
 2. Channel images in the bank's units: ``depth`` -> each object's relief about its median
    depth, exactly as a training chip's (background 0); ``shape`` -> the shading of the
    depth map's normals under the canonical chip light on figure pixels (the camouflage's
    paint is gone); ``intensity`` -> the grey image itself (2D only: no help from depth).
-3. Range bands (ratio ``band_ratio``): in band ``Z``, class ``c``'s channel image is
-   resampled so a target at ``Z`` has its training chip's size (the bank records chip
-   pixels per mm for each class), and every filter of ``c`` is correlated with it as a
-   normalised cross-correlation (OpenCV ``TM_CCOEFF_NORMED``: zero-mean, unit-energy
-   windows, as the chips were prepared). Peaks whose pixel's range lies in the band are
-   candidates; candidates are merged over bands and classes greedily by score with
-   non-maximum suppression at half a chip.
+3. Candidates: for 3D channels every object's centroid (``band_scan`` adds range-band
+   peaks); for intensity, range bands (ratio ``band_ratio``): in band ``Z`` each class's
+   channel image is resampled so a target at ``Z`` has its training chip's size (the
+   bank records chip pixels per mm per class) and correlated with every filter of the
+   class, scored by the local PCE.
+4. Verification: at each candidate, a chip at each size-fitting class's scale prepared as
+   training chips are, scored by the bank's metric over all the class's filters.
+5. Suppression: best first, one detection per object, none within a found target's 3D
+   radius; 3D detections are placed at their object's median 3D point.
 
-Every detection has the window centre (image pixels), its 3D point, class, aspect (the
-winning filter's azimuth bin), ``score`` (the normalised correlation, in [-1, 1]) and
-``range_mm``. Detections are kept down to ``min_score``, so scoring can sweep thresholds.
+Every detection has its pixel, its 3D point, class, aspect (the winning filter's
+azimuth bin), ``score`` (the bank's chip metric, PCE by default) and ``range_mm``.
+Every verified candidate is kept (scoring sweeps the threshold over them).
 """
 
 from __future__ import annotations
@@ -65,7 +68,8 @@ class DetectOptions:
     ground_cell_mm: float = 2000.0
     """Cell of the local ground estimate."""
     min_score: float = 0.05
-    """Lowest normalised correlation kept (low: the scoring sweeps the threshold)."""
+    """Lowest local PCE of a range-band peak kept as a candidate (band scan only; verified
+    detections are all kept, so the scoring can sweep the threshold)."""
     max_detections: int = 100
     """Most detections per image (best first)."""
     nms_fraction: float = 0.5

@@ -39,3 +39,14 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
+
+
+#: Modules that take minutes, run first: `make test` spreads modules over two processes
+#: (pytest-xdist, --dist loadfile), and a long module scheduled last would run alone.
+_HEAVY_FIRST = ("test_demo_report.py", "test_scanned.py", "test_stitch.py", "test_object_frame.py",
+                "test_capture_to_scan.py", "test_features.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(_HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order

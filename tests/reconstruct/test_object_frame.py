@@ -110,6 +110,7 @@ def test_stitch_cli_writes_the_model_in_the_object_frame(stitched_tank, tmp_path
     assert doc["object_frame"]["up_from"] == "turntable" and len(doc["object_frame"]["T_object_model"]) == 4
 
 
+@pytest.mark.slow  # make test-all (suite time)
 def test_a_mesh_kept_near_the_data_does_not_balloon():
     """The closed Poisson surface of a turntable scan grows a blob under the model (tank_t1:
     ~90 mm tall for 57); kept within 2 point spacings of the data it has the true height

@@ -165,6 +165,7 @@ def test_eight_views_without_hint(tank_views):
     assert res.mesh_vertices is None and res.diagnostics["turntable_motion"] is None
 
 
+@pytest.mark.slow  # make test-all: a variant of a fast test's behaviour (suite time)
 def test_eight_views_in_metres_without_hint(tank_views):
     """The same scans in metres: every scale (voxels, ICP distances, thresholds)
     follows the point spacing, so the targets hold at 1/1000 of the size."""
@@ -598,6 +599,7 @@ def test_stitch_options_validation(field, value, message):
         StitchOptions(**{field: value})
     assert StitchOptions().min_confidence == STITCH_MIN_CONFIDENCE
 
+@pytest.mark.slow  # make test-all: a variant of a fast test's behaviour (suite time)
 def test_small_overlap_without_hint_is_corroborated_by_neighbours():
     """Stereo loses surfaces seen at grazing incidence, so reconstructed end-on views
     overlap their neighbours little (truck_k3: 0.18). Raycast views of truck_k3 that
@@ -613,7 +615,8 @@ def test_small_overlap_without_hint_is_corroborated_by_neighbours():
     assert res.diagnostics["warnings"] == []
 
 
-@pytest.mark.parametrize("target", ["truck_k1", "jet_j2", "ship_s2"])
+@pytest.mark.parametrize("target", ["truck_k1", pytest.param("jet_j2", marks=pytest.mark.slow),
+                                    pytest.param("ship_s2", marks=pytest.mark.slow)])
 def test_other_targets_without_hint(target):
     """No turntable hint on a boxy truck (its end-on views have faces that match the
     wrong way), a jet and a ship (the paper's object: long and narrow, so the turn of
@@ -632,6 +635,7 @@ def _lever_warnings(res) -> list[str]:
     return [w.split(":")[0].removeprefix("view ") for w in res.diagnostics["warnings"] if "rotation lever" in w]
 
 
+@pytest.mark.slow  # make test-all: a variant of a fast test's behaviour (suite time)
 def test_rotation_lever_check(tank_views):
     """Every view's lever is reported; the tank's views hold their turn well (its
     end-on views have 0.32-0.43 of the median on stereo scans, 0.42-0.50 here), so
