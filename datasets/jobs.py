@@ -599,11 +599,25 @@ def _environ_restored() -> Iterator[None]:
         os.environ.update(saved)
 
 
+@contextlib.contextmanager
+def _cluster_log_quiet() -> Iterator[None]:
+    """The cluster's own INFO lines (scheduler start, workers registering: ~25 per run)
+    only when prism3d's log shows INFO too (-v); its warnings and errors always."""
+    dlog = logging.getLogger("distributed")
+    old = dlog.level
+    if not log.isEnabledFor(logging.INFO):
+        dlog.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        dlog.setLevel(old)
+
+
 def _run_dask(tasks: list[_Task], job: str, run: RunOptions, finish: _Tally) -> None:
     import dask
     from distributed import Client, LocalCluster, as_completed
 
-    with dask.config.set(_dask_config()), _environ_restored():
+    with dask.config.set(_dask_config()), _environ_restored(), _cluster_log_quiet():
         if run.scheduler is not None:
             cluster = None
             client = Client(run.scheduler, timeout=SCHEDULER_TIMEOUT_S)

@@ -92,3 +92,20 @@ def test_cli_batch_and_eval_bad_inputs_exit_2(tmp_path):
     assert main(["-q", "simulate", "field", str(tmp_path / "g"), "--workers", "2"]) == 2  # no --count
     assert main(["-q", "bank", "eval", str(tmp_path / "b.npz"), "--workers", "2"]) == 2
     assert not (tmp_path / "f").exists() and not (tmp_path / "g").exists()
+
+
+def test_eval_scenes_refuses_a_scene_missing_a_file_before_any_work(batch, tmp_path, capsys):
+    import shutil
+
+    from prism3d.cli import main
+
+    out, _ = batch
+    broken = tmp_path / "broken"
+    shutil.copytree(out / "scene_0007", broken)
+    (broken / "shot.png").unlink()
+    r = tmp_path / "r.json"
+    assert main(["-q", "bank", "eval-scenes", str(tmp_path / "no_bank.npz"), str(out / "scene_0008"), str(broken),
+                 "--json", str(r)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has no shot.png" in err[0], err
+    assert not r.exists() and not (tmp_path / "r_fppi.png").exists()
