@@ -12,7 +12,8 @@ export PYOPENGL_PLATFORM ?= osmesa
 export NUMBA_THREADING_LAYER ?= omp
 export MPLBACKEND ?= Agg
 # test processes (pytest-xdist; 0 = one process): modules are spread whole (--dist loadfile),
-# so module fixtures run once; the heaviest modules are scheduled first (tests/conftest.py)
+# so module fixtures run once; the heaviest modules are scheduled first (tests/conftest.py;
+# --no-loadscope-reorder keeps that order: xdist would put modules with few tests last)
 TEST_WORKERS ?= 2
 
 .PHONY: setup system-deps precompile test test-all demo bench clean help
@@ -57,12 +58,12 @@ precompile: setup
 	$(PY) -m prism3d._precompile
 
 test: setup
-	@set +e; $(PY) -m pytest -q -m "not slow" -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS); rc=$$?; \
+	@set +e; $(PY) -m pytest -q -m "not slow" -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing (a test run must run tests)"; exit 1; fi; \
 	exit $$rc
 
 test-all: setup
-	$(PY) -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	$(PY) -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
 
 demo: setup
 	$(VENV)/bin/prism3d demo demo_out
