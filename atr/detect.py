@@ -749,12 +749,18 @@ def _verify(bank: Any, scene: SceneChannels, cands: list, ppm: dict[str, float],
         return (best[0], r, c, best[1], best[2]) if np.isfinite(best[0]) else None
 
     # candidates are independent; OpenCV's resampling and the FFTs release the GIL
-    with ThreadPoolExecutor(max_workers=_VERIFY_THREADS) as pool:
+    with ThreadPoolExecutor(max_workers=_verify_threads()) as pool:
         return [v for v in pool.map(one, cands) if v is not None]
 
 
-#: Threads verifying candidates (the work per chip is small; two cover a 2-core machine's gain).
-_VERIFY_THREADS = max(1, min(4, os.cpu_count() or 1))
+def _verify_threads() -> int:
+    """Threads verifying candidates: ``PRISM3D_NUM_THREADS`` (0 or unset = the cores, at
+    most 4: the work per chip is small; job runners set 1 per worker)."""
+    try:
+        n = int(os.environ.get("PRISM3D_NUM_THREADS", "0"))
+    except ValueError:
+        n = 0
+    return n if n > 0 else max(1, min(4, os.cpu_count() or 1))
 
 
 def _project(K: NDArray, p: NDArray) -> tuple[float, float]:
