@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
+from prism3d.reconstruct.dsm import progressive_ground
 
 __all__ = [
     "DetectOptions", "SceneChannels", "bank_scale", "detect_scene", "detect_scene_hog", "detect_shot",
@@ -254,7 +255,7 @@ def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: Detect
     first = np.flatnonzero(np.r_[True, fv[1:] != fv[:-1]])
     counts = np.diff(np.r_[first, len(fv)])
     low[fv[first]] = hv[first + counts // 10]
-    ground_grid = _progressive_ground(low.reshape(na, nb), cell)
+    ground_grid = progressive_ground(low.reshape(na, nb), cell)
     ground = ground_grid.reshape(-1)[flat]
     hag = np.where(valid, height - ground, np.nan).astype(np.float32)
     # hysteresis: objects are seeded where they stand min_height_mm high and grow down to
@@ -271,37 +272,6 @@ def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: Detect
     zobj = np.nan_to_num(xyz[:, 2], nan=0.0)  # every object pixel has depth (figure needs it)
     rng_map = _fill_nearest(ds)
     return SceneChannels(g, d, K, rng_map, hag, figure, labels.astype(np.int32), zobj, n, dims, centres, ds, xyz)
-
-
-#: Progressive morphological ground filter (Zhang et al. 2003): window sides (m) and the
-#: terrain slope and base tolerance allowed between a cell and the opened surface.
-_PMF_WINDOWS_MM = (4000.0, 8000.0, 16000.0, 32000.0)
-_PMF_SLOPE = 0.15
-_PMF_BASE_MM = 300.0
-
-
-def _progressive_ground(grid: NDArray, cell_mm: float) -> NDArray[np.float64]:
-    """The ground under a grid of low heights: openings with growing windows flag cells
-    that stand above the opened surface by more than the slope allows (objects up to the
-    largest window wide), flagged cells take the opened surface, then a light smoothing."""
-    from scipy import ndimage
-
-    g = np.array(grid, dtype=np.float64)
-    bad = ~np.isfinite(g)
-    if bad.all():
-        return np.zeros_like(g)
-    if bad.any():
-        _, (ri, ci) = ndimage.distance_transform_edt(bad, return_indices=True)
-        g = g[ri, ci]
-    obj = np.zeros(g.shape, dtype=bool)
-    surf = g.copy()
-    for w_mm in _PMF_WINDOWS_MM:
-        w = max(1, int(round(w_mm / cell_mm)))
-        opened = ndimage.grey_opening(surf, size=(w, w), mode="nearest")
-        obj |= (g - opened) > _PMF_BASE_MM + _PMF_SLOPE * w_mm
-        surf = opened
-    ground = np.where(obj, surf, g)
-    return ndimage.gaussian_filter(ground, 1.0, mode="nearest")
 
 
 #: A depth step between neighbouring pixels larger than this share of the depth (and

@@ -1,0 +1,109 @@
+"""Formats GIS tools open: LAS 1.4 point clouds with colour (laspy) and GeoTIFF rasters
+(rasterio, GDAL), both with their coordinate system, written atomically.
+
+A survey's local east-north-up frame is described to GIS as an orthographic projection
+centred on the site on WGS84 (:func:`local_enu_crs_wkt`): within 2 cm of true ENU at
+500 m from the origin, far below GPS noise (docs/uav-plan.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.checks import check_array
+from prism3d.errors import InputError
+
+__all__ = ["local_enu_crs_wkt", "read_geotiff", "write_geotiff", "write_las"]
+
+
+def local_enu_crs_wkt(lat0_deg: float, lon0_deg: float) -> str:
+    """OGC WKT of the orthographic projection at (lat0, lon0) on WGS84, metres: the GIS
+    stand-in for a local east-north-up frame there."""
+    from rasterio.crs import CRS
+
+    if not (-90 <= lat0_deg <= 90 and -180 <= lon0_deg <= 360):
+        raise InputError(f"origin: latitude {lat0_deg} / longitude {lon0_deg} out of range")
+    return CRS.from_proj4(f"+proj=ortho +lat_0={lat0_deg:.10f} +lon_0={lon0_deg:.10f} +x_0=0 +y_0=0 "
+                          "+ellps=WGS84 +units=m +no_defs").to_wkt()
+
+
+def write_las(path: str | Path, xyz: NDArray, rgb: NDArray | None = None, *, crs_wkt: str | None = None,
+              scale_m: float = 0.001) -> None:
+    """LAS 1.4 (point format 7: xyz, 16-bit RGB) at ``scale_m`` resolution, the CRS as
+    an OGC WKT record; ``rgb`` uint8 (n, 3) or None (grey)."""
+    import laspy
+
+    from prism3d.io.atomic import atomic_path
+
+    p = check_array(xyz, "points", ndim=2).astype(np.float64)
+    if p.shape[1] != 3 or not np.isfinite(p).all():
+        raise InputError(f"points: expected finite (n, 3) coordinates, got shape {p.shape}")
+    if rgb is not None:
+        c = check_array(rgb, "colours", ndim=2)
+        if c.shape != p.shape:
+            raise InputError(f"colours: expected {p.shape}, got {c.shape}")
+    header = laspy.LasHeader(point_format=7, version="1.4")
+    header.scales = np.full(3, scale_m)
+    header.offsets = np.floor(p.min(axis=0)) if len(p) else np.zeros(3)
+    if crs_wkt is not None:
+        header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(crs_wkt))
+        header.global_encoding.wkt = True
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
+    if rgb is not None:
+        c16 = np.asarray(rgb, dtype=np.uint16) * 257
+        las.red, las.green, las.blue = c16[:, 0], c16[:, 1], c16[:, 2]
+    with atomic_path(path) as tmp:
+        las.write(str(tmp))
+
+
+def write_geotiff(path: str | Path, raster: NDArray, *, west: float, north: float, gsd: float,
+                  crs_wkt: str | None, nodata: float | None = None, band_names: list[str] | None = None) -> None:
+    """A GeoTIFF of a (H, W) or (H, W, bands) raster whose row 0 is the north edge:
+    pixel (0, 0)'s top-left corner at (``west``, ``north``), square pixels of ``gsd``
+    (m); deflate-compressed, tiled; uint8 with 3 or 4 bands is an RGB(A) image."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from prism3d.io.atomic import atomic_path
+
+    a = np.asarray(raster)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[0] < 1 or a.shape[1] < 1:
+        raise InputError(f"raster: expected (H, W) or (H, W, bands), got shape {np.shape(raster)}")
+    if not (np.isfinite(gsd) and gsd > 0 and np.isfinite(west) and np.isfinite(north)):
+        raise InputError("raster: the origin must be finite and the pixel size > 0")
+    h, w, nb = a.shape
+    profile = dict(driver="GTiff", height=h, width=w, count=nb, dtype=a.dtype.name,
+                   transform=from_origin(west, north, gsd, gsd), compress="deflate",
+                   tiled=w >= 256 and h >= 256, **({"crs": crs_wkt} if crs_wkt else {}))
+    if nodata is not None:
+        profile["nodata"] = nodata
+    if a.dtype == np.uint8 and nb in (3, 4):
+        profile["photometric"] = "RGB"
+    with atomic_path(path) as tmp:
+        with rasterio.open(tmp, "w", **profile) as dst:
+            dst.write(np.moveaxis(a, 2, 0))
+            for k, name in enumerate(band_names or [], start=1):
+                dst.set_band_description(k, name)
+            if a.dtype == np.uint8 and nb == 4:
+                from rasterio.enums import ColorInterp
+
+                dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+
+
+def read_geotiff(path: str | Path) -> tuple[NDArray, dict]:
+    """A GeoTIFF's bands (H, W[, bands]) and ``{"west", "north", "gsd", "crs_wkt",
+    "nodata"}``."""
+    import rasterio
+
+    with rasterio.open(path) as src:
+        a = np.moveaxis(src.read(), 0, 2)
+        t = src.transform
+        meta = {"west": t.c, "north": t.f, "gsd": t.a, "crs_wkt": src.crs.to_wkt() if src.crs else None,
+                "nodata": src.nodata}
+    return (a[..., 0] if a.shape[2] == 1 else a), meta
