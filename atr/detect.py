@@ -44,6 +44,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array
 from prism3d.errors import InputError
 from prism3d.reconstruct.dsm import progressive_ground
+from prism3d.reconstruct.flatness import ransac_plane
 
 __all__ = [
     "DetectOptions", "SceneChannels", "bank_scale", "detect_scene", "detect_scene_hog", "detect_shot",
@@ -173,31 +174,11 @@ def _ground_plane(P: NDArray, valid: NDArray, rng: np.random.Generator) -> tuple
     sample = pts[rng.choice(len(pts), size=min(len(pts), 20000), replace=False)]
     z = sample[:, 2]
     tol = 150.0 + 2e-6 * z * z
-    best, best_n = None, -1
-    for _ in range(300):
-        a, b, c = sample[rng.choice(len(sample), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        nn = np.linalg.norm(n)
-        if nn < 1e-9:
-            continue
-        n /= nn
-        d = -float(n @ a)
-        if d < 0:
-            n, d = -n, -d
-        if abs(n[1]) < 0.3:  # the ground is below the camera: its normal has a -y (up) part
-            continue
-        cnt = int(np.sum(np.abs(sample @ n + d) < tol))
-        if cnt > best_n:
-            best, best_n = (n, d), cnt
-    if best is None or best_n < 0.2 * len(sample):
+    # the ground is below the camera: its normal has a -y (up) part
+    n, d, count = ransac_plane(sample, tol, rng, accept=lambda n: abs(n[1]) >= 0.3)
+    if n is None or count < 0.2 * len(sample):
         raise InputError("scene: no ground plane found under the camera (is this a ground-level view?)")
-    n, d = best
-    inl = np.abs(sample @ n + d) < tol
-    q = sample[inl]
-    c = q.mean(axis=0)
-    _, _, vt = np.linalg.svd(q - c, full_matrices=False)
-    n2 = vt[2] * (1 if vt[2] @ n > 0 else -1)
-    return n2, -float(n2 @ c)
+    return n, d
 
 
 def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: DetectOptions | None = None,

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array, check_in_range
 from prism3d.errors import InputError, ReconstructionError
 
-__all__ = ["REGIONS", "FlatnessReport", "PlaneFit", "fit_plane", "flatness_of_ply", "flatness_test"]
+__all__ = ["REGIONS", "FlatnessReport", "PlaneFit", "fit_plane", "flatness_of_ply", "flatness_test", "ransac_plane"]
 
 #: Region names and centres as fractions of the plate's extent (x right, y down).
 REGIONS: dict[str, tuple[float, float]] = {
@@ -42,6 +42,39 @@ class PlaneFit:
     """RMS of the distances to the plane."""
     max_abs_mm: float
     n_points: int
+
+
+def ransac_plane(sample: NDArray, tol: float | NDArray, rng: np.random.Generator, *, iterations: int = 300,
+                 accept=None) -> tuple[NDArray[np.float64], float, int]:
+    """The dominant plane ``n . p + d = 0`` of ``sample`` (n, 3) by RANSAC on point
+    triples (``tol``: inlier distance, scalar or per point; ``accept(n)``: a test a
+    candidate normal must pass; normals oriented so ``d >= 0``), refitted by least
+    squares to its inliers. Returns ``(n, d, inlier count of the RANSAC winner)``;
+    ``(None, 0.0, -1)`` when no candidate passes."""
+    best, best_n = None, -1
+    for _ in range(iterations):
+        a, b, c = sample[rng.choice(len(sample), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        nn = np.linalg.norm(n)
+        if nn < 1e-9:
+            continue
+        n /= nn
+        d = -float(n @ a)
+        if d < 0:
+            n, d = -n, -d
+        if accept is not None and not accept(n):
+            continue
+        cnt = int(np.sum(np.abs(sample @ n + d) < tol))
+        if cnt > best_n:
+            best, best_n = (n, d), cnt
+    if best is None:
+        return None, 0.0, -1
+    n, d = best
+    q = sample[np.abs(sample @ n + d) < tol]
+    c = q.mean(axis=0)
+    _, _, vt = np.linalg.svd(q - c, full_matrices=False)
+    n2 = vt[2] * (1 if vt[2] @ n > 0 else -1)
+    return n2, -float(n2 @ c), best_n
 
 
 def fit_plane(points: NDArray) -> PlaneFit:

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
+from prism3d.reconstruct.flatness import ransac_plane
 from prism3d.reconstruct.two_view import TwoViewPose
 
 __all__ = ["PairCloud", "RectifiedPair", "pair_cloud", "rectify_pair"]
@@ -154,21 +155,7 @@ def enu_from_pair(points_cam1: NDArray, baseline_cam1: NDArray, c1_enu: NDArray,
         raise InputError("pair: the GPS positions do not move horizontally; no heading to align to")
     rng = np.random.default_rng(0)
     sample = P[rng.choice(len(P), size=min(len(P), 20000), replace=False)]
-    tol = 0.01 * float(np.median(sample[:, 2]))  # 1 % of the range
-    best, best_n = None, -1
-    for _ in range(200):
-        a, b, c = sample[rng.choice(len(sample), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        nn = np.linalg.norm(n)
-        if nn < 1e-9:
-            continue
-        n /= nn
-        cnt = int(np.sum(np.abs((sample - a) @ n) < tol))
-        if cnt > best_n:
-            best, best_n = n, cnt
-    inl = np.abs((sample - sample.mean(axis=0)) @ best) < 10 * tol
-    q = sample[inl] if inl.sum() > 10 else sample
-    up = np.linalg.svd(q - q.mean(axis=0), full_matrices=False)[2][2]
+    up, _, _ = ransac_plane(sample, 0.01 * float(np.median(sample[:, 2])), rng)  # 1 % of the range
     if up @ np.median(P, axis=0) > 0:  # up points from the ground towards the camera
         up = -up
     b = np.asarray(baseline_cam1, dtype=np.float64)
