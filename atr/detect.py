@@ -106,10 +106,10 @@ class SceneChannels:
     """A scene prepared for detection: ``grey`` (H, W) [0, 1], ``depth_mm`` (H, W) NaN =
     none, ``K`` (3, 3), ``range_mm`` (H, W) smoothed and filled depth (NaN where nothing
     is near), ``height_mm`` above the local ground, ``figure`` mask, ``labels`` (objects,
-    0 = none), ``object_depth_mm`` and ``object_dims_mm`` (length, width, height: the
-    smallest footprint rectangle of its points and its 98th height percentile) and
-    ``object_rc`` (pixel centroid) and ``object_xyz_mm`` (median 3D point, camera frame)
-    per label, ``up`` (the ground's normal, camera frame),
+    0 = none), per label ``object_xyz_mm`` (median 3D point, camera frame; its z is
+    ``object_depth_mm``), ``object_dims_mm`` (length, width, height: the smallest
+    footprint rectangle of its points and its 98th height percentile) and ``object_rc``
+    (pixel centroid), ``up`` (the ground's normal, camera frame),
     ``smooth_depth_mm`` (the median-filtered depth; ``normals`` are computed from it on
     first use)."""
 
@@ -120,14 +120,18 @@ class SceneChannels:
     height_mm: NDArray[np.float32]
     figure: NDArray[np.bool_]
     labels: NDArray[np.int32]
-    object_depth_mm: NDArray[np.float64]
+    object_xyz_mm: NDArray[np.float64]
     up: NDArray[np.float64]
     object_dims_mm: NDArray[np.float64]
     object_rc: NDArray[np.float64]
     smooth_depth_mm: NDArray[np.float32] | None = None
-    object_xyz_mm: NDArray[np.float64] | None = None
     _normals: NDArray[np.float32] | None = None
     _object_depth: NDArray[np.float32] | None = None
+
+    @property
+    def object_depth_mm(self) -> NDArray[np.float64]:
+        """Each object's median depth (its median point's z; 0 for the background)."""
+        return np.nan_to_num(self.object_xyz_mm[:, 2], nan=0.0)
 
     @property
     def normals(self) -> NDArray[np.float32]:
@@ -250,9 +254,8 @@ def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: Detect
     # objects one behind the other touch in the image: cut them apart at depth steps
     labels, nlab = ndimage.label(figure & ~_depth_steps(ds), structure=np.ones((3, 3)))
     dims, xyz, centres = _object_dims(labels, nlab, valid & figure, a, b, hag, P)
-    zobj = np.nan_to_num(xyz[:, 2], nan=0.0)  # every object pixel has depth (figure needs it)
     rng_map = _fill_nearest(ds)
-    return SceneChannels(g, d, K, rng_map, hag, figure, labels.astype(np.int32), zobj, n, dims, centres, ds, xyz)
+    return SceneChannels(g, d, K, rng_map, hag, figure, labels.astype(np.int32), xyz, n, dims, centres, ds)
 
 
 #: A depth step between neighbouring pixels larger than this share of the depth (and
@@ -439,12 +442,13 @@ def _band_scan(scene: SceneChannels, classes: Sequence[str], ppm: dict[str, floa
     return cands
 
 
-def _class_extents(meta: dict, classes: Sequence[str]) -> dict[str, list[float] | None]:
-    """Full-size x, y, z extents per class (None when the model does not record them)."""
+def _full_size(meta: dict, key: str, classes: Sequence[str]) -> dict[str, Any]:
+    """A per-class size the bank records (``class_extent_mm``: x, y, z; ``class_radius_mm``)
+    at full size (divided by the class's ``class_full_scale``); classes without it absent."""
     full = meta.get("class_full_scale", {})
-    ext = meta.get("class_extent_mm") or {}
-    return {c: (None if c not in ext else [float(v) / float(full.get(c, 1.0) or 1.0) for v in ext[c]])
-            for c in classes}
+    vals = meta.get(key) or {}
+    return {c: np.asarray(vals[c], dtype=np.float64) / float(full.get(c, 1.0) or 1.0)
+            for c in classes if c in vals}
 
 
 def _finish(cands: list, scene: SceneChannels, classes: Sequence[str], ppm: dict[str, float], S: int,
@@ -472,13 +476,13 @@ def _finish(cands: list, scene: SceneChannels, classes: Sequence[str], ppm: dict
         xyz = _xyz(scene, ri, cj)
         if gate:
             lab = _object_under(scene, ri, cj, NEAR_CHIP_PX / sc)
-            if lab in taken or not _size_fits(scene, ri, cj, extent[classes[ci]], NEAR_CHIP_PX / sc):
+            if lab in taken or not _size_fits(scene, ri, cj, extent.get(classes[ci]), NEAR_CHIP_PX / sc):
                 continue  # one detection per object; and the object must fit the class
-            if scene.object_xyz_mm is not None and np.isfinite(scene.object_xyz_mm[lab]).all():
+            if np.isfinite(scene.object_xyz_mm[lab]).all():
                 # the object, not the window, locates the target (a window peak may sit
                 # on its shadow or beside it)
                 p = scene.object_xyz_mm[lab]
-                rad3 = radius.get(classes[ci])
+                rad3 = float(radius[classes[ci]]) if classes[ci] in radius else None
                 if rad3 and any(np.linalg.norm(p - q) < min(rad3, rq) for q, rq in kept_xyz):
                     continue  # a part of a target already found (objects split at depth steps)
                 kept_xyz.append((p, rad3 or 0.0))
@@ -523,7 +527,7 @@ def detect_scene(bank: Any, scene: SceneChannels, options: DetectOptions | None 
         images = {c: shared if shared is not None else scene.channel("depth", half_depth_mm=(S / 2.0) / ppm[c])
                   for c in bank.classes}
         cands = _band_scan(scene, bank.classes, ppm, S, images, need_figure, o, score_fn)
-    extent = _class_extents(bank.metadata, bank.classes)
+    extent = _full_size(bank.metadata, "class_extent_mm", bank.classes)
     cands.sort(key=lambda t: -t[0])
     cands = cands[: o.verify_top]
     if need_figure:  # every object the 3D found is a candidate too, at its centroid
@@ -531,7 +535,7 @@ def detect_scene(bank: Any, scene: SceneChannels, options: DetectOptions | None 
     if o.verify and cands:
         cands = _verify(bank, scene, cands, ppm, f, extent)
     return _finish(cands, scene, bank.classes, ppm, S, extent, need_figure, o,
-                   lambda k: float(bank.filter_az_deg[k]), _class_radii(bank.metadata, bank.classes))
+                   lambda k: float(bank.filter_az_deg[k]), _full_size(bank.metadata, "class_radius_mm", bank.classes))
 
 
 def detect_scene_hog(model: Any, scene: SceneChannels, options: DetectOptions | None = None) -> list[dict]:
@@ -554,9 +558,9 @@ def detect_scene_hog(model: Any, scene: SceneChannels, options: DetectOptions | 
 
     o2 = DetectOptions(**{**o.__dict__, "min_score": -np.inf})  # SVM values are signed
     cands = _band_scan(scene, model.classes, ppm, S, images, need_figure, o2, score_fn)
-    extent = _class_extents(model.metadata, model.classes)
+    extent = _full_size(model.metadata, "class_extent_mm", model.classes)
     return _finish(cands, scene, model.classes, ppm, S, extent, need_figure, o, lambda k: float("nan"),
-                   _class_radii(model.metadata, model.classes))
+                   _full_size(model.metadata, "class_radius_mm", model.classes))
 
 
 #: An object under a detection may be this much smaller (occlusion, the hidden far side,
@@ -689,7 +693,7 @@ def _verify(bank: Any, scene: SceneChannels, cands: list, ppm: dict[str, float],
         for ci, cls in enumerate(bank.classes):
             sc = ppm[cls] * z / f
             if S / sc > max(scene.range_mm.shape) or (
-                    bank.channel != "intensity" and not _size_fits(scene, ri, cj, extent[cls], NEAR_CHIP_PX / sc)):
+                    bank.channel != "intensity" and not _size_fits(scene, ri, cj, extent.get(cls), NEAR_CHIP_PX / sc)):
                 continue  # a target of this class could not be here: the 3D says so
             x = _chip_channel(bank, scene, r, c, sc, f)
             ks = ks_of[ci]
@@ -705,26 +709,17 @@ def _verify(bank: Any, scene: SceneChannels, cands: list, ppm: dict[str, float],
 
 
 def _verify_threads() -> int:
-    """Threads verifying candidates: ``PRISM3D_NUM_THREADS`` (0 or unset = the cores, at
-    most 4: the work per chip is small; job runners set 1 per worker)."""
-    try:
-        n = int(os.environ.get("PRISM3D_NUM_THREADS", "0"))
-    except ValueError:
-        n = 0
-    return n if n > 0 else max(1, min(4, os.cpu_count() or 1))
+    """Threads verifying candidates: ``PRISM3D_NUM_THREADS`` (unset: the cores, at most
+    4: the work per chip is small; job runners set 1 per worker)."""
+    from prism3d.capture.render import configured_threads
+
+    return configured_threads() or max(1, min(4, os.cpu_count() or 1))
 
 
 def _project(K: NDArray, p: NDArray) -> tuple[float, float]:
     """Pixel (row, col) of a camera-frame point."""
     u = K @ p
     return float(u[1] / u[2]), float(u[0] / u[2])
-
-
-def _class_radii(meta: dict, classes: Sequence[str]) -> dict[str, float]:
-    """Full-size bounding radius per class, mm (absent when the model does not record it)."""
-    full = meta.get("class_full_scale", {})
-    rad = meta.get("class_radius_mm") or {}
-    return {c: float(rad[c]) / float(full.get(c, 1.0) or 1.0) for c in classes if c in rad}
 
 
 def _xyz(scene: SceneChannels, r: int, c: int) -> list[float] | None:

@@ -31,6 +31,7 @@ __all__ = [
     "camera_rays",
     "check_objects",
     "check_pose",
+    "configured_threads",
     "gaussian_blur",
     "quantize",
 ]
@@ -66,10 +67,9 @@ class RenderResult:
     rgb: NDArray[np.uint8] | None = None
 
 
-def _raycast_threads() -> int:
-    """Threads Open3D may use per cast: ``PRISM3D_NUM_THREADS`` (0 or unset = all
-    cores; job runners set 1 per worker).
-    """
+def configured_threads() -> int:
+    """Threads a parallel stage may use: ``PRISM3D_NUM_THREADS`` (0 or unset = the stage
+    decides: all cores for Open3D's ray casting; job runners set 1 per worker)."""
     import os
 
     try:
@@ -284,7 +284,7 @@ class RaycastRenderer:
             if len(rid):
                 r = self._scratch_rays(len(rid))
                 pack_rays_sel(oc, dc, rid, r)
-                ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(r), nthreads=_raycast_threads())
+                ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(r), nthreads=configured_threads())
                 gid = ans["geometry_ids"].numpy()
                 t32 = ans["t_hit"].numpy()
                 idx = np.flatnonzero((gid != np.iinfo(np.uint32).max) & np.isfinite(t32))
@@ -420,7 +420,7 @@ class RaycastRenderer:
             # flags all of them (and perhaps a near-self hit, cleared below)
             e_min = tol / dmax + 1e-7
             occ = self._scene.test_occlusions(
-                o3d.core.Tensor.from_numpy(r), tnear=0.0, tfar=1.0 - 0.5 * e_min, nthreads=_raycast_threads()
+                o3d.core.Tensor.from_numpy(r), tnear=0.0, tfar=1.0 - 0.5 * e_min, nthreads=configured_threads()
             )
             blocked[s:e] = occ.numpy()
         good = dist > 0.0
