@@ -6,6 +6,7 @@ tethered camera), ``opencv:INDEX_OR_URL``, ``virtual[:TARGET]`` (targets via a
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import threading
@@ -96,9 +97,39 @@ def to_rgb8(image: NDArray, name: str = "image") -> NDArray[np.uint8]:
 # -- folder -------------------------------------------------------------------------------
 
 
+def _tail_complete(path: Path) -> bool:
+    """Whether a PNG ends in its IEND chunk and a JPEG in its EOI marker: some decoder
+    builds accept a truncated file (libjpeg pads it with grey), so a file caught
+    mid-write must not count as a frame. Other types cannot be told.
+    """
+    suffix = path.suffix.lower()
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 12))
+            tail = fh.read()
+    except OSError:
+        return False
+    if suffix == ".png":
+        return tail[-12:-4] == b"\x00\x00\x00\x00IEND"
+    if suffix in (".jpg", ".jpeg"):
+        return tail.rstrip(b"\x00").endswith(b"\xff\xd9")
+    return True
+
+
+def _digest(path: Path) -> str:
+    """Content digest of a file ("" when it cannot be read)."""
+    try:
+        return hashlib.blake2b(path.read_bytes(), digest_size=16).hexdigest()
+    except OSError:
+        return ""
+
+
 class FolderSource:
     """Frames dropped into the existing folder ``path`` by a tethered camera; a file
-    is complete when size and mtime hold over two polls ``poll_s`` apart and it decodes.
+    is complete when size and mtime hold over two polls ``poll_s`` apart, a PNG or JPEG
+    ends in its end marker, and it decodes.
     """
 
     def __init__(self, path: str | Path, *, poll_s: float = 0.05) -> None:
@@ -108,6 +139,7 @@ class FolderSource:
         self._before: dict[str, tuple[int, int]] = {}
         self._t_armed_ns = 0
         self._last_file: Path | None = None
+        self._delivered: dict[str, tuple[int, str]] = {}  # name -> (size, digest)
 
     def open(self) -> None:
         if not self.path.is_dir():
@@ -154,11 +186,20 @@ class FolderSource:
                 sig = now[name]
                 if self._before.get(name) == sig:
                     continue  # existed (unchanged) before the shot
+                if self._delivered.get(name, (-1, ""))[0] == sig[0] and self._delivered[name][1] == _digest(
+                    self.path / name
+                ):
+                    self._before[name] = sig  # touched, not rewritten: never the same frame twice
+                    continue
                 if sig[0] > 0 and seen.get(name) == sig:
+                    if not _tail_complete(self.path / name):
+                        undecodable.add(name)  # still being written, or truncated: wait
+                        continue
                     img = cv2.imread(str(self.path / name), cv2.IMREAD_UNCHANGED)
                     if img is not None:
                         self._last_file = self.path / name
                         self._before[name] = sig
+                        self._delivered[name] = (sig[0], _digest(self.path / name))
                         return to_rgb8(img, str(self.path / name))
                     undecodable.add(name)
             seen = now

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -96,6 +97,41 @@ def test_folder_waits_for_new_complete_file(tmp_path: Path) -> None:
     # The same file is not delivered twice.
     with pytest.raises(DeviceError, match=r"no new complete image within 0.1 s"):
         src.grab(0.1)
+
+
+def test_folder_refuses_a_truncated_jpeg_until_it_is_complete(tmp_path: Path) -> None:
+    """libjpeg decodes a truncated JPEG (the missing rows grey), so a file caught
+    mid-write must wait for its end marker, and then be delivered whole."""
+    rgb = _rgb(h=96, w=128, seed=3)
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert ok
+    data = buf.tobytes()
+    src = FolderSource(tmp_path, poll_s=0.02)
+    src.prepare(0)
+    (tmp_path / "IMG_0002.jpg").write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(DeviceError, match=r"never decoded: \['IMG_0002.jpg'\]"):
+        src.grab(0.2)
+    with open(tmp_path / "IMG_0002.jpg", "ab") as fh:
+        fh.write(data[len(data) * 2 // 3 :])
+    got = src.grab(2.0)
+    want = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(got, want)
+
+
+def test_folder_does_not_deliver_a_touched_file_again(tmp_path: Path) -> None:
+    """A delivered file whose time stamp changes but whose bytes do not is the same
+    frame; rewritten with new bytes, it is a new one."""
+    src = FolderSource(tmp_path, poll_s=0.02)
+    src.prepare(0)
+    first, second = _rgb(seed=4), _rgb(seed=5)
+    (tmp_path / "IMG_0003.png").write_bytes(_png_bytes(first))
+    np.testing.assert_array_equal(src.grab(2.0), first)
+    st = (tmp_path / "IMG_0003.png").stat()
+    os.utime(tmp_path / "IMG_0003.png", ns=(st.st_atime_ns, st.st_mtime_ns + 5_000_000_000))
+    with pytest.raises(DeviceError, match=r"no new complete image within 0.2 s"):
+        src.grab(0.2)
+    (tmp_path / "IMG_0003.png").write_bytes(_png_bytes(second))
+    np.testing.assert_array_equal(src.grab(2.0), second)
 
 
 def test_folder_timeout_and_undecodable(tmp_path: Path) -> None:
