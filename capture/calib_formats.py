@@ -25,6 +25,7 @@ from prism3d.errors import InputError
 
 __all__ = [
     "StereoCalibration",
+    "load_camera_calibration",
     "load_stereo_calibration",
     "convert_calibration",
     "read_opencv_calibration",
@@ -377,6 +378,59 @@ def _check_projection(where: str | Path, name: str, P: NDArray[np.float64]) -> N
         raise InputError(f"{where}: {name} is not a rectified projection "
                          f"[fx 0 cx tx; 0 fy cy ty; 0 0 1 tz]")
     return P
+
+
+# -- one camera ------------------------------------------------------------------------
+def load_camera_calibration(path: PathLike, *, image_size: Size | None = None) -> CameraModel:
+    """One camera's intrinsics (a survey camera's starting calibration): OpenCV's
+    calibration output (FileStorage ``camera_matrix`` ``distortion_coefficients``
+    ``image_width`` ``image_height``, or ``K``/``D``), or a ROS ``camera_info`` YAML.
+    ``image_size`` ``(width, height)`` is required when the file states none and
+    checked when it does."""
+    p = Path(path)
+    text = _read_text(p)
+    kind = _detect(p, text)
+    if kind == "filestorage":
+        from prism3d.io.opencv_yaml import read_filestorage
+
+        doc = read_filestorage(p)
+        K = next((doc[k] for k in ("camera_matrix", "K", "M", "cameraMatrix") if k in doc), None)
+        D = next((doc[k] for k in ("distortion_coefficients", "D", "dist_coeffs", "distCoeffs") if k in doc),
+                 np.zeros(5))
+        if K is None:
+            raise InputError(f"{p}: no camera_matrix (or K) entry; a single camera's calibration needs one")
+        w, h = doc.get("image_width"), doc.get("image_height")
+        size = None if w is None or h is None else (_integer(str(p), "image_width", w),
+                                                   _integer(str(p), "image_height", h))
+        where = str(p)
+    elif kind == "ros":
+        doc = _ros_doc(p)
+        if "camera_matrix" not in doc:
+            raise InputError(f"{p}: holds a stereo pair; give one camera's camera_info")
+        where = str(p)
+        missing = [k for k in ("image_width", "image_height") if k not in doc]
+        if missing:
+            raise InputError(f"{p}: missing {', '.join(missing)}")
+        size = (_integer(where, "image_width", doc["image_width"]), _integer(where, "image_height", doc["image_height"]))
+        K = _ros_matrix(where, doc, "camera_matrix", (3, 3))
+        node = doc.get("distortion_coefficients")
+        D = np.zeros(5)
+        if node is not None and not (isinstance(node, dict) and node.get("data") == []):
+            D = _ros_matrix(where, doc, "distortion_coefficients", None).ravel()
+    else:
+        raise InputError(f"{p}: a {kind} file describes a stereo pair; give one camera's OpenCV or ROS "
+                         "calibration (camera_matrix, distortion_coefficients, image_width, image_height)")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise InputError(f"{where}: camera_matrix must be 3x3, got {K.shape}")
+    if size is None:
+        if image_size is None:
+            raise InputError(f"{where}: states no image size (image_width, image_height); give the frames' size")
+        size = (int(image_size[0]), int(image_size[1]))
+    elif image_size is not None and tuple(int(v) for v in image_size) != size:
+        raise InputError(f"{where}: calibrated for {size[0]}x{size[1]} px, the frames are "
+                         f"{int(image_size[0])}x{int(image_size[1])}")
+    return CameraModel(K, np.asarray(D, dtype=np.float64).ravel(), size)
 
 
 # -- ROS camera_info -------------------------------------------------------------------

@@ -31,9 +31,10 @@ def local_enu_crs_wkt(lat0_deg: float, lon0_deg: float) -> str:
 
 
 def write_las(path: str | Path, xyz: NDArray, rgb: NDArray | None = None, *, crs_wkt: str | None = None,
-              scale_m: float = 0.001) -> None:
+              scale_m: float = 0.001, system_identifier: str | None = None) -> None:
     """LAS 1.4 (point format 7: xyz, 16-bit RGB) at ``scale_m`` resolution, the CRS as
-    an OGC WKT record; ``rgb`` uint8 (n, 3) or None (grey)."""
+    an OGC WKT record; ``rgb`` uint8 (n, 3) or None (grey); ``system_identifier`` (at
+    most 32 characters) says how the points were made (e.g. that their scale is unknown)."""
     import laspy
 
     from prism3d.io.atomic import atomic_path
@@ -48,6 +49,11 @@ def write_las(path: str | Path, xyz: NDArray, rgb: NDArray | None = None, *, crs
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.scales = np.full(3, scale_m)
     header.offsets = np.floor(p.min(axis=0)) if len(p) else np.zeros(3)
+    header.generating_software = "prism3d"
+    if system_identifier is not None:
+        if len(system_identifier) > 32:
+            raise InputError(f"system_identifier: at most 32 characters, got {len(system_identifier)}")
+        header.system_identifier = system_identifier
     if crs_wkt is not None:
         header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(crs_wkt))
         header.global_encoding.wkt = True
@@ -61,10 +67,12 @@ def write_las(path: str | Path, xyz: NDArray, rgb: NDArray | None = None, *, crs
 
 
 def write_geotiff(path: str | Path, raster: NDArray, *, west: float, north: float, gsd: float,
-                  crs_wkt: str | None, nodata: float | None = None, band_names: list[str] | None = None) -> None:
+                  crs_wkt: str | None, nodata: float | None = None, band_names: list[str] | None = None,
+                  tags: dict[str, str] | None = None) -> None:
     """A GeoTIFF of a (H, W) or (H, W, bands) raster whose row 0 is the north edge:
     pixel (0, 0)'s top-left corner at (``west``, ``north``), square pixels of ``gsd``
-    (m); deflate-compressed, tiled; uint8 with 3 or 4 bands is an RGB(A) image."""
+    (m); deflate-compressed, tiled; uint8 with 3 or 4 bands is an RGB(A) image;
+    ``tags`` are written as GDAL metadata (e.g. ``SCALE=unknown``)."""
     import rasterio
     from rasterio.transform import from_origin
 
@@ -88,6 +96,8 @@ def write_geotiff(path: str | Path, raster: NDArray, *, west: float, north: floa
     with atomic_path(path) as tmp:
         with rasterio.open(tmp, "w", **profile) as dst:
             dst.write(np.moveaxis(a, 2, 0))
+            if tags:
+                dst.update_tags(**{str(k): str(v) for k, v in tags.items()})
             for k, name in enumerate(band_names or [], start=1):
                 dst.set_band_description(k, name)
             if a.dtype == np.uint8 and nb == 4:
@@ -98,12 +108,12 @@ def write_geotiff(path: str | Path, raster: NDArray, *, west: float, north: floa
 
 def read_geotiff(path: str | Path) -> tuple[NDArray, dict]:
     """A GeoTIFF's bands (H, W[, bands]) and ``{"west", "north", "gsd", "crs_wkt",
-    "nodata"}``."""
+    "nodata", "tags"}``."""
     import rasterio
 
     with rasterio.open(path) as src:
         a = np.moveaxis(src.read(), 0, 2)
         t = src.transform
         meta = {"west": t.c, "north": t.f, "gsd": t.a, "crs_wkt": src.crs.to_wkt() if src.crs else None,
-                "nodata": src.nodata}
+                "nodata": src.nodata, "tags": dict(src.tags())}
     return (a[..., 0] if a.shape[2] == 1 else a), meta

@@ -621,3 +621,44 @@ def test_real_opencv_stereo_intrinsics(shared_data, tmp_path):
     with pytest.raises(InputError, match=r"stereo_calib\.xml: has no stereo calibration entries "
                                          r"\(found imagelist\)"):
         load_stereo_calibration(d / "stereo_calib.xml")
+
+
+def test_single_camera_calibration_opencv_and_ros(tmp_path: Path) -> None:
+    """A survey camera's starting calibration: OpenCV's calibration output and a ROS
+    camera_info, read to the same CameraModel; sizes checked against the frames."""
+    import cv2
+
+    from prism3d.capture.calib_formats import load_camera_calibration
+
+    K = np.array([[2857.0, 0.0, 1999.5], [0.0, 2857.0, 1499.5], [0.0, 0.0, 1.0]])
+    D = np.array([-0.02, 0.01, 0.0, 0.0, 0.0])
+    fs = cv2.FileStorage(str(tmp_path / "cam.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 4000)
+    fs.write("image_height", 3000)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", D.reshape(1, 5))
+    fs.release()
+    cam = load_camera_calibration(tmp_path / "cam.yaml")
+    np.testing.assert_allclose(cam.K, K)
+    np.testing.assert_allclose(cam.dist, D)
+    assert cam.size == (4000, 3000)
+    ros = tmp_path / "ros.yaml"
+    ros.write_text(
+        "image_width: 4000\nimage_height: 3000\ncamera_name: survey\n"
+        f"camera_matrix: {{rows: 3, cols: 3, data: {K.ravel().tolist()}}}\n"
+        "distortion_model: plumb_bob\n"
+        f"distortion_coefficients: {{rows: 1, cols: 5, data: {D.tolist()}}}\n"
+    )
+    cam2 = load_camera_calibration(ros, image_size=(4000, 3000))
+    np.testing.assert_allclose(cam2.K, K)
+    np.testing.assert_allclose(cam2.dist, D)
+    with pytest.raises(InputError, match="calibrated for 4000x3000 px, the frames are 1600x1200"):
+        load_camera_calibration(tmp_path / "cam.yaml", image_size=(1600, 1200))
+    fs = cv2.FileStorage(str(tmp_path / "nosize.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", K)
+    fs.release()
+    with pytest.raises(InputError, match="states no image size"):
+        load_camera_calibration(tmp_path / "nosize.yaml")
+    assert load_camera_calibration(tmp_path / "nosize.yaml", image_size=(4000, 3000)).size == (4000, 3000)
+    with pytest.raises(InputError, match="not found"):
+        load_camera_calibration(tmp_path / "absent.yaml")

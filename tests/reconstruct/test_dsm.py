@@ -91,3 +91,21 @@ def test_las_and_geotiff_round_trip_with_their_crs(tmp_path):
     with pytest.raises(InputError, match="raster"):
         write_geotiff(tmp_path / "bad.tif", np.zeros((0, 3)), west=0, north=0, gsd=1, crs_wkt=None)
     assert not (tmp_path / "bad.tif").exists()
+
+
+def test_unscaled_products_say_so(tmp_path):
+    """Without GPS a survey's rasters and cloud carry no CRS and say their scale is unknown."""
+    import laspy
+
+    from prism3d.io.geo import read_geotiff, write_geotiff, write_las
+
+    write_geotiff(tmp_path / "dsm.tif", np.ones((4, 5), np.float32), west=0, north=0, gsd=0.1, crs_wkt=None,
+                  tags={"SCALE": "unknown"})
+    a, meta = read_geotiff(tmp_path / "dsm.tif")
+    assert meta["crs_wkt"] is None and meta["tags"]["SCALE"] == "unknown"
+    write_las(tmp_path / "c.las", np.zeros((3, 3)), system_identifier="prism3d survey: scale unknown")
+    las = laspy.read(tmp_path / "c.las")
+    assert las.header.system_identifier == "prism3d survey: scale unknown"
+    with pytest.raises(InputError, match="32 characters"):
+        write_las(tmp_path / "d.las", np.zeros((3, 3)), system_identifier="x" * 33)
+    assert not (tmp_path / "d.las").exists()
