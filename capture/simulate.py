@@ -354,7 +354,7 @@ def _illumination(
     return k, rgb, white
 
 
-def _gloss_table(
+def gloss_table(
     renderer: RaycastRenderer, effects: CameraEffects
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``(ks, shininess)`` ``(n_objects,)`` of the scene's meshes (``metadata["material"]``)."""
@@ -394,7 +394,7 @@ def _shade(
 _TRUTH_KEYS = ("mask", "albedo", "shading", "illumination", "normals", "object_id")
 
 
-def _render_view(
+def render_view(
     renderer: RaycastRenderer,
     cam: CameraModel,
     T_rig_cam: NDArray,
@@ -553,14 +553,14 @@ def _render_views(
 ) -> tuple[list[NDArray[np.float64]], dict[str, NDArray]]:
     """Both views, each with its optics (gain, vignetting, blur) applied, and their truth."""
     fx = opts.real_effects
-    gloss = None if fx is None else _gloss_table(renderer, fx)
+    gloss = None if fx is None else gloss_table(renderer, fx)
     truth: dict[str, NDArray] = {}
     views = []
     for name, cam, T in (("left", rig.left, rig.T_rig_left), ("right", rig.right, rig.T_rig_right)):
-        img, t = _render_view(renderer, cam, T, projector, opts, gloss)
+        img, t = render_view(renderer, cam, T, projector, opts, gloss)
         sigma = opts.blur_sigma
         if fx is not None:
-            _apply_view_optics(img, cam, fx, name)
+            apply_view_optics(img, cam, fx, name)
             sigma = float(np.hypot(opts.blur_sigma, fx.psf_sigma_px))
         if sigma > 0:
             img = gaussian_blur(img, sigma)
@@ -613,7 +613,7 @@ def _sensor_image(rig: StereoRig, views: list[NDArray[np.float64]], opts: ShotOp
     return sensor_u8
 
 
-def _apply_view_optics(
+def apply_view_optics(
     img: NDArray[np.float64], cam: CameraModel, fx: CameraEffects, view: str
 ) -> None:
     """In place: the view's RGB gain and vignetting about its principal point."""
@@ -627,7 +627,7 @@ def _apply_view_optics(
 
 
 # -- files -----------------------------------------------------------------------------
-def _write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> None:
+def write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> None:
     """Write arrays as ``.npz`` atomically; ``compress``: deflate level 1 (sizes and
     times: docs/capture.md)."""
     import zipfile
@@ -829,7 +829,7 @@ def _write_shots(
         truth.update({k2: np.asarray(v) for k2, v in extra.items()})
         truth["schema_version"] = np.array(TRUTH_SCHEMA_VERSION)
         write_image(out / png, shot.sensor_image)  # encoded in memory: a full disk is an OSError
-        _write_npz(out / npz, truth, compress=opts.compress)
+        write_npz(out / npz, truth, compress=opts.compress)
         files += [png, npz]
         if progress is not None:
             progress(k + 1, len(shots), png)

@@ -214,7 +214,7 @@ def _prop(kind: str, rng: np.random.Generator) -> tuple[list[Part], tuple[float,
     raise InputError(f"unknown prop kind {kind!r}")
 
 
-def _prop_mesh(kind: str, rng: np.random.Generator, seed: int) -> SceneMesh:
+def prop_mesh(kind: str, rng: np.random.Generator, seed: int) -> SceneMesh:
     from prism3d.capture.camouflage import CamouflageField
 
     parts, rgb, name = _prop(kind, rng)
@@ -323,7 +323,7 @@ def plan_field(options: FieldOptions | None = None) -> FieldScene:
     for k, (name, confuser) in enumerate(picks):
         seed_k = SCENE_CAMO_SEED_BASE + o.seed * 16 + k
         if name in SHAPE_CONFUSERS:
-            mesh = _prop_mesh(name, rng, seed_k)
+            mesh = prop_mesh(name, rng, seed_k)
         else:
             mesh = builtin_target(name, scale="full", seed=seed_k)
         lo, hi = mesh.bounds
@@ -339,7 +339,7 @@ def plan_field(options: FieldOptions | None = None) -> FieldScene:
         objects.append((mesh, T))
     kinds = rng.choice(["rock", "bush", "tree", "building"], size=int(o.clutter), p=[0.35, 0.35, 0.2, 0.1])
     for j, kind in enumerate(kinds):
-        mesh = _prop_mesh(str(kind), rng, o.seed * 1000 + j)
+        mesh = prop_mesh(str(kind), rng, o.seed * 1000 + j)
         T = place(mesh, (o.land_range_m[0] * 0.8, o.land_range_m[1] * 1.6), spacing=1.1, tries=30, in_view=False)
         if T is not None:
             objects.append((mesh, T))
@@ -353,15 +353,25 @@ def plan_field(options: FieldOptions | None = None) -> FieldScene:
 # -- rendering and truth ----------------------------------------------------------------
 def _sun_projector(scene: FieldScene) -> Any:
     """The sun as a distant white projector aimed at the field (shadows come free)."""
+    centre = np.array([0.0, np.mean(scene.options.land_range_m) * 1000.0, 0.0])
+    return distant_sun(scene.sun_dir_world, centre, scene.options.water_range_m[1] * 1000.0,
+                        np.linalg.inv(scene.T_world_rig))
+
+
+def distant_sun(sun_dir_world: NDArray, centre_world: NDArray, radius_mm: float,
+                 T_rig_world: NDArray | None = None) -> Any:
+    """A white projector 10 km from ``centre_world`` (mm) along ``sun_dir_world``, lighting
+    a disc of ``radius_mm`` there with margin; its pose in the rig frame (world by default)."""
     from prism3d.capture.simulate import Projector
 
     dist = 1.0e7
-    centre = np.array([0.0, np.mean(scene.options.land_range_m) * 1000.0, 0.0])
-    pos = centre + dist * scene.sun_dir_world
-    T_world_proj = look_at(pos, centre, up=(0.0, 0.0, 1.0) if abs(scene.sun_dir_world[2]) < 0.99 else (0, 1, 0))
-    T_rig_proj = np.linalg.inv(scene.T_world_rig) @ T_world_proj
+    sun = np.asarray(sun_dir_world, dtype=np.float64)
+    centre = np.asarray(centre_world, dtype=np.float64)
+    pos = centre + dist * sun
+    T_world_proj = look_at(pos, centre, up=(0.0, 0.0, 1.0) if abs(sun[2]) < 0.99 else (0, 1, 0))
+    T_rig_proj = T_world_proj if T_rig_world is None else np.asarray(T_rig_world) @ T_world_proj
     w = h = 512
-    f = w * dist / (2.5 * scene.options.water_range_m[1] * 1000.0)
+    f = w * dist / (2.5 * radius_mm)
     K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
     return Projector(K, (w, h), None, T_rig_proj, dist)
 
