@@ -110,7 +110,7 @@ def _best_match(chip: NDArray, tpl: NDArray, play: int) -> float:
 
 def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplate], *, west: float = 0.0,
                   north: float = 0.0, min_height_m: float = 0.8, play_cells: int = 2) -> list[dict[str, Any]]:
-    """Candidates standing out of ``ndsm`` (H, W) m (NaN: no data; row 0 north, cell
+    """Candidates standing out of ``ndsm`` (H, W) m by ``min_height_m`` (NaN: no data; row 0 north, cell
     (r, c) centred at ``west + (c + .5) cell``, ``north - (r + .5) cell``), each with its
     map position, heading of its long axis (deg clockwise from north), length, width,
     height, the best-fitting class and template and ``score`` (their height-shape
@@ -123,14 +123,22 @@ def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplat
     if z.ndim != 2:
         raise InputError(f"nDSM: expected (H, W), got {z.shape}")
     zf = np.where(np.isfinite(z), z, 0.0).astype(np.float32)
-    mask = (zf > min_height_m).astype(np.uint8)
-    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    n, lab, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    # hysteresis: an object is the connected cells above half the threshold holding one
+    # above it, so a truck's cab and body stay one object over the chassis between them
+    # (gaps narrower than ~0.6 m closed: a cab and its load box are one vehicle)
+    gap = np.ones((2 * max(1, int(round(0.3 / cell_m))) + 1,) * 2, np.uint8)
+    low = cv2.morphologyEx((zf > 0.5 * min_height_m).astype(np.uint8), cv2.MORPH_CLOSE, gap)
+    low = cv2.morphologyEx(low, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n, lab, stats, cents = cv2.connectedComponentsWithStats(low, connectivity=8)
+    tall = np.zeros(n, bool)
+    tall[np.unique(lab[(zf > min_height_m) & (low > 0)])] = True
     lmin = SIZE_TOLERANCE[0] * min(min(t.width for t in templates), min(t.length for t in templates))
     amax = max(t.length * t.width for t in templates) * SIZE_TOLERANCE[1] ** 2 * 1.5
     out = []
     H, W = z.shape
     for k in range(1, n):
+        if not tall[k]:
+            continue
         area = stats[k, cv2.CC_STAT_AREA] * cell_m**2
         if area < lmin * lmin or area > amax:
             continue
@@ -239,14 +247,14 @@ def write_geojson(path: str | Path, dets: Sequence[dict], *, origin_lla: Sequenc
 DEFAULT_VEHICLES = ("tank_t1", "tank_t2", "tank_t3", "truck_k1", "truck_k2", "truck_k3")
 
 
-def detect_in_survey(survey_dir: str | Path, out_path: str | Path, *, targets: Sequence[str] | None = None,
+def detect_in_survey(survey_dir: str | Path, out_path: str | Path, items: Sequence[tuple[str, Any]], *,
                      min_height_m: float = 0.8) -> dict[str, Any]:
-    """Find ``targets`` (built-in names, full size; default the ground vehicles) in a
-    survey folder's nDSM and write them to ``out_path`` as GeoJSON, best first. A survey
-    without GPS is refused: its sizes are in unknown units."""
+    """Find the targets ``items`` (``(name, SceneMesh)`` at full size, mm; the CLI gives
+    the built-in ground vehicles by default) in a survey folder's nDSM and write them to
+    ``out_path`` as GeoJSON, best first. A survey without GPS is refused: its sizes are
+    in unknown units."""
     import time
 
-    from prism3d.datasets.targets import builtin_target, list_builtin_targets
     from prism3d.io.geo import read_geotiff
 
     t0 = time.perf_counter()
@@ -260,14 +268,11 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, *, targets: S
         raise InputError(f"{d / 'poses.json'}: unreadable ({exc})") from None
     if doc.get("scale") != "gps":
         raise InputError(f"{d}: the survey's scale is unknown (no GPS); vehicle sizes cannot be compared")
-    names = list(targets) if targets else list(DEFAULT_VEHICLES)
-    known = list_builtin_targets()
-    bad = [n for n in names if n not in known]
-    if bad:
-        raise InputError(f"targets: unknown built-in {', '.join(bad)}; valid: {', '.join(known)}")
+    if not items:
+        raise InputError("detect: no targets to look for")
     ndsm, meta = read_geotiff(d / "ndsm.tif")
     cell = float(meta["gsd"])
-    tpls = nadir_templates([(n, builtin_target(n, scale="full")) for n in names], cell)
+    tpls = nadir_templates(list(items), cell)
     dets = find_vehicles(ndsm, cell, tpls, west=float(meta["west"]), north=float(meta["north"]),
                          min_height_m=min_height_m)
     write_geojson(out_path, dets, origin_lla=doc.get("origin_lla"))

@@ -537,6 +537,27 @@ def run_tasks(job: str, tasks: Sequence[_Task], run: RunOptions | None = None) -
     return report
 
 
+def run_survey_pairs(reqs: Sequence[dict[str, Any]], run: RunOptions,
+                     progress: ProgressFn | None = None) -> list[dict[str, Any]]:
+    """A survey's dense pairs (:func:`prism3d.reconstruct.survey.dense_pair`), one unit
+    each, where ``run`` says; a pair that fails (not one skipped with a reason) stops the
+    survey with its error."""
+    import dataclasses
+
+    report = run_tasks("survey dense", [(f"pair {r['i']}-{r['j']}", f"{Path(r['path_i']).name}+{Path(r['path_j']).name}",
+                                         _dense_pair, (r,)) for r in reqs],
+                       dataclasses.replace(run, progress=progress))
+    if not report.ok:
+        raise DatasetError(f"survey: {report.failure_line()}")
+    return list(report.stats)
+
+
+def _dense_pair(req: dict[str, Any]) -> dict[str, Any]:
+    from prism3d.reconstruct.survey import dense_pair
+
+    return dense_pair(req)
+
+
 def _run_local(tasks: list[_Task], retries: int, finish: _Tally) -> None:
     for unit_id, what, fn, args in tasks:
         err: BaseException | None = None

@@ -131,7 +131,32 @@ def _virtual_resolver(name: str) -> Any:
 
 
 # --- simulate ------------------------------------------------------------------------------
+def _cmd_simulate_flight(args: argparse.Namespace) -> int:
+    import re
+
+    from prism3d.datasets.flight import FlightOptions, simulate_flight
+
+    if args.count is not None or args.classes or args.workers or args.scheduler:
+        raise InputError("simulate flight: --count, --classes, --workers and --scheduler are for field scenes")
+    given = {"frames": args.frames, "lines": args.lines, "altitude_m": args.altitude, "overlap": args.overlap,
+             "side_overlap": args.side_overlap, "heading_deg": args.heading, "targets": args.targets,
+             "confusers": args.confusers, "supersample": args.supersample}
+    if args.size is not None:
+        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", args.size)
+        if m is None:
+            raise InputError(f"--size: expected WIDTHxHEIGHT in pixels (e.g. 4000x3000), got {args.size!r}")
+        given["size"] = (int(m.group(1)), int(m.group(2)))
+    fo = FlightOptions(seed=args.seed, noise=args.noise, depth=args.depth,
+                       **{k: v for k, v in given.items() if v is not None})
+    summary = simulate_flight(args.out_dir, fo, progress=_progress(args, "simulate flight"))
+    _say(args, f"wrote a {summary['n_frames']}-frame flight ({summary['n_targets']} targets, "
+               f"GSD {100 * summary['gsd_m']:.1f} cm) to {args.out_dir} in {summary['seconds']:.1f} s")
+    return 0
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
+    if args.kind == "flight":
+        return _cmd_simulate_flight(args)
     if args.kind == "field":
         from prism3d.datasets.field import FieldOptions, simulate_field
 
@@ -190,7 +215,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 def _add_simulate(sub: Any) -> None:
     p = _command(sub, "simulate", _cmd_simulate,
-                 help="virtual rig shots with exact ground truth (plate|calib|scene)",
+                 help="virtual rig shots with exact ground truth (plate|calib|scene|field|flight)",
                  description="Render side-by-side prism shots through the virtual rig and write "
                  "them with ground truth: shot PNG(s), rig.yaml (OpenCV FileStorage) and "
                  "truth.npz (depth_left_mm, depth_right_mm, mask, albedo, shading, true "
@@ -198,8 +223,11 @@ def _add_simulate(sub: Any) -> None:
                  "5 chessboard shots (9x6 inner corners, 25 mm); scene: a built-in target on a "
                  "turntable, 8 views at 45 deg (also target.ply and poses.json); field: full-size "
                  "camouflaged targets, confusers and clutter on terrain under the sun, through a 4 m "
-                 "baseline rig (shot.png, rig.yaml, truth.json, truth.npz).")
-    p.add_argument("kind", choices=["plate", "calib", "scene", "field"])
+                 "baseline rig (shot.png, rig.yaml, truth.json, truth.npz); flight: a nadir drone survey "
+                 "(lawnmower lines, 12 MP) over hills, roads, clutter and ground vehicles "
+                 "(IMG_0000.JPG..., geoinfo.txt, camera.yaml, truth.json, truth.npz with the true DSM, "
+                 "depth/).")
+    p.add_argument("kind", choices=["plate", "calib", "scene", "field", "flight"])
     p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     p.add_argument("--target", default="tank_t1", help="scene: built-in target name (default tank_t1)")
     p.add_argument("--pattern", dest="pattern", action="store_true", default=None,
@@ -212,9 +240,25 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--noise", dest="noise", action="store_true", default=True, help="sensor noise (default)")
     p.add_argument("--no-noise", dest="noise", action="store_false")
-    p.add_argument("--supersample", type=int, default=None, help="anti-aliasing factor (default 2; field: 1)")
-    p.add_argument("--targets", type=int, help="field: bank-class targets (default 3-6, drawn)")
-    p.add_argument("--confusers", type=int, help="field: confusers (default 1-3, drawn)")
+    p.add_argument("--supersample", type=int, default=None,
+                   help="anti-aliasing factor (default 2; field, flight: 1)")
+    p.add_argument("--targets", type=int,
+                   help="field: bank-class targets (default 3-6, drawn); flight: ground vehicles (default 5-10)")
+    p.add_argument("--confusers", type=int,
+                   help="field: confusers (default 1-3, drawn); flight: crates and fuel tanks (default 0-3)")
+    p.add_argument("--frames", type=int, help="flight: photographs in all, split evenly between the lines "
+                   "(default 12)")
+    p.add_argument("--lines", type=int, help="flight: parallel flight lines, flown back and forth (default 2)")
+    p.add_argument("--altitude", type=float, metavar="M", help="flight: height above the mean ground, m "
+                   "(default 100: GSD 3.6 cm)")
+    p.add_argument("--overlap", type=float, metavar="F", help="flight: forward overlap (default 0.70)")
+    p.add_argument("--side-overlap", type=float, metavar="F", help="flight: side overlap of the lines "
+                   "(default 0.60)")
+    p.add_argument("--size", metavar="WxH", help="flight: image size, px (default 4000x3000)")
+    p.add_argument("--heading", type=float, metavar="DEG", help="flight: direction of the first line, deg "
+                   "clockwise from north (default: drawn from the seed)")
+    p.add_argument("--depth", action=argparse.BooleanOptionalAction, default=True,
+                   help="flight: write each frame's true depth and object ids in depth/ (default)")
     p.add_argument("--classes", nargs="+", metavar="NAME",
                    help="field: built-in targets the bank knows (default tank_t1 jet_j1 ship_s1 truck_k1)")
     p.add_argument("--count", type=int, help="field: a batch of this many scenes, seeds SEED, SEED+1... in "
@@ -848,6 +892,97 @@ def _add_detect(sub: Any) -> None:
     _output_option(p, "DETECTIONS_JSON")
 
 
+# --- the survey mode ------------------------------------------------------------------------
+def _cmd_survey(args: argparse.Namespace) -> int:
+    from prism3d.reconstruct.survey import SurveyOptions, run_survey
+
+    opts = SurveyOptions(max_image_size=args.max_image_size, dense_max_pixels=args.dense_max_pixels,
+                         pair_steps=tuple(args.pair_steps), cross_pairs=args.cross_pairs, cell_m=args.cell,
+                         refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point)
+    run_pairs = None
+    if args.workers or args.scheduler:
+        from prism3d.datasets.jobs import RunOptions, run_survey_pairs
+
+        run = RunOptions(workers=args.workers, scheduler=args.scheduler, retries=0)
+
+        def run_pairs(reqs: list, progress: Any) -> list:
+            return run_survey_pairs(reqs, run, progress)
+    s = run_survey(args.images, args.output, calib=args.calib, gps_table=args.gps, options=opts,
+                   progress=_progress(args, "survey"), run_pairs=run_pairs)
+    unit = "m" if s["scale"] == "gps" else "units (scale unknown: no GPS)"
+    _say(args, f"survey: {s['n_registered']}/{s['n_frames']} frames placed, reprojection RMS "
+               f"{s['reprojection_rms_px']:.2f} px; {s['pairs_ok']} pairs matched, {s['pairs_skipped']} skipped; "
+               f"DSM of {s['dsm_cells']:,} cells of {s['cell']:g} {unit}; {s['seconds']['total']:.0f} s -> {args.output}")
+    return 0
+
+
+def _add_survey(sub: Any) -> None:
+    p = _command(sub, "survey", _cmd_survey,
+                 help="drone survey: frames of one moving camera -> poses, point cloud, DSM, orthophoto",
+                 description="The UAV mode: camera poses and intrinsics from the frames (pycolmap's "
+                 "incremental mapping with bundle adjustment), put in metres in a local east-north-up "
+                 "frame by the GPS (--gps table or EXIF; without either the scale is unknown and every "
+                 "output says so); each frame matched with the next and the next-but-one by our stereo "
+                 "matcher, the pairs' heights fused with a consistency check. Writes OUT/poses.json, "
+                 "cloud.ply, cloud.las, dsm.tif, ground.tif, ndsm.tif, ortho.tif, survey.png, depth/ "
+                 "and colmap/ (a COLMAP text model). Method: docs/uav.md.")
+    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="frames, in flight order")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT_DIR", help="new folder for the survey")
+    p.add_argument("--calib", type=Path, help="starting calibration of the camera (OpenCV/ROS YAML; "
+                   "default: the EXIF focal length, principal point at the centre)")
+    p.add_argument("--gps", type=Path, metavar="TABLE", help="positions table (senseFly geoinfo.txt or CSV "
+                   "with fileName, latitude, longitude, altitude; default: the frames' EXIF GPS)")
+    p.add_argument("--cell", type=float, metavar="M", help="DSM cell, metres (default: twice the matched frames' ground sample distance)")
+    p.add_argument("--pair-steps", type=int, nargs="+", default=[1, 2], metavar="K",
+                   help="pair each frame with the one K later (default 1 2: the next and the next-but-one)")
+    p.add_argument("--cross-pairs", action=argparse.BooleanOptionalAction, default=True,
+                   help="also pair each frame with the later frame sharing most of its view, e.g. on the next "
+                   "flight line (default on)")
+    p.add_argument("--max-image-size", type=int, default=2000, metavar="PX",
+                   help="longest side for the pose features (default 2000)")
+    p.add_argument("--dense-max-pixels", type=float, default=3.2e6, metavar="N",
+                   help="frames are matched downscaled 1/2, 1/3... to stay under N pixels (default 3.2e6)")
+    p.add_argument("--refine", choices=["auto", "focal+distortion", "none"], default="auto",
+                   help="intrinsics the bundle adjustment refines (default auto: none with --calib, f k1 k2 "
+                   "from EXIF; nadir frames over gentle relief barely separate the focal length from the height)")
+    p.add_argument("--refine-principal-point", action="store_true",
+                   help="free the principal point in the bundle adjustment (default fixed: few nadir frames "
+                   "do not determine it)")
+    p.add_argument("--workers", type=int, default=0, help="dense pairs on a local Dask cluster of W processes")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="dense pairs on an existing Dask scheduler")
+
+
+def _cmd_survey_detect(args: argparse.Namespace) -> int:
+    from prism3d.atr.survey_detect import DEFAULT_VEHICLES, detect_in_survey
+    from prism3d.datasets.targets import builtin_target, list_builtin_targets
+
+    names = args.targets or list(DEFAULT_VEHICLES)
+    bad = [n for n in names if n not in list_builtin_targets()]
+    if bad:
+        raise InputError(f"--targets: unknown built-in {', '.join(bad)}; valid: {', '.join(list_builtin_targets())}")
+    s = detect_in_survey(args.survey, args.output, [(n, builtin_target(n, scale="full")) for n in names],
+                         min_height_m=args.min_height)
+    _say(args, f"wrote {args.output}: {s['n_scored']} vehicle-sized objects scored "
+               f"({s['n_detections']} standing objects, {s['cell']:g} m cells, {s['seconds']:.1f} s)")
+    return 0
+
+
+def _add_survey_detect(sub: Any) -> None:
+    p = _command(sub, "survey-detect", _cmd_survey_detect,
+                 help="find vehicles in a survey's normalised DSM (GeoJSON in WGS84)",
+                 description="The survey form of detect: objects standing out of OUT/ndsm.tif, measured "
+                 "and compared by their shape seen from above with the targets' meshes ray-cast from "
+                 "straight above at the survey's cell. Writes every candidate, best first, as a GeoJSON "
+                 "FeatureCollection (WGS84 points; properties: class, template, score, heading, length, "
+                 "width, height, local x/y). Method: docs/uav.md.")
+    p.add_argument("survey", type=Path, metavar="SURVEY_DIR", help="a folder written by 'prism3d survey'")
+    p.add_argument("--targets", nargs="+", metavar="NAME",
+                   help="built-in targets to look for (default: the tanks and trucks)")
+    p.add_argument("--min-height", type=float, default=0.8, metavar="M",
+                   help="objects start this high above the ground (default 0.8 m)")
+    _output_option(p, "DETECTIONS_GEOJSON")
+
+
 # --- datasets: the target database ---------------------------------------------------------
 def _cmd_db(args: argparse.Namespace) -> int:
     from prism3d.datasets import db as dbm
@@ -978,6 +1113,8 @@ _COMMANDS: list[Callable[[Any], None]] = [
     _add_render,
     _add_bank,
     _add_detect,
+    _add_survey,
+    _add_survey_detect,
     _add_db,
     _add_trigger,
     _add_capture,
@@ -1030,7 +1167,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 #: Commands whose -o names a folder (the others write a file).
-_FOLDER_OUTPUT = {"rectify", "decamo", "render", "capture"}
+_FOLDER_OUTPUT = {"rectify", "decamo", "render", "capture", "survey"}
 #: Arguments that name an output file when they hold a path.
 _FILE_OUTPUT_ARGS = ("output", "mesh", "depth_out", "disparity_out", "valid_out", "json", "link")
 

@@ -82,12 +82,12 @@ def grid_points(xyz: NDArray, rgb: NDArray | None, gsd: float, *, bounds: tuple[
     return DsmGrid(dsm.reshape(H, W), ortho.reshape(H, W, 4), cnt.reshape(H, W), float(w), float(n), float(gsd))
 
 
-def normalised_dsm(dsm: NDArray, gsd_mm: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def normalised_dsm(dsm: NDArray, gsd_mm: float, *, fill: str = "inpaint") -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """The ground under a DSM (heights in mm, cells of ``gsd_mm``; NaN cells filled from
     their nearest neighbour for the filter, NaN again after) by :func:`progressive_ground`,
     and the normalised DSM: height above that ground. Returns ``(ground, ndsm)``."""
     d = check_array(dsm, "DSM", ndim=2).astype(np.float64)
-    g = progressive_ground(d, gsd_mm)
+    g = progressive_ground(d, gsd_mm, fill=fill)
     g = np.where(np.isfinite(d), g, np.nan)
     return g.astype(np.float32), (d - g).astype(np.float32)
 
@@ -97,12 +97,17 @@ def normalised_dsm(dsm: NDArray, gsd_mm: float) -> tuple[NDArray[np.float32], ND
 _PMF_WINDOWS_MM = (4000.0, 8000.0, 16000.0, 32000.0)
 _PMF_SLOPE = 0.15
 _PMF_BASE_MM = 300.0
+#: Width of the objects' stereo fringe left out of the ground carried under them (mm).
+_INPAINT_FRINGE_MM = 500.0
 
 
-def progressive_ground(grid: NDArray, cell_mm: float) -> NDArray[np.float64]:
+def progressive_ground(grid: NDArray, cell_mm: float, *, fill: str = "opened") -> NDArray[np.float64]:
     """The ground under a grid of low heights: openings with growing windows flag cells
     that stand above the opened surface by more than the slope allows (objects up to the
-    largest window wide), flagged cells take the opened surface, then a light smoothing."""
+    largest window wide); flagged cells take the opened surface (``fill="opened"``), or
+    the ground around them carried in (``"inpaint"``: on a slope the opened surface lies
+    below the ground by the slope times half the window, and objects on it grow by as
+    much); then a light smoothing."""
     from scipy import ndimage
 
     g = np.array(grid, dtype=np.float64)
@@ -119,5 +124,18 @@ def progressive_ground(grid: NDArray, cell_mm: float) -> NDArray[np.float64]:
         opened = ndimage.grey_opening(surf, size=(w, w), mode="nearest")
         obj |= (g - opened) > _PMF_BASE_MM + _PMF_SLOPE * w_mm
         surf = opened
-    ground = np.where(obj, surf, g)
+    if fill == "inpaint" and obj.any() and not obj.all():
+        import cv2
+
+        # the hole takes the objects' fringe too: stereo rounds their edges off over about
+        # half a metre, and a fringe left in the ring would lift the ground carried in
+        hole = ndimage.binary_dilation(obj, iterations=max(1, int(round(_INPAINT_FRINGE_MM / cell_mm))))
+        base = np.where(hole, surf, g)
+        off = float(np.median(base))
+        ground = cv2.inpaint((base - off).astype(np.float32), hole.astype(np.uint8), 3, cv2.INPAINT_TELEA)
+        ground = ground.astype(np.float64) + off
+    elif fill in ("opened", "inpaint"):
+        ground = np.where(obj, surf, g)
+    else:
+        raise InputError(f"fill: expected 'opened' or 'inpaint', got {fill!r}")
     return ndimage.gaussian_filter(ground, 1.0, mode="nearest")

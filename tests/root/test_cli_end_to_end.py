@@ -259,7 +259,28 @@ COMMANDS = {
     "db": "test_db_init_add_render_features_info_verify",
     "trigger": "test_trigger_simulate_then_ping_status_fire",
     "capture": "test_capture_with_the_virtual_camera",
+    "survey": "test_simulate_flight_survey_and_survey_detect",
+    "survey-detect": "test_simulate_flight_survey_and_survey_detect",
 }
+
+
+def test_simulate_flight_survey_and_survey_detect(tmp_path):
+    """A small flight (6 frames on two lines, 480 x 360 px) surveyed with its GPS table
+    and calibration, then searched for vehicles: the products and a WGS84 GeoJSON."""
+    r = prism3d("simulate", "flight", tmp_path / "f", "--frames", "6", "--size", "480x360", "--altitude", "40",
+                "--no-depth", "--seed", "2")
+    assert r.returncode == 0, r.stderr
+    frames = sorted((tmp_path / "f").glob("IMG_*.JPG"))
+    assert len(frames) == 6
+    r = prism3d("survey", *frames, "--calib", tmp_path / "f" / "camera.yaml", "--gps", tmp_path / "f" / "geoinfo.txt",
+                "-o", tmp_path / "s")
+    assert r.returncode == 0, r.stderr
+    for name in ("poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", "ortho.tif"):
+        assert (tmp_path / "s" / name).is_file(), name
+    assert json.loads((tmp_path / "s" / "poses.json").read_text())["scale"] == "gps"
+    r = prism3d("survey-detect", tmp_path / "s", "-o", tmp_path / "d.geojson")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "d.geojson").read_text())["type"] == "FeatureCollection"
 
 
 def test_every_command_has_an_end_to_end_test():

@@ -1,0 +1,222 @@
+"""The survey mode end to end (``prism3d survey``): a simulated flight (12 frames on two
+lines, 70 % forward overlap) against its exact truth, the real drone pair, and the
+refusals. The issue's figures at full size (12 MP from 100 m) are in docs/uav.md and
+benchmarks/RESULTS.md; this flight is 800 x 600 px from 40 m (GSD 7 cm, DSM cells of
+14 cm as at 12 MP from 100 m), checked against the same criteria in GSD except where
+its coarser features set the limit (rotations)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from prism3d.cli import main
+
+SIZE = (800, 600)
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory) -> Path:
+    from prism3d.datasets.flight import FlightOptions, simulate_flight
+
+    d = tmp_path_factory.mktemp("flight") / "f"
+    simulate_flight(d, FlightOptions(size=SIZE, altitude_m=40.0, seed=5, targets=6))
+    return d
+
+
+@pytest.fixture(scope="module")
+def survey(flight: Path, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("survey") / "s"
+    frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))
+    rc = main(["-q", "survey", *frames, "--calib", str(flight / "camera.yaml"), "--gps", str(flight / "geoinfo.txt"),
+               "-o", str(out)])
+    assert rc == 0
+    return out
+
+
+def test_survey_writes_the_contract(survey: Path, flight: Path) -> None:
+    import laspy
+
+    from prism3d.io.geo import read_geotiff
+    from prism3d.io.ply import read_ply
+
+    doc = json.loads((survey / "poses.json").read_text())
+    frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))
+    assert [f["image"] for f in doc["frames"]] == frames  # paths as given
+    T = np.array(doc["frames"][3]["T_enu_cam"])
+    assert T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+    assert T[2, 2] < -0.99  # a nadir camera: its z (forward) points down
+    assert doc["scale"] == "gps" and 0 < doc["reprojection_rms_px"] < 0.5
+    assert doc["camera"]["refined"] == []  # a calibration file is kept as it is
+    ply = read_ply(survey / "cloud.ply")
+    las = laspy.read(survey / "cloud.las")
+    assert len(las.x) == len(ply.points) > 10_000
+    np.testing.assert_allclose(np.c_[las.x, las.y, las.z][:100], ply.points[:100], atol=0.0006)
+    assert ply.colors is not None
+    dsm, meta = read_geotiff(survey / "dsm.tif")
+    ndsm, _ = read_geotiff(survey / "ndsm.tif")
+    ortho, _ = read_geotiff(survey / "ortho.tif")
+    assert dsm.shape == ndsm.shape == ortho.shape[:2] and ortho.shape[2] == 4
+    assert "Orthographic" in meta["crs_wkt"] and meta["tags"]["SCALE"] == "gps"
+    # the cloud lies on the DSM, in the same frame
+    c = np.floor((ply.points[:, 0] - meta["west"]) / meta["gsd"]).astype(int)
+    r = np.floor((meta["north"] - ply.points[:, 1]) / meta["gsd"]).astype(int)
+    np.testing.assert_allclose(dsm[r, c], ply.points[:, 2], atol=1e-3)
+    model = survey / "colmap"
+    assert {"cameras.txt", "images.txt", "points3D.txt"} <= {p.name for p in model.iterdir()}
+    pairs = doc["dense"]["pairs"]
+    assert all(p["status"] == "ok" for p in pairs) and len(pairs) >= 21
+    for p in pairs:
+        assert (survey / p["depth_map"]).is_file()
+    assert (survey / "survey.png").stat().st_size > 10_000
+
+
+def test_survey_against_the_flight_truth(survey: Path, flight: Path) -> None:
+    """Poses after a similarity alignment, the DSM on open ground, the overlapped area
+    filled, against exact truth: positions within 0.5 GSD; rotations within 0.05 deg
+    (a pixel is 0.067 deg at 800 px; 12 MP: 0.003 deg against the issue's 0.02); the
+    DSM within the issue's bounds (median <= 0.5 GSD, RMS <= 1 GSD), >= 95 % of the
+    overlap filled; vehicles' heights in the nDSM within 10 % (12 MP: 7 of 8 within 5 %)."""
+    from prism3d.datasets.survey_eval import evaluate_survey
+
+    r = evaluate_survey(survey, flight)
+    assert r["frames_placed"] == 12
+    assert r["position_error_gsd"]["max"] <= 0.5
+    assert r["rotation_error_deg"]["max"] < 0.05
+    assert r["dsm"]["median_abs_error_gsd"] <= 0.5
+    assert r["dsm"]["rms_error_gsd"] <= 1.0
+    assert r["dsm"]["overlap_filled_fraction"] >= 0.95
+    v = r["vehicles"]
+    assert v["measured"] == v["n"] >= 5
+    assert v["max_relative_height_error"] < 0.10
+    doc = json.loads((survey / "poses.json").read_text())
+    assert doc["dsm"]["overlap_filled_fraction"] >= 0.95  # the survey's own estimate agrees
+
+
+def test_vehicles_found_in_the_survey(survey: Path, flight: Path, tmp_path: Path) -> None:
+    from prism3d.datasets.survey_eval import evaluate_survey
+
+    out = tmp_path / "d.geojson"
+    assert main(["-q", "survey-detect", str(survey), "-o", str(out)]) == 0
+    gj = json.loads(out.read_text())
+    assert gj["type"] == "FeatureCollection" and gj["features"]
+    lon, lat = gj["features"][0]["geometry"]["coordinates"]
+    truth = json.loads((flight / "truth.json").read_text())
+    assert abs(lat - truth["origin_lla"][0]) < 0.01 and abs(lon - truth["origin_lla"][1]) < 0.01
+    r = evaluate_survey(survey, flight, detections=out)
+    assert r["detection"]["pd_at_0.1_fppf"] >= 0.9
+
+
+def test_survey_with_dask_workers_gives_the_same_heights(survey: Path, flight: Path, tmp_path: Path) -> None:
+    """The dense pairs on 2 local Dask workers: the same DSM as in one process."""
+    from prism3d.io.geo import read_geotiff
+
+    frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))[:4]
+    outs = []
+    for w in ("0", "2"):
+        out = tmp_path / f"s{w}"
+        assert main(["-q", "survey", *frames, "--calib", str(flight / "camera.yaml"), "--gps",
+                     str(flight / "geoinfo.txt"), "--workers", w, "--no-cross-pairs", "-o", str(out)]) == 0
+        outs.append(read_geotiff(out / "dsm.tif")[0])
+    np.testing.assert_array_equal(outs[0], outs[1])
+
+
+def test_without_gps_the_scale_is_unknown_everywhere(flight: Path, tmp_path: Path) -> None:
+    """Frames without EXIF GPS and no table: the model levelled, its scale unknown."""
+    import cv2
+    import laspy
+
+    from prism3d.io.geo import read_geotiff
+
+    frames = []
+    for p in sorted(flight.glob("IMG_*.JPG"))[:4]:  # re-encoded: no EXIF
+        frames.append(str(tmp_path / p.name))
+        cv2.imwrite(frames[-1], cv2.imread(str(p)), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    out = tmp_path / "s"
+    assert main(["-q", "survey", *frames, "--calib", str(flight / "camera.yaml"), "--no-cross-pairs",
+                 "-o", str(out)]) == 0
+    doc = json.loads((out / "poses.json").read_text())
+    assert doc["scale"] == "unknown" and doc["origin_lla"] is None and "unknown" in doc["units"]
+    _, meta = read_geotiff(out / "dsm.tif")
+    assert meta["crs_wkt"] is None and meta["tags"]["SCALE"] == "unknown"
+    assert "unknown" in laspy.read(out / "cloud.las").header.system_identifier
+    assert main(["-q", "survey-detect", str(out), "-o", str(tmp_path / "d.geojson")]) == 2
+    assert not (tmp_path / "d.geojson").exists()
+
+
+@pytest.mark.parametrize("case", ["one_frame", "sizes", "missing_in_table", "no_overlap", "not_empty"])
+def test_bad_input_is_one_line_exit_2_and_nothing_written(case: str, flight: Path, tmp_path: Path, capsys) -> None:
+    import cv2
+
+    frames = sorted(flight.glob("IMG_*.JPG"))
+    args = [str(frames[0]), str(frames[1])]
+    extra = ["--calib", str(flight / "camera.yaml")]
+    out = tmp_path / "out"
+    if case == "one_frame":
+        args = args[:1]
+    elif case == "sizes":
+        small = tmp_path / "IMG_small.JPG"
+        cv2.imwrite(str(small), cv2.resize(cv2.imread(str(frames[1])), (400, 300)))
+        args = [str(frames[0]), str(small)]
+    elif case == "missing_in_table":
+        d = tmp_path / "frames"
+        d.mkdir()
+        for f in frames[:2]:
+            shutil.copy(f, d / f.name)
+        shutil.copy(flight / "geoinfo.txt", d / "geoinfo.txt")  # names 12 frames, 2 are here
+        args = [str(d / frames[0].name), str(d / frames[1].name)]
+        extra += ["--gps", str(d / "geoinfo.txt")]
+    elif case == "no_overlap":
+        rng = np.random.default_rng(0)
+        noise = tmp_path / "IMG_noise.JPG"
+        cv2.imwrite(str(noise), (rng.random((SIZE[1], SIZE[0], 3)) * 255).astype(np.uint8))
+        args = [str(frames[0]), str(noise)]
+    elif case == "not_empty":
+        out.mkdir()
+        (out / "keep.txt").write_text("mine")
+    capsys.readouterr()
+    rc = main(["survey", *args, *extra, "-o", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2
+    assert len(err.splitlines()) == 1 and err.startswith("prism3d survey: error:")
+    want = {"one_frame": "at least 2", "sizes": "different sizes", "missing_in_table": "not in",
+            "no_overlap": "could not be placed", "not_empty": "not an empty folder"}[case]
+    assert want in err
+    if case == "not_empty":
+        assert [p.name for p in out.iterdir()] == ["keep.txt"]
+    else:
+        assert not out.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]  # no staging left behind
+
+
+@pytest.mark.realdata
+def test_real_drone_pair(shared_data: Path, tmp_path: Path) -> None:
+    """IMG_2188 -> IMG_2189 (real nadir frames, EXIF focal, geoinfo.txt GPS):
+    reprojection RMS <= 0.5 px over >= 1000 tracks; a DSM over >= 80 % of the pair's
+    overlap; open ground flat to a few GSD; the poses' baseline equal to the GPS one."""
+    from prism3d.capture.geotag import read_position_table, wgs84_to_enu
+    from prism3d.datasets.survey_eval import ground_roughness
+    from prism3d.io.geo import read_geotiff
+
+    d = shared_data / "aerial/snowpeak_internal_only"
+    out = tmp_path / "s"
+    assert main(["-q", "survey", str(d / "IMG_2188.JPG"), str(d / "IMG_2189.JPG"), "--gps", str(d / "geoinfo.txt"),
+                 "-o", str(out)]) == 0
+    doc = json.loads((out / "poses.json").read_text())
+    assert doc["reprojection_rms_px"] <= 0.5 and doc["n_sparse_points"] >= 1000
+    assert doc["camera"]["refined"] == ["f", "k1", "k2"]
+    assert doc["dsm"]["overlap_filled_fraction"] >= 0.8
+    tags = read_position_table(d / "geoinfo.txt")
+    a, b = tags["IMG_2188.JPG"], tags["IMG_2189.JPG"]
+    gps = float(np.linalg.norm(wgs84_to_enu([[b.lat_deg, b.lon_deg, b.alt_m]], [a.lat_deg, a.lon_deg, a.alt_m])))
+    T = [np.array(f["T_enu_cam"]) for f in doc["frames"]]
+    assert np.linalg.norm(T[1][:3, 3] - T[0][:3, 3]) == pytest.approx(gps, abs=0.05)
+    dsm, meta = read_geotiff(out / "dsm.tif")
+    ndsm, _ = read_geotiff(out / "ndsm.tif")
+    gsd = 117.0 / 3210.0  # the frames' ground sample distance at full size, m
+    rough = ground_roughness(dsm, ndsm, meta["gsd"])
+    assert rough["patches"] > 100 and rough["median_rms_m"] < 3 * gsd
