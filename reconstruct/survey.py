@@ -65,6 +65,8 @@ class SurveyOptions:
     image scale gives only their ratio), so a calibrated camera is best left as it is."""
     refine_principal_point: bool = False
     """Free the principal point in the bundle adjustment (poorly fixed by few nadir frames)."""
+    matcher: str = "ours"
+    """The dense matcher: ours, or "sgbm" (OpenCV's, the benchmarks' anchor)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.max_image_size, bool) or not 320 <= int(self.max_image_size) <= 20000:
@@ -77,6 +79,8 @@ class SurveyOptions:
         object.__setattr__(self, "pair_steps", steps)
         if self.cell_m is not None and not (math.isfinite(self.cell_m) and self.cell_m > 0):
             raise InputError(f"cell: expected a DSM cell size > 0, got {self.cell_m!r}")
+        if self.matcher not in ("ours", "sgbm"):
+            raise InputError(f"matcher: expected ours or sgbm, got {self.matcher!r}")
         if self.refine_intrinsics not in ("auto", "focal+distortion", "none"):
             raise InputError(f"refine_intrinsics: expected auto, focal+distortion or none, got {self.refine_intrinsics!r}")
 
@@ -103,20 +107,6 @@ class Georef:
         out[:3, :3] = self.R @ T[:3, :3]
         out[:3, 3] = self.apply(T[:3, 3])
         return out
-
-
-def _umeyama(src: NDArray, dst: NDArray) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
-    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991)."""
-    ms, md = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - ms, dst - md
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1.0
-    R = U @ D @ Vt
-    var = float((a**2).sum() / len(src))
-    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
-    return s, R, md - s * R @ ms
 
 
 def _ground_up(points: NDArray, centres: NDArray) -> NDArray[np.float64]:
@@ -160,9 +150,11 @@ def georeference(centres: NDArray, gps_enu: NDArray | None, points: NDArray) -> 
         raise InputError(f"GPS: {len(G)} positions for {len(C)} cameras")
     sv = np.linalg.svd(G - G.mean(axis=0), compute_uv=False)
     if len(C) >= 3 and sv[1] > 0.05 * sv[0]:
+        from prism3d.reconstruct.sfm import similarity_align
+
         keep = np.ones(len(C), bool)
         for _ in range(2):
-            s, R, t = _umeyama(C[keep], G[keep])
+            s, R, t = similarity_align(C[keep], G[keep])
             res = np.linalg.norm(s * C @ R.T + t - G, axis=1)
             med = float(np.median(res[keep]))
             new = res <= max(3.0 * med, 1e-9)
@@ -280,7 +272,7 @@ def dense_pair(req: dict[str, Any]) -> dict[str, Any]:
     t = Tcj[:3, :3] @ ci + Tcj[:3, 3]
     pose = TwoViewPose(R, t / np.linalg.norm(t), q1, q2, len(P), 0.0)
     try:
-        pc = pair_cloud(img_i, img_j, Ks, pose, baseline=base)
+        pc = pair_cloud(img_i, img_j, Ks, pose, baseline=base, matcher=req.get("matcher", "ours"))
     except InputError as exc:
         rec["reason"] = str(exc).removeprefix("pair: ")
         return rec
@@ -585,7 +577,7 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         reqs = [{"i": i, "j": j, "path_i": str(paths[i]), "path_j": str(paths[j]), "K": K.tolist(),
                  "dist": dist.tolist(), "factor": factor, "T_enu_cam_i": T_enu[i].tolist(),
                  "T_enu_cam_j": T_enu[j].tolist(), "cell": cell, "min_shared": o.min_shared_points,
-                 "min_base_to_height": o.min_base_to_height, "shared": sp}
+                 "min_base_to_height": o.min_base_to_height, "shared": sp, "matcher": o.matcher}
                 for (i, j), sp in plan_pairs(T_enu, points_enu, K, size, o).items()]
         recs = sorted((run_pairs or run_pairs_here)(reqs, progress), key=lambda r: (r["i"], r["j"]))
         seconds["dense"] = time.perf_counter() - t0

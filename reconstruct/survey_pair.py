@@ -17,7 +17,7 @@ from prism3d.errors import InputError
 from prism3d.reconstruct.flatness import ransac_plane
 from prism3d.reconstruct.two_view import TwoViewPose
 
-__all__ = ["PairCloud", "RectifiedPair", "pair_cloud", "rectify_pair"]
+__all__ = ["PAIR_MATCHERS", "PairCloud", "RectifiedPair", "pair_cloud", "rectify_pair"]
 
 
 @dataclass(frozen=True)
@@ -96,12 +96,30 @@ class PairCloud:
     valid_fraction: float
 
 
+#: Matchers a pair can be matched with: ours, or OpenCV's SGBM (the benchmarks' anchor).
+PAIR_MATCHERS = ("ours", "sgbm")
+
+
+def _sgbm(left: NDArray, right: NDArray, lo: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """OpenCV StereoSGBM (3-way, 5 px blocks, its usual penalties) over ``lo .. lo + n``
+    (widened to a multiple of 16): disparity and validity."""
+    import cv2
+
+    n16 = int(np.ceil(n / 16.0)) * 16
+    ch = 1 if left.ndim == 2 else left.shape[2]
+    sg = cv2.StereoSGBM_create(minDisparity=int(lo), numDisparities=n16, blockSize=5, P1=8 * ch * 25,
+                               P2=32 * ch * 25, uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
+                               mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    d = sg.compute(left, right).astype(np.float32) / 16.0
+    return d, d >= lo
+
+
 def pair_cloud(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose, *, baseline: float = 1.0,
-               margin_px: int = 8, options=None) -> PairCloud:
+               margin_px: int = 8, options=None, matcher: str = "ours") -> PairCloud:
     """Dense points of a pair: :func:`rectify_pair`, the disparity range from the pose's
-    inlier matches (0.5-99.5 %, widened by ``margin_px``), our matcher, triangulation
-    in the rectified frame, then rotated back into camera 1's frame and scaled so the
-    cameras are ``baseline`` apart."""
+    inlier matches (0.5-99.5 %, widened by ``margin_px``), our matcher (or ``matcher=
+    "sgbm"``: OpenCV's, for comparison), triangulation in the rectified frame, then
+    rotated back into camera 1's frame and scaled so the cameras are ``baseline`` apart."""
     import cv2
 
     from prism3d.reconstruct.match import match_stereo_full
@@ -116,7 +134,13 @@ def pair_cloud(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose, *, b
     hi = int(np.ceil(np.percentile(dx, 99.5))) + margin_px
     if hi <= max(lo, 0) + 1:
         raise InputError("pair: the views barely move against each other (too short a baseline for depth)")
-    res = match_stereo_full(rp.left, rp.right, min_disp=lo, num_disp=hi - lo, options=options)
+    if matcher not in PAIR_MATCHERS:
+        raise InputError(f"matcher: expected one of {', '.join(PAIR_MATCHERS)}, got {matcher!r}")
+    if matcher == "sgbm":
+        disp, ok = _sgbm(rp.left, rp.right, lo, hi - lo)
+    else:
+        res = match_stereo_full(rp.left, rp.right, min_disp=lo, num_disp=hi - lo, options=options)
+        disp, ok = res.disparity, res.valid
     # the overlap: left pixels whose match (at the typical disparity) lies in the right view
     shift = int(round(float(np.median(dx))))
     seen = np.zeros_like(rp.mask_right)
@@ -125,9 +149,9 @@ def pair_cloud(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose, *, b
     elif -seen.shape[1] < shift < 0:
         seen[:, :shift] = rp.mask_right[:, -shift:]
     both = rp.mask_left & seen
-    valid = res.valid & both & (res.disparity > 0)
+    valid = ok & both & (disp > 0)
     rows, cols = np.nonzero(valid)
-    d = res.disparity[rows, cols].astype(np.float64)
+    d = disp[rows, cols].astype(np.float64)
     f, cx, cy = rp.K[0, 0], rp.K[0, 2], rp.K[1, 2]
     Z = f * baseline / d
     P_rect = np.c_[(cols - cx) * Z / f, (rows - cy) * Z / f, Z]
