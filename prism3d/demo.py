@@ -647,6 +647,54 @@ def _on_target(d: dict, t: dict) -> bool:
     r0, c0, r1, c1 = t["box_rc"]
     return r0 <= d["row"] <= r1 and c0 <= d["col"] <= c1
 
+def _stage_survey(ctx: DemoContext) -> Section:
+    """The UAV mode: a simulated drone flight surveyed into a DSM, orthophoto and nDSM,
+    scored against its truth, and the vehicles found in the nDSM."""
+    import glob
+    import json
+
+    from prism3d.atr.survey_detect import DEFAULT_VEHICLES, detect_in_survey
+    from prism3d.datasets.flight import FlightOptions, simulate_flight
+    from prism3d.datasets.survey_eval import evaluate_survey
+    from prism3d.datasets.targets import builtin_target
+    from prism3d.reconstruct.survey import run_survey
+
+    s = Section("UAV mode: a drone survey from one moving camera (simulated flight)")
+    flight = ctx.path("flight")
+    if not (flight / "truth.json").is_file():
+        simulate_flight(flight, FlightOptions(size=(640, 480) if ctx.fast else (800, 600), altitude_m=40.0,
+                                              frames=8 if ctx.fast else 12, seed=ctx.seed + 5, targets=6))
+    out = ctx.path("survey")
+    if not (out / "poses.json").is_file():
+        run_survey(sorted(glob.glob(str(flight / "IMG_*.JPG"))), out, calib=flight / "camera.yaml",
+                   gps_table=flight / "geoinfo.txt")
+    det = ctx.path("survey", "vehicles.geojson")
+    detect_in_survey(out, det, [(n, builtin_target(n, scale="full")) for n in DEFAULT_VEHICLES])
+    r = evaluate_survey(out, flight, detections=det)
+    doc = json.loads((out / "poses.json").read_text())
+    s.paragraphs.append(
+        f"{len(doc['frames'])} frames on two flight lines (from 40 m, GSD {r['gsd_m'] * 100:.0f} cm, 70 % forward overlap) over "
+        "terrain, roads, buildings, trees and camouflaged vehicles, with noisy GPS. 'prism3d survey' found "
+        "the poses (pycolmap), put them on the GPS, matched each frame with the next, the next-but-one and "
+        "the neighbouring line (our matcher) and fused the pairs' heights; 'prism3d survey-detect' looked "
+        "for the tanks and trucks in the nDSM. Full size (12 MP) figures: docs/uav.md.")
+    s.figure("orthophoto, DSM and normalised DSM (cameras in cyan)", (out / "survey.png").read_bytes())
+    d, v, det_s = r["dsm"], r["vehicles"], r["detection"]
+    s.table("Against the flight's exact truth (after a similarity alignment of the camera centres)",
+            ["quantity", "value", "the issue asks"],
+            [["camera positions, max (GSD)", r["position_error_gsd"]["max"], "<= 0.5"],
+             ["camera rotations, max (deg)", r["rotation_error_deg"]["max"], "<= 0.02 (at 12 MP)"],
+             ["DSM on open ground, median |error| (GSD)", d["median_abs_error_gsd"], "<= 0.5"],
+             ["DSM on open ground, RMS (GSD)", d["rms_error_gsd"], "<= 1"],
+             ["overlapped area filled", d["overlap_filled_fraction"], ">= 0.95"],
+             ["vehicles' heights within 5 %", f"{v['within_5_percent']} of {v['n']}", "all"],
+             ["vehicles found, Pd at 0.1 false positives per frame", det_s["pd_at_0.1_fppf"], ">= 0.9"]])
+    s.table("Time per stage (s)", list(doc["seconds"]), [list(doc["seconds"].values())])
+    for name in ("dsm.tif", "ortho.tif", "ndsm.tif", "cloud.las", "poses.json", "vehicles.geojson"):
+        s.link(name, f"survey/{name}")
+    return s
+
+
 STAGES: list[tuple[str, Stage]] = [
     ("environment", _stage_environment),
     ("simulate", _stage_simulate),
@@ -659,6 +707,7 @@ STAGES: list[tuple[str, Stage]] = [
     ("bank", _stage_bank),
     ("scanned_bank", _stage_scanned_bank),
     ("scene", _stage_scene),
+    ("survey", _stage_survey),
 ]
 
 

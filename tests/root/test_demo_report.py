@@ -25,7 +25,7 @@ def test_demo_artefacts(demo_out):
     html = (demo_out / "report.html").read_text()
     assert "FAILED" not in html
     for section in ("Installation check", "Virtual prism rig", "Calibration", "Table I", "360-degree model",
-                    "Camouflage removal", "ATR features", "Whole-scene ATR"):
+                    "Camouflage removal", "ATR features", "Whole-scene ATR", "UAV mode"):
         assert section in html, section
     for rel in re.findall(r"href='([^'#]+)'", html):
         assert (demo_out / rel).exists(), rel  # every linked artefact exists
