@@ -1,7 +1,7 @@
 """Where and with what a photograph was taken: GPS from a position table (senseFly's
 ``geoinfo.txt`` and any tab/comma table with the same columns) or from the JPEG's EXIF,
 the focal length in pixels from EXIF, and WGS84 positions in a local east-north-up
-frame in metres. The survey mode (docs/uav-plan.md) builds on these.
+frame in metres. The survey mode (docs/uav.md) builds on these.
 
 ENU is exact: geodetic -> Earth-centred (ECEF) on the WGS84 ellipsoid, then rotated into
 the tangent frame at the origin (east, north, up); heights are ellipsoidal, as GPS

@@ -1,11 +1,11 @@
 """Camera poses of a drone survey (many photographs from one moving camera) by COLMAP's
 structure from motion: SIFT features, matching, incremental mapping and bundle adjustment
 that refines the focal length and radial distortion, through pycolmap, in a child
-process. The survey mode's pose step (docs/uav-plan.md); :mod:`.two_view` is its anchor.
+process. The survey mode's pose step (docs/uav.md); :mod:`.two_view` is its anchor.
 
 Why a child process: COLMAP logs to stderr at the file-descriptor level (the child's goes
 to ``colmap.log``), a crash must not take the caller down, and a timeout must be
-enforceable. Why these settings (measured on pycolmap 4.2.1, docs/uav-plan.md): one RADIAL
+enforceable. Why these settings (measured on pycolmap 4.2.1, docs/uav.md): one RADIAL
 camera (f, cx, cy, k1, k2) shared by all frames and started from a calibration we give
 (COLMAP's EXIF guess is wrong on resized copies); the principal point fixed by default
 (two nadir views moved it by 213 px when free); two-view tracks kept (else two frames

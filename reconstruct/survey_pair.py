@@ -2,7 +2,7 @@
 (the motion becomes the x axis, both views share one orientation and focal length),
 matched with our matcher, and back-projected into camera 1's frame, scaled by a known
 baseline (GPS) or left in baseline units. The survey mode's dense step for one pair
-(docs/uav-plan.md).
+(docs/uav.md).
 """
 
 from __future__ import annotations

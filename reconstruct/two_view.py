@@ -1,7 +1,7 @@
 """Relative pose of two photographs of the same ground from one moving camera: SIFT
 features, ratio-test matches, the essential matrix by MAGSAC (OpenCV), the pose it
 implies (cheirality), refined on its inliers. The anchor of the survey mode's poses
-(docs/uav-plan.md) and the pose of a single pair when a full bundle adjustment is not
+(docs/uav.md) and the pose of a single pair when a full bundle adjustment is not
 wanted.
 
 The translation comes back as a unit vector: two views fix the direction of the motion,

@@ -3,7 +3,7 @@
 
 A survey's local east-north-up frame is described to GIS as an orthographic projection
 centred on the site on WGS84 (:func:`local_enu_crs_wkt`): within 2 cm of true ENU at
-500 m from the origin, far below GPS noise (docs/uav-plan.md).
+500 m from the origin, far below GPS noise (docs/uav.md).
 """
 
 from __future__ import annotations

@@ -70,7 +70,7 @@ def test_position_table_formats_and_bad_tables(tmp_path):
 def test_real_geoinfo_table_and_exif(shared_data):
     """The drone's own table and its JPEGs' EXIF agree; the baseline 2188 -> 2189 in ENU
     matches pyproj's topocentric conversion of the same positions (E -27.238, N 23.486,
-    U -0.347 m, computed independently with pyproj 3.7.2, docs/uav-plan.md) to 1 cm."""
+    U -0.347 m, computed independently with pyproj 3.7.2, docs/uav.md) to 1 cm."""
     d = shared_data / AERIAL
     tags = read_position_table(d / "geoinfo.txt", images_dir=d)
     assert sorted(tags) == ["IMG_2188.JPG", "IMG_2189.JPG", "IMG_2212.JPG", "IMG_2213.JPG"]
