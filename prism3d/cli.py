@@ -908,7 +908,7 @@ def _cmd_survey(args: argparse.Namespace) -> int:
         def run_pairs(reqs: list, progress: Any) -> list:
             return run_survey_pairs(reqs, run, progress)
     s = run_survey(args.images, args.output, calib=args.calib, gps_table=args.gps, options=opts,
-                   progress=_progress(args, "survey"), run_pairs=run_pairs)
+                   progress=_progress(args, "survey"), run_pairs=run_pairs, video_step_s=args.video_step)
     unit = "m" if s["scale"] == "gps" else "units (scale unknown: no GPS)"
     _say(args, f"survey: {s['n_registered']}/{s['n_frames']} frames placed, reprojection RMS "
                f"{s['reprojection_rms_px']:.2f} px; {s['pairs_ok']} pairs matched, {s['pairs_skipped']} skipped; "
@@ -926,7 +926,10 @@ def _add_survey(sub: Any) -> None:
                  "matcher, the pairs' heights fused with a consistency check. Writes OUT/poses.json, "
                  "cloud.ply, cloud.las, dsm.tif, ground.tif, ndsm.tif, ortho.tif, survey.png, depth/ "
                  "and colmap/ (a COLMAP text model). Method: docs/uav.md.")
-    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="frames, in flight order")
+    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE_OR_VIDEO",
+                   help="frames in flight order, or one video (.mp4 .mov .avi .mkv .m4v)")
+    p.add_argument("--video-step", type=float, default=1.0, metavar="S",
+                   help="a video's frames are taken every S seconds into OUT/frames/ (default 1)")
     p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT_DIR", help="new folder for the survey")
     p.add_argument("--calib", type=Path, help="starting calibration of the camera (OpenCV/ROS YAML; "
                    "default: the EXIF focal length, principal point at the centre)")

@@ -412,6 +412,46 @@ def _image_sizes(paths: Sequence[Path]) -> list[tuple[int, int]]:
     return sizes
 
 
+#: Inputs read as videos (frames taken every ``video_step_s``).
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v")
+
+
+def video_frames(video: str | Path, folder: Path, *, step_s: float = 1.0, max_frames: int = 500) -> list[Path]:
+    """Frames of a video every ``step_s`` seconds (by its frame rate; every frame when it
+    states none) written as JPEGs into ``folder``: the survey's frames. A video without
+    two readable frames is refused."""
+    import cv2
+
+    v = Path(video)
+    if not v.is_file():
+        raise InputError(f"{v}: video not found")
+    if not (math.isfinite(step_s) and step_s > 0):
+        raise InputError(f"video step: expected seconds > 0, got {step_s}")
+    cap = cv2.VideoCapture(str(v))
+    try:
+        if not cap.isOpened():
+            raise InputError(f"{v}: cannot open as a video (unknown container or codec)")
+        fps = cap.get(cv2.CAP_PROP_FPS)
+        every = max(1, int(round(step_s * fps))) if fps and math.isfinite(fps) and fps > 0 else 1
+        folder.mkdir(parents=True, exist_ok=True)
+        out, k = [], 0
+        while len(out) < max_frames:
+            ok, img = cap.read()
+            if not ok:
+                break
+            if k % every == 0:
+                p = folder / f"{v.stem}_{k:06d}.jpg"
+                if not cv2.imwrite(str(p), img, [cv2.IMWRITE_JPEG_QUALITY, 95]):
+                    raise InputError(f"{p}: cannot write the frame")
+                out.append(p)
+            k += 1
+    finally:
+        cap.release()
+    if len(out) < 2:
+        raise InputError(f"{v}: {len(out)} frame(s) read every {step_s:g} s; a survey needs at least 2")
+    return out
+
+
 def check_frames(images: Sequence[str | Path]) -> tuple[list[Path], tuple[int, int]]:
     """The frames as paths and their common (width, height); one-line errors for fewer
     than two frames, a missing or unreadable one, a repeated one, or different sizes."""
@@ -553,11 +593,12 @@ def _default_cell(T_enu: dict[int, NDArray], K: NDArray, points_enu: NDArray, fa
 def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str | Path | None = None,
                gps_table: str | Path | None = None, options: SurveyOptions | None = None,
                progress: Callable[[int, int, str], None] | None = None,
-               run_pairs: PairRunner | None = None) -> dict[str, Any]:
-    """Survey ``images`` (frames of one camera, in flight order) into ``out_dir``: poses,
-    a COLMAP model, per-pair depth maps, cloud (PLY, LAS), DSM, ground, nDSM and
-    orthophoto (GeoTIFF), poses.json and a drawing; all written together or nothing.
-    ``run_pairs`` runs the dense pairs (default: here, one after the other)."""
+               run_pairs: PairRunner | None = None, video_step_s: float = 1.0) -> dict[str, Any]:
+    """Survey ``images`` (frames of one camera, in flight order; or one video, sampled
+    every ``video_step_s`` into ``OUT/frames/``) into ``out_dir``: poses, a COLMAP model,
+    per-pair depth maps, cloud (PLY, LAS), DSM, ground, nDSM and orthophoto (GeoTIFF),
+    poses.json and a drawing; all written together or nothing. ``run_pairs`` runs the
+    dense pairs (default: here, one after the other)."""
     import shutil
 
     from prism3d.io.atomic import atomic_write_text, staged_folder
@@ -568,13 +609,22 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"{out}: exists and is not an empty folder; give a new folder for the survey")
-    paths, size = check_frames(images)
-    tags, gps_source = _gps_positions(paths, gps_table)
-    camera0, calib_source = _starting_camera(paths, size, calib)
+    videos = [p for p in images if Path(p).suffix.lower() in VIDEO_SUFFIXES]
+    if videos and len(images) > 1:
+        raise InputError("survey: give one video, or image frames, not both")
+    if not videos:
+        paths, size = check_frames(images)
+        tags, gps_source = _gps_positions(paths, gps_table)
+        camera0, calib_source = _starting_camera(paths, size, calib)
     refine = o.refine_intrinsics if o.refine_intrinsics != "auto" else ("none" if calib else "focal+distortion")
     free = refine != "none"
     seconds: dict[str, float] = {}
     with staged_folder(out) as stage:
+        if videos:  # frames into the survey's own folder, then the same checks
+            images = [str(p) for p in video_frames(videos[0], stage / "frames", step_s=video_step_s)]
+            paths, size = check_frames(images)
+            tags, gps_source = _gps_positions(paths, gps_table)
+            camera0, calib_source = _starting_camera(paths, size, calib)
         t0 = time.perf_counter()
         sfm = map_frames([str(p) for p in images], stage / "sfm_work", camera=camera0,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
@@ -603,7 +653,8 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         seconds["fusion"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         refined = (["f", "k1", "k2"] if free else []) + (["cx", "cy"] if o.refine_principal_point else [])
-        summary = _write_products(stage, fused, paths, sfm, geo, T_enu, recs, origin, gps_enu, gps_source,
+        shown = [str(out / "frames" / p.name) for p in paths] if videos else [str(p) for p in images]
+        summary = _write_products(stage, fused, paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, gps_source,
                                   calib_source, refined, factor, o)
         shutil.copytree(sfm.model_dir, stage / "colmap", dirs_exist_ok=True)
         shutil.rmtree(stage / "sfm_work", ignore_errors=True)
@@ -617,7 +668,7 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     return summary
 
 
-def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], sfm: Any, geo: Georef,
+def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], shown: Sequence[str], sfm: Any, geo: Georef,
                     T_enu: dict[int, NDArray], recs: list[dict], origin: NDArray | None, gps_enu: NDArray | None,
                     gps_source: str, calib_source: str, refined: list[str], factor: int,
                     o: SurveyOptions) -> dict[str, Any]:
@@ -657,7 +708,7 @@ def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], sfm
     pairs = []
     for r in recs:
         entry = {k: v for k, v in r.items() if k not in ("tile", "depth", "K_depth")}
-        entry["frames"] = [str(paths[r["i"]]), str(paths[r["j"]])]
+        entry["frames"] = [shown[r["i"]], shown[r["j"]]]
         if (r["i"], r["j"]) in per_pair:
             entry["overlap_filled_fraction"] = per_pair[(r["i"], r["j"])]
         if r["status"] == "ok":
@@ -668,7 +719,7 @@ def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], sfm
         pairs.append(entry)
     frames = []
     for k, p in enumerate(paths):
-        fr: dict[str, Any] = {"image": str(p), "colmap_name": sfm.model_names[k], "registered": bool(sfm.registered[k]),
+        fr: dict[str, Any] = {"image": shown[k], "colmap_name": sfm.model_names[k], "registered": bool(sfm.registered[k]),
                               "T_enu_cam": T_enu[k].tolist() if k in T_enu else None}
         if gps_enu is not None:
             fr["gps_enu"] = [float(v) for v in gps_enu[k]]

@@ -220,3 +220,26 @@ def test_real_drone_pair(shared_data: Path, tmp_path: Path) -> None:
     gsd = 117.0 / 3210.0  # the frames' ground sample distance at full size, m
     rough = ground_roughness(dsm, ndsm, meta["gsd"])
     assert rough["patches"] > 100 and rough["median_rms_m"] < 3 * gsd
+
+
+def test_a_video_is_sampled_into_frames(flight: Path, tmp_path: Path) -> None:
+    """One video in: its frames every --video-step seconds into OUT/frames/, surveyed
+    (no GPS in a video: the scale is unknown)."""
+    import cv2
+
+    frames = sorted(flight.glob("IMG_*.JPG"))[:5]
+    video = tmp_path / "flight.avi"
+    vw = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 2.0, SIZE)
+    for f in frames:  # 2 fps, each frame twice: one a second
+        img = cv2.imread(str(f))
+        vw.write(img)
+        vw.write(img)
+    vw.release()
+    out = tmp_path / "s"
+    assert main(["-q", "survey", str(video), "--calib", str(flight / "camera.yaml"), "--no-cross-pairs",
+                 "-o", str(out)]) == 0
+    doc = json.loads((out / "poses.json").read_text())
+    assert len(doc["frames"]) == 5 and doc["scale"] == "unknown"
+    for f in doc["frames"]:
+        assert Path(f["image"]).parent == out / "frames" and Path(f["image"]).is_file()
+    assert main(["-q", "survey", str(video), str(frames[0]), "-o", str(tmp_path / "t")]) == 2
