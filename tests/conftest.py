@@ -43,7 +43,7 @@ def repo_root() -> Path:
 
 #: Modules that take minutes, run first: `make test` spreads modules over two processes
 #: (pytest-xdist, --dist loadfile), and a long module scheduled last would run alone.
-_HEAVY_FIRST = ("test_demo_report.py", "test_scanned.py", "test_stitch.py", "test_object_frame.py",
+_HEAVY_FIRST = ("test_demo_report.py", "test_survey.py", "test_scanned.py", "test_stitch.py", "test_object_frame.py",
                 "test_capture_to_scan.py", "test_features.py")
 
 

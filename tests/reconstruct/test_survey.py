@@ -111,18 +111,31 @@ def test_vehicles_found_in_the_survey(survey: Path, flight: Path, tmp_path: Path
     assert r["detection"]["pd_at_0.1_fppf"] >= 0.9
 
 
-def test_survey_with_dask_workers_gives_the_same_heights(survey: Path, flight: Path, tmp_path: Path) -> None:
-    """The dense pairs on 2 local Dask workers: the same DSM as in one process."""
+def test_survey_with_dask_workers_agrees_with_the_survey_in_process(survey: Path, flight: Path, tmp_path: Path) -> None:
+    """Three frames with the dense pairs on 2 local Dask workers, on the in-process
+    survey's lattice: the same ground shape. The two are placed by different GPS fits
+    (three frames on one line are levelled on their ground; twelve on two lines take a
+    similarity), so their difference is a plane within GPS noise, removed first."""
     from prism3d.io.geo import read_geotiff
 
-    frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))[:4]
-    outs = []
-    for w in ("0", "2"):
-        out = tmp_path / f"s{w}"
-        assert main(["-q", "survey", *frames, "--calib", str(flight / "camera.yaml"), "--gps",
-                     str(flight / "geoinfo.txt"), "--workers", w, "--no-cross-pairs", "-o", str(out)]) == 0
-        outs.append(read_geotiff(out / "dsm.tif")[0])
-    np.testing.assert_array_equal(outs[0], outs[1])
+    ref, meta = read_geotiff(survey / "dsm.tif")
+    frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))[:3]
+    out = tmp_path / "s"
+    assert main(["-q", "survey", *frames, "--calib", str(flight / "camera.yaml"), "--gps", str(flight / "geoinfo.txt"),
+                 "--workers", "2", "--no-cross-pairs", "--cell", str(meta["gsd"]), "-o", str(out)]) == 0
+    d, m = read_geotiff(out / "dsm.tif")
+    r0 = int(round((meta["north"] - m["north"]) / meta["gsd"]))
+    c0 = int(round((m["west"] - meta["west"]) / meta["gsd"]))
+    win = ref[r0:r0 + d.shape[0], c0:c0 + d.shape[1]]
+    both = np.isfinite(win) & np.isfinite(d[:win.shape[0], :win.shape[1]])
+    assert both.sum() > 0.5 * np.isfinite(d).sum()
+    gsd = json.loads((flight / "truth.json").read_text())["gsd_m"]
+    rr, cc = np.nonzero(both)
+    diff = (win - d[:win.shape[0], :win.shape[1]])[both].astype(np.float64)
+    A = np.c_[rr, cc, np.ones(len(rr))]
+    plane, *_ = np.linalg.lstsq(A, diff, rcond=None)
+    assert np.median(np.abs(diff - A @ plane)) < 0.5 * gsd
+    assert np.abs(plane[:2]).max() * d.shape[0] < 2.0  # tilts within GPS noise over the area (m)
 
 
 def test_without_gps_the_scale_is_unknown_everywhere(flight: Path, tmp_path: Path) -> None:
@@ -133,7 +146,7 @@ def test_without_gps_the_scale_is_unknown_everywhere(flight: Path, tmp_path: Pat
     from prism3d.io.geo import read_geotiff
 
     frames = []
-    for p in sorted(flight.glob("IMG_*.JPG"))[:4]:  # re-encoded: no EXIF
+    for p in sorted(flight.glob("IMG_*.JPG"))[:3]:  # re-encoded: no EXIF
         frames.append(str(tmp_path / p.name))
         cv2.imwrite(frames[-1], cv2.imread(str(p)), [cv2.IMWRITE_JPEG_QUALITY, 95])
     out = tmp_path / "s"
@@ -227,7 +240,7 @@ def test_a_video_is_sampled_into_frames(flight: Path, tmp_path: Path) -> None:
     (no GPS in a video: the scale is unknown)."""
     import cv2
 
-    frames = sorted(flight.glob("IMG_*.JPG"))[:5]
+    frames = sorted(flight.glob("IMG_*.JPG"))[:4]
     video = tmp_path / "flight.avi"
     vw = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 2.0, SIZE)
     for f in frames:  # 2 fps, each frame twice: one a second
@@ -239,7 +252,7 @@ def test_a_video_is_sampled_into_frames(flight: Path, tmp_path: Path) -> None:
     assert main(["-q", "survey", str(video), "--calib", str(flight / "camera.yaml"), "--no-cross-pairs",
                  "-o", str(out)]) == 0
     doc = json.loads((out / "poses.json").read_text())
-    assert len(doc["frames"]) == 5 and doc["scale"] == "unknown"
+    assert len(doc["frames"]) == 4 and doc["scale"] == "unknown"
     for f in doc["frames"]:
         assert Path(f["image"]).parent == out / "frames" and Path(f["image"]).is_file()
     assert main(["-q", "survey", str(video), str(frames[0]), "-o", str(tmp_path / "t")]) == 2
