@@ -389,7 +389,12 @@ def load_camera_calibration(path: PathLike, *, image_size: Size | None = None) -
     checked when it does."""
     p = Path(path)
     text = _read_text(p)
-    kind = _detect(p, text)
+    try:
+        kind = _detect(p, text)
+    except InputError:
+        raise InputError(f"{p}: not a camera calibration prism3d knows; understood: OpenCV FileStorage YAML/XML "
+                         "(camera_matrix, distortion_coefficients, image_width, image_height) or a ROS "
+                         "camera_info YAML") from None
     if kind == "filestorage":
         from prism3d.io.opencv_yaml import read_filestorage
 

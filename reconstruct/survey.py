@@ -402,6 +402,8 @@ def _image_sizes(paths: Sequence[Path]) -> list[tuple[int, int]]:
 
     sizes = []
     for p in paths:
+        if p.is_dir():
+            raise InputError(f"{p}: is a folder; give the frames themselves (e.g. {p}/*.JPG)")
         if not p.is_file():
             raise InputError(f"{p}: image not found")
         try:
