@@ -228,12 +228,16 @@ def write_geojson(path: str | Path, dets: Sequence[dict], *, origin_lla: Sequenc
         if origin_lla is not None:
             from prism3d.capture.geotag import enu_to_wgs84
 
-            lat, lon, _ = enu_to_wgs84(np.array([[d["x"], d["y"], 0.0]]), np.asarray(origin_lla, float))[0]
+            z = d.get("z")
+            lat, lon, _ = enu_to_wgs84(np.array([[d["x"], d["y"], 0.0 if z is None else z]]),
+                                       np.asarray(origin_lla, float))[0]
             coords = [round(float(lon), 9), round(float(lat), 9)]
         else:
             coords = [d["x"], d["y"]]
         props = {k: v for k, v in d.items()}
         props["x_local"], props["y_local"] = props.pop("x"), props.pop("y")
+        if "z" in props:
+            props["z_local"] = props.pop("z")
         feats.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": coords}, "properties": props})
     doc: dict[str, Any] = {"type": "FeatureCollection", "features": feats}
     if origin_lla is None:
@@ -245,6 +249,15 @@ def write_geojson(path: str | Path, dets: Sequence[dict], *, origin_lla: Sequenc
 
 #: The built-in ground vehicles searched by default.
 DEFAULT_VEHICLES = ("tank_t1", "tank_t2", "tank_t3", "truck_k1", "truck_k2", "truck_k3")
+
+
+def ndsm_ground(survey_dir: Path) -> NDArray[np.float32]:
+    """The survey's ground heights (``ground.tif``, else DSM minus nDSM)."""
+    from prism3d.io.geo import read_geotiff
+
+    if (survey_dir / "ground.tif").is_file():
+        return read_geotiff(survey_dir / "ground.tif")[0]
+    return read_geotiff(survey_dir / "dsm.tif")[0] - read_geotiff(survey_dir / "ndsm.tif")[0]
 
 
 def detect_in_survey(survey_dir: str | Path, out_path: str | Path, items: Sequence[tuple[str, Any]], *,
@@ -275,6 +288,16 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, items: Sequen
     tpls = nadir_templates(list(items), cell)
     dets = find_vehicles(ndsm, cell, tpls, west=float(meta["west"]), north=float(meta["north"]),
                          min_height_m=min_height_m)
+    if (d / "dsm.tif").is_file():  # each detection's ground height: a point, not a column, in the local frame
+        ground = ndsm_ground(d)
+        fallback = float(np.nanmedian(ground)) if np.isfinite(ground).any() else 0.0
+        k = max(2, int(round(3.0 / cell)))  # the ground within 3 m (the centre cell may be a hole)
+        for x in dets:
+            r = int((float(meta["north"]) - x["y"]) / cell)
+            c = int((x["x"] - float(meta["west"])) / cell)
+            win = ground[max(r - k, 0):r + k + 1, max(c - k, 0):c + k + 1]
+            z = float(np.nanmedian(win)) if win.size and np.isfinite(win).any() else fallback
+            x["z"] = round(z, 3)
     write_geojson(out_path, dets, origin_lla=doc.get("origin_lla"))
     return {"n_detections": len(dets), "n_scored": sum(x["score"] > -1 for x in dets), "cell": cell,
             "seconds": time.perf_counter() - t0}

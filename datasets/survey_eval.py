@@ -179,7 +179,10 @@ def _detection_scores(path: str | Path, truth: dict, fr: _Frames) -> dict[str, A
     dets = []
     for f in gj["features"]:
         p = f["properties"]
-        q = fr.to_truth(np.array([[p["x_local"], p["y_local"], p.get("z_local", 0.0)]]))
+        z = p.get("z_local")
+        if z is None:
+            raise InputError(f"{path}: a detection without its ground height (z_local); rerun survey-detect")
+        q = fr.to_truth(np.array([[p["x_local"], p["y_local"], z]]))
         dets.append({"x": float(q[0, 0]), "y": float(q[0, 1]), "score": p["score"], "class": p.get("class")})
     tg = [{"x": x["xyz_enu"][0], "y": x["xyz_enu"][1], "length_m": x["length_m"], "counted": not x["confuser"],
            "class": x["class"]} for x in truth["targets"]]
