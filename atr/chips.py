@@ -660,7 +660,7 @@ def load_mesh_file(
         data.faces,
         vertex_albedo=data.vertex_colors if data.vertex_colors is not None else np.full((len(v), 3), 0.7),
         name=name or p.stem,
-        metadata={"source": str(p), "units": units, "up": up, "yaw_deg": float(yaw_deg)},
+        metadata={"source": str(p), "units": units, "up": up, "yaw_deg": float(yaw_deg), "length_mm": length_mm},
     )
 
 

@@ -39,7 +39,7 @@ from prism3d.capture.rig import CameraModel
 
 from prism3d.checks import check_array, check_choice, check_same_shape
 from prism3d.io.mesh import UNITS_MM
-from prism3d.io.units import declared_units
+from prism3d.io.units import FORWARD_AXES, declared_units
 from prism3d.errors import InputError
 
 __all__ = [
@@ -530,7 +530,8 @@ _SCAN_EXT = {".pcd", ".xyz", ".pts"}
 
 def read_units_sidecar(path: str | Path) -> dict[str, str] | None:
     """``<file>.units.yaml`` beside ``path`` (keys ``units``: mm cm m in, ``up``: x y z -x
-    -y -z; anything else is an error), or None when there is none."""
+    -y -z, ``forward``: the nose's axis, x y z -x -y -z; anything else is an error), or
+    None when there is none."""
     import yaml
 
     side = Path(str(path) + ".units.yaml")
@@ -542,14 +543,16 @@ def read_units_sidecar(path: str | Path) -> dict[str, str] | None:
         raise InputError(f"{side}: invalid YAML ({exc})") from exc
     if not isinstance(data, dict):
         raise InputError(f"{side}: expected a mapping with keys units, up")
-    unknown = set(data) - {"units", "up"}
+    unknown = set(data) - {"units", "up", "forward"}
     if unknown:
-        raise InputError(f"{side}: unknown keys {sorted(unknown)}; allowed: units, up")
+        raise InputError(f"{side}: unknown keys {sorted(unknown)}; allowed: units, up, forward")
     out = {k: str(v) for k, v in data.items()}
     if "units" in out:
         check_choice(out["units"], f"{side}: units", list(UNITS_MM))
     if "up" in out:
         check_choice(out["up"], f"{side}: up", UP_AXES)
+    if "forward" in out:
+        check_choice(out["forward"], f"{side}: forward", FORWARD_AXES)
     return out
 
 

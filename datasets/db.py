@@ -20,10 +20,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.capture.mesh import SceneMesh
+from prism3d.datasets.targets import builtin_target
 from prism3d.errors import DatasetError, InputError
+from prism3d.io.ply import read_ply
 from prism3d.io.hashes import sha256_file  # noqa: F401 - re-exported: callers import it from here
 
 __all__ = [
+    "target_mesh",
     "DB_SCHEMA_VERSION",
     "TABLE_SCHEMA_VERSION",
     "TARGET_COLUMNS",
@@ -622,3 +626,21 @@ def format_info(info: dict[str, Any]) -> str:
 def info_json(info: dict[str, Any]) -> str:
     """:meth:`TargetDB.info` as JSON text."""
     return json.dumps(info, indent=2, sort_keys=True)
+
+
+def target_mesh(db: TargetDB, tid: str) -> tuple[SceneMesh, str]:
+    """The render mesh of target ``tid`` (mm, z up, x forward; a built-in at its stored
+    scale, with its procedural paint) and its class."""
+    t = db.targets()
+    rows = t[t["target_id"] == tid]
+    if len(rows) != 1:
+        raise DatasetError(f"{db.path}: target {tid!r} not in targets.parquet")
+    r = rows.iloc[0]
+    if r["source_kind"] == "builtin":
+        mesh = builtin_target(r["name"], scale=float(r["builtin_scale"]))
+        return mesh, str(r["class"])
+    ply = read_ply(db.resolve(r["model_file"], f"target {tid} model_file"))
+    if ply.faces is None or not len(ply.faces):
+        raise DatasetError(f"{r['model_file']}: model has no faces")
+    alb = None if ply.colors is None else ply.colors.astype(np.float64) / 255.0
+    return SceneMesh(ply.points, ply.faces, vertex_albedo=alb, name=tid), str(r["class"])

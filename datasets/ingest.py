@@ -170,6 +170,41 @@ def mesh_units(path: Path, units: str | None, up: str | None, *, rescaled: bool 
     return u, up_v
 
 
+def mesh_forward(path: Path, forward: str | None, up: str) -> str:
+    """The axis of a mesh file its vehicle's nose points along, one rule as for units:
+    the given ``forward`` (a flag or a per-target spec), the ``FILE.units.yaml`` sidecar's
+    ``forward``, or a PLY's ``frame x forward`` / ``forward x`` comment; a contradiction is
+    an error and nothing is guessed (the heading of every detection and chip depends on it)."""
+    from prism3d.atr.features import read_units_sidecar
+    from prism3d.io.ply import read_ply
+    from prism3d.io.units import FORWARD_AXES, declared_forward, forward_yaw_deg
+
+    try:
+        side = read_units_sidecar(path) or {}
+    except Prism3dError as exc:
+        raise DatasetError(str(exc)) from None
+    if forward is not None and forward not in FORWARD_AXES:
+        raise DatasetError(f"forward: expected one of {', '.join(FORWARD_AXES)}, got {forward!r}")
+    declared = side.get("forward")
+    if declared is None and path.suffix.lower() == ".ply":
+        try:
+            declared = declared_forward(read_ply(path).comments)
+        except Prism3dError as exc:
+            raise DatasetError(f"{path}: cannot read PLY ({exc})") from None
+    if declared is not None and forward is not None and declared != forward:
+        raise DatasetError(f"{path}: declares forward {declared!r} (sidecar or PLY comment) but forward={forward!r} "
+                           "was given")
+    f = forward if forward is not None else declared
+    if f is None:
+        raise DatasetError(f"{path}: forward axis unknown; give FILE=CLASS:UNITS:UP:FORWARD (x, -x, y, -y, z, -z: "
+                           f"where the nose points), --forward, or 'forward: ...' in {path.name}.units.yaml")
+    try:
+        forward_yaw_deg(f, up)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: {exc}") from None
+    return f
+
+
 def _model_bytes(mesh: Any, comments: list[str]) -> bytes:
     from prism3d.io.ply import write_ply
 
@@ -498,7 +533,7 @@ def add_builtin(
 
     db = as_db(db)
     all_names = list_builtin_targets()
-    names = all_names if not names else list(names)
+    names = list_builtin_targets("military") if not names else list(names)  # no names: the military set
     for n in names:
         if n not in all_names:
             raise DatasetError(

@@ -33,6 +33,7 @@ from prism3d.datasets.db import (
     read_table,
     read_yaml,
     sha256_file,
+    target_mesh,
     write_table,
 )
 
@@ -259,29 +260,6 @@ def write_npz_deterministic(path: str | Path, arrays: dict[str, NDArray]) -> str
     return hashlib.sha256(data).hexdigest()
 
 
-def _target_mesh(db: TargetDB, tid: str) -> tuple[Any, str]:
-    """The render mesh of target ``tid`` and its class."""
-    from prism3d.capture.mesh import SceneMesh
-
-    from prism3d.io.ply import read_ply
-
-    t = db.targets()
-    rows = t[t["target_id"] == tid]
-    if len(rows) != 1:
-        raise DatasetError(f"{db.path}: target {tid!r} not in targets.parquet")
-    r = rows.iloc[0]
-    if r["source_kind"] == "builtin":
-        from prism3d.datasets.targets import builtin_target
-
-        mesh = builtin_target(r["name"], scale=float(r["builtin_scale"]))
-        return mesh, str(r["class"])
-    ply = read_ply(db.resolve(r["model_file"], f"target {tid} model_file"))
-    if ply.faces is None or not len(ply.faces):
-        raise DatasetError(f"{r['model_file']}: model has no faces")
-    alb = None if ply.colors is None else ply.colors.astype(np.float64) / 255.0
-    return SceneMesh(ply.points, ply.faces, vertex_albedo=alb, name=tid), str(r["class"])
-
-
 def _unit_seed(seed: int, unit: Unit) -> int:
     h = hashlib.sha256(f"{seed}/{unit.target_id}/{unit.start}".encode()).digest()
     return int.from_bytes(h[:4], "little")
@@ -307,7 +285,7 @@ def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str
     db = open_db(db_path)
     spec = RenderSpec.from_dict(spec_dict)
     check_name(unit.target_id, "target_id")
-    mesh, cls = _target_mesh(db, unit.target_id)
+    mesh, cls = target_mesh(db, unit.target_id)
     chip_spec = replace(spec.chip_spec, seed=_unit_seed(spec.seed, unit))
     poses = spec_poses(mesh, spec.azimuth, spec.elevation, spec.range_mm, chip_spec)
     poses = poses[unit.start : unit.stop]

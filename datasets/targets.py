@@ -32,6 +32,7 @@ from prism3d.datasets._primitives import (
     wheel,
 )
 from prism3d.capture.camouflage import CLASS_PALETTES, camouflage_field, plain_paint
+from prism3d.datasets._civilian import CIVILIAN_VARIANTS, body_colour, paint_for
 from prism3d.errors import InputError
 from prism3d.io.ply import write_ply
 
@@ -54,9 +55,16 @@ class _Variant:
     """Camouflage patch diameter on the full-size target, millimetres."""
     features: dict = field(default_factory=dict)
     description: str = ""
+    group: str = "military"
+    """``military`` (camouflaged, kit scales) or ``civilian`` (body colour, glass, tyres)."""
+    zones: dict | None = None
+    """Civilian paint zones (metres, builder frame): glass boxes, wheels, trim."""
 
 
-_CLASSES = ("tank", "jet", "ship", "truck")
+_CLASSES = ("tank", "jet", "ship", "truck", "car", "van", "bus")
+#: Groups of built-in targets: the camouflaged military set (what ``builtin`` names) and
+#: the civilian vehicles.
+GROUPS = ("military", "civilian")
 
 _VARIANTS: dict[str, _Variant] = {}
 
@@ -467,27 +475,61 @@ def _build_truck_k3() -> list[Part]:
 
 
 # ---------------------------------------------------------------------------------
+# Civilian vehicles (datasets/_civilian.py), registered after the military set
+# ---------------------------------------------------------------------------------
+
+
+def _register_civilian() -> None:
+    for spec in CIVILIAN_VARIANTS:
+        def build(spec=spec) -> list[Part]:
+            return spec.build()[0]
+
+        _VARIANTS[f"{spec.target_class}_{spec.variant}"] = _Variant(
+            spec.target_class, spec.variant, Fraction(*spec.model_scale), build, 0.0, dict(spec.features),
+            spec.description, "civilian", spec.build()[1])
+
+
+_register_civilian()
+
+# ---------------------------------------------------------------------------------
 # Registry and public API
 # ---------------------------------------------------------------------------------
 
 
 _GEOMETRY_CACHE: dict[str, tuple[NDArray[np.float64], NDArray[np.int64], int]] = {}
+_SHIFTS: dict[str, NDArray[np.float64]] = {}  # builder frame -> normalised frame, mm
 
 
-def list_builtin_targets() -> list[str]:
-    """Names of the built-in targets, in a stable order (class, then variant).
+def list_builtin_targets(group: str = "all") -> list[str]:
+    """Names of the built-in targets, in a stable order (group, class, then variant).
+
+    Parameters
+    ----------
+    group : {"all", "military", "civilian"}
+        ``military``: the camouflaged tanks, jets, ships and trucks (what the target spec
+        ``builtin`` means); ``civilian``: cars, vans, buses and trucks in body colours.
 
     Returns
     -------
     list of str
-        ``["tank_t1", "tank_t2", "tank_t3", "jet_j1", ..., "truck_k3"]``.
+        ``["tank_t1", ..., "truck_k3", "car_sedan", ..., "truck_kei"]`` for ``all``.
     """
-    return list(_VARIANTS)
+    if group not in ("all", *GROUPS):
+        raise InputError(f"group: expected all, {', '.join(GROUPS)}; got {group!r}")
+    return [n for n, v in _VARIANTS.items() if group in ("all", v.group)]
 
 
-def builtin_classes() -> list[str]:
-    """Target classes of the built-in targets: ``["tank", "jet", "ship", "truck"]``."""
-    return list(_CLASSES)
+def builtin_classes(group: str = "all") -> list[str]:
+    """Target classes of the built-in targets of ``group`` (:func:`list_builtin_targets`),
+    in a stable order: ``tank jet ship truck car van bus`` for ``all``."""
+    names = list_builtin_targets(group)
+    return [c for c in _CLASSES if any(_VARIANTS[n].target_class == c for n in names)]
+
+
+def builtin_targets_of_class(cls: str) -> list[str]:
+    """Built-in target names of class ``cls`` (both groups: ``truck`` is the military
+    trucks and the civilian box truck, pickup and kei truck); empty for an unknown class."""
+    return [n for n, v in _VARIANTS.items() if v.target_class == cls]
 
 
 def _full_size_geometry(name: str) -> tuple[NDArray[np.float64], NDArray[np.int64], int]:
@@ -506,6 +548,7 @@ def _full_size_geometry(name: str) -> tuple[NDArray[np.float64], NDArray[np.int6
         faces.setflags(write=False)
         cached = (vertices, faces, len(parts))
         _GEOMETRY_CACHE[name] = cached
+        _SHIFTS[name] = shift
     return cached
 
 
@@ -533,9 +576,20 @@ def _check_name_and_seed(name: str, seed: int) -> None:
         raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
 
 
-def _paint(name: str, patch_mm: float, camouflage: bool, seed: int, palette: str | None):
-    """Albedo field: the camouflage of ``name`` or its plain base coat."""
+def _paint(name: str, patch_mm: float, camouflage: bool, seed: int, palette: str | None, ratio: float = 1.0):
+    """Albedo field: the camouflage of ``name`` or its plain base coat; a civilian
+    vehicle's body colour (drawn from ``seed``), glass and tyres."""
     spec = _VARIANTS[name]
+    if spec.group == "civilian":
+        if palette is not None:
+            raise InputError(f"palette: {name} is a civilian vehicle painted in a body colour; give no palette")
+        _full_size_geometry(name)
+        sx, _, sz = _SHIFTS[name]
+        zones = dict(spec.zones or {})
+        zones["glass"] = [(a - sx / 1e3, b - sx / 1e3, c - sz / 1e3, d - sz / 1e3) for a, b, c, d in zones["glass"]]
+        zones["trim"] = [(a - sx / 1e3, b - sx / 1e3, c - sz / 1e3, d - sz / 1e3) for a, b, c, d in zones["trim"]]
+        zones["wheels"] = [(x - sx / 1e3, r) for x, r in zones["wheels"]]
+        return paint_for(zones, body_colour(seed, list(_VARIANTS).index(name))[1]).scaled(ratio)
     if not camouflage:
         return plain_paint(spec.target_class, palette=palette)
     # Mix the variant index into the seed so two targets never share a pattern.
@@ -552,7 +606,10 @@ def _metadata(name: str, vertices: NDArray, ratio: float, n_parts: int, camoufla
               palette: str | None) -> dict:
     spec = _VARIANTS[name]
     extent = vertices.max(axis=0) - vertices.min(axis=0)
-    palette_name = CLASS_PALETTES[spec.target_class] if palette is None else palette
+    if spec.group == "civilian":
+        palette_name, camouflage = "none", False
+    else:
+        palette_name = CLASS_PALETTES[spec.target_class] if palette is None else palette
     return {
         "class": spec.target_class,
         "variant": spec.variant,
@@ -571,6 +628,8 @@ def _metadata(name: str, vertices: NDArray, ratio: float, n_parts: int, camoufla
         "camouflage": palette_name if camouflage else "none",
         "patch_size_mm": spec.patch_full_mm * ratio,
         "seed": int(seed),
+        "group": spec.group,
+        **({"paint": body_colour(seed, list(_VARIANTS).index(name))[0]} if spec.group == "civilian" else {}),
     }
 
 
@@ -615,7 +674,7 @@ def builtin_target(
     ratio = _scale_ratio(scale, spec.model_scale)
     full_vertices, faces, n_parts = _full_size_geometry(name)
     vertices = full_vertices * ratio
-    albedo = _paint(name, spec.patch_full_mm * ratio, camouflage, seed, palette)
+    albedo = _paint(name, spec.patch_full_mm * ratio, camouflage, seed, palette, ratio)
     return SceneMesh(
         vertices=vertices,
         faces=np.array(faces),

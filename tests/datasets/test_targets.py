@@ -13,7 +13,7 @@ from prism3d.capture.camouflage import CLASS_PALETTES, PALETTES, CamouflageField
 from prism3d.datasets.targets import builtin_classes, builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 
-NAMES = list_builtin_targets()
+NAMES = list_builtin_targets("military")
 
 
 @pytest.fixture(scope="module")
@@ -28,11 +28,11 @@ def _surface_points(mesh: SceneMesh, n: int = 20000) -> np.ndarray:
 
 
 def test_names_and_classes_are_stable() -> None:
-    assert builtin_classes() == ["tank", "jet", "ship", "truck"]
+    assert builtin_classes("military") == ["tank", "jet", "ship", "truck"]
     assert NAMES[:3] == ["tank_t1", "tank_t2", "tank_t3"]
     assert len(NAMES) == len(set(NAMES)) == 12
-    assert list_builtin_targets() == NAMES  # stable order, fresh list
-    for cls in builtin_classes():
+    assert list_builtin_targets("military") == NAMES  # stable order, fresh list
+    for cls in builtin_classes("military"):
         assert sum(n.startswith(cls + "_") for n in NAMES) >= 3
 
 
@@ -94,7 +94,7 @@ def test_geometry_deterministic_and_seed_changes_only_paint() -> None:
 
 
 def test_variants_differ(targets: dict[str, SceneMesh]) -> None:
-    for cls in builtin_classes():
+    for cls in builtin_classes("military"):
         names = [n for n in NAMES if n.startswith(cls + "_")]
         for p, q in itertools.combinations(names, 2):
             ep, eq = targets[p].extent_mm, targets[q].extent_mm
@@ -235,15 +235,15 @@ def test_mixed_up_axes_in_one_bank_command(shared_data, tmp_path):
     from prism3d.datasets.resolve import resolve_targets
 
     glb = shared_data / "meshes" / "quaternius_vehicles_cc0" / "glb"
-    specs = [f"{glb / 'tank_1.glb'}=tank:m:y", f"{glb / 'car_normal_1.glb'}=vehicle:m:z"]
+    specs = [f"{glb / 'tank_1.glb'}=tank:m:y:z", f"{glb / 'car_normal_1.glb'}=vehicle:m:z:y"]
     for cls, mesh in resolve_targets(specs):
         ext = mesh.extent_mm
         assert ext[2] < min(ext[0], ext[1]), (cls, ext)  # upright: lower than long or wide
     out = tmp_path / "b.npz"
-    assert main(["--quiet", "bank", "train", "--targets", *specs, "-o", str(out), "--azimuth", "0:360:90",
+    assert main(["--quiet", "bank", "train", "--scenes", "0", "--targets", *specs, "-o", str(out), "--azimuth", "0:360:90",
                  "--elevation", "20:20:1", "--size", "32", "--no-camouflage"]) == 0
     with pytest.raises(Exception, match="FILE\\[=CLASS"):
-        resolve_targets([f"{glb / 'tank_1.glb'}=tank:m:y:extra"])
+        resolve_targets([f"{glb / 'tank_1.glb'}=tank:m:y:z:extra"])
 
 
 def test_size_warning_by_class():
@@ -264,7 +264,7 @@ def test_modelnet_airplane_in_metres_is_flagged(shared_data, caplog):
 
     f = shared_data / "meshes" / "modelnet_airplane" / "airplane_0001.off"
     with caplog.at_level("WARNING"):
-        resolve_targets([f"{f}=aircraft:m:z"])
+        resolve_targets([f"{f}=aircraft:m:z:x"])
     assert "implausible for the class 'aircraft'" in caplog.text
 
 
@@ -279,23 +279,25 @@ def test_length_mm_rescales_mesh_files_whatever_their_units(tmp_path, capsys):
     box.apply_translation([0, 0, 0.4])
     f = tmp_path / "crate_1.off"
     box.export(f)
-    [(cls, mesh)] = resolve_targets([f"{f}=tank::z"], length_mm=215.0)
+    [(cls, mesh)] = resolve_targets([f"{f}=tank::z:x"], length_mm=215.0)
     assert cls == "tank" and mesh.extent_mm[0] == pytest.approx(215.0, rel=1e-6)
     assert mesh.extent_mm[2] == pytest.approx(215.0 * 0.8 / 3.0, rel=1e-6)
-    assert main(["--quiet", "render", str(f), "-o", str(tmp_path / "chips"), "--up", "z", "--length-mm", "215",
+    assert main(["--quiet", "render", str(f), "-o", str(tmp_path / "chips"), "--up", "z", "--forward", "x",
+                 "--length-mm", "215",
                  "--azimuth", "0:360:180", "--elevation", "20:20:1", "--size", "32"]) == 0
     import pandas as pd
 
     man = pd.read_parquet(next((tmp_path / "chips").glob("*.parquet")))
     assert len(man) == 2
-    assert main(["--quiet", "bank", "train", "--targets", f"{f}=tank", "tank_t1=other", "--up", "z",
+    assert main(["--quiet", "bank", "train", "--scenes", "0", "--targets", f"{f}=tank", "tank_t1=other", "--up", "z",
+                 "--forward", "x",
                  "--length-mm", "215", "-o", str(tmp_path / "b.npz"), "--azimuth", "0:360:90",
                  "--elevation", "20:20:1", "--size", "32"]) == 0
     capsys.readouterr()
-    assert main(["--quiet", "render", str(f), "-o", str(tmp_path / "c2"), "--up", "z"]) == 2
+    assert main(["--quiet", "render", str(f), "-o", str(tmp_path / "c2"), "--up", "z", "--forward", "x"]) == 2
     assert "units unknown" in capsys.readouterr().err
     assert main(["--quiet", "render", "tank_t1", "-o", str(tmp_path / "c3"), "--length-mm", "100"]) == 2
     assert "built-in target" in capsys.readouterr().err
     assert not (tmp_path / "c2").exists() and not (tmp_path / "c3").exists()
     with pytest.raises(Exception, match="length_mm"):
-        resolve_targets([f"{f}=tank::z"], length_mm=-1.0)
+        resolve_targets([f"{f}=tank::z:x"], length_mm=-1.0)
