@@ -31,6 +31,7 @@ from prism3d.capture.mesh import SceneMesh, UniformAlbedo
 from prism3d.capture.rig import StereoRig, look_at, paper_rig
 from prism3d.checks import check_seed
 from prism3d.datasets._primitives import Part, box, cylinder, ellipse, loft, prism
+from prism3d.datasets.resolve import resolve_model
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 
@@ -96,8 +97,9 @@ class FieldOptions:
         if not self.classes:
             raise InputError("classes: expected at least one built-in target name")
         for c in self.classes:
-            if c not in known:
-                raise InputError(f"classes: unknown built-in target {c!r}; valid: {', '.join(known)}")
+            if c not in known and "=" not in c:  # FILE=CLASS:UNITS:UP:FORWARD: checked when the scene is planned
+                raise InputError(f"classes: unknown built-in target {c!r}; valid: {', '.join(known)} "
+                                 "(or a mesh file FILE=CLASS:UNITS:UP:FORWARD at full size)")
         for name in ("land_range_m", "water_range_m"):
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and 5.0 <= lo < hi <= 5000.0):
@@ -226,6 +228,12 @@ def prop_mesh(kind: str, rng: np.random.Generator, seed: int) -> SceneMesh:
     return SceneMesh(V, F, None, UniformAlbedo(tuple(float(c) for c in jitter)), name, {"material": "lambertian"})
 
 
+def replace_metadata(mesh: SceneMesh, cls: str) -> SceneMesh:
+    """The mesh with its class recorded in its metadata (truth records read it there)."""
+    return SceneMesh(mesh.vertices, mesh.faces, mesh.vertex_albedo, mesh.albedo_field, mesh.name,
+                     {**mesh.metadata, "class": cls})
+
+
 def _pose(x: float, y: float, z: float, heading_deg: float) -> NDArray[np.float64]:
     a = math.radians(heading_deg)
     T = np.eye(4)
@@ -317,13 +325,16 @@ def plan_field(options: FieldOptions | None = None) -> FieldScene:
     n_t = int(rng.integers(3, 7)) if o.targets is None else int(o.targets)
     n_c = int(rng.integers(1, 4)) if o.confusers is None else int(o.confusers)
     picks = [(str(rng.choice(list(o.classes))), False) for _ in range(n_t)]
-    others = [n for n in list_builtin_targets() if n not in o.classes and not n.startswith("ship")]
+    others = [n for n in list_builtin_targets("military") if n not in o.classes and not n.startswith("ship")]
     pool = others + list(SHAPE_CONFUSERS)
     picks += [(str(rng.choice(pool)), True) for _ in range(n_c)]
     for k, (name, confuser) in enumerate(picks):
         seed_k = SCENE_CAMO_SEED_BASE + o.seed * 16 + k
         if name in SHAPE_CONFUSERS:
             mesh = prop_mesh(name, rng, seed_k)
+        elif "=" in name:  # a user's mesh file, full size, its class in the spec
+            cls, mesh = resolve_model(name, scale="full")
+            mesh = replace_metadata(mesh, cls)
         else:
             mesh = builtin_target(name, scale="full", seed=seed_k)
         lo, hi = mesh.bounds
@@ -543,13 +554,13 @@ def simulate_field_batch(out_dir: str | Path, count: int, options: FieldOptions 
 def detect_scene_folder(bank_path: str, scene: str) -> dict:
     """One unit of ``eval-scenes`` (a Dask task): the bank's detections in one scene folder
     (``scene``, ``detections``, ``timings_s``)."""
-    from prism3d.atr.bank import FilterBank
     from prism3d.atr.detect import detect_shot
+    from prism3d.atr.models import load_scene_model
     from prism3d.capture.rig import StereoRig
     from prism3d.io.images import read_image
 
     p = Path(scene)
-    dets, times = detect_shot(FilterBank.load(bank_path), read_image(p / "shot.png"), StereoRig.load(p / "rig.yaml"))
+    dets, times = detect_shot(load_scene_model(bank_path), read_image(p / "shot.png"), StereoRig.load(p / "rig.yaml"))
     return {"scene": str(p), "timings_s": times, "detections": dets}
 
 
@@ -560,16 +571,14 @@ def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progr
     progress wins over ``progress``); results (with each scene's detections and timings) go to ``out_json``
     atomically when given. A scene that fails stops the evaluation (a score over fewer
     scenes would not be the score asked for)."""
-    from prism3d.atr.bank import FilterBank
-    from prism3d.atr.detect import bank_scale
+    from prism3d.atr.models import load_scene_model
     from prism3d.atr.scene_eval import check_scene_folders, score_scenes, write_scene_results
     from prism3d.datasets.jobs import RunOptions, run_tasks
 
     if out_json is not None and Path(out_json).suffix.lower() != ".json":
         raise InputError(f"{out_json}: expected a .json file name for the results")
     folders = check_scene_folders(scenes)
-    bank = FilterBank.load(bank_path)
-    bank_scale(bank)
+    bank = load_scene_model(bank_path)
     truths = []
     for p in folders:
         try:
@@ -590,7 +599,8 @@ def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progr
     per_scene = [by_scene[str(p)] for p in folders]
     pairs = [({"detections": r["detections"]}, truth) for r, truth in zip(per_scene, truths)]
     res = score_scenes(pairs)
-    res.update({"bank": str(bank_path), "channel": bank.channel, "classes": bank.classes,
+    res.update({"bank": str(bank_path), "channel": ",".join(getattr(bank, "channels", [getattr(bank, "channel", "")])),
+                "classes": list(bank.classes),
                 "seconds": time.perf_counter() - t0, "workers": run.workers, "scenes": per_scene})
     if out_json is not None:
         write_scene_results(res, Path(out_json))

@@ -44,6 +44,7 @@ from prism3d.datasets.field import (
     distant_sun,
     prop_mesh,
 )
+from prism3d.datasets.carpark import Lot, lot_albedo, lot_clutter, park_vehicles, plan_lot
 from prism3d.errors import InputError
 
 __all__ = ["FLIGHT_SCHEMA_VERSION", "FlightOptions", "FlightPlan", "nadir_camera_rotation", "plan_flight",
@@ -64,6 +65,7 @@ MAX_CLUTTER = 3000
 SENSOR_WIDTH_MM = 6.17
 #: Built-in target classes that drive on the ground.
 GROUND_VEHICLE_CLASSES = ("tank", "truck")
+SCENES = ("field", "carpark")
 #: A target counts as fully visible in a frame from this visible fraction of its silhouette.
 FULLY_VISIBLE_FRACTION = 0.98
 JPEG_QUALITY = 92
@@ -114,10 +116,15 @@ class FlightOptions:
     """Lens distortion (k1, k2, p1, p2, k3), OpenCV's model."""
     heading_deg: float | None = None
     """Flight direction of the first line, deg clockwise from north (None: drawn)."""
+    scene: str = "field"
+    """``field``: camouflaged military vehicles on open ground among rocks, bushes, trees and
+    buildings; ``carpark``: a paved car park of parked civilian vehicles in rows (cars of
+    every body colour, vans, pickups, kei trucks, buses and box trucks in long bays), trees
+    overhanging the edge rows, people and light poles (datasets/carpark.py)."""
     targets: int | None = None
-    """Ground vehicles (None: 5-10, drawn)."""
+    """Ground vehicles (None: field 5-10, drawn; carpark 70-95 % of the car bays)."""
     confusers: int | None = None
-    """Crates and fuel tanks (None: 0-3, drawn)."""
+    """Crates and fuel tanks (None: field 0-3, drawn; carpark none)."""
     clutter_per_ha: float = 20.0
     """Rocks, bushes, trees and buildings per hectare of terrain."""
     attitude_sigma_deg: tuple[float, float, float] = (1.0, 1.0, 2.0)
@@ -163,7 +170,9 @@ class FlightOptions:
             _check_num(d, "dist", -1.0, 1.0, open_lo=True, open_hi=True)
         if self.heading_deg is not None:
             _check_num(self.heading_deg, "heading_deg", -360.0, 360.0)
-        for name, hi in (("targets", 40), ("confusers", 20)):
+        if self.scene not in SCENES:
+            raise InputError(f"scene: expected one of {', '.join(SCENES)}, got {self.scene!r}")
+        for name, hi in (("targets", 40 if self.scene == "field" else 200), ("confusers", 20)):
             if getattr(self, name) is not None:
                 _check_int(getattr(self, name), name, 0, hi)
         _check_num(self.clutter_per_ha, "clutter_per_ha", 0.0, 200.0)
@@ -224,10 +233,12 @@ def _on_road(roads: tuple[_Road, ...], x: NDArray, y: NDArray) -> NDArray[np.boo
 
 @dataclass(frozen=True)
 class _HeightField:
-    """The hills (plane waves, m) levelled across each road and its 3.5 m shoulders."""
+    """The hills (plane waves, m) levelled across each road and its 3.5 m shoulders, and
+    flat on each car park (``lots``, blended over 4 m)."""
 
     hills: Terrain
     roads: tuple[_Road, ...]
+    lots: tuple[Lot, ...] = ()
 
     def __call__(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         h = self.hills.height(x, y)
@@ -236,6 +247,8 @@ class _HeightField:
             s = np.clip((rd.offset(x, y) - rd.width / 2.0 - 0.5) / 3.5, 0.0, 1.0)
             w = 1.0 - s * s * (3.0 - 2.0 * s)
             h = h + w * (self.hills.height(fx, fy) - h)
+        for lot in self.lots:
+            h = h + lot.level_weight(x, y) * (lot.z - h)
         return h
 
 
@@ -287,10 +300,14 @@ class _SurveyGroundAlbedo:
     seed: int
     scale: float
     roads: tuple[_Road, ...]
+    lots: tuple[Lot, ...] = ()
 
     def __call__(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         out = GroundAlbedo(self.seed, math.inf)(p / self.scale)
+        for lot in self.lots:
+            on, paved = lot_albedo(lot, p, self.scale)
+            out[on] = paved[on]
         x, y = p[:, 0] / 1000.0, p[:, 1] / 1000.0
         edge = np.full(len(p), np.inf)
         for rd in self.roads:
@@ -356,9 +373,30 @@ def _layout(o: FlightOptions, cam: CameraModel,
     return np.array(xy), lines, course, (along, across)
 
 
+def _carpark_site(rng: np.random.Generator, centres: NDArray, foot: tuple[float, float], psi: float,
+                  hills: Terrain, seed: int) -> tuple[Lot, list, tuple[_Road, ...]]:
+    """A car park in the middle frame's footprint (rows along or across the flight, 10 deg
+    of play) and two roads skirting it (one along its rows, one across)."""
+    along = math.pi / 2.0 - psi  # the flight direction, from east counter-clockwise
+    turn = float(rng.choice([0.0, math.pi / 2.0])) + math.radians(rng.uniform(-10.0, 10.0))
+    d = along + turn
+    span_a, span_b = (foot[0], foot[1]) if abs(math.cos(turn)) > 0.5 else (foot[1], foot[0])
+    c = centres.mean(axis=0) + rng.uniform(-0.03, 0.03, 2) * np.array(foot)
+    z = float(hills.height(np.array([c[0]]), np.array([c[1]]))[0])
+    lot, bays = plan_lot(rng, (float(c[0]), float(c[1])), d, z, 0.75 * span_a, 0.75 * span_b, seed)
+    ua, ub = np.array([math.cos(d), math.sin(d)]), np.array([-math.sin(d), math.cos(d)])
+    p1 = c - ub * (lot.half_b + 2.0 + ROAD_WIDTH_M / 2.0)
+    p2 = c + ua * (lot.half_a + 2.0 + ROAD_WIDTH_M / 2.0)
+    roads = (_Road(float(p1[0]), float(p1[1]), float(ua[0]), float(ua[1])),
+             _Road(float(p2[0]), float(p2[1]), float(ub[0]), float(ub[1])))
+    return lot, bays, roads
+
+
 def _terrain(rng: np.random.Generator, centres: NDArray, foot: tuple[float, float],
-             psi: float) -> tuple[_Land, tuple[_Road, ...], dict[str, Any]]:
-    """The hills and two roads (one along the lines, one across) over the flown area and a margin."""
+             psi: float, scene: str = "field", seed: int = 0
+             ) -> tuple[_Land, tuple[_Road, ...], dict[str, Any]]:
+    """The hills and two roads (one along the lines, one across) over the flown area and a
+    margin; a car park scene levels a lot in the middle (``meta["lot"]``, ``meta["bays"]``)."""
     half = 0.5 * math.hypot(*foot) + 0.15 * max(foot) + 10.0
     x0, x1 = centres[:, 0].min() - half, centres[:, 0].max() + half
     y0, y1 = centres[:, 1].min() - half, centres[:, 1].max() + half
@@ -374,11 +412,17 @@ def _terrain(rng: np.random.Generator, centres: NDArray, foot: tuple[float, floa
         a = psi + math.radians(turn)
         off = rng.uniform(-spread, spread, 2) * span
         roads.append(_Road(float(off[0]), float(off[1]), math.sin(a), math.cos(a)))
-    hf = _HeightField(Terrain(waves, math.inf), tuple(roads))
+    meta: dict[str, Any] = {}
+    lots: tuple[Lot, ...] = ()
+    if scene == "carpark":
+        lot, bays, roads_t = _carpark_site(rng, centres, foot, psi, Terrain(waves, math.inf), seed)
+        roads, lots = list(roads_t), (lot,)
+        meta.update(lot=lot, bays=bays)
+    hf = _HeightField(Terrain(waves, math.inf), tuple(roads), lots)
     nx, ny = int(math.ceil((x1 - x0) / d)) + 1, int(math.ceil((y1 - y0) / d)) + 1
     X, Y = np.meshgrid(x0 + d * np.arange(nx), y0 + d * np.arange(ny))
     land = _Land(float(x0), float(y0), d, hf(X, Y))
-    return land, tuple(roads), {"waves_per_m": [list(w) for w in waves], "spacing_m": d}
+    return land, tuple(roads), {"waves_per_m": [list(w) for w in waves], "spacing_m": d, **meta}
 
 
 def _poses(o: FlightOptions, rng: np.random.Generator, centres: NDArray, course: list[float],
@@ -498,7 +542,7 @@ def _place_targets(o: FlightOptions, rng: np.random.Generator, placer: _Placer, 
     """Ground vehicles and confusers inside the DSM area, each wholly in at least two frames."""
     from prism3d.datasets.targets import builtin_target, list_builtin_targets
 
-    vehicles = [n for n in list_builtin_targets() if n.split("_")[0] in GROUND_VEHICLE_CLASSES]
+    vehicles = [n for n in list_builtin_targets("military") if n.split("_")[0] in GROUND_VEHICLE_CLASSES]
     n_t = int(rng.integers(5, 11)) if o.targets is None else int(o.targets)
     n_c = int(rng.integers(0, 4)) if o.confusers is None else int(o.confusers)
     picks = [(str(rng.choice(vehicles)), False) for _ in range(n_t)]
@@ -525,6 +569,41 @@ def _place_targets(o: FlightOptions, rng: np.random.Generator, placer: _Placer, 
     return placed, records
 
 
+def _park(o: FlightOptions, rng: np.random.Generator, placer: _Placer, cam: CameraModel, poses: list[NDArray],
+          lot: Lot, bays: list) -> tuple[list, list[dict[str, Any]], list]:
+    """The car park's vehicles (those wholly in two frames or more), its trees, people and
+    poles (merged per kind, as :func:`_place_clutter` does); the lot kept clear of other clutter."""
+    parked = park_vehicles(rng, lot, bays, o.targets, SCENE_CAMO_SEED_BASE + o.seed * 512)
+    targets, records, ab = [], [], []
+    for mesh, T, rec in parked:
+        if len(_frames_seeing(cam, poses, _corners_enu(mesh, T))) < 2:
+            continue
+        targets.append((mesh, T))
+        records.append(rec)
+        ab.append(lot.to_lot(T[0, 3] / 1000.0, T[1, 3] / 1000.0))
+    if not targets:
+        raise InputError("carpark: no parked vehicle is wholly in two frames; fly more overlap or lower")
+    placer.taken = np.vstack([placer.taken, [lot.cx, lot.cy, math.hypot(lot.half_a, lot.half_b) + 2.0]])
+    parts: dict[str, list[tuple[NDArray, NDArray, NDArray]]] = {}
+    for mesh, T, _ in lot_clutter(rng, lot, np.array(ab, dtype=np.float64).reshape(-1, 2), o.seed * 100_000 + 50_000):
+        rgb = mesh.albedo_field(np.zeros((1, 3)))[0]
+        parts.setdefault(mesh.name, []).append((mesh.vertices @ T[:3, :3].T + T[:3, 3], mesh.faces, rgb))
+    return targets, records, _merge_kinds(parts, ("tree", "person", "pole"))
+
+
+def _merge_kinds(parts: dict[str, list[tuple[NDArray, NDArray, NDArray]]], order: tuple[str, ...]) -> list:
+    """One world-frame mesh per kind of clutter (in ``order``), each instance in its own colour."""
+    out = []
+    for kind in [k for k in order if k in parts]:
+        off = np.cumsum([0] + [len(v) for v, _, _ in parts[kind][:-1]])
+        V = np.vstack([v for v, _, _ in parts[kind]])
+        F = np.vstack([f + k for (_, f, _), k in zip(parts[kind], off)])
+        A = np.vstack([np.tile(c, (len(v), 1)) for v, _, c in parts[kind]])
+        out.append((SceneMesh(V, F, A, None, kind, {"material": "lambertian", "count": len(parts[kind])}),
+                    np.eye(4)))
+    return out
+
+
 def _place_clutter(o: FlightOptions, rng: np.random.Generator, placer: _Placer) -> list:
     """Rocks, bushes, trees and buildings, merged into one mesh per kind (world frame, each
     instance in its own colour): a renderer of a few meshes shades faster than of hundreds."""
@@ -538,16 +617,7 @@ def _place_clutter(o: FlightOptions, rng: np.random.Generator, placer: _Placer) 
         if T is not None:
             rgb = mesh.albedo_field(np.zeros((1, 3)))[0]
             parts.setdefault(str(kind), []).append((mesh.vertices @ T[:3, :3].T + T[:3, 3], mesh.faces, rgb))
-    out = []
-    for kind in ("building", "tree", "bush", "rock"):
-        if kind in parts:
-            off = np.cumsum([0] + [len(v) for v, _, _ in parts[kind][:-1]])
-            V = np.vstack([v for v, _, _ in parts[kind]])
-            F = np.vstack([f + k for (_, f, _), k in zip(parts[kind], off)])
-            A = np.vstack([np.tile(c, (len(v), 1)) for v, _, c in parts[kind]])
-            out.append((SceneMesh(V, F, A, None, kind, {"material": "lambertian", "count": len(parts[kind])}),
-                        np.eye(4)))
-    return out
+    return _merge_kinds(parts, ("building", "tree", "bush", "rock"))
 
 
 def plan_flight(options: FlightOptions | None = None) -> FlightPlan:
@@ -557,16 +627,25 @@ def plan_flight(options: FlightOptions | None = None) -> FlightPlan:
     cam = _camera(o)
     psi = math.radians(rng.uniform(0.0, 360.0) if o.heading_deg is None else float(o.heading_deg))
     centres, lines, course, foot = _layout(o, cam, psi)
-    land, roads, meta = _terrain(rng, centres, foot, psi)
+    land, roads, meta = _terrain(rng, centres, foot, psi, o.scene, o.seed)
+    lot = meta.pop("lot", None)
+    bays = meta.pop("bays", None)
     z_mean = float(land.z.mean())
     poses, att, gps = _poses(o, np.random.default_rng([o.seed, 31]), centres, course, z_mean)
     gsd = o.altitude_m / cam.fx
     dsm = _dsm_grid(o, cam, poses, z_mean, gsd)
     scale = max(1.0, 2.5 * gsd * 1000.0 / 60.0)  # GroundAlbedo's finest cell is 60 mm
-    ground = land.mesh(_SurveyGroundAlbedo(o.seed, scale, roads))
+    ground = land.mesh(_SurveyGroundAlbedo(o.seed, scale, roads, () if lot is None else (lot,)))
     placer = _Placer(rng, land, roads)
-    targets, records = _place_targets(o, rng, placer, cam, poses, dsm)
-    clutter = _place_clutter(o, rng, placer)
+    if lot is None:
+        targets, records = _place_targets(o, rng, placer, cam, poses, dsm)
+        clutter = _place_clutter(o, rng, placer)
+    else:
+        targets, records, clutter = _park(o, rng, placer, cam, poses, lot, bays)
+        clutter += _place_clutter(o, rng, placer)
+        meta["carpark"] = {"centre_enu": [lot.cx, lot.cy, lot.z], "rows_direction_deg":
+                           math.degrees(math.atan2(lot.ux, lot.uy)) % 360.0, "size_m": [2 * lot.half_a, 2 * lot.half_b],
+                           "surface": lot.surface, "bays": len(bays), "painted_lines": len(lot.lines)}
     objects = [(ground, np.eye(4))] + targets + clutter
     kinds: list[dict[str, Any]] = [{"id": 0, "kind": "ground"}, {"id": 1, "kind": "road"}]
     for i, (mesh, _) in enumerate(objects[1:], start=1):
@@ -730,6 +809,7 @@ def _truth_doc(o: FlightOptions, plan: FlightPlan, names: list[str], targets: li
         "sun_elevation_deg": plan.meta["sun_elevation_deg"], "sun_azimuth_deg": plan.meta["sun_azimuth_deg"],
         "terrain": {"waves_per_m": plan.meta["waves_per_m"], "spacing_m": plan.meta["spacing_m"],
                     "bounds_m": list(plan.land.bounds), "texture_scale": plan.meta["texture_scale"]},
+        **({"carpark": plan.meta["carpark"]} if "carpark" in plan.meta else {}),
         "roads": [{"x0_m": r.x0, "y0_m": r.y0, "direction_deg": math.degrees(math.atan2(r.ux, r.uy)) % 360.0,
                    "width_m": r.width} for r in plan.roads],
         "objects": plan.kinds, "targets": targets,
@@ -745,7 +825,10 @@ def _target_records(plan: FlightPlan) -> list[dict[str, Any]]:
         base = T[:3, :3] @ np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]) + T[:3, 3]
         T_m = T.copy()
         T_m[:3, 3] /= 1000.0
+        corners = np.array([[lo[0], lo[1], lo[2]], [hi[0], lo[1], lo[2]], [hi[0], hi[1], lo[2]], [lo[0], hi[1], lo[2]]])
+        foot = (corners @ T[:3, :3].T + T[:3, 3])[:, :2] / 1000.0
         out.append({"instance": t, "id": t + 2, **rec, "xyz_enu": [float(v) for v in base / 1000.0],
+                    "footprint_enu": [[round(float(a), 4), round(float(b), 4)] for a, b in foot],
                     "heading_deg": math.degrees(math.atan2(T[0, 0], T[1, 0])) % 360.0,
                     "tilt_deg": math.degrees(math.acos(min(1.0, T[2, 2]))),
                     "length_m": float(hi[0] - lo[0]) / 1000.0, "width_m": float(hi[1] - lo[1]) / 1000.0,
