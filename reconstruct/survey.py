@@ -33,7 +33,7 @@ __all__ = [
 SURVEY_SCHEMA_VERSION = 1
 #: Files every survey writes (``survey -o OUT``), besides ``colmap/`` and ``depth/``.
 SURVEY_FILES = ("poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", "ground.tif", "ortho.tif",
-                "survey.png")
+                "ortho_quality.tif", "survey.png")
 #: Disparity noise assumed for a pair's height tolerance, px at the matched scale.
 DISPARITY_SIGMA_PX = 0.25
 
@@ -54,6 +54,9 @@ class SurveyOptions:
     its view (the neighbouring flight line): the strips' ends and edges are seen only so."""
     cell_m: float | None = None
     """DSM cell, m (model units without GPS); None: twice the matched frames' ground sample distance."""
+    ortho_gsd_m: float | None = None
+    """Orthophoto cell, m; None: the photographs' own ground sample distance (the median
+    camera height above the ground over the focal length), finer than the DSM's cell."""
     min_shared_points: int = 30
     """A pair needs this many sparse points seen by both frames, else it is skipped (no overlap)."""
     min_base_to_height: float = 0.03
@@ -84,6 +87,8 @@ class SurveyOptions:
         object.__setattr__(self, "pair_steps", steps)
         if self.cell_m is not None and not (math.isfinite(self.cell_m) and self.cell_m > 0):
             raise InputError(f"cell: expected a DSM cell size > 0, got {self.cell_m!r}")
+        if self.ortho_gsd_m is not None and not (math.isfinite(self.ortho_gsd_m) and self.ortho_gsd_m > 0):
+            raise InputError(f"ortho-gsd: expected an orthophoto cell > 0, got {self.ortho_gsd_m!r}")
         if isinstance(self.lk_window, bool) or int(self.lk_window) != self.lk_window or self.lk_window < 3 \
                 or self.lk_window % 2 == 0:
             raise InputError(f"lk_window: expected an odd integer >= 3, got {self.lk_window!r}")
@@ -678,6 +683,7 @@ def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], sho
     from prism3d.io.geo import local_enu_crs_wkt, write_geotiff, write_las
     from prism3d.io.ply import write_ply
     from prism3d.reconstruct.dsm import normalised_dsm
+    from prism3d.reconstruct.ortho import true_orthophoto
 
     scaled = origin is not None
     crs = local_enu_crs_wkt(float(origin[0]), float(origin[1])) if scaled else None
@@ -692,8 +698,13 @@ def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], sho
     write_geotiff(stage / "ground.tif", ground.astype(np.float32), nodata=float("nan"), band_names=["ground"], **common)
     write_geotiff(stage / "ndsm.tif", ndsm.astype(np.float32), nodata=float("nan"),
                   band_names=["height above ground"], **common)
-    alpha = np.where(np.isfinite(fused.dsm), 255, 0).astype(np.uint8)
-    write_geotiff(stage / "ortho.tif", np.dstack([fused.rgb, alpha]), **common)
+    ortho = true_orthophoto(fused.dsm, fused.west, fused.north, cell,
+                            [(str(paths[k]), T_enu[k]) for k in sorted(T_enu)], np.asarray(sfm.K, dtype=np.float64),
+                            np.asarray(sfm.dist, dtype=np.float64), tuple(sfm.size), gsd=o.ortho_gsd_m)
+    ocommon = dict(common, gsd=ortho.gsd)
+    write_geotiff(stage / "ortho.tif", ortho.rgba, **ocommon)
+    write_geotiff(stage / "ortho_quality.tif", ortho.quality, nodata=0, band_names=[
+        "1 measured surface, 2 interpolated surface"], **ocommon)
     rr, cc = np.nonzero(np.isfinite(fused.dsm))
     xyz = np.c_[fused.west + (cc + 0.5) * cell, fused.north - (rr + 0.5) * cell, fused.dsm[rr, cc]]
     col = fused.rgb[rr, cc]
@@ -747,6 +758,9 @@ def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], sho
                    "K": np.asarray(sfm.K).tolist(),
                    "dist": np.asarray(sfm.dist).tolist(), "size": list(sfm.size)},
         "dense": {"downscale": factor, "pair_steps": list(o.pair_steps), "pairs": pairs},
+        "ortho": {"gsd": ortho.gsd, "shape": list(ortho.rgba.shape[:2]),
+                  "cells_per_frame": {shown[k]: v for k, v in sorted(ortho.cells_per_frame.items())},
+                  "interpolated_surface_fraction": float((ortho.quality == 2).sum() / max(1, (ortho.quality > 0).sum()))},
         "dsm": {"cell": cell, "west": fused.west, "north": fused.north, "shape": list(fused.dsm.shape),
                 "filled_cells": int(finite.sum()), "cells_seen_by_2_or_more_pairs": int((fused.seen >= 2).sum()),
                 "overlap_filled_fraction": overlap_filled},
