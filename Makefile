@@ -50,6 +50,8 @@ $(STAMP): pyproject.toml constraints.txt
 	@# ignored by git), then every numba kernel compiled into numba's on-disk cache
 	$(PY) -m compileall -q prism3d capture reconstruct atr datasets
 	$(PY) -m prism3d._precompile
+	@# survey-detect's default recogniser (car, van, truck, bus), trained once into .venv's cache
+	$(PY) -m prism3d.datasets.pretrain
 	@touch $(STAMP)
 
 setup: $(STAMP)

@@ -1,5 +1,11 @@
-"""Targets from the air: vehicles found in a survey's normalised DSM (height above the
-ground) and identified by their shape seen from above.
+"""Targets from the air: vehicles found in a survey's orthophoto and normalised DSM.
+
+:func:`detect_in_survey` reads a survey folder onto the aerial recogniser's grid (the
+orthophoto at the photographs' own GSD and the nDSM resampled to it), runs the recogniser
+(:class:`~prism3d.atr.aerial.AerialModel`) over the surveyed area that could hold a
+vehicle (cells standing out of the ground or without a height, and their surroundings) and
+writes one GeoJSON Feature per vehicle in WGS84. The earlier nDSM-only method (below, the
+baseline of the benchmarks) is kept as it was:
 
 Each object standing out of the nDSM (connected cells above ``min_height_m``) is
 measured (length and width of its minimum-area rectangle, height) and compared with
@@ -25,7 +31,8 @@ from numpy.typing import NDArray
 
 from prism3d.errors import InputError
 
-__all__ = ["NadirTemplate", "find_vehicles", "nadir_templates", "score_detections", "write_geojson"]
+__all__ = ["NadirTemplate", "SurveyScene", "detect_in_survey", "draw_survey_detections", "find_vehicles",
+           "load_survey_scene", "nadir_templates", "score_detections", "write_geojson"]
 
 #: A class fits a candidate when the candidate's length, width and height are within
 #: these factors of the class's (occlusion, trees and the DSM's smoothing shrink or grow them).
@@ -180,41 +187,56 @@ def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplat
     return out
 
 
-def score_detections(dets: Sequence[dict], targets: Sequence[dict], n_frames: int) -> dict[str, Any]:
-    """Pd against false positives per frame over the score threshold: a detection is a
-    hit when within half the target's length of a not yet found target's centre
-    (``targets``: ``x``, ``y``, ``length_m``, ``counted``; uncounted targets, e.g.
-    confusers, are neither hits nor misses), else a false positive."""
+def score_detections(dets: Sequence[dict], targets: Sequence[dict], n_frames: int, *, radius_m: float | None = None,
+                     threshold: float | None = None) -> dict[str, Any]:
+    """Pd against false positives per frame over the score threshold. A detection is a hit
+    when within ``radius_m`` (default: half the target's length, at least 2 m) of a target's
+    centre not yet found (``targets``: ``x``, ``y``, ``length_m``, ``counted``, ``class``;
+    uncounted targets, e.g. confusers, are neither hits nor misses), else a false positive;
+    detections are taken best first. With ``threshold``: Pd, false positives and the share
+    of hits whose ``class`` is the target's at that score too."""
     tx = np.array([[t["x"], t["y"]] for t in targets]) if targets else np.zeros((0, 2))
     counted = np.array([bool(t.get("counted", True)) for t in targets], bool)
-    radius = np.array([max(0.5 * t["length_m"], 2.0) for t in targets])
+    radius = np.array([radius_m if radius_m is not None else max(0.5 * t["length_m"], 2.0) for t in targets])
     found = np.zeros(len(targets), bool)
     curve = []
-    tp = fp = 0
+    tp = fp = right = 0
     for d in sorted(dets, key=lambda d: -d["score"]):
         if d["score"] <= -1:
             break
         dist = np.hypot(tx[:, 0] - d["x"], tx[:, 1] - d["y"]) if len(tx) else np.zeros(0)
         hit = np.flatnonzero((dist <= radius) & ~found)
+        ok = False
         if len(hit):
             k = hit[np.argmin(dist[hit])]
             found[k] = True
             if counted[k]:
                 tp += 1
+                ok = d.get("class") is not None and d.get("class") == targets[k].get("class")
+                right += ok
         elif not (len(dist) and np.any((dist <= radius) & ~counted)):
             fp += 1
-        curve.append((d["score"], tp, fp))
+        curve.append((d["score"], tp, fp, right))
     n_t = int(counted.sum())
 
-    def pd_at(fppf: float) -> float:
-        best = 0
-        for _, t, f in curve:
-            if f / max(n_frames, 1) <= fppf:
-                best = max(best, t)
-        return best / max(n_t, 1)
+    def pd_at(fppf: float) -> tuple[float, float | None]:
+        best = (0, 0)
+        for _, t, f, rgt in curve:
+            if f / max(n_frames, 1) <= fppf and t > best[0]:
+                best = (t, rgt)
+        return best[0] / max(n_t, 1), (best[1] / best[0] if best[0] else None)
 
-    return {"n_targets": n_t, "n_frames": n_frames, "pd_at_0.1_fppf": pd_at(0.1), "pd_at_1_fppf": pd_at(1.0),
-            "curve": [{"score": s, "tp": t, "fp": f} for s, t, f in curve]}
+    out: dict[str, Any] = {"n_targets": n_t, "n_frames": n_frames}
+    for x in (0.1, 1.0):
+        pd, acc = pd_at(x)
+        out[f"pd_at_{x:g}_fppf"], out[f"class_accuracy_at_{x:g}_fppf"] = pd, acc
+    if threshold is not None:
+        at = [c for c in curve if c[0] >= threshold]
+        t, f, rgt = (at[-1][1], at[-1][2], at[-1][3]) if at else (0, 0, 0)
+        out["at_threshold"] = {"threshold": threshold, "pd": t / max(n_t, 1), "false_positives": f,
+                               "fp_per_frame": f / max(n_frames, 1), "class_accuracy": rgt / t if t else None}
+    out["curve"] = [{"score": sc, "tp": t, "fp": f, "class_right": rgt} for sc, t, f, rgt in curve]
+    return out
 
 
 def write_geojson(path: str | Path, dets: Sequence[dict], *, origin_lla: Sequence[float] | None) -> None:
@@ -247,57 +269,244 @@ def write_geojson(path: str | Path, dets: Sequence[dict], *, origin_lla: Sequenc
     atomic_write_text(path, json.dumps(doc, indent=1))
 
 
-#: The built-in ground vehicles searched by default.
-DEFAULT_VEHICLES = ("tank_t1", "tank_t2", "tank_t3", "truck_k1", "truck_k2", "truck_k3")
 
 
-def ndsm_ground(survey_dir: Path) -> NDArray[np.float32]:
-    """The survey's ground heights (``ground.tif``, else DSM minus nDSM)."""
+#: The survey-detect default target classes.
+DEFAULT_CLASSES = ("car", "van", "truck", "bus")
+#: Around every cell that could belong to a vehicle (standing 0.4 m out of the ground, or
+#: without a height inside the coverage), the search reaches this far, m.
+ROI_MARGIN_M = 3.0
+#: The largest survey area read onto the recogniser's grid, pixels (memory: about 20 bytes
+#: a pixel while searching).
+MAX_GRID_PIXELS = 120_000_000
+
+
+@dataclass(frozen=True)
+class SurveyScene:
+    """A survey on the recogniser's grid: ``grey`` (H, W) float32 [0, 1] (NaN outside the
+    orthophoto's coverage), ``rgb`` (H, W, 3) uint8, ``ndsm`` (H, W) float32 (NaN: no
+    height), ``ground`` (H, W) float32 (NaN where unknown), ``roi`` (H, W) bool, the
+    north-west corner and ``gsd``; ``origin_lla`` (None without GPS)."""
+
+    grey: NDArray[np.float32]
+    rgb: NDArray[np.uint8]
+    ndsm: NDArray[np.float32]
+    ground: NDArray[np.float32]
+    roi: NDArray[np.bool_]
+    west: float
+    north: float
+    gsd: float
+    origin_lla: tuple[float, float, float] | None
+
+
+def _read_checked(path: Path, what: str) -> tuple[NDArray, dict]:
     from prism3d.io.geo import read_geotiff
 
-    if (survey_dir / "ground.tif").is_file():
-        return read_geotiff(survey_dir / "ground.tif")[0]
-    return read_geotiff(survey_dir / "dsm.tif")[0] - read_geotiff(survey_dir / "ndsm.tif")[0]
+    if not path.is_file():
+        raise InputError(f"{path.parent}: no {path.name}; give a folder written by 'prism3d survey'")
+    try:
+        return read_geotiff(path)
+    except Exception as exc:  # noqa: BLE001 - rasterio raises its own types for a bad file
+        raise InputError(f"{path}: not a readable GeoTIFF {what} ({type(exc).__name__}: {exc})") from None
 
 
-def detect_in_survey(survey_dir: str | Path, out_path: str | Path, items: Sequence[tuple[str, Any]], *,
-                     min_height_m: float = 0.8) -> dict[str, Any]:
-    """Find the targets ``items`` (``(name, SceneMesh)`` at full size, mm; the CLI gives
-    the built-in ground vehicles by default) in a survey folder's nDSM and write them to
-    ``out_path`` as GeoJSON, best first. A survey without GPS is refused: its sizes are
-    in unknown units."""
+def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = True, height: bool = True
+                      ) -> SurveyScene:
+    """A survey folder's orthophoto and nDSM on one grid of ``gsd`` m over the nDSM's
+    extent (the orthophoto area-averaged or interpolated onto it, the nDSM nearest-cell)."""
+    import cv2
+
+    d = Path(survey_dir)
+    nd, mn = _read_checked(d / "ndsm.tif", "nDSM")
+    if nd.ndim != 2 or not np.issubdtype(nd.dtype, np.floating):
+        raise InputError(f"{d / 'ndsm.tif'}: expected one float band of heights, got shape {nd.shape} {nd.dtype}")
+    gr, mg = (_read_checked(d / "ground.tif", "ground") if (d / "ground.tif").is_file() else (None, None))
+    o, mo = _read_checked(d / "ortho.tif", "orthophoto")
+    if o.ndim != 3 or o.shape[2] < 3 or o.dtype != np.uint8:
+        raise InputError(f"{d / 'ortho.tif'}: expected an RGB(A) 8-bit orthophoto, got shape {o.shape} {o.dtype}")
+    if (mo["crs_wkt"] or "") != (mn["crs_wkt"] or ""):
+        raise InputError(f"{d / 'ortho.tif'}: in another coordinate system than ndsm.tif; both must come from one survey")
+    west, north, cell = float(mn["west"]), float(mn["north"]), float(mn["gsd"])
+    W, H = int(round(nd.shape[1] * cell / gsd)), int(round(nd.shape[0] * cell / gsd))
+    oe, os_ = mo["west"] + o.shape[1] * mo["gsd"], mo["north"] - o.shape[0] * mo["gsd"]
+    ne, ns = west + nd.shape[1] * cell, north - nd.shape[0] * cell
+    if min(oe, ne) - max(mo["west"], west) <= 0 or min(mo["north"], north) - max(os_, ns) <= 0:
+        raise InputError(f"{d / 'ortho.tif'}: does not overlap ndsm.tif; both must come from one survey")
+    if W * H > MAX_GRID_PIXELS:
+        raise InputError(f"{d}: {nd.shape[1] * cell:.0f} x {nd.shape[0] * cell:.0f} m at {gsd} m is {W * H:,} "
+                         f"pixels, more than {MAX_GRID_PIXELS:,}; survey a smaller area")
+    X = (west + (np.arange(W) + 0.5) * gsd).astype(np.float64)
+    Y = (north - (np.arange(H) + 0.5) * gsd).astype(np.float64)
+    # the orthophoto: area-averaged to about the grid first when finer, then sampled
+    f = float(mo["gsd"]) / gsd
+    src = o[..., :4] if o.shape[2] >= 4 else np.dstack([o, np.full(o.shape[:2], 255, np.uint8)])
+    s = 1.0
+    if f < 0.8:
+        src = cv2.resize(src, (max(1, int(round(o.shape[1] * f))), max(1, int(round(o.shape[0] * f)))),
+                         interpolation=cv2.INTER_AREA)
+        s = o.shape[1] / src.shape[1]
+    mx = ((X - mo["west"]) / (mo["gsd"] * s) - 0.5).astype(np.float32)
+    my = ((mo["north"] - Y) / (mo["gsd"] * s) - 0.5).astype(np.float32)
+    rgba = _remap_rows(src, mx, my, cv2.INTER_LINEAR)
+    covered = rgba[..., 3] >= 128
+    rgb = np.ascontiguousarray(rgba[..., :3])
+    grey = (rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)) / 255.0
+    grey[~covered] = np.nan
+    nx = ((X - west) / cell - 0.5).astype(np.float32)
+    ny = ((north - Y) / cell - 0.5).astype(np.float32)
+    z = _remap_rows(nd.astype(np.float32), nx, ny, cv2.INTER_NEAREST, nan=True)
+    g = np.full(z.shape, np.nan, np.float32) if gr is None else _remap_rows(gr.astype(np.float32), nx, ny,
+                                                                         cv2.INTER_NEAREST, nan=True)
+    if not appearance:
+        grey = np.where(np.isfinite(grey), np.nan, np.nan).astype(np.float32)
+    if not height:
+        z = np.full(z.shape, np.nan, np.float32)
+    stand = np.nan_to_num(z, nan=0.0) > 0.4
+    hole = ~np.isfinite(z) & covered if height else covered
+    k = max(1, int(round(ROI_MARGIN_M / gsd)))
+    roi = cv2.dilate((stand | hole).astype(np.uint8), np.ones((3, 3), np.uint8), iterations=k) > 0
+    roi &= covered if appearance else np.isfinite(z) | ~stand
+    doc = json.loads((d / "poses.json").read_text()) if (d / "poses.json").is_file() else {}
+    lla = doc.get("origin_lla") if isinstance(doc, dict) else None
+    return SurveyScene(grey.astype(np.float32), rgb, z, g, roi, west, north, gsd,
+                       None if lla is None else tuple(float(v) for v in lla))
+
+
+def _remap_rows(img: NDArray, mx: NDArray, my: NDArray, interp: int, *, nan: bool = False) -> NDArray:
+    """``img`` sampled at every (mx[c], my[r]) of a separable grid, in bands of rows
+    (OpenCV's maps hold at most 32767 a side)."""
+    import cv2
+
+    H, W = len(my), len(mx)
+    out = np.empty((H, W) + img.shape[2:], dtype=img.dtype)
+    border = float("nan") if nan else 0
+    for c0 in range(0, W, 30000):
+        xs = mx[c0:c0 + 30000]
+        for r0 in range(0, H, 4096):
+            ys = my[r0:r0 + 4096]
+            MX, MY = np.meshgrid(xs, ys)
+            out[r0:r0 + len(ys), c0:c0 + len(xs)] = cv2.remap(img, MX, MY, interp, borderMode=cv2.BORDER_CONSTANT,
+                                                              borderValue=border)
+    return out
+
+
+def _compass_deg(heading_rad: float) -> float:
+    """A heading counter-clockwise from east (the grid's +x) as a compass bearing of the
+    long axis, degrees in [0, 180) (front and back are not told apart)."""
+    return round((90.0 - math.degrees(heading_rad)) % 180.0, 1)
+
+
+def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *,
+                     threshold: float | None = None, all_candidates: bool = False,
+                     draw: str | Path | None = None) -> dict[str, Any]:
+    """Vehicles of ``model`` (:class:`~prism3d.atr.aerial.AerialModel`) in a survey folder,
+    written to ``out_path`` as GeoJSON (one Feature per vehicle, best first; those scoring
+    at least ``threshold``, default the model's calibrated 0.5, unless ``all_candidates``)
+    and drawn on the orthophoto to ``draw`` (PNG). A survey without GPS is refused (its
+    sizes are in unknown units)."""
     import time
 
-    from prism3d.io.geo import read_geotiff
+    from prism3d.atr.aerial import DEFAULT_THRESHOLD
 
     t0 = time.perf_counter()
     d = Path(survey_dir)
-    for f in ("poses.json", "ndsm.tif"):
-        if not (d / f).is_file():
-            raise InputError(f"{d}: no {f}; give a folder written by 'prism3d survey'")
+    out = Path(out_path)
+    if out.suffix.lower() not in (".geojson", ".json"):
+        raise InputError(f"{out}: expected a .geojson (or .json) file name for the vehicles")
+    if draw is not None and Path(draw).suffix.lower() != ".png":
+        raise InputError(f"{draw}: expected a .png file name for the drawing")
+    for f in (out, Path(draw) if draw is not None else None):
+        if f is not None and f.resolve().parent == d.resolve() and f.name in _SURVEY_NAMES:
+            raise InputError(f"{f}: would overwrite the survey's own {f.name}; write the vehicles elsewhere")
+    if not (d / "poses.json").is_file():
+        raise InputError(f"{d}: no poses.json; give a folder written by 'prism3d survey'")
     try:
         doc = json.loads((d / "poses.json").read_text())
     except (OSError, ValueError) as exc:
         raise InputError(f"{d / 'poses.json'}: unreadable ({exc})") from None
-    if doc.get("scale") != "gps":
+    if not isinstance(doc, dict):
+        raise InputError(f"{d / 'poses.json'}: expected a JSON object, got {type(doc).__name__}")
+    if doc.get("scale") != "gps" or doc.get("origin_lla") is None:
         raise InputError(f"{d}: the survey's scale is unknown (no GPS); vehicle sizes cannot be compared")
-    if not items:
-        raise InputError("detect: no targets to look for")
-    ndsm, meta = read_geotiff(d / "ndsm.tif")
-    cell = float(meta["gsd"])
-    tpls = nadir_templates(list(items), cell)
-    dets = find_vehicles(ndsm, cell, tpls, west=float(meta["west"]), north=float(meta["north"]),
-                         min_height_m=min_height_m)
-    if (d / "dsm.tif").is_file():  # each detection's ground height: a point, not a column, in the local frame
-        ground = ndsm_ground(d)
-        fallback = float(np.nanmedian(ground)) if np.isfinite(ground).any() else 0.0
-        k = max(2, int(round(3.0 / cell)))  # the ground within 3 m (the centre cell may be a hole)
-        for x in dets:
-            r = int((float(meta["north"]) - x["y"]) / cell)
-            c = int((x["x"] - float(meta["west"])) / cell)
-            win = ground[max(r - k, 0):r + k + 1, max(c - k, 0):c + k + 1]
-            z = float(np.nanmedian(win)) if win.size and np.isfinite(win).any() else fallback
-            x["z"] = round(z, 3)
-    write_geojson(out_path, dets, origin_lla=doc.get("origin_lla"))
-    return {"n_detections": len(dets), "n_scored": sum(x["score"] > -1 for x in dets), "cell": cell,
-            "seconds": time.perf_counter() - t0}
+    th = DEFAULT_THRESHOLD if threshold is None else float(threshold)
+    if not (math.isfinite(th) and 0.0 <= th <= 1.0):
+        raise InputError(f"threshold: expected a score in [0, 1], got {threshold!r}")
+    scene = load_survey_scene(d, model.gsd_m, appearance=model.channels != "height",
+                              height=model.channels != "appearance")
+    t1 = time.perf_counter()
+    dets = model.detect(scene.grey, scene.ndsm, roi=scene.roi)
+    t2 = time.perf_counter()
+    kept = [x for x in dets if all_candidates or x["score"] >= th]
+    feats = [_feature(x, scene) for x in kept]
+    from prism3d.io.atomic import atomic_paths
+
+    with atomic_paths(*([out] if draw is None else [out, Path(draw)])) as tmps:  # both files or neither
+        _write_feature_collection(tmps[0], feats, scene, th, all_candidates, model)
+        if draw is not None:
+            draw_survey_detections(tmps[1], scene, kept, th)
+    counts: dict[str, int] = {}
+    for x in kept:
+        if x["score"] >= th:
+            counts[x["class"]] = counts.get(x["class"], 0) + 1
+    return {"n_vehicles": sum(counts.values()), "by_class": counts, "n_written": len(kept),
+            "threshold": th, "seconds": {"read": round(t1 - t0, 2), "detect": round(t2 - t1, 2),
+                                         "total": round(time.perf_counter() - t0, 2)}}
+
+
+_SURVEY_NAMES = {"poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", "ground.tif", "ortho.tif",
+                 "ortho_quality.tif", "survey.png"}
+
+
+def _feature(x: dict, scene: SurveyScene) -> dict[str, Any]:
+    """One detection as a GeoJSON Feature: a WGS84 point at its centre, its footprint a
+    WGS84 polygon, local metres kept beside."""
+    from prism3d.capture.geotag import enu_to_wgs84
+
+    g = scene.gsd
+    r, c = x["row"], x["col"]
+    ri, ci = int(min(max(round(r), 0), scene.ground.shape[0] - 1)), int(min(max(round(c), 0), scene.ground.shape[1] - 1))
+    k = max(1, int(round(2.0 / g)))
+    win = scene.ground[max(ri - k, 0):ri + k + 1, max(ci - k, 0):ci + k + 1]
+    z = float(np.nanmedian(win)) if np.isfinite(win).any() else float(np.nanmedian(scene.ground)) \
+        if np.isfinite(scene.ground).any() else 0.0
+    pts = [(scene.west + (c + 0.5) * g, scene.north - (r + 0.5) * g)]
+    pts += [(scene.west + (cc + 0.5) * g, scene.north - (rr + 0.5) * g) for rr, cc in x["corners_rc"]]
+    enu = np.array([[px, py, z] for px, py in pts])
+    lla = enu_to_wgs84(enu, np.asarray(scene.origin_lla, dtype=np.float64))
+    lonlat = [[round(float(b), 9), round(float(a), 9)] for a, b, _ in lla]
+    ring = lonlat[1:] + [lonlat[1]]
+    props = {"class": x["class"], "score": round(float(x["score"]), 4), "heading_deg": _compass_deg(x["heading_rad"]),
+             "footprint": {"type": "Polygon", "coordinates": [ring]},
+             "length_m": round(float(x["length_m"]), 2), "width_m": round(float(x["width_m"]), 2),
+             "x_local": round(pts[0][0], 3), "y_local": round(pts[0][1], 3), "z_local": round(z, 3)}
+    return {"type": "Feature", "geometry": {"type": "Point", "coordinates": lonlat[0]}, "properties": props}
+
+
+def _write_feature_collection(out: Path, feats: list[dict], scene: SurveyScene, th: float, all_candidates: bool,
+                              model: Any) -> None:
+    doc = {"type": "FeatureCollection", "features": feats,
+           "prism3d": {"local_frame_origin_lla": [float(v) for v in scene.origin_lla], "threshold": th,
+                       "all_candidates": bool(all_candidates), "classes": model.classes,
+                       "channels": model.channels, "score": "calibrated: the share of the recogniser's held-out "
+                       "training detections at this score that were vehicles",
+                       "heading_deg": "compass bearing of the long axis, 0-180 (front and back not told apart)"}}
+    out.write_text(json.dumps(doc, indent=1))
+
+
+def draw_survey_detections(path: str | Path, scene: SurveyScene, dets: list[dict], threshold: float) -> None:
+    """The orthophoto with each detection's footprint (vehicles at or above ``threshold``
+    in red with class and score; candidates below in thin blue), as PNG at ``path``."""
+    import cv2
+
+    img = np.ascontiguousarray(scene.rgb[..., ::-1])
+    f = max(1, int(round(0.25 / max(scene.gsd, 1e-6) / 4)))
+    for x in sorted(dets, key=lambda t: t["score"]):
+        ok = x["score"] >= threshold
+        col = (40, 40, 230) if ok else (230, 140, 40)
+        poly = np.round(np.array(x["corners_rc"])[:, ::-1]).astype(np.int32)
+        cv2.polylines(img, [poly], True, col, 2 if ok else 1, cv2.LINE_AA)
+        if ok:
+            cv2.putText(img, f"{x['class']} {x['score']:.2f}", (int(poly[:, 0].min()), int(poly[:, 1].min()) - 3),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.4 * f, col, 1, cv2.LINE_AA)
+    if not cv2.imwrite(str(path), img):
+        raise InputError(f"{path}: could not write the drawing")

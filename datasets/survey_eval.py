@@ -172,7 +172,8 @@ def _vehicle_scores(dsm: NDArray, ndsm: NDArray, meta: dict, truth: dict, fr: _F
             "within_5_percent": sum(e <= 0.05 for e in errs), "each": each}
 
 
-def _detection_scores(path: str | Path, truth: dict, fr: _Frames) -> dict[str, Any]:
+def _detection_scores(path: str | Path, truth: dict, fr: _Frames, radius_m: float | None = None,
+                      threshold: float | None = None) -> dict[str, Any]:
     from prism3d.atr.survey_detect import score_detections
 
     gj = json.loads(Path(path).read_text())
@@ -186,19 +187,20 @@ def _detection_scores(path: str | Path, truth: dict, fr: _Frames) -> dict[str, A
         dets.append({"x": float(q[0, 0]), "y": float(q[0, 1]), "score": p["score"], "class": p.get("class")})
     tg = [{"x": x["xyz_enu"][0], "y": x["xyz_enu"][1], "length_m": x["length_m"], "counted": not x["confuser"],
            "class": x["class"]} for x in truth["targets"]]
-    sc = score_detections(dets, tg, len(truth["frames"]))
+    sc = score_detections(dets, tg, len(truth["frames"]), radius_m=radius_m, threshold=threshold)
     sc.pop("curve")
     return sc
 
 
-def evaluate_survey(survey_dir: str | Path, flight_dir: str | Path, *, detections: str | Path | None = None
-                    ) -> dict[str, Any]:
+def evaluate_survey(survey_dir: str | Path, flight_dir: str | Path, *, detections: str | Path | None = None,
+                    radius_m: float | None = None, threshold: float | None = None) -> dict[str, Any]:
     """Score ``survey_dir`` against ``flight_dir``'s truth: camera positions (in GSD)
     and rotations (deg) after a similarity alignment; DSM error on open ground (median
     |e|, RMS, in m and GSD); the share of the overlapped area (true DSM cells seen by two
     frames or more) with a height; each counted vehicle's height in the nDSM against
     its true height; with ``detections`` (survey-detect GeoJSON), Pd against false
-    positives per frame."""
+    positives per frame (a hit within ``radius_m`` of a vehicle's centre, default half its
+    length; ``threshold``: also Pd, false positives and class accuracy at that score)."""
     from prism3d.io.geo import read_geotiff
 
     sd, fd = Path(survey_dir), Path(flight_dir)
@@ -213,7 +215,7 @@ def evaluate_survey(survey_dir: str | Path, flight_dir: str | Path, *, detection
         out["dsm"] = _dsm_scores(dsm, meta, tz, truth, fr)
     out["vehicles"] = _vehicle_scores(dsm, ndsm, meta, truth, fr)
     if detections is not None:
-        out["detection"] = _detection_scores(detections, truth, fr)
+        out["detection"] = _detection_scores(detections, truth, fr, radius_m, threshold)
     return out
 
 

@@ -1,0 +1,300 @@
+"""The aerial recogniser: vehicles found and named in an orthophoto and its normalised DSM.
+
+Targets are gathered into window groups of similar length (a car window, a bus window...).
+Each group has one linear detector over the cells of a window laid along the vehicle
+(:mod:`prism3d.atr.aerial_features`: appearance gradients and contrast, height above the
+ground and its holes) and a linear namer among its classes. The scene is turned through
+headings ``angle_step_deg`` apart; at each, every group's window is correlated with the
+cell grid (a window's score is the sum of its cells' weighted features, so all positions
+cost one filter per feature). Local maxima become candidates; a calibrated score (Platt's
+sigmoid on held-out training scenes) ranks them; each vehicle keeps its best candidate
+(non-maximum suppression on the footprints), so vehicles side by side in a row stay one
+detection each. Training: :mod:`prism3d.atr.aerial_train`; method and figures: docs/atr.md
+"Vehicles from the air".
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.atr.aerial_features import CHANNEL_SETS, cell_features, rotate_scene
+from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_path
+
+__all__ = ["AERIAL_SCHEMA_VERSION", "AerialGroup", "AerialModel", "DEFAULT_THRESHOLD", "correlate_cells", "window_features"]
+
+AERIAL_SCHEMA_VERSION = 1
+#: Calibrated score at or above which a candidate is reported as a vehicle (the share of
+#: held-out training detections at that score that were vehicles).
+DEFAULT_THRESHOLD = 0.5
+#: Candidates below this calibrated score are dropped before suppression.
+CANDIDATE_FLOOR = 0.02
+
+
+@dataclass(frozen=True)
+class AerialGroup:
+    """One window group: its target ``classes`` and member ``names``, the window
+    ``cells`` (rows across the vehicle, columns along it; both odd), the detector's
+    ``weights`` (rows, cols, F) and ``bias``, the calibration ``platt`` (a, b): score =
+    sigmoid(a raw + b), the namer ``class_coef`` (n_classes, rows * cols * F) and
+    ``class_bias``, and each class's median ``dims`` (length, width, height m)."""
+
+    classes: tuple[str, ...]
+    names: tuple[str, ...]
+    cells: tuple[int, int]
+    weights: NDArray[np.float32]
+    bias: float
+    platt: tuple[float, float]
+    class_coef: NDArray[np.float32]
+    class_bias: NDArray[np.float32]
+    dims: dict[str, tuple[float, float, float]]
+
+    def name(self, x: NDArray) -> tuple[str, NDArray[np.float64]]:
+        """The class of a window's flattened features and the namer's probabilities."""
+        if len(self.classes) == 1:
+            return self.classes[0], np.ones(1)
+        z = self.class_coef.astype(np.float64) @ x.astype(np.float64) + self.class_bias
+        if len(self.classes) == 2 and len(z) == 1:
+            z = np.array([0.0, z[0]])
+        p = np.exp(z - z.max())
+        p /= p.sum()
+        return self.classes[int(np.argmax(p))], p
+
+
+@dataclass(frozen=True)
+class AerialModel:
+    """A trained aerial recogniser (module docstring): ``gsd_m`` of its working grid,
+    ``cell_px``, ``channels`` (``both``, ``appearance`` or ``height``), ``angle_step_deg``
+    and its ``groups``; ``metadata`` records how it was trained."""
+
+    gsd_m: float
+    cell_px: int
+    channels: str
+    angle_step_deg: float
+    groups: tuple[AerialGroup, ...]
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.channels not in CHANNEL_SETS:
+            raise InputError(f"aerial model: channels must be one of {', '.join(CHANNEL_SETS)}, got {self.channels!r}")
+        if not self.groups:
+            raise InputError("aerial model: no window groups")
+
+    @property
+    def classes(self) -> list[str]:
+        out: list[str] = []
+        for g in self.groups:
+            out += [c for c in g.classes if c not in out]
+        return out
+
+    @property
+    def cell_m(self) -> float:
+        return self.gsd_m * self.cell_px
+
+    # -- detection -------------------------------------------------------------------------
+    def candidates(self, grey: NDArray, ndsm: NDArray, *, roi: NDArray | None = None,
+                   angles_rad: Sequence[float] | None = None) -> list[dict]:
+        """Every local maximum of every group's score over the headings, before
+        suppression: dicts with ``row``, ``col`` (pixels of the input grid), ``heading_rad``,
+        ``group``, ``raw``, ``score`` (calibrated), ``class`` and ``class_p``. ``grey`` and
+        ``ndsm`` (H, W) share this model's ``gsd_m`` grid (``ndsm`` NaN = no height; all NaN
+        for an appearance-only search); ``roi`` (H, W) bool limits where centres may fall."""
+        g = np.asarray(grey, dtype=np.float32)
+        z = np.asarray(ndsm, dtype=np.float32)
+        if g.ndim != 2 or z.shape != g.shape:
+            raise InputError(f"aerial scene: expected a grey image and an nDSM of one (H, W) shape, got "
+                             f"{g.shape} and {z.shape}")
+        if roi is not None and np.asarray(roi).shape != g.shape:
+            raise InputError(f"aerial scene: the search area is {np.shape(roi)}, the image {g.shape}")
+        if angles_rad is None:
+            angles_rad = np.arange(0.0, math.pi, math.radians(self.angle_step_deg))
+        if roi is None:
+            return self._candidates(g, z, None, angles_rad)
+        # the search area's parts, each cut out with a window's reach around it
+        reach = int(self.cell_px * (max(max(gr.cells) for gr in self.groups) // 2 + 2))
+        out: list[dict] = []
+        for r0, c0, r1, c1 in _boxes(np.asarray(roi, dtype=bool), reach):
+            for d in self._candidates(g[r0:r1, c0:c1], z[r0:r1, c0:c1], np.asarray(roi)[r0:r1, c0:c1], angles_rad):
+                d["row"] += r0
+                d["col"] += c0
+                out.append(d)
+        return out
+
+    def _candidates(self, g: NDArray, z: NDArray, roi: NDArray | None, angles_rad: Sequence[float]) -> list[dict]:
+        k = self.cell_px
+        pad = k * (max(max(gr.cells) for gr in self.groups) // 2 + 2)
+        out: list[dict] = []
+        for ang in angles_rad:
+            gr_img, z_img, M = rotate_scene(g, z, float(ang), pad)
+            F = cell_features(gr_img, z_img, k, self.channels)
+            roi_r = None
+            if roi is not None:
+                rr = cv2.warpAffine(roi.astype(np.uint8), M, (gr_img.shape[1], gr_img.shape[0]), flags=cv2.INTER_NEAREST)
+                hc, wc = F.shape[:2]
+                roi_r = rr[: hc * k, : wc * k].reshape(hc, k, wc, k).max(axis=(1, 3)) > 0
+            Minv = cv2.invertAffineTransform(M)
+            for gi, grp in enumerate(self.groups):
+                raw = correlate_cells(F, grp.weights) + grp.bias
+                p = _sigmoid(grp.platt[0] * raw + grp.platt[1])
+                keep = (p >= CANDIDATE_FLOOR) & (raw == cv2.dilate(raw, np.ones((3, 3), np.uint8)))
+                if roi_r is not None:
+                    keep &= roi_r
+                rows, cols = np.nonzero(keep)
+                for i, j in zip(rows, cols):
+                    x = window_features(F, i, j, grp.cells)
+                    if x is None:
+                        continue
+                    cls, cp = grp.name(x)
+                    xr, yr = (j + 0.5) * k - 0.5, (i + 0.5) * k - 0.5
+                    xo, yo = Minv @ np.array([xr, yr, 1.0])
+                    out.append({"row": float(yo), "col": float(xo), "heading_rad": float(ang), "group": gi,
+                                "raw": float(raw[i, j]), "score": float(p[i, j]), "class": cls,
+                                "class_p": [round(float(v), 4) for v in cp]})
+        return out
+
+    def detect(self, grey: NDArray, ndsm: NDArray, *, roi: NDArray | None = None,
+               min_score: float = CANDIDATE_FLOOR) -> list[dict]:
+        """Detections best first (:meth:`candidates`, then one per vehicle): each with its
+        footprint's ``length_m`` and ``width_m`` (the named class's median size) and
+        ``corners_rc`` (4, 2) in pixels of the input grid."""
+        cands = sorted(self.candidates(grey, ndsm, roi=roi), key=lambda d: -d["score"])
+        kept: list[dict] = []
+        for d in cands:
+            if d["score"] < min_score:
+                break
+            L, W, _ = self.groups[d["group"]].dims[d["class"]]
+            if any(_overlaps(d, L, W, q, self.gsd_m) for q in kept):
+                continue
+            d = dict(d, length_m=L, width_m=W, corners_rc=_corners(d, L, W, self.gsd_m).tolist())
+            kept.append(d)
+        return kept
+
+    # -- files -----------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the model as ``.npz`` (no pickle; JSON metadata) atomically."""
+        p = Path(path)
+        if p.suffix.lower() != ".npz":
+            raise InputError(f"{p}: expected a .npz file name for the model")
+        if p.is_dir():
+            raise InputError(f"{p}: is a folder; give an output file name")
+        meta = {"schema_version": AERIAL_SCHEMA_VERSION, "kind": "aerial_recogniser", "gsd_m": self.gsd_m,
+                "cell_px": self.cell_px, "channels": self.channels, "angle_step_deg": self.angle_step_deg,
+                "groups": [{"classes": list(g.classes), "names": list(g.names), "cells": list(g.cells),
+                            "bias": g.bias, "platt": list(g.platt), "dims": {c: list(v) for c, v in g.dims.items()}}
+                           for g in self.groups],
+                "metadata": self.metadata}
+        arrays = {"meta_json": np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8)}
+        for i, g in enumerate(self.groups):
+            arrays[f"g{i}_weights"] = g.weights.astype(np.float32)
+            arrays[f"g{i}_class_coef"] = g.class_coef.astype(np.float32)
+            arrays[f"g{i}_class_bias"] = g.class_bias.astype(np.float32)
+        with atomic_path(p) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+        return p
+
+    @classmethod
+    def load(cls, path: str | Path) -> AerialModel:
+        """Read a model written by :meth:`save`; a file of another kind or version is refused."""
+        p = Path(path)
+        if not p.is_file():
+            raise InputError(f"{p}: no such model file")
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                meta = json.loads(bytes(z["meta_json"]).decode("utf-8"))
+                arr = {k: z[k] for k in z.files}
+        except (OSError, ValueError, KeyError) as exc:
+            raise InputError(f"{p}: not a prism3d model file ({exc})") from None
+        if meta.get("kind") != "aerial_recogniser":
+            raise InputError(f"{p}: a {meta.get('kind', 'unknown')} model, not an aerial recogniser "
+                             "(train one with 'prism3d bank train --view nadir')")
+        if meta.get("schema_version") != AERIAL_SCHEMA_VERSION:
+            raise InputError(f"{p}: aerial model schema {meta.get('schema_version')}, this prism3d reads "
+                             f"{AERIAL_SCHEMA_VERSION}; train it again")
+        groups = []
+        for i, gm in enumerate(meta["groups"]):
+            groups.append(AerialGroup(tuple(gm["classes"]), tuple(gm["names"]), tuple(gm["cells"]),
+                                      arr[f"g{i}_weights"], float(gm["bias"]), tuple(gm["platt"]),
+                                      arr[f"g{i}_class_coef"], arr[f"g{i}_class_bias"],
+                                      {c: tuple(v) for c, v in gm["dims"].items()}))
+        return cls(float(meta["gsd_m"]), int(meta["cell_px"]), str(meta["channels"]), float(meta["angle_step_deg"]),
+                   tuple(groups), dict(meta.get("metadata", {})))
+
+
+def _boxes(roi: NDArray[np.bool_], reach: int) -> list[tuple[int, int, int, int]]:
+    """Bounding boxes (r0, c0, r1, c1) of the search area's connected parts grown by
+    ``reach`` px, overlapping boxes merged."""
+    n, _, stats, _ = cv2.connectedComponentsWithStats(roi.astype(np.uint8), connectivity=8)
+    H, W = roi.shape
+    boxes = [[max(0, int(stats[i, cv2.CC_STAT_TOP]) - reach), max(0, int(stats[i, cv2.CC_STAT_LEFT]) - reach),
+              min(H, int(stats[i, cv2.CC_STAT_TOP] + stats[i, cv2.CC_STAT_HEIGHT]) + reach),
+              min(W, int(stats[i, cv2.CC_STAT_LEFT] + stats[i, cv2.CC_STAT_WIDTH]) + reach)] for i in range(1, n)]
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    boxes.pop(j)
+                    merged = True
+                    break
+            if merged:
+                break
+    return [tuple(b) for b in boxes]
+
+
+def _sigmoid(x: NDArray) -> NDArray[np.float64]:
+    return 1.0 / (1.0 + np.exp(-np.clip(x, -50, 50)))
+
+
+def correlate_cells(F: NDArray[np.float32], Wt: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Sum over features of each feature plane correlated with its window weights, the
+    window centred on each cell (zero outside)."""
+    out = np.zeros(F.shape[:2], dtype=np.float32)
+    for f in range(F.shape[2]):
+        out += cv2.filter2D(F[..., f], cv2.CV_32F, Wt[..., f], borderType=cv2.BORDER_CONSTANT)
+    return out
+
+
+def window_features(F: NDArray, i: int, j: int, cells: tuple[int, int]) -> NDArray[np.float32] | None:
+    """The flattened cell features of the window centred on cell (i, j); None when it
+    does not fit in the grid."""
+    hr, hc = cells[0] // 2, cells[1] // 2
+    if i - hr < 0 or j - hc < 0 or i + hr >= F.shape[0] or j + hc >= F.shape[1]:
+        return None
+    return F[i - hr:i + hr + 1, j - hc:j + hc + 1].reshape(-1)
+
+
+def _corners(d: dict, L: float, W: float, gsd: float) -> NDArray[np.float64]:
+    """A detection's footprint corners (4, 2) as (row, col) pixels."""
+    a = d["heading_rad"]
+    u = np.array([-math.sin(a), math.cos(a)])  # along the vehicle, (row, col): +x is col, up is -row
+    v = np.array([-math.cos(a), -math.sin(a)])  # across
+    c = np.array([d["row"], d["col"]])
+    hl, hw = L / 2.0 / gsd, W / 2.0 / gsd
+    return np.array([c + u * hl + v * hw, c - u * hl + v * hw, c - u * hl - v * hw, c + u * hl - v * hw])
+
+
+def _overlaps(d: dict, L: float, W: float, q: dict, gsd: float) -> bool:
+    """Whether ``d``'s centre falls in the inner 80 % x 70 % of ``q``'s footprint or
+    ``q``'s in ``d``'s (a second look at the same vehicle), or they are within 0.8 m."""
+    dist = math.hypot(d["row"] - q["row"], d["col"] - q["col"]) * gsd
+    if dist < 0.8:
+        return True
+    for a, b, la, wa in ((d, q, q["length_m"], q["width_m"]), (q, d, L, W)):
+        ang = b["heading_rad"]
+        dr, dc = a["row"] - b["row"], a["col"] - b["col"]
+        along = (dc * math.cos(ang) - dr * math.sin(ang)) * gsd
+        across = (-dc * math.sin(ang) - dr * math.cos(ang)) * gsd
+        if abs(along) <= 0.4 * la and abs(across) <= 0.35 * wa:
+            return True
+    return False

@@ -1,0 +1,247 @@
+"""The aerial recogniser: composed training patches with exact truth, per-cell features that
+follow a heading, a small recogniser trained and searched on patches it never saw
+(vehicles side by side found one by one, at their heading), and its file."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from prism3d.atr.aerial import AerialModel
+from prism3d.atr.aerial_features import cell_features, feature_names, rotate_scene
+from prism3d.atr.aerial_scenes import PatchSpec, compose_patch
+from prism3d.atr.aerial_train import AerialTrainOptions, train_aerial, window_groups
+from prism3d.capture.nadir import render_nadir
+from prism3d.datasets.carpark import person_mesh
+from prism3d.datasets.field import prop_mesh
+from prism3d.datasets.targets import builtin_target
+from prism3d.errors import InputError
+
+GSD = 0.08
+OPTIONS = AerialTrainOptions(gsd_m=GSD, cell_px=6, patches=10, mining_rounds=1, mining_patches=4,
+                             calibration_patches=6, random_negatives=30, seed=3,
+                             patch=PatchSpec(size_m=32.0, missing_dsm_share=0.0))
+
+
+def _items():
+    rng = np.random.default_rng(0)
+    targets = [("car", builtin_target(n, scale="full")) for n in ("car_sedan", "car_kei", "car_suv")]
+    targets.append(("bus", builtin_target("bus_city", scale="full")))
+    negatives = [("tree", prop_mesh("tree", rng, 1)), ("bush", prop_mesh("bush", rng, 2)),
+                 ("person", person_mesh(rng)), ("vehicle:tank", builtin_target("tank_t2", scale="full"))]
+    return targets, negatives
+
+
+@pytest.fixture(scope="module")
+def model() -> AerialModel:
+    return train_aerial(*_items(), OPTIONS)
+
+
+def test_patches_hold_their_truth() -> None:
+    targets, negatives = _items()
+    tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
+    nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
+    p = compose_patch(np.random.default_rng(5), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0, carpark_share=1.0,
+                                                                   missing_dsm_share=0.0, hole_share=(0.0, 0.0)))
+    n = p.rgb.shape[0]
+    assert p.rgb.shape == (n, n, 3) and n == 400 and p.vehicles
+    for v in p.vehicles:
+        r, c = int(round(v["row"])), int(round(v["col"]))
+        if v["visible"] > 0.9 and 5 < r < n - 5 and 5 < c < n - 5:
+            # a vehicle stands its height over its centre (the roof, give or take the DSM's cell)
+            assert p.ndsm[r - 2:r + 3, c - 2:c + 3].max() > 0.6 * v["height_m"]
+    assert {v["cls"] for v in p.vehicles} <= {"car", "bus"}
+
+
+def test_features_turn_with_the_scene() -> None:
+    rng = np.random.default_rng(1)
+    grey = np.zeros((240, 240), np.float32)
+    grey[100:140, 60:180] = 1.0  # a bright bar along x
+    z = np.zeros_like(grey)
+    z[100:140, 60:180] = 1.5
+    along = cell_features(*rotate_scene(grey, z, 0.0)[:2], 8)
+    across = cell_features(*rotate_scene(grey, z, math.pi / 2)[:2], 8)
+    names = feature_names("both")
+    hog = [names.index(f"hog{k}") for k in range(9)]
+    # the bar's long edges are horizontal when it lies along x: the vertical-gradient bin (90 deg) leads
+    assert np.argmax(along[..., hog].sum(axis=(0, 1))) == 4
+    assert np.argmax(across[..., hog].sum(axis=(0, 1))) in (0, 8)
+    assert along[..., names.index("h_max")].max() == pytest.approx(0.75)  # 1.5 m / 2
+    del rng
+
+
+def test_groups_by_length() -> None:
+    targets, _ = _items()
+    groups = window_groups([(c, render_nadir(m, 0.2)) for c, m in targets])
+    assert [sorted({c for c, _ in g}) for g in groups] == [["car"], ["bus"]]
+
+
+def test_finds_each_vehicle_of_a_row_at_its_heading(model: AerialModel) -> None:
+    targets, negatives = _items()
+    tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
+    nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
+    found = total = fp = right = 0
+    inner = lambda r, c: 40 < r < 360 and 40 < c < 360  # noqa: E731 - away from the patch's edges
+    for seed in (101, 102, 103, 104):
+        p = compose_patch(np.random.default_rng(seed), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0,
+                                                                           missing_dsm_share=0.0))
+        dets = [d for d in model.detect(p.rgb.mean(axis=2), p.ndsm) if d["score"] >= 0.5]
+        used = set()
+        for d in dets:
+            best = None
+            for k, v in enumerate(p.vehicles):
+                if k not in used and math.hypot(d["row"] - v["row"], d["col"] - v["col"]) * GSD <= 1.2:
+                    best = k
+                    break
+            if best is None:
+                fp += inner(d["row"], d["col"])
+                continue
+            used.add(best)
+            v = p.vehicles[best]
+            dh = abs(d["heading_rad"] - v["heading_rad"]) % math.pi
+            assert min(dh, math.pi - dh) <= math.radians(20.0)
+            right += inner(v["row"], v["col"]) and v["visible"] >= 0.8 and d["class"] == v["cls"]
+        vis = {k for k, v in enumerate(p.vehicles) if v["visible"] >= 0.8 and inner(v["row"], v["col"])}
+        total += len(vis)
+        found += len(vis & used)
+    assert total >= 30, total
+    assert found / total >= 0.8 and fp <= 0.2 * total and right >= 0.9 * found, (found, total, fp, right)
+
+
+def test_model_file_round_trip_and_refusals(model: AerialModel, tmp_path) -> None:
+    p = model.save(tmp_path / "m.npz")
+    back = AerialModel.load(p)
+    assert back.classes == model.classes and back.channels == "both"
+    rng = np.random.default_rng(0)
+    g = rng.uniform(0, 1, (300, 300)).astype(np.float32)
+    z = np.zeros_like(g)
+    a, b = model.candidates(g, z), back.candidates(g, z)
+    assert [round(x["raw"], 4) for x in a] == [round(x["raw"], 4) for x in b]
+    with pytest.raises(InputError, match="one \\(H, W\\) shape"):
+        model.detect(g, z[:10])
+    (tmp_path / "x.npz").write_bytes(b"not a model")
+    with pytest.raises(InputError, match="not a prism3d model"):
+        AerialModel.load(tmp_path / "x.npz")
+    with pytest.raises(InputError, match="channels"):
+        AerialTrainOptions(channels="sound")
+
+
+# -- survey-detect on a survey folder made from a composed patch ----------------------------
+ORIGIN = (36.0, 140.0, 100.0)
+
+
+def _survey(tmp_path, *, crs: str | None = "local", ortho_shift: float = 0.0):
+    """A survey folder holding a composed car park: the patch's orthophoto (at its GSD) and
+    nDSM (at 0.16 m cells), a flat ground, poses.json with the origin."""
+    import json
+
+    import cv2
+
+    from prism3d.io.geo import local_enu_crs_wkt, write_geotiff
+
+    targets, negatives = _items()
+    tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
+    nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
+    p = compose_patch(np.random.default_rng(104), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0, missing_dsm_share=0.0,
+                                                                       carpark_share=1.0))
+    d = tmp_path / "survey"
+    d.mkdir()
+    wkt = local_enu_crs_wkt(ORIGIN[0], ORIGIN[1]) if crs == "local" else crs
+    west, north = 100.0, 200.0
+    n = p.rgb.shape[0]
+    rgba = np.dstack([np.clip(p.rgb * 255, 0, 255).astype(np.uint8), np.full((n, n), 255, np.uint8)])
+    write_geotiff(d / "ortho.tif", rgba, west=west + ortho_shift, north=north, gsd=GSD, crs_wkt=wkt)
+    k = 2
+    nd = cv2.resize(np.nan_to_num(p.ndsm, nan=0.0), (n // k, n // k), interpolation=cv2.INTER_NEAREST)
+    write_geotiff(d / "ndsm.tif", nd.astype(np.float32), west=west, north=north, gsd=GSD * k,
+                  crs_wkt=local_enu_crs_wkt(ORIGIN[0], ORIGIN[1]), nodata=float("nan"))
+    write_geotiff(d / "ground.tif", np.zeros_like(nd, np.float32), west=west, north=north, gsd=GSD * k,
+                  crs_wkt=local_enu_crs_wkt(ORIGIN[0], ORIGIN[1]), nodata=float("nan"))
+    (d / "poses.json").write_text(json.dumps({"scale": "gps", "origin_lla": list(ORIGIN)}))
+    truth = [(west + (v["col"] + 0.5) * GSD, north - (v["row"] + 0.5) * GSD, v) for v in p.vehicles
+             if v["visible"] >= 0.8]
+    return d, truth
+
+
+def test_survey_detect_writes_vehicles_in_wgs84(model: AerialModel, tmp_path) -> None:
+    import json
+
+    from prism3d.atr.survey_detect import detect_in_survey
+    from prism3d.capture.geotag import wgs84_to_enu
+
+    d, truth = _survey(tmp_path)
+    out, png = tmp_path / "v.geojson", tmp_path / "v.png"
+    s = detect_in_survey(d, out, model, draw=png)
+    assert out.is_file() and png.is_file() and s["n_vehicles"] > 0
+    gj = json.loads(out.read_text())
+    assert gj["type"] == "FeatureCollection" and len(gj["features"]) == s["n_written"]
+    close = 0
+    for f in gj["features"]:
+        p = f["properties"]
+        assert f["geometry"]["type"] == "Point" and p["score"] >= 0.5 and p["class"] in ("car", "bus")
+        assert 0.0 <= p["heading_deg"] < 180.0
+        ring = p["footprint"]["coordinates"][0]
+        assert p["footprint"]["type"] == "Polygon" and len(ring) == 5 and ring[0] == ring[-1]
+        lon, lat = f["geometry"]["coordinates"]
+        e, nn, _ = wgs84_to_enu(np.array([[lat, lon, 0.0]]), np.array(ORIGIN))[0]
+        assert e == pytest.approx(p["x_local"], abs=0.01) and nn == pytest.approx(p["y_local"], abs=0.01)
+        close += min(math.hypot(e - x, nn - y) for x, y, _ in truth) <= 1.6
+    assert close >= 0.8 * len(gj["features"])
+    every = tmp_path / "all.geojson"
+    s2 = detect_in_survey(d, every, model, all_candidates=True)
+    assert s2["n_written"] >= s["n_written"]
+
+
+@pytest.mark.parametrize("case", ["overwrite", "other_crs", "apart", "png_ndsm", "no_gps", "threshold"])
+def test_survey_detect_bad_input_writes_nothing(model: AerialModel, tmp_path, case: str) -> None:
+    import json
+
+    from prism3d.atr.survey_detect import detect_in_survey
+
+    d, _ = _survey(tmp_path, crs="EPSG:4326" if case == "other_crs" else "local",
+                   ortho_shift=500.0 if case == "apart" else 0.0)
+    out = d / "poses.json" if case == "overwrite" else tmp_path / "v.geojson"
+    before = out.read_bytes() if out.exists() else None
+    if case == "png_ndsm":
+        (d / "ndsm.tif").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    if case == "no_gps":
+        (d / "poses.json").write_text(json.dumps({"scale": "unknown", "origin_lla": None}))
+    kw = {"threshold": float("nan")} if case == "threshold" else {}
+    match = {"overwrite": "overwrite the survey", "other_crs": "another coordinate system", "apart": "does not overlap",
+             "png_ndsm": "not a readable GeoTIFF", "no_gps": "scale is unknown", "threshold": "threshold"}[case]
+    with pytest.raises(InputError, match=match):
+        detect_in_survey(d, out, model, **kw)
+    assert (out.read_bytes() if out.exists() else None) == before
+
+
+def test_cli_refuses_unknown_classes_and_models_of_the_other_view(model: AerialModel, tmp_path, capsys) -> None:
+    from prism3d.atr.bank import train_bank
+    from prism3d.cli import main
+    from prism3d.datasets.resolve import resolve_targets
+
+    d, _ = _survey(tmp_path)
+    aerial = model.save(tmp_path / "aerial.npz")
+    bank = train_bank(resolve_targets(["tank_t1", "truck_k1"]), channel="depth", azimuth="0:360:90", bin_deg=90.0,
+                      params=(1.0, 0.0, 0.0)).save(tmp_path / "bank.npz")
+    out = tmp_path / "v.geojson"
+    for args, msg in ((["--targets", "tractor"], "neither a mesh file"),
+                      (["--targets", str(bank)], "trained for ground-level shots"),
+                      (["--targets", str(aerial), "car"], "stands alone")):
+        capsys.readouterr()
+        assert main(["-q", "survey-detect", str(d), *args, "-o", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert msg in err and len(err.splitlines()) == 1
+        assert not out.exists()
+    img, dep = tmp_path / "i.png", tmp_path / "d.npy"
+    import cv2
+
+    cv2.imwrite(str(img), np.zeros((40, 60, 3), np.uint8))
+    np.save(dep, np.full((40, 60), 5000.0, np.float32))
+    assert main(["-q", "detect", "--image", str(img), "--depth", str(dep), "--fx", "50", "--bank", str(aerial),
+                 "-o", str(tmp_path / "d.json")]) == 2
+    assert "aerial recogniser" in capsys.readouterr().err
+    assert main(["-q", "survey-detect", str(d), "--targets", str(aerial), "-o", str(out), "--draw",
+                 str(tmp_path / "v.png")]) == 0
+    assert out.is_file() and (tmp_path / "v.png").is_file()
