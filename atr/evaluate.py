@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 from prism3d.atr.bank import FilterBank, check_targets, render_class_chips
-from prism3d.atr.chips import ChipSpec, as_chip_spec, ground_mesh, render_chips, spec_poses
+from prism3d.atr.chips import ChipSpec, as_chip_spec, bounding_sphere, ground_mesh, render_chips, spec_poses
 from prism3d.atr.poses import parse_range
 
 from prism3d.errors import InputError
@@ -122,6 +122,17 @@ def heldout_seed(seed: int) -> int:
 
 #: Default test chips: the library's chip defaults with the held-out seed of seed 0.
 EVAL_CHIP_SPEC = ChipSpec(seed=heldout_seed(0))
+
+
+def relief_noise_mm(targets: Sequence[tuple[str, object]], sigma: float) -> float:
+    """The depth noise (mm) that is the same share of a chip's depth relief as ``sigma``
+    is of the intensity range: a fit-framed chip spans about 2 r / 0.9 of a target of
+    bounding radius r, and its relief maps that depth range onto [0, 1]; the median over
+    ``targets``. ``bank eval --noise`` perturbs both channels so, not intensity alone."""
+    if not targets or sigma <= 0:
+        return 0.0
+    radii = [bounding_sphere(m)[1] for _, m in targets]
+    return float(sigma * 2.0 * np.median(radii) / 0.9)
 
 
 def evaluate_bank(

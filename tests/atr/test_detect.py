@@ -164,12 +164,14 @@ def test_cli_bad_inputs_exit_2_and_write_nothing(field, small_bank, tmp_path):
 
 def test_detect_on_a_shot_writes_left_view_detections(field, small_bank, tmp_path):
     """The shot route end to end: reconstruct, detect, map back to the left view."""
-    from prism3d.atr.detect import detect_to_file
+    from prism3d.atr.detect import SceneSource, detect_to_file
 
     out_dir = field[0]
     bank = tmp_path / "b.npz"
     small_bank.save(bank)
-    doc = detect_to_file(bank, tmp_path / "det.json", shot=out_dir / "shot.png", calib=out_dir / "rig.yaml")
+    doc = detect_to_file(bank, tmp_path / "det.json", SceneSource(shot=out_dir / "shot.png", calib=out_dir / "rig.yaml"),
+                         draw=tmp_path / "det.png")
+    assert (tmp_path / "det.png").is_file()
     saved = json.loads((tmp_path / "det.json").read_text())
     assert saved["detections"] == doc["detections"]
     assert set(doc["timings_s"]) == {"reconstruct_s", "channels_s", "detect_s"}

@@ -1,0 +1,232 @@
+"""Training a scene recogniser: filter banks over the targets and the classes to refuse,
+then the verifier on the objects of simulated field scenes (hard negatives and positives
+mined with exact truth).
+
+Each mining scene is ``prism3d simulate field`` with the recogniser's targets as its bank
+classes (seeds from :data:`MINING_SEED_BASE`, far from any scene a benchmark scores),
+reconstructed with our matcher as ``detect`` would, cut into objects
+(:func:`~prism3d.atr.scene.scene_channels`), and every object big enough to be judged is
+labelled from the simulator's object ids: the largest piece of a target is a positive of
+its class, a smaller piece is left out, everything else (clutter, ground, siblings, crates,
+fuel tanks) is ``none``. Scenes are independent units on the jobs runner (this process or
+Dask); only their features come back. Method: docs/atr.md "Learning what is not a target".
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.atr.bank import train_bank
+from prism3d.atr.chips import ChipSpec
+from prism3d.atr.scene import scene_channels
+from prism3d.atr.verifier import (
+    NONE,
+    SceneRecogniser,
+    object_features,
+    object_gate,
+    n_size_features,
+    train_prefilter,
+    train_verifier,
+)
+from prism3d.capture.mesh import SceneMesh
+from prism3d.capture.rig import StereoRig
+from prism3d.datasets.field import SHAPE_CONFUSERS, FieldOptions, prop_mesh, simulate_field
+from prism3d.datasets.jobs import RunOptions, run_tasks
+from prism3d.datasets.targets import builtin_target, list_builtin_targets
+from prism3d.errors import InputError
+from prism3d.io.images import read_image
+from prism3d.reconstruct.pipeline import ReconstructOptions, convergence_distance_mm, reconstruct_shot
+
+__all__ = ["MINING_SEED_BASE", "MiningOptions", "default_rejects", "mine_scene", "train_scene_recogniser"]
+
+#: Seeds of the mining scenes start here (benchmarks score scenes 100-119; tests 0-99).
+MINING_SEED_BASE = 1_000_000
+#: Mining scenes a default ``bank train`` simulates.
+DEFAULT_SCENES = 40
+#: Targets and confusers in a mining scene: denser than the scenes scored (3-6 and 1-3), so
+#: each scene's simulation and reconstruction yields more positives and hard negatives.
+MINING_TARGETS, MINING_CONFUSERS = 6, 4
+#: Channels of a default recogniser: the shape image (camouflage removed) and the depth relief.
+DEFAULT_CHANNELS = ("shape", "depth")
+
+
+def default_rejects(targets: Sequence[tuple[str, SceneMesh]], *, seed: int = 0) -> list[tuple[str, SceneMesh]]:
+    """What a recogniser of ``targets`` learns to refuse: every military built-in that is not a
+    target (by its own name, so a sibling is a class of its own) and the crates and fuel
+    tanks of the field scenes, at the targets' scale (full size or kit)."""
+    names = {m.name for _, m in targets}
+    full = all(float(m.metadata.get("scale", 1.0) or 1.0) == 1.0 for _, m in targets)
+    out = [(n, builtin_target(n, scale="full" if full else "model")) for n in list_builtin_targets("military")
+           if n not in names]
+    rng = np.random.default_rng([seed, 43])
+    for kind in SHAPE_CONFUSERS:
+        m = prop_mesh(kind, rng, seed)
+        if not full:
+            k = float(np.median([float(t.metadata.get("scale", 1.0) or 1.0) for _, t in targets]))
+            m = SceneMesh(m.vertices * k, m.faces, m.vertex_albedo, m.albedo_field, m.name, dict(m.metadata))
+        out.append((kind, m))
+    return out
+
+
+def _labels_rect(rig: StereoRig, K_rect: NDArray, R1: NDArray, oid_left: NDArray, shape: tuple[int, int],
+                 step: int = 2) -> NDArray[np.int32]:
+    """The simulator's left-view object ids seen through the rectified grid (every ``step``
+    px, nearest): each rectified pixel's ray turned back into the left camera and projected
+    with its distortion."""
+    h, w = shape
+    ys, xs = np.mgrid[0:h:step, 0:w:step]
+    q = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)], axis=1) @ np.linalg.inv(K_rect).T
+    pc = q @ np.asarray(R1, dtype=np.float64)  # R1^T applied to rows
+    uv = rig.left.project(pc)
+    H, W = oid_left.shape
+    c = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, W - 1)
+    r = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, H - 1)
+    ok = np.isfinite(uv).all(axis=1)
+    out = np.full(xs.size, -1, np.int32)
+    out[ok] = oid_left[r[ok], c[ok]]
+    return out.reshape(xs.shape)
+
+
+def mine_scene(folder: str | Path, recogniser: SceneRecogniser) -> tuple[NDArray[np.float64], list[str], dict]:
+    """The labelled verifier rows of one field scene folder (module docstring)."""
+    import json
+
+    d = Path(folder)
+    rig = StereoRig.load(d / "rig.yaml")
+    truth = json.loads((d / "truth.json").read_text())
+    wd = convergence_distance_mm(rig)
+    rec = reconstruct_shot(read_image(d / "shot.png"), rig, ReconstructOptions(depth_range_mm=(0.3 * wd, 10 * wd)))
+    grey = rec.left_rect.astype(np.float32)
+    grey = grey @ np.array([0.299, 0.587, 0.114], np.float32) if grey.ndim == 3 else grey
+    K = np.asarray(rec.rect.P1, dtype=np.float64)[:, :3]
+    sc = scene_channels(grey / 255.0, rec.depth_mm, K)
+    with np.load(d / "truth.npz") as tz:
+        ids = _labels_rect(rig, K, np.asarray(rec.rect.R1), tz["object_id_left"], sc.labels.shape)
+    lab_small = sc.labels[::2, ::2]
+    by_index = {int(t["object_index"]): t for t in truth["targets"]}
+    # the majority truth id of every object, and each target's largest object
+    n = len(sc.object_dims_mm)
+    major = np.zeros(n, np.int64)
+    for lab in range(1, n):
+        v = ids[lab_small == lab]
+        v = v[v >= 0]
+        major[lab] = int(np.bincount(v).argmax()) if v.size else 0
+    largest: dict[int, int] = {}
+    for lab in range(1, n):
+        k = int(major[lab])
+        if k in by_index and (k not in largest or sc.object_npx[lab] > sc.object_npx[largest[k]]):
+            largest[k] = lab
+    X, y = [], []
+    counts = {"positive": 0, "negative": 0, "piece": 0}
+    for lab in range(1, n):
+        if not object_gate(sc, lab):
+            continue
+        t = by_index.get(int(major[lab]))
+        if t is not None and not t["confuser"] and (largest.get(int(major[lab])) != lab or t["difficult"]):
+            counts["piece"] += 1
+            continue
+        label = NONE if t is None or t["confuser"] else str(t["class"])
+        if label != NONE and label not in recogniser.targets:
+            label = NONE
+        X.append(object_features(recogniser.banks, recogniser.targets, sc, lab))
+        y.append(label)
+        counts["positive" if label != NONE else "negative"] += 1
+    return np.asarray(X, dtype=np.float64).reshape(len(X), -1), y, counts
+
+
+def _mine_unit(work: str, seed: int, options: dict[str, Any], recogniser_path: str) -> dict[str, Any]:
+    """One mining scene (a jobs-runner unit): simulate, mine, delete; features back."""
+    t0 = time.perf_counter()
+    d = Path(work) / f"scene_{seed}"
+    shutil.rmtree(d, ignore_errors=True)
+    opts = FieldOptions(**{**{k: (tuple(v) if isinstance(v, list) else v) for k, v in options.items()}, "seed": seed})
+    try:
+        simulate_field(d, opts)
+        X, y, counts = mine_scene(d, SceneRecogniser.load(recogniser_path))
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+    return {"seed": seed, "X": X.tolist(), "y": y, "counts": counts, "seconds": time.perf_counter() - t0}
+
+
+@dataclass(frozen=True)
+class MiningOptions:
+    """How a scene recogniser is trained (one place per default)."""
+
+    scenes: int = DEFAULT_SCENES
+    """Mining scenes simulated for the verifier."""
+    channels: tuple[str, ...] = DEFAULT_CHANNELS
+    """Filter channels (one bank each)."""
+    chip_spec: ChipSpec | None = None
+    """Training chips of the banks (None: the bank's default)."""
+    bank_options: dict[str, Any] = field(default_factory=dict)
+    """Other :func:`~prism3d.atr.bank.train_bank` arguments (azimuth, elevation, bin_deg)."""
+    field_options: dict[str, Any] = field(default_factory=dict)
+    """Overrides of the mining scenes' :class:`~prism3d.datasets.field.FieldOptions` (a smaller
+    sensor in tests)."""
+    C: float = 0.1
+    """Inverse L2 strength of the verifier's logistic regression."""
+
+
+def train_scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], specs: Sequence[str], *,
+                           rejects: Sequence[tuple[str, SceneMesh]] | None = None,
+                           options: MiningOptions | None = None, run: RunOptions | None = None,
+                           progress: Callable[[int, int, str], None] | None = None) -> SceneRecogniser:
+    """Banks over ``targets`` + ``rejects`` (default :func:`default_rejects`) in each of the
+    options' channels, then the verifier mined from the options' ``scenes`` field scenes
+    whose bank classes are ``specs`` (the targets as ``simulate field --classes`` takes
+    them: built-in names or ``FILE=CLASS:UNITS:UP:FORWARD`` at full size)."""
+    o = MiningOptions() if options is None else options
+    scenes, channels, chip_spec, bank_options, C = o.scenes, o.channels, o.chip_spec, o.bank_options, o.C
+    field_options = o.field_options
+    if isinstance(scenes, bool) or int(scenes) != scenes or not 1 <= int(scenes) <= 10_000:
+        raise InputError(f"scenes: expected 1-10000 mining scenes, got {scenes!r}")
+    if not targets:
+        raise InputError("bank train: no targets")
+    t0 = time.perf_counter()
+    rej = default_rejects(targets) if rejects is None else list(rejects)
+    classes = sorted({c for c, _ in targets})
+    clash = sorted({c for c, _ in rej} & set(classes))
+    if clash:
+        raise InputError(f"bank train: {', '.join(clash)} is both a target class and a class to refuse")
+    items = list(targets) + list(rej)
+    banks = tuple(train_bank(items, channel=ch, chip_spec=chip_spec, **(bank_options or {})) for ch in channels)
+    if progress:
+        progress(0, int(scenes) + 1, "filter banks trained")
+    placeholder = SceneRecogniser(banks, tuple(classes), train_verifier(np.zeros((2, 1)), [classes[0], NONE], classes),
+                                  {})
+    run = RunOptions() if run is None else run
+    with tempfile.TemporaryDirectory(prefix="prism3d-mining-") as work:
+        rpath = Path(work) / "banks.npz"
+        placeholder.save(rpath)
+        opts = asdict(FieldOptions(**{"classes": tuple(specs), "targets": MINING_TARGETS,
+                                      "confusers": MINING_CONFUSERS, **(field_options or {})}))
+        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in opts.items() if k != "seed"}
+        tasks = [(f"scene {MINING_SEED_BASE + k}", "mining scene", _mine_unit,
+                  (work, MINING_SEED_BASE + k, opts, str(rpath))) for k in range(int(scenes))]
+        report = run_tasks("mining", tasks, replace(run, progress=run.progress or progress))
+    if not report.ok:
+        raise InputError(f"bank train: mining failed ({report.failure_line()})")
+    rows = sorted(report.stats, key=lambda r: r["seed"])
+    X = np.vstack([np.asarray(r["X"], dtype=np.float64).reshape(len(r["y"]), -1) for r in rows if r["y"]])
+    y = [lab for r in rows for lab in r["y"]]
+    verifier = train_verifier(X, y, classes, C=C)
+    n_size = n_size_features(len(classes))
+    prefilter, threshold = train_prefilter(X[:, :n_size], y)
+    meta = {"targets": [[c, m.name] for c, m in targets], "rejects": [[c, m.name] for c, m in rej],
+            "channels": list(channels), "mining": {"scenes": int(scenes), "seed_base": MINING_SEED_BASE,
+                                                   "field_classes": list(specs),
+                                                   "rows": {"positive": sum(v != NONE for v in y),
+                                                            "negative": sum(v == NONE for v in y)},
+                                                   "per_scene": [{"seed": r["seed"], **r["counts"],
+                                                                  "seconds": round(r["seconds"], 1)} for r in rows]},
+            "verifier_C": C, "seconds": round(time.perf_counter() - t0, 1)}
+    return SceneRecogniser(banks, tuple(classes), verifier, meta, prefilter, threshold)
