@@ -140,7 +140,7 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
         raise InputError("simulate flight: --count, --classes, --workers and --scheduler are for field scenes")
     given = {"frames": args.frames, "lines": args.lines, "altitude_m": args.altitude, "overlap": args.overlap,
              "side_overlap": args.side_overlap, "heading_deg": args.heading, "targets": args.targets,
-             "confusers": args.confusers, "supersample": args.supersample}
+             "confusers": args.confusers, "supersample": args.supersample, "scene": args.scene}
     if args.size is not None:
         m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", args.size)
         if m is None:
@@ -149,7 +149,7 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
     fo = FlightOptions(seed=args.seed, noise=args.noise, depth=args.depth,
                        **{k: v for k, v in given.items() if v is not None})
     summary = simulate_flight(args.out_dir, fo, progress=_progress(args, "simulate flight"))
-    _say(args, f"wrote a {summary['n_frames']}-frame flight ({summary['n_targets']} targets, "
+    _say(args, f"wrote a {summary['n_frames']}-frame flight over {fo.scene} ({summary['n_targets']} vehicles, "
                f"GSD {100 * summary['gsd_m']:.1f} cm) to {args.out_dir} in {summary['seconds']:.1f} s")
     return 0
 
@@ -157,6 +157,8 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     if args.kind == "flight":
         return _cmd_simulate_flight(args)
+    if args.scene is not None:
+        raise InputError(f"simulate {args.kind}: --scene is for flights (field or carpark)")
     if args.kind == "field":
         from prism3d.datasets.field import FieldOptions, simulate_field
 
@@ -249,6 +251,9 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--frames", type=int, help="flight: photographs in all, split evenly between the lines "
                    "(default 12)")
     p.add_argument("--lines", type=int, help="flight: parallel flight lines, flown back and forth (default 2)")
+    p.add_argument("--scene", choices=["field", "carpark"], default=None,
+                   help="flight: camouflaged military vehicles on open ground (field, default) or a car park of "
+                   "parked civilian vehicles in rows, trees, people and poles (carpark)")
     p.add_argument("--altitude", type=float, metavar="M", help="flight: height above the mean ground, m "
                    "(default 100: GSD 3.6 cm)")
     p.add_argument("--overlap", type=float, metavar="F", help="flight: forward overlap (default 0.70)")
@@ -719,7 +724,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from prism3d.datasets.resolve import resolve_model
 
     if Path(args.model).is_file():
-        model: Any = resolve_model(args.model, units=args.units, up=args.up, seed=args.seed,
+        model: Any = resolve_model(args.model, units=args.units, up=args.up, forward=args.forward, seed=args.seed,
                                    length_mm=args.length_mm)[1]  # flags, sidecar, PLY header; rescaled
     else:
         if args.length_mm is not None:
@@ -753,6 +758,8 @@ def _add_render(sub: Any) -> None:
     p.add_argument("--channels", nargs="+", default=list(_CHANNELS), choices=_CHANNELS)
     p.add_argument("--units", choices=_UNITS, help="units of a mesh file")
     p.add_argument("--up", choices=_UP_AXES, help="up axis of a mesh file that does not declare it")
+    p.add_argument("--forward", choices=["x", "-x", "y", "-y", "z", "-z"],
+                   help="the axis a mesh file's nose points along, where it does not declare it")
     p.add_argument("--length-mm", type=float, metavar="MM",
                    help="rescale a mesh file to this length (longest horizontal extent); its units then do not matter")
     p.add_argument("--format", choices=["npz", "png"], default="npz", help="chip files (default npz)")
@@ -767,13 +774,12 @@ def _cmd_bank(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from prism3d.atr.bank import check_bank_command
-    from prism3d.datasets.resolve import resolve_targets
 
     check_bank_command(args.action, output=args.output, bank=args.bank,
                        results=args.json)
+    _finish_targets(args)
     if args.action == "eval-scenes":
         from prism3d.datasets.field import eval_scene_folders
-
         from prism3d.datasets.jobs import RunOptions
 
         res = eval_scene_folders(args.bank, args.scenes, out_json=args.json, run=RunOptions(
@@ -786,67 +792,114 @@ def _cmd_bank(args: argparse.Namespace) -> int:
         return 0
     if args.scenes:
         raise InputError(f"bank {args.action}: unexpected arguments {' '.join(args.scenes)}")
-    if args.workers or args.scheduler:
-        raise InputError(f"bank {args.action}: --workers and --scheduler are for eval-scenes")
     if args.action == "train":
-        from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
+        return _bank_train(args)
+    if args.workers or args.scheduler:
+        raise InputError("bank eval: --workers and --scheduler are for train and eval-scenes")
+    from prism3d.atr.evaluate import EVAL_CHIP_SPEC, evaluate_bank, format_results, heldout_seed, relief_noise_mm
+    from prism3d.atr.models import load_scene_model, model_kind
+    from prism3d.atr.verifier import SceneRecogniser
 
-        targets = resolve_targets(args.targets, units=args.units, up=args.up, seed=args.seed,
-                                  length_mm=args.length_mm)
-        grid = {k: v for k, v in (("azimuth", args.azimuth), ("elevation", args.elevation)) if v is not None}
-        spec = replace(BANK_CHIP_SPEC, size=args.size, camouflage=args.camouflage)
-        bank = train_bank(targets, channel=args.channel, bin_deg=args.bin_deg, chip_spec=spec, **grid)
-        bank.save(args.output)
-        _say(args, f"wrote {args.output}: {len(bank.classes)} classes, channel {args.channel}")
-        return 0
-    from prism3d.atr.bank import FilterBank
-    from prism3d.atr.evaluate import EVAL_CHIP_SPEC, evaluate_bank, format_results, heldout_seed
-
-    bank = FilterBank.load(args.bank)
-    targets = resolve_targets(args.targets, units=args.units, up=args.up, seed=heldout_seed(args.seed),
-                              length_mm=args.length_mm)
+    if model_kind(args.bank) == "aerial_recogniser":
+        raise InputError(f"{args.bank}: an aerial recogniser; bank eval scores ground-level banks (score an aerial "
+                         "one with survey-detect on a simulated flight: benchmarks/bench_carpark.py)")
+    model = load_scene_model(args.bank)
+    bank = model.banks[0] if isinstance(model, SceneRecogniser) else model
+    args.seed = heldout_seed(args.seed)
+    targets = _targets_for(args)
+    if isinstance(model, SceneRecogniser):  # a refused built-in is scored as the class of its own it is in the bank
+        targets = [(m.name if m.name in bank.classes and c not in bank.classes else c, m) for c, m in targets]
     spec = replace(EVAL_CHIP_SPEC, camouflage=args.camouflage, noise_sigma=args.noise,
-                   clutter="noise" if args.clutter else None)
+                   depth_noise_mm=relief_noise_mm(targets, args.noise), clutter="noise" if args.clutter else None)
     res = evaluate_bank(bank, targets, azimuth=args.azimuth, elevation=args.elevation, chip_spec=spec,
                         out_json=args.json)
     _say(args, format_results(res))
     return 0
 
 
+def _bank_train(args: argparse.Namespace) -> int:
+    """``bank train``: filters alone (``--scenes 0``), a scene recogniser (filters over the
+    targets and what to refuse, a verifier mined from simulated scenes) or, ``--view nadir``,
+    an aerial recogniser."""
+    from dataclasses import replace
+
+    from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
+    from prism3d.datasets.jobs import RunOptions
+    from prism3d.datasets.mining import DEFAULT_SCENES
+    from prism3d.datasets.recognisers import aerial_recogniser, scene_recogniser
+
+    grid = {k: v for k, v in (("azimuth", args.azimuth), ("elevation", args.elevation), ("bin_deg", args.bin_deg))
+            if v is not None}
+    if args.view == "nadir":
+        if grid or args.scenes_n is not None or args.channel is not None:
+            raise InputError("bank train --view nadir: the aerial recogniser takes no --azimuth, --elevation, "
+                             "--bin-deg, --scenes or --channel")
+        model, _ = aerial_recogniser(_targets_for(args, scale="full"), cache=False,
+                                     progress=_progress(args, "bank train (aerial)"))
+        model.save(args.output)
+        _say(args, f"wrote {args.output}: aerial recogniser of {', '.join(model.classes)}")
+        return 0
+    targets = _targets_for(args)
+    spec = replace(BANK_CHIP_SPEC, size=args.size, camouflage=args.camouflage)
+    scenes = DEFAULT_SCENES if args.scenes_n is None else args.scenes_n
+    if scenes == 0:
+        bank = train_bank(targets, channel=args.channel or "depth", chip_spec=spec, **grid)
+        bank.save(args.output)
+        _say(args, f"wrote {args.output}: {len(bank.classes)} classes, channel {bank.channel} (filters only)")
+        return 0
+    if args.channel is not None:
+        raise InputError("bank train: --channel is for the filters alone (--scenes 0); a recogniser uses --channels")
+    run = RunOptions(workers=args.workers, scheduler=args.scheduler)
+    model, _ = scene_recogniser(targets, scenes=scenes, channels=args.channels, chip_spec=spec, bank_options=grid,
+                                run=run, cache=False, progress=_progress(args, "bank train"))
+    model.save(args.output)
+    rows = model.metadata["mining"]["rows"]
+    _say(args, f"wrote {args.output}: recogniser of {', '.join(model.targets)} refusing "
+               f"{len(model.banks[0].classes) - len(model.targets)} classes; channels {', '.join(model.channels)}; "
+               f"verifier from {scenes} scenes ({rows['positive']} target and {rows['negative']} other objects)")
+    return 0
+
+
 def _add_bank(sub: Any) -> None:
     p = _command(sub, "bank", _cmd_bank,
-                 help="correlation filter banks: train on rendered models, evaluate",
-                 description="train: render the targets at the training poses and build one OT-MACH "
-                 "filter per class and aspect bin (parameters chosen on held-out views); eval: "
-                 "classify unseen poses (azimuths between the training ones) and report Pcc, confusion, "
-                 "per-aspect accuracy and ROC (results JSON + plots beside it).")
+                 help="train a recogniser on rendered models (and simulated scenes); evaluate it",
+                 description="train: OT-MACH filters (one per class and aspect bin, parameters chosen on held-out "
+                 "views) over the targets and over what to refuse (the other built-in vehicles, crates, fuel "
+                 "tanks), in the shape and depth channels, and a verifier on their responses, the objects' 3D size "
+                 "and range, mined from --scenes simulated field scenes (--scenes 0: the filters alone, the paper's "
+                 "bank); --view nadir: an aerial recogniser for survey-detect. eval: classify unseen poses and report "
+                 "Pcc, confusion, per-aspect accuracy and ROC; eval-scenes: detect in scene folders, Pd vs false "
+                 "positives per image. Method: docs/atr.md.")
     p.add_argument("action", choices=["train", "eval", "eval-scenes"])
-    p.add_argument("bank", nargs="?", type=Path, metavar="BANK_NPZ", help="eval, eval-scenes: the bank file")
+    p.add_argument("bank", nargs="?", type=Path, metavar="MODEL_NPZ", help="eval, eval-scenes: the model file")
     p.add_argument("scenes", nargs="*", metavar="SCENE_DIR",
                    help="eval-scenes: scene folders from 'prism3d simulate field' (detect, then Pd vs FPPI)")
-    p.add_argument("--targets", nargs="+", default=["builtin"],
-                   help="'builtin', built-in names, or mesh files FILE[=CLASS[:UNITS[:UP]]] (default builtin)")
-    p.add_argument("-o", "--output", type=Path, metavar="BANK_NPZ", help="train: output bank")
-    p.add_argument("--channel", choices=["intensity", "depth", "shape"], default="depth")
+    _add_target_options(p, ["builtin"])
+    p.add_argument("-o", "--output", type=Path, metavar="MODEL_NPZ", help="train: output model")
+    p.add_argument("--view", choices=["ground", "nadir"], default="ground",
+                   help="train: ground-level shots (default) or a survey's orthophoto and nDSM (nadir)")
+    p.add_argument("--scenes", dest="scenes_n", type=int, default=None, metavar="N",
+                   help="train: simulated field scenes the verifier is mined from (default 40; 0: filters alone)")
+    p.add_argument("--channels", nargs="+", default=["shape", "depth"], choices=["intensity", "depth", "shape"],
+                   help="train: a recogniser's filter channels (default shape depth)")
+    p.add_argument("--channel", choices=["intensity", "depth", "shape"], default=None,
+                   help="train --scenes 0: the filters' channel (default depth)")
     p.add_argument("--azimuth", default=None, metavar="A0:A1:STEP",
                    help="train default 0:360:10; eval default: between the training azimuths")
     p.add_argument("--elevation", default=None, metavar="E0:E1:STEP", help="train default 20")
-    p.add_argument("--bin-deg", type=float, default=10.0, help="aspect bin width, degrees (default 10)")
+    p.add_argument("--bin-deg", type=float, default=None, help="aspect bin width, degrees (default 10)")
     p.add_argument("--size", type=int, default=64, help="chip side, px (default 64)")
     p.add_argument("--camouflage", dest="camouflage", action="store_true", default=True)
     p.add_argument("--no-camouflage", dest="camouflage", action="store_false")
-    p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA", help="eval: intensity noise std")
+    p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
+                   help="eval: noise std, as a share of the intensity range and of the depth relief")
     p.add_argument("--clutter", action="store_true", help="eval: clutter backgrounds and clutter-only chips")
-    p.add_argument("--units", choices=_UNITS, help="units of mesh files")
-    p.add_argument("--up", choices=_UP_AXES, help="up axis of mesh files")
-    p.add_argument("--length-mm", type=float, metavar="MM",
-                   help="rescale every mesh file to this length (longest horizontal extent); units then do not matter")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, metavar="RESULTS_JSON",
                    help="eval, eval-scenes: write results (+ plots beside it)")
     p.add_argument("--workers", type=int, default=0,
-                   help="eval-scenes: local Dask workers, one scene each (0 = in this process)")
-    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="eval-scenes: an existing Dask scheduler")
+                   help="train (mining scenes), eval-scenes: local Dask workers, one scene each (0 = in this process)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="train, eval-scenes: an existing Dask scheduler")
 
 
 # --- detect ----------------------------------------------------------------------------------
@@ -863,32 +916,54 @@ def _parse_depth_range(text: str | None) -> tuple[float, float] | None:
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
-    from prism3d.atr.detect import detect_to_file
+    from prism3d.atr.detect import SceneSource, detect_to_file
+    from prism3d.atr.models import load_scene_model, model_kind
 
-    doc = detect_to_file(args.bank, args.output, shot=args.shot, calib=args.calib, image=args.image,
-                         depth=args.depth, fx=args.fx, depth_range_mm=_parse_depth_range(args.depth_range))
+    _finish_targets(args)
+    if args.bank is not None:
+        if args.targets_given or args.db is not None:
+            raise InputError("detect: give --bank (a trained model) or --targets/--db, not both")
+        model, how = load_scene_model(args.bank), str(args.bank)
+    elif len(args.targets) == 1 and model_kind(args.targets[0]) is not None:
+        model, how = load_scene_model(args.targets[0]), args.targets[0]
+    else:
+        from prism3d.atr.bank import BANK_CHIP_SPEC
+        from prism3d.datasets.mining import DEFAULT_SCENES
+        from prism3d.datasets.recognisers import scene_recogniser
+
+        model, info = scene_recogniser(_targets_for(args), scenes=DEFAULT_SCENES, channels=("shape", "depth"),
+                                       chip_spec=BANK_CHIP_SPEC, cache=not args.no_cache,
+                                       progress=_progress(args, "training the recogniser"))
+        how = "cached recogniser" if info["cached"] else "recogniser trained now"
+    src = SceneSource(shot=args.shot, calib=args.calib, image=args.image, depth=args.depth, fx=args.fx)
+    doc = detect_to_file(model, args.output, src, depth_range_mm=_parse_depth_range(args.depth_range),
+                         draw=args.draw, source_name=how)
     t = doc["timings_s"]
-    _say(args, f"wrote {args.output}: {len(doc['detections'])} detections (channel {doc['channel']}; "
+    _say(args, f"wrote {args.output}: {len(doc['detections'])} detections ({how}; "
                + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in t.items()) + ")")
     return 0
 
 
 def _add_detect(sub: Any) -> None:
     p = _command(sub, "detect", _cmd_detect,
-                 help="find and identify a bank's targets in a whole shot (or image + depth map)",
-                 description="Reconstruct the shot, find the ground and the objects standing on it, "
-                 "then slide every filter of the bank over the scene at the scale the range at each "
-                 "pixel gives (one bank serves all ranges). Writes detections (pixel, 3D point, class, "
-                 "aspect, score), best first, down to a low score: threshold them, or score them with "
-                 "'bank eval-scenes'. Method: docs/atr.md.")
+                 help="find and identify targets in a whole shot (or image + depth map)",
+                 description="Reconstruct the shot, find the ground and the objects standing on it, then judge "
+                 "each object with a recogniser (filter responses over the targets and what to refuse, 3D size, "
+                 "range; 'bank train') or slide a bank's filters over the scene. Writes detections (pixel, 3D "
+                 "point, class, score), best first: threshold them, or score them with 'bank eval-scenes'. "
+                 "Method: docs/atr.md.")
     p.add_argument("shot", nargs="?", type=Path, metavar="SHOT", help="prism shot (with --calib)")
     p.add_argument("--calib", type=Path, help="rig or calibration YAML of the shot")
-    p.add_argument("--bank", type=Path, required=True, help="filter bank (.npz from 'bank train')")
+    p.add_argument("--bank", type=Path, help="a trained bank or recogniser (.npz from 'bank train')")
+    _add_target_options(p, ["builtin"])
+    p.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--no-cache", action="store_true", help="with --targets: train again, and do not keep it")
     p.add_argument("--image", type=Path, help="instead of a shot: an image ...")
     p.add_argument("--depth", type=Path, help="... with its depth map in mm (.npy, .tiff, .pfm, .npz[:key])")
     p.add_argument("--fx", type=float, help="focal length of --image, px")
     p.add_argument("--depth-range", metavar="NEAR:FAR",
                    help="shot: depths searched, metres (default 0.3x to 10x the rig's convergence distance)")
+    p.add_argument("--draw", type=Path, metavar="PNG", help="also draw the detections on the image")
     _output_option(p, "DETECTIONS_JSON")
 
 
@@ -898,6 +973,7 @@ def _cmd_survey(args: argparse.Namespace) -> int:
 
     opts = SurveyOptions(max_image_size=args.max_image_size, dense_max_pixels=args.dense_max_pixels,
                          pair_steps=tuple(args.pair_steps), cross_pairs=args.cross_pairs, cell_m=args.cell,
+                         ortho_gsd_m=args.ortho_gsd,
                          refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point)
     run_pairs = None
     if args.workers or args.scheduler:
@@ -924,7 +1000,8 @@ def _add_survey(sub: Any) -> None:
                  "frame by the GPS (--gps table or EXIF; without either the scale is unknown and every "
                  "output says so); each frame matched with the next and the next-but-one by our stereo "
                  "matcher, the pairs' heights fused with a consistency check. Writes OUT/poses.json, "
-                 "cloud.ply, cloud.las, dsm.tif, ground.tif, ndsm.tif, ortho.tif, survey.png, depth/ "
+                 "cloud.ply, cloud.las, dsm.tif, ground.tif, ndsm.tif, ortho.tif (a true orthophoto at the photographs' "
+                 "own ground sample distance), ortho_quality.tif, survey.png, depth/ "
                  "and colmap/ (a COLMAP text model). Method: docs/uav.md.")
     p.add_argument("images", nargs="+", type=Path, metavar="IMAGE_OR_VIDEO",
                    help="frames in flight order, or one video (.mp4 .mov .avi .mkv .m4v)")
@@ -936,6 +1013,8 @@ def _add_survey(sub: Any) -> None:
     p.add_argument("--gps", type=Path, metavar="TABLE", help="positions table (senseFly geoinfo.txt or CSV "
                    "with fileName, latitude, longitude, altitude; default: the frames' EXIF GPS)")
     p.add_argument("--cell", type=float, metavar="M", help="DSM cell, metres (default: twice the matched frames' ground sample distance)")
+    p.add_argument("--ortho-gsd", type=float, metavar="M",
+                   help="orthophoto cell, metres (default: the photographs' own ground sample distance)")
     p.add_argument("--pair-steps", type=int, nargs="+", default=[1, 2], metavar="K",
                    help="pair each frame with the one K later (default 1 2: the next and the next-but-one)")
     p.add_argument("--cross-pairs", action=argparse.BooleanOptionalAction, default=True,
@@ -955,35 +1034,89 @@ def _add_survey(sub: Any) -> None:
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="dense pairs on an existing Dask scheduler")
 
 
-def _cmd_survey_detect(args: argparse.Namespace) -> int:
-    from prism3d.atr.survey_detect import DEFAULT_VEHICLES, detect_in_survey
-    from prism3d.datasets.targets import builtin_target, list_builtin_targets
+def _targets_for(args: argparse.Namespace, *, scale: str = "model") -> list:
+    """The command's target list: ``--db`` or ``--targets`` specs (the datasets.resolve rules)."""
+    from prism3d.datasets.resolve import resolve_db_targets, resolve_targets
 
-    names = args.targets or list(DEFAULT_VEHICLES)
-    bad = [n for n in names if n not in list_builtin_targets()]
-    if bad:
-        raise InputError(f"--targets: unknown built-in {', '.join(bad)}; valid: {', '.join(list_builtin_targets())}")
-    s = detect_in_survey(args.survey, args.output, [(n, builtin_target(n, scale="full")) for n in names],
-                         min_height_m=args.min_height)
-    _say(args, f"wrote {args.output}: {s['n_scored']} vehicle-sized objects scored "
-               f"({s['n_detections']} standing objects, {s['cell']:g} m cells, {s['seconds']:.1f} s)")
+    if getattr(args, "db", None) is not None:
+        if args.targets_given:
+            raise InputError("give --targets or --db, not both")
+        return resolve_db_targets(args.db, scale=scale)
+    return resolve_targets(args.targets, units=args.units, up=args.up, forward=args.forward, seed=args.seed,
+                           length_mm=args.length_mm, scale=scale)
+
+
+def _add_target_options(p: argparse.ArgumentParser, default: list[str], *, db: bool = True) -> None:
+    """The one target list of bank, detect and survey-detect (datasets/resolve.py)."""
+    p.add_argument("--targets", nargs="+", default=None, metavar="SPEC",
+                   help="built-in names (tank_t1, car_kei), classes (car van truck bus tank jet ship), 'builtin' "
+                   "(the military set), 'civilian', or mesh files FILE[=CLASS[:UNITS[:UP[:FORWARD]]]] "
+                   f"(default: {' '.join(default)})")
+    if db:
+        p.add_argument("--db", type=Path, metavar="DB", help="the targets of a target database instead")
+    p.add_argument("--units", choices=_UNITS, help="units of mesh files that do not declare them")
+    p.add_argument("--up", choices=_UP_AXES, help="up axis of mesh files that do not declare it")
+    p.add_argument("--forward", choices=["x", "-x", "y", "-y", "z", "-z"],
+                   help="the axis a mesh file's nose points along, where it does not declare it")
+    p.add_argument("--length-mm", type=float, metavar="MM",
+                   help="rescale every mesh file to this length (longest horizontal extent); units then do not matter")
+    p.set_defaults(target_default=list(default))
+
+
+def _finish_targets(args: argparse.Namespace) -> None:
+    args.targets_given = args.targets is not None
+    if args.targets is None:
+        args.targets = list(args.target_default)
+
+
+def _cmd_survey_detect(args: argparse.Namespace) -> int:
+    from prism3d.atr.aerial import AerialModel
+    from prism3d.atr.survey_detect import detect_in_survey
+    from prism3d.datasets.recognisers import aerial_recogniser
+    from prism3d.atr.models import model_kind
+
+    _finish_targets(args)
+    models = [t for t in args.targets if model_kind(t) is not None]
+    if models:
+        if len(args.targets) != 1 or args.db is not None:
+            raise InputError("--targets: a trained model file stands alone (it names its own classes)")
+        kind = model_kind(models[0])
+        if kind != "aerial_recogniser":
+            raise InputError(f"{models[0]}: a {kind} model, trained for ground-level shots; survey-detect needs an "
+                             "aerial recogniser ('prism3d bank train --view nadir')")
+        model, how = AerialModel.load(models[0]), "model file"
+    else:
+        targets = _targets_for(args, scale="full")
+        model, info = aerial_recogniser(targets, cache=not args.no_cache,
+                                        progress=_progress(args, "training the aerial recogniser"))
+        how = "cached" if info["cached"] else "trained now" + (f", cached in {info['path']}" if info["path"] else "")
+    s = detect_in_survey(args.survey, args.output, model, threshold=args.threshold,
+                         all_candidates=args.all_candidates, draw=args.draw)
+    by = ", ".join(f"{c} {n}" for c, n in sorted(s["by_class"].items())) or "none"
+    _say(args, f"wrote {args.output}: {s['n_vehicles']} vehicles ({by}) at score >= {s['threshold']:.2f}"
+               + (f", {s['n_written']} candidates in all" if args.all_candidates else "")
+               + f"; recogniser {how}; {s['seconds']['total']:.1f} s")
     return 0
 
 
 def _add_survey_detect(sub: Any) -> None:
     p = _command(sub, "survey-detect", _cmd_survey_detect,
-                 help="find vehicles in a survey's normalised DSM (GeoJSON in WGS84)",
-                 description="The survey form of detect: objects standing out of OUT/ndsm.tif, measured "
-                 "and compared by their shape seen from above with the targets' meshes ray-cast from "
-                 "straight above at the survey's cell. Writes every candidate, best first, as a GeoJSON "
-                 "FeatureCollection (WGS84 points; properties: class, template, score, heading, length, "
-                 "width, height, local x/y). Method: docs/uav.md.")
+                 help="find and name vehicles in a survey (orthophoto + nDSM) -> GeoJSON in WGS84",
+                 description="Vehicles in a survey folder: the orthophoto's appearance and the nDSM's height "
+                 "read by a recogniser trained on the targets' models rendered from above at every heading, in car "
+                 "parks and among clutter (trained once per target list, then cached). One GeoJSON Feature per "
+                 "vehicle: a WGS84 point with properties class, score (calibrated), heading_deg (long axis, "
+                 "0-180), footprint (a polygon), sizes and local x/y/z. Method: docs/atr.md.")
     p.add_argument("survey", type=Path, metavar="SURVEY_DIR", help="a folder written by 'prism3d survey'")
-    p.add_argument("--targets", nargs="+", metavar="NAME",
-                   help="built-in targets to look for (default: the tanks and trucks)")
-    p.add_argument("--min-height", type=float, default=0.8, metavar="M",
-                   help="objects start this high above the ground (default 0.8 m)")
-    _output_option(p, "DETECTIONS_GEOJSON")
+    _add_target_options(p, ["car", "van", "truck", "bus"])
+    p.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--threshold", type=float, default=None, metavar="P",
+                   help="report vehicles scoring at least P (default 0.5: half of the recogniser's held-out "
+                   "detections at that score were vehicles)")
+    p.add_argument("--all-candidates", action="store_true", help="write every candidate, best first, with its score")
+    p.add_argument("--draw", type=Path, metavar="PNG", help="also draw the detections on the orthophoto")
+    p.add_argument("--no-cache", action="store_true", help="train the recogniser again, and do not keep it")
+    _output_option(p, "VEHICLES_GEOJSON")
 
 
 # --- datasets: the target database ---------------------------------------------------------
@@ -1001,8 +1134,16 @@ def _cmd_db(args: argparse.Namespace) -> int:
         if dbm.check_add_request(args.meshes, args.builtin, args.target_class) == "builtin":
             rep = ingest.add_builtin(args.db, args.builtin or None, strict=args.strict)
         else:
+            yaw = args.yaw
+            if args.forward is not None:  # the nose's axis, turned onto +x (datasets/resolve.py's rule)
+                from prism3d.io.units import forward_yaw_deg
+
+                try:
+                    yaw += forward_yaw_deg(args.forward, args.up or "z")
+                except ValueError as exc:
+                    raise InputError(f"--forward: {exc}") from None
             rep = ingest.add_meshes(args.db, args.meshes, target_class=args.target_class, units=args.units,
-                                    up=args.up, length_mm=args.length_mm, yaw_deg=args.yaw, strict=args.strict)
+                                    up=args.up, length_mm=args.length_mm, yaw_deg=yaw, strict=args.strict)
         _say(args, rep.summary())
         return 0
     if a == "render":
@@ -1062,8 +1203,11 @@ def _add_db(sub: Any) -> None:
                "FILE.units.yaml sidecar declares them (never guessed). Duplicates (same content hash) "
                "are skipped (--strict: an error).")
     q.add_argument("meshes", nargs="*", type=Path, metavar="MESH")
-    q.add_argument("--builtin", nargs="*", metavar="NAME", help="add built-in targets (all when no names)")
+    q.add_argument("--builtin", nargs="*", metavar="NAME",
+                   help="add built-in targets by name (no names: the 12 military ones; the civilian: car_sedan ...)")
     q.add_argument("--class", dest="target_class", metavar="C", help="class of the mesh files")
+    q.add_argument("--forward", choices=["x", "-x", "y", "-y", "z", "-z"],
+                   help="the files' axis their nose points along (turned onto +x, as FORWARD in target specs)")
     q.add_argument("--units", choices=_UNITS)
     q.add_argument("--up", choices=_UP_AXES)
     q.add_argument("--length-mm", type=float, help="rescale each mesh to this length, mm")

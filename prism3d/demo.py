@@ -648,51 +648,69 @@ def _on_target(d: dict, t: dict) -> bool:
     return r0 <= d["row"] <= r1 and c0 <= d["col"] <= c1
 
 def _stage_survey(ctx: DemoContext) -> Section:
-    """The UAV mode: a simulated drone flight surveyed into a DSM, orthophoto and nDSM,
-    scored against its truth, and the vehicles found in the nDSM."""
+    """The UAV mode: a simulated drone flight over a car park surveyed into a DSM, a true
+    orthophoto and an nDSM, scored against its truth, and the vehicles found and named."""
     import glob
     import json
 
-    from prism3d.atr.survey_detect import DEFAULT_VEHICLES, detect_in_survey
+    from prism3d.atr.survey_detect import DEFAULT_CLASSES, detect_in_survey
     from prism3d.datasets.flight import FlightOptions, simulate_flight
+    from prism3d.datasets.recognisers import aerial_recogniser
+    from prism3d.datasets.resolve import resolve_targets
     from prism3d.datasets.survey_eval import evaluate_survey
-    from prism3d.datasets.targets import builtin_target
     from prism3d.reconstruct.survey import run_survey
 
-    s = Section("UAV mode: a drone survey from one moving camera (simulated flight)")
+    s = Section("UAV mode: a drone survey of a car park from one moving camera (simulated flight)")
     flight = ctx.path("flight")
     if not (flight / "truth.json").is_file():
-        simulate_flight(flight, FlightOptions(size=(640, 480) if ctx.fast else (800, 600), altitude_m=40.0,
-                                              frames=8 if ctx.fast else 12, seed=ctx.seed + 5, targets=6))
+        simulate_flight(flight, FlightOptions(scene="carpark", size=(800, 600) if ctx.fast else (1152, 864),
+                                              altitude_m=35.0, frames=6, seed=ctx.seed + 5))
     out = ctx.path("survey")
     if not (out / "poses.json").is_file():
         run_survey(sorted(glob.glob(str(flight / "IMG_*.JPG"))), out, calib=flight / "camera.yaml",
                    gps_table=flight / "geoinfo.txt")
     det = ctx.path("survey", "vehicles.geojson")
-    detect_in_survey(out, det, [(n, builtin_target(n, scale="full")) for n in DEFAULT_VEHICLES])
-    r = evaluate_survey(out, flight, detections=det)
+    model, info = aerial_recogniser(resolve_targets(list(DEFAULT_CLASSES), scale="full"))
+    found = detect_in_survey(out, det, model, draw=ctx.path("survey", "vehicles.png"))
+    r = evaluate_survey(out, flight, detections=det, radius_m=1.6, threshold=0.5)
     doc = json.loads((out / "poses.json").read_text())
     s.paragraphs.append(
-        f"{len(doc['frames'])} frames on two flight lines (from 40 m, GSD {r['gsd_m'] * 100:.0f} cm, 70 % forward overlap) over "
-        "terrain, roads, buildings, trees and camouflaged vehicles, with noisy GPS. 'prism3d survey' found "
-        "the poses (pycolmap), put them on the GPS, matched each frame with the next, the next-but-one and "
-        "the neighbouring line (our matcher) and fused the pairs' heights; 'prism3d survey-detect' looked "
-        "for the tanks and trucks in the nDSM. Full size (12 MP) figures: docs/uav.md.")
+        f"{len(doc['frames'])} frames on two flight lines (from 35 m, GSD {r['gsd_m'] * 100:.1f} cm) over a car park: "
+        "rows of parked cars of every body colour, vans, pickups, kei trucks, buses and box trucks, trees over the "
+        "edge rows, people and light poles, with noisy GPS. 'prism3d survey' found the poses (pycolmap), put them "
+        "on the GPS, matched neighbouring frames (our matcher), fused the heights and made a true orthophoto at the "
+        "photographs' ground sample distance; 'prism3d survey-detect' found and named the vehicles from the "
+        "orthophoto's appearance and the nDSM's height with a recogniser trained on our procedural vehicles "
+        f"rendered from above ({'cached' if info['cached'] else 'trained now'}). Figures at size: docs/atr.md.")
+    s.figure("the orthophoto with the vehicles found (red: class and score)",
+             _png_thumbnail(ctx.path("survey", "vehicles.png")))
     s.figure("orthophoto, DSM and normalised DSM (cameras in cyan)", (out / "survey.png").read_bytes())
-    d, v, det_s = r["dsm"], r["vehicles"], r["detection"]
+    d, det_s = r["dsm"], r["detection"]
+    at = det_s["at_threshold"]
     s.table("Against the flight's exact truth (after a similarity alignment of the camera centres)",
             ["quantity", "value", "the issue asks"],
             [["camera positions, max (GSD)", r["position_error_gsd"]["max"], "<= 0.5"],
-             ["camera rotations, max (deg)", r["rotation_error_deg"]["max"], "<= 0.02 (at 12 MP)"],
              ["DSM on open ground, median |error| (GSD)", d["median_abs_error_gsd"], "<= 0.5"],
-             ["DSM on open ground, RMS (GSD)", d["rms_error_gsd"], "<= 1"],
              ["overlapped area filled", d["overlap_filled_fraction"], ">= 0.95"],
-             ["vehicles' heights within 5 %", f"{v['within_5_percent']} of {v['n']}", "all"],
-             ["vehicles found, Pd at 0.1 false positives per frame", det_s["pd_at_0.1_fppf"], ">= 0.9"]])
+             ["vehicles found at score 0.5 (within 1.6 m)", f"{at['pd']:.2f} of {det_s['n_targets']}", ">= 0.95"],
+             ["false positives at score 0.5", at["false_positives"], "<= 0.1 a frame"],
+             ["class right among those found", at["class_accuracy"], ">= 0.9"]])
+    s.table("vehicles by class, as written", ["class", "vehicles"], sorted(found["by_class"].items()))
     s.table("Time per stage (s)", list(doc["seconds"]), [list(doc["seconds"].values())])
     for name in ("dsm.tif", "ortho.tif", "ndsm.tif", "cloud.las", "poses.json", "vehicles.geojson"):
         s.link(name, f"survey/{name}")
     return s
+
+
+def _png_thumbnail(path: Path, width: int = 1400) -> bytes:
+    """A PNG at most ``width`` px wide (the report stays small)."""
+    import cv2
+
+    img = cv2.imread(str(path))
+    if img.shape[1] > width:
+        img = cv2.resize(img, (width, int(img.shape[0] * width / img.shape[1])), interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".png", img)
+    return buf.tobytes()
 
 
 STAGES: list[tuple[str, Stage]] = [

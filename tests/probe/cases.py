@@ -695,7 +695,7 @@ def cases(fx: Path | str | None = None) -> list[Case]:
 
     # bank ----------------------------------------------------------------------------
     base = ["bank", "train", "--targets", "tank_t1", "jet_j1", "-o", "bank.npz", "--azimuth", "0:360:90",
-            "--elevation", "20:20:1", "--size", "32", "--no-camouflage"]
+            "--elevation", "20:20:1", "--size", "32", "--no-camouflage", "--scenes", "0"]
     outs = ["bank.npz"]
     b.add("bank-train/--targets/unknown", _sub(base, 3, "no_such_target"), "2", outs)
     for kind, path in bad_files("obj").items():

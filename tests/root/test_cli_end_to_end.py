@@ -182,7 +182,7 @@ def test_render_a_builtin_target(tmp_path):
 
 
 def test_bank_train_and_eval(tmp_path):
-    r = prism3d("bank", "train", "--targets", "tank_t1", "jet_j1", "-o", tmp_path / "bank.npz",
+    r = prism3d("bank", "train", "--scenes", "0", "--targets", "tank_t1", "jet_j1", "-o", tmp_path / "bank.npz",
                 "--azimuth", "0:360:45", "--elevation", "20:20:1", "--size", "32", "--no-camouflage")
     assert r.returncode == 0, r.stderr
     r = prism3d("bank", "eval", tmp_path / "bank.npz", "--targets", "tank_t1", "jet_j1",
@@ -428,7 +428,7 @@ def test_detect_on_an_image_and_depth_map(tmp_path):
     rig = StereoRig.load(scene / "rig.yaml")
     left = rig.split.split(read_image(scene / "shot.png"))[0]
     write_image(tmp_path / "left.png", left)
-    r = prism3d("bank", "train", "--targets", "tank_t1", "truck_k1", "--azimuth", "0:360:60", "--bin-deg", "60",
+    r = prism3d("bank", "train", "--scenes", "0", "--targets", "tank_t1", "truck_k1", "--azimuth", "0:360:60", "--bin-deg", "60",
                 "--channel", "depth", "-o", tmp_path / "b.npz")
     assert r.returncode == 0, r.stderr
     r = prism3d("detect", "--image", tmp_path / "left.png", "--depth", f"{scene / 'truth.npz'}:depth_left_mm",

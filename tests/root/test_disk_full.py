@@ -62,7 +62,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     write_ply(d / "a.ply", P)
     T = make_transform(rotation_about([0.0, 1.0, 0.0], np.radians(2.0)), [3.0, 0.0, 0.0])
     write_ply(d / "b.ply", transform_points(T, P))
-    assert _cli("bank", "train", "--targets", "tank_t1", "jet_j1", "-o", d / "bank.npz", "--azimuth",
+    assert _cli("bank", "train", "--scenes", "0", "--targets", "tank_t1", "jet_j1", "-o", d / "bank.npz", "--azimuth",
                 "0:360:90", "--elevation", "20:20:1", "--size", "32", "--no-camouflage") == 0
     assert _cli("simulate", "calib", d / "cal", "--rig", d / "rig.yaml", "--supersample", "1", "--views", "4") == 0
     assert _cli("db", "init", d / "db") == 0
@@ -91,7 +91,7 @@ def _cases(i: dict[str, Path], m: Path) -> dict[str, tuple[list, Path]]:
         "features": (["features", d / "scan.ply", "--units", "mm", "--up", "y", "-o", m / "f.parquet"],
                      m / "f.parquet"),
         "render": (["render", "tank_t1", "-o", m / "chips", "--format", "npz", *render], m / "chips"),
-        "bank-train": (["bank", "train", "--targets", "tank_t1", "-o", m / "bank.npz", "--azimuth", "0:360:90",
+        "bank-train": (["bank", "train", "--scenes", "0", "--targets", "tank_t1", "-o", m / "bank.npz", "--azimuth", "0:360:90",
                         "--elevation", "20:20:1", "--size", "32", "--no-camouflage"], m / "bank.npz"),
         "bank-eval": (["bank", "eval", d / "bank.npz", "--targets", "tank_t1", "jet_j1", "--azimuth",
                        "0:360:90", "--elevation", "20:20:1", "--json", m / "res.json"], m / "res.json"),
