@@ -220,7 +220,7 @@ def build_fixtures(root: Path) -> dict[str, Path]:
     write_pfm(root / "disp.pfm", disp)
     np.save(root / "depth.npy", depth)
     run("bank", "train", "--targets", "tank_t1", "jet_j1", "-o", root / "bank.npz", "--azimuth", "0:360:90",
-        "--elevation", "20:20:1", "--size", "32", "--no-camouflage")
+        "--elevation", "20:20:1", "--size", "32", "--no-camouflage", "--scenes", "0")
     run("db", "init", root / "db")
     run("db", "add", root / "db", "--builtin", "tank_t1")
     run("db", "render", root / "db", "--job", "j", "--azimuth", "0:90:90", "--elevation", "20:20:1",
