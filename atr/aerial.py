@@ -29,7 +29,7 @@ from prism3d.atr.aerial_features import CHANNEL_SETS, cell_features, rotate_scen
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 
-__all__ = ["AERIAL_SCHEMA_VERSION", "AerialGroup", "AerialModel", "DEFAULT_THRESHOLD", "correlate_cells", "window_features"]
+__all__ = ["AERIAL_SCHEMA_VERSION", "DEFAULT_THRESHOLD", "AerialGroup", "AerialModel", "correlate_cells", "window_features"]
 
 AERIAL_SCHEMA_VERSION = 1
 #: Calibrated score at or above which a candidate is reported as a vehicle (the share of
@@ -57,14 +57,19 @@ class AerialGroup:
     class_bias: NDArray[np.float32]
     dims: dict[str, tuple[float, float, float]]
 
-    def name(self, x: NDArray) -> tuple[str, NDArray[np.float64]]:
-        """The class of a window's flattened features and the namer's probabilities."""
+    def name(self, x: NDArray, x_turned: NDArray | None = None) -> tuple[str, NDArray[np.float64]]:
+        """The class of a window's flattened features (and of the window turned half round,
+        when given: each class's best of the two) and the namer's probabilities."""
         if len(self.classes) == 1:
             return self.classes[0], np.ones(1)
-        z = self.class_coef.astype(np.float64) @ x.astype(np.float64) + self.class_bias
-        if len(self.classes) == 2 and len(z) == 1:
-            z = np.array([0.0, z[0]])
-        p = np.exp(z - z.max())
+        ps = []
+        for v in (x, x_turned):
+            if v is None:
+                continue
+            z = self.class_coef.astype(np.float64) @ v.astype(np.float64) + self.class_bias
+            p = np.exp(z - z.max())
+            ps.append(p / p.sum())
+        p = np.max(ps, axis=0)
         p /= p.sum()
         return self.classes[int(np.argmax(p))], p
 
@@ -142,20 +147,27 @@ class AerialModel:
                 roi_r = rr[: hc * k, : wc * k].reshape(hc, k, wc, k).max(axis=(1, 3)) > 0
             Minv = cv2.invertAffineTransform(M)
             for gi, grp in enumerate(self.groups):
-                raw = correlate_cells(F, grp.weights) + grp.bias
+                # the window learnt nose to +x, and turned half round (nose to -x); the better wins
+                fwd = correlate_cells(F, grp.weights)
+                back = correlate_cells(F, grp.weights[::-1, ::-1])
+                turned = back > fwd
+                raw = np.maximum(fwd, back) + grp.bias
                 p = _sigmoid(grp.platt[0] * raw + grp.platt[1])
                 keep = (p >= CANDIDATE_FLOOR) & (raw == cv2.dilate(raw, np.ones((3, 3), np.uint8)))
                 if roi_r is not None:
                     keep &= roi_r
                 rows, cols = np.nonzero(keep)
                 for i, j in zip(rows, cols):
-                    x = window_features(F, i, j, grp.cells)
+                    x = window_features(F, i, j, grp.cells, turned=bool(turned[i, j]))
                     if x is None:
                         continue
-                    cls, cp = grp.name(x)
+                    # named either way round: a car's nose and tail are alike to the detector, not
+                    # to the namer (a pickup's bed is at one end)
+                    cls, cp = grp.name(x, window_features(F, i, j, grp.cells, turned=not bool(turned[i, j])))
                     xr, yr = (j + 0.5) * k - 0.5, (i + 0.5) * k - 0.5
                     xo, yo = Minv @ np.array([xr, yr, 1.0])
-                    out.append({"row": float(yo), "col": float(xo), "heading_rad": float(ang), "group": gi,
+                    head = (float(ang) + (math.pi if turned[i, j] else 0.0)) % (2 * math.pi)
+                    out.append({"row": float(yo), "col": float(xo), "heading_rad": head, "group": gi,
                                 "raw": float(raw[i, j]), "score": float(p[i, j]), "class": cls,
                                 "class_p": [round(float(v), 4) for v in cp]})
         return out
@@ -265,13 +277,16 @@ def correlate_cells(F: NDArray[np.float32], Wt: NDArray[np.float32]) -> NDArray[
     return out
 
 
-def window_features(F: NDArray, i: int, j: int, cells: tuple[int, int]) -> NDArray[np.float32] | None:
-    """The flattened cell features of the window centred on cell (i, j); None when it
-    does not fit in the grid."""
+def window_features(F: NDArray, i: int, j: int, cells: tuple[int, int], *, turned: bool = False
+                    ) -> NDArray[np.float32] | None:
+    """The flattened cell features of the window centred on cell (i, j), ``turned`` half
+    round (a vehicle nose to -x seen as nose to +x: unsigned gradient bins are the same
+    under a half turn); None when it does not fit in the grid."""
     hr, hc = cells[0] // 2, cells[1] // 2
     if i - hr < 0 or j - hc < 0 or i + hr >= F.shape[0] or j + hc >= F.shape[1]:
         return None
-    return F[i - hr:i + hr + 1, j - hc:j + hc + 1].reshape(-1)
+    w = F[i - hr:i + hr + 1, j - hc:j + hc + 1]
+    return (w[::-1, ::-1] if turned else w).reshape(-1)
 
 
 def _corners(d: dict, L: float, W: float, gsd: float) -> NDArray[np.float64]:

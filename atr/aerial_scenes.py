@@ -103,6 +103,43 @@ def _surface(rng: np.random.Generator, kind: str, shape: tuple[int, int], gsd: f
     return (tint[None, None, :] * (1.0 - spread + 2.0 * spread * n)[..., None]).astype(np.float32)
 
 
+def _joints(rng: np.random.Generator, albedo: NDArray, gsd: float) -> None:
+    """Paving: a grid of darker joints 1-3 m apart at a random angle, in place."""
+    n = albedo.shape[0]
+    step = rng.uniform(1.0, 3.0) / gsd
+    ang = rng.uniform(0, math.pi)
+    segs = []
+    for k in range(-int(2 * n / step), int(2 * n / step)):
+        for a in (ang, ang + math.pi / 2):
+            c, s_ = math.cos(a), math.sin(a)
+            o = np.array([n / 2, n / 2]) + k * step * np.array([-s_, c])
+            segs.append((o[1] - 2 * n * s_, o[0] - 2 * n * c, o[1] + 2 * n * s_, o[0] + 2 * n * c))
+    _paint_lines(albedo, segs, max(1.0, 0.03 / gsd), (albedo.mean(axis=(0, 1)) * 0.55).astype(np.float32))
+
+
+def _decoys(rng: np.random.Generator, albedo: NDArray, gsd: float, count: int) -> NDArray[np.bool_]:
+    """Flat, car-sized painted rectangles (patched asphalt, stains, markings, covers), some
+    with bands across like a windscreen's: appearance without height. Returns their mask."""
+    n = albedo.shape[0]
+    mask = np.zeros((n, n), np.uint8)
+    for _ in range(count):
+        L, W = rng.uniform(3.0, 6.0) / gsd, rng.uniform(1.4, 2.4) / gsd
+        r, c, a = rng.uniform(0, n), rng.uniform(0, n), rng.uniform(0, 180)
+        box = cv2.boxPoints(((c, r), (L, W), a)).astype(np.int32)
+        one = np.zeros((n, n), np.uint8)
+        cv2.fillPoly(one, [box], 1)
+        colour = rng.uniform(0.03, 0.85) * rng.uniform(0.9, 1.1, 3)
+        albedo[one > 0] = colour
+        if rng.uniform() < 0.5:  # bands across it, as a windscreen and rear window look
+            for f in (0.3, -0.3):
+                ca, sa = math.cos(math.radians(a)), math.sin(math.radians(a))
+                cx, cy = c + f * L * ca, r + f * L * sa
+                band = cv2.boxPoints(((cx, cy), (0.12 * L, W * 0.9), a)).astype(np.int32)
+                cv2.fillPoly(albedo, [band], tuple(float(v) for v in np.asarray(colour) * 0.3))
+        mask |= one
+    return mask > 0
+
+
 def _paint_lines(albedo: NDArray, segments: Sequence[tuple[float, float, float, float]], width_px: float,
                  colour: NDArray) -> None:
     """Draw painted line segments (row, col endpoints) onto ``albedo`` in place."""
@@ -156,7 +193,7 @@ def _place(cv: _Canvas, sp: NDArray | NadirSprite, row: float, col: float, headi
     # clockwise in (x, y-down) terms
     M = np.array([[c, s, 0.0], [-s, c, 0.0]])
     M[:, 2] = np.array([diag / 2.0, diag / 2.0]) - M[:, :2] @ np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    warp = lambda a: cv2.warpAffine(a, M, (diag, diag), flags=cv2.INTER_LINEAR, borderValue=0.0)  # noqa: E731
+    warp = lambda a: cv2.warpAffine(a, M, (diag, diag), flags=cv2.INTER_LINEAR, borderValue=0.0)
     alpha = warp(sp.alpha)
     if not (alpha > 0.5).any():
         return
@@ -247,14 +284,16 @@ def _carpark_layout(rng: np.random.Generator, n: int, gsd: float, targets: Seque
         b += 2 * bay_d + aisle
     # 0-2 long vehicles along an aisle (buses, box trucks, parked lengthwise)
     longs = [q for q in pool if q[0].length_m > 6.0]
-    for _ in range(int(rng.integers(1, 4)) if longs else 0):
-        sp, kind, cls = longs[int(rng.integers(len(longs)))]
-        if True:
-            a = rng.uniform(-0.4, 0.4) * n
-            p = ctr + ua * a + ub * (2 * bay_d + aisle / 2.0 - span / 2.0 + rng.integers(0, 3) * (2 * bay_d + aisle))
-            placed = [q for q in placed if math.hypot(q[1] - p[1], q[2] - p[0]) > (sp.length_m / 2 + 2.0) / gsd]
-            placed.append((sp, p[1], p[0], ang + rng.normal(0, 0.03) + (math.pi if rng.uniform() < 0.5 else 0.0),
-                           kind, cls))
+    long_classes = sorted({c for _, _, c in longs})
+    for _ in range(int(rng.integers(1, 5)) if longs else 0):
+        c_pick = long_classes[int(rng.integers(len(long_classes)))]  # a class, then one of its vehicles
+        of = [q for q in longs if q[2] == c_pick]
+        sp, kind, cls = of[int(rng.integers(len(of)))]
+        a = rng.uniform(-0.4, 0.4) * n
+        p = ctr + ua * a + ub * (2 * bay_d + aisle / 2.0 - span / 2.0 + rng.integers(0, 3) * (2 * bay_d + aisle))
+        placed = [q for q in placed if math.hypot(q[1] - p[1], q[2] - p[0]) > (sp.length_m / 2 + 2.0) / gsd]
+        placed.append((sp, p[1], p[0], ang + rng.normal(0, 0.03) + (math.pi if rng.uniform() < 0.5 else 0.0),
+                       kind, cls))
     return placed, lines, ang
 
 
@@ -295,6 +334,9 @@ def compose_patch(rng: np.random.Generator, targets: Sequence[tuple[str, NadirSp
     else:
         surface = str(rng.choice(["grass", "dry_grass", "soil", "gravel", "grass"]))
     albedo = _surface(rng, surface, (n, n), g)
+    if surface in ("concrete", "asphalt_light", "gravel") and rng.uniform() < 0.6:
+        _joints(rng, albedo, g)
+    decoy = _decoys(rng, albedo, g, int(rng.integers(0, 7)))
     if carpark:
         objs, lines, _ = _carpark_layout(rng, n, g, targets, neg_veh)
         colour = np.array([0.8, 0.8, 0.76]) if rng.uniform() < 0.8 else np.array([0.75, 0.62, 0.12])
@@ -328,7 +370,7 @@ def compose_patch(rng: np.random.Generator, targets: Sequence[tuple[str, NadirSp
     shade = ambient + (1.0 - ambient) * np.clip(canvas.normal @ sun.astype(np.float32), 0.0, 1.0) * lit
     rgb = canvas.albedo * shade[..., None]
     rgb = _camera(rng, rgb, g)
-    ndsm = _emulate_ndsm(rng, canvas.height, rgb, g, o)
+    ndsm = _emulate_ndsm(rng, canvas.height, rgb, g, o, keep=decoy & (canvas.owner < 0))
     vehicles = []
     for i, (sp, r, c, hd, kind, cls) in enumerate(objs):
         if kind != "target" or not (0 <= r < n and 0 <= c < n):
@@ -353,8 +395,8 @@ def _camera(rng: np.random.Generator, rgb: NDArray, gsd: float) -> NDArray[np.fl
     return (np.round(out * 255.0) / 255.0).astype(np.float32)
 
 
-def _emulate_ndsm(rng: np.random.Generator, height: NDArray, rgb: NDArray, gsd: float, o: PatchSpec
-                  ) -> NDArray[np.float32]:
+def _emulate_ndsm(rng: np.random.Generator, height: NDArray, rgb: NDArray, gsd: float, o: PatchSpec,
+                  keep: NDArray | None = None) -> NDArray[np.float32]:
     """The normalised DSM a survey would give of this patch (module docstring)."""
     n = height.shape[0]
     if rng.uniform() < o.missing_dsm_share:
@@ -376,6 +418,10 @@ def _emulate_ndsm(rng: np.random.Generator, height: NDArray, rgb: NDArray, gsd: 
     drop = poor & (rng.uniform(size=poor.shape) < rng.uniform(*o.hole_share))
     drop = cv2.morphologyEx(drop.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
     blobs = _noise((m, m), cell, rng.uniform(1.0, 4.0), int(rng.integers(1 << 30))) > rng.uniform(0.8, 0.98)
+    if keep is not None:  # painted decoys keep their (flat) height: appearance without height
+        kb = keep[: m * k, : m * k].reshape(m, k, m, k).any(axis=(1, 3))
+        drop &= ~kb
+        blobs &= ~kb
     dsm[drop | blobs] = np.nan
     up = cv2.resize(dsm, (m * k, m * k), interpolation=cv2.INTER_NEAREST)
     out = np.full(height.shape, np.nan, dtype=np.float32)

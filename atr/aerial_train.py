@@ -2,7 +2,7 @@
 scenes (:mod:`prism3d.atr.aerial_scenes`): rendered models at every heading, under every
 sun, side by side in car parks and among clutter, with exact truth.
 
-1. Targets are gathered into window groups of similar length (the longest at most 1.6
+1. Targets are gathered into window groups of similar length (the longest at most 1.35
    times the shortest): a window fits its vehicles with 0.5 m to spare each way.
 2. Windows are cut from training patches at the headings of the grid: positives centred
    on a group's vehicles turned within half a heading step; negatives anywhere else,
@@ -39,7 +39,7 @@ from prism3d.errors import InputError
 __all__ = ["AerialTrainOptions", "train_aerial", "window_groups"]
 
 #: A group's longest member is at most this many times its shortest.
-GROUP_LENGTH_RATIO = 1.6
+GROUP_LENGTH_RATIO = 1.35
 #: Room around a group's largest vehicle inside its window, m each way.
 WINDOW_MARGIN_M = 0.5
 #: A detection within this distance (m) of a target's centre, axis within MATCH_DEG, is a vehicle.
@@ -157,7 +157,8 @@ def _cut(patches: Sequence[AerialPatch], groups: list, cells: list[tuple[int, in
                 taken = {ij for _, ij in pos}
                 s = out[gi]
                 for v, (i, j) in pos:
-                    x = window_features(F, i, j, wcells)
+                    # nose to +x: a vehicle facing the other way is seen turned half round
+                    x = window_features(F, i, j, wcells, turned=math.cos(v["heading_rad"] - ang) < 0)
                     if x is not None:
                         s.X.append(x)
                         s.y.append(1)
@@ -203,7 +204,7 @@ def _namer(s: _Samples, classes: list[str], o: AerialTrainOptions) -> tuple[NDAr
         return np.zeros((1, 1), np.float32), np.zeros(1, np.float32)
     X = np.asarray([x for x, y in zip(s.X, s.y) if y == 1], dtype=np.float32)
     lab = [c for c, y in zip(s.cls, s.y) if y == 1]
-    lr = LogisticRegression(C=o.regularisation_c * 4, max_iter=3000)  # the car park's own prior: most are cars
+    lr = LogisticRegression(C=o.regularisation_c * 10, max_iter=5000)
     lr.fit(X, lab)
     coef = np.zeros((len(classes), X.shape[1]), np.float32)
     bias = np.full(len(classes), -50.0, np.float32)  # a class never seen is never named
@@ -230,7 +231,10 @@ def _mine(model: AerialModel, patches: Sequence[AerialPatch], groups: list, cell
         for gi, grp in enumerate(model.groups):
             found = []
             for ang, F, cell_of in _patch_views(p, o, grid):
-                raw = correlate_cells(F, grp.weights) + grp.bias
+                fwd = correlate_cells(F, grp.weights)
+                back = correlate_cells(F, grp.weights[::-1, ::-1])
+                turned = back > fwd
+                raw = np.maximum(fwd, back) + grp.bias
                 ok = {cell_of(v["row"], v["col"]) for v in p.vehicles
                       if v["name"] in names[gi] and _angle_diff(v["heading_rad"], ang) <= step}
                 near = set()
@@ -243,7 +247,7 @@ def _mine(model: AerialModel, patches: Sequence[AerialPatch], groups: list, cell
                         break
                     if (i, j) in near:
                         continue
-                    x = window_features(F, i, j, cells[gi])
+                    x = window_features(F, i, j, cells[gi], turned=bool(turned[i, j]))
                     if x is not None:
                         found.append((float(raw[i, j]), x))
             found.sort(key=lambda t: -t[0])

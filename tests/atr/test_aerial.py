@@ -12,7 +12,12 @@ import pytest
 from prism3d.atr.aerial import AerialModel
 from prism3d.atr.aerial_features import cell_features, feature_names, rotate_scene
 from prism3d.atr.aerial_scenes import PatchSpec, compose_patch
-from prism3d.atr.aerial_train import AerialTrainOptions, train_aerial, window_groups
+from prism3d.atr.aerial_train import (
+    GROUP_LENGTH_RATIO,
+    AerialTrainOptions,
+    train_aerial,
+    window_groups,
+)
 from prism3d.capture.nadir import render_nadir
 from prism3d.datasets.carpark import person_mesh
 from prism3d.datasets.field import prop_mesh
@@ -75,7 +80,13 @@ def test_features_turn_with_the_scene() -> None:
 def test_groups_by_length() -> None:
     targets, _ = _items()
     groups = window_groups([(c, render_nadir(m, 0.2)) for c, m in targets])
-    assert [sorted({c for c, _ in g}) for g in groups] == [["car"], ["bus"]]
+    lengths = [[sp.length_m for _, sp in g] for g in groups]
+    assert sum(map(len, lengths)) == len(targets)
+    for i, ls in enumerate(lengths):
+        assert max(ls) <= GROUP_LENGTH_RATIO * min(ls) + 1e-9  # a window fits each of its vehicles
+        if i:  # shortest first; the next group starts where the last could not stretch
+            assert min(ls) > GROUP_LENGTH_RATIO * min(lengths[i - 1])
+    assert {c for c, _ in groups[-1]} == {"bus"} and all("bus" not in {c for c, _ in g} for g in groups[:-1])
 
 
 def test_finds_each_vehicle_of_a_row_at_its_heading(model: AerialModel) -> None:
@@ -83,7 +94,7 @@ def test_finds_each_vehicle_of_a_row_at_its_heading(model: AerialModel) -> None:
     tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
     nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
     found = total = fp = right = 0
-    inner = lambda r, c: 40 < r < 360 and 40 < c < 360  # noqa: E731 - away from the patch's edges
+    inner = lambda r, c: 40 < r < 360 and 40 < c < 360
     for seed in (101, 102, 103, 104):
         p = compose_patch(np.random.default_rng(seed), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0,
                                                                            missing_dsm_share=0.0))
