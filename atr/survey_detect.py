@@ -326,7 +326,20 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
         raise InputError(f"{d / 'ortho.tif'}: expected an RGB(A) 8-bit orthophoto, got shape {o.shape} {o.dtype}")
     if (mo["crs_wkt"] or "") != (mn["crs_wkt"] or ""):
         raise InputError(f"{d / 'ortho.tif'}: in another coordinate system than ndsm.tif; both must come from one survey")
+    if gr is not None and (gr.shape != nd.shape or mg["west"] != mn["west"] or mg["north"] != mn["north"]):
+        raise InputError(f"{d / 'ground.tif'}: not on ndsm.tif's grid; both must come from one survey")
     west, north, cell = float(mn["west"]), float(mn["north"]), float(mn["gsd"])
+    # the grid over the surveyed cells only (a survey's lattice holds every pair's tile; most
+    # of it may be empty), a few metres around
+    rows, cols = np.flatnonzero(np.isfinite(nd).any(axis=1)), np.flatnonzero(np.isfinite(nd).any(axis=0))
+    if not len(rows):
+        raise InputError(f"{d / 'ndsm.tif'}: holds no height at all")
+    pad = int(round(ROI_MARGIN_M / cell))
+    r0, r1 = max(0, rows[0] - pad), min(nd.shape[0], rows[-1] + pad + 1)
+    c0, c1 = max(0, cols[0] - pad), min(nd.shape[1], cols[-1] + pad + 1)
+    nd = nd[r0:r1, c0:c1]
+    gr = None if gr is None else gr[r0:r1, c0:c1]
+    west, north = west + c0 * cell, north - r0 * cell
     W, H = int(round(nd.shape[1] * cell / gsd)), int(round(nd.shape[0] * cell / gsd))
     oe, os_ = mo["west"] + o.shape[1] * mo["gsd"], mo["north"] - o.shape[0] * mo["gsd"]
     ne, ns = west + nd.shape[1] * cell, north - nd.shape[0] * cell

@@ -1,7 +1,10 @@
 """Whole-scene ATR on simulated field scenes: Pd vs false positives per image per channel.
 
 Generates ``--n`` field scenes (``prism3d simulate field``, seeds ``--seed0``...), trains
-one bank per channel with the defaults of ``bank train`` on the four default classes,
+the scene recogniser of ``bank train``'s defaults on the four default classes (filters over
+the targets and what to refuse, a verifier mined from simulated scenes; ``--recogniser
+PATH`` takes one already trained), and, beside it, one plain bank per channel (``bank train
+--scenes 0``, the filters alone: today's bank before the recogniser),
 reconstructs each shot once and runs every bank on it, then scores with
 :func:`prism3d.atr.scene_eval.score_scenes`. Prints Pd / identification / confusers at
 0.1 and 1 FPPI, detection time per shot (reconstruction excluded) and scenes per minute;
@@ -27,12 +30,18 @@ from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
 from prism3d.atr.detect import detect_scene, detect_scene_hog, scene_channels
 from prism3d.atr.hog_svm import HogSvm
 from prism3d.atr.scene_eval import score_scenes
+from prism3d.atr.verifier import SceneRecogniser
 from prism3d.capture.rig import StereoRig
 from prism3d.datasets.field import FieldOptions, simulate_field, simulate_field_batch
 from prism3d.datasets.jobs import RunOptions
+from prism3d.datasets.mining import MiningOptions, train_scene_recogniser
 from prism3d.datasets.resolve import resolve_targets
 from prism3d.io.images import read_image
-from prism3d.reconstruct.pipeline import ReconstructOptions, convergence_distance_mm, reconstruct_shot
+from prism3d.reconstruct.pipeline import (
+    ReconstructOptions,
+    convergence_distance_mm,
+    reconstruct_shot,
+)
 
 CLASSES = ["tank_t1", "jet_j1", "ship_s1", "truck_k1"]
 
@@ -48,6 +57,8 @@ def main() -> None:
     ap.add_argument("--rate", type=int, default=0, metavar="N",
                     help="generate N scenes as a batch job, in-process and on 2 Dask workers")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "field_scenes.json")
+    ap.add_argument("--recogniser", type=Path, help="a trained recogniser (default: train one with the defaults)")
+    ap.add_argument("--workers", type=int, default=2, help="mining scenes' Dask workers when training")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -60,9 +71,17 @@ def main() -> None:
         folders.append(d)
     gen_s = time.perf_counter() - t0
     targets = resolve_targets(CLASSES)
+    t_rec = time.perf_counter()
+    if a.recogniser is not None:
+        recogniser = SceneRecogniser.load(a.recogniser)
+    else:
+        recogniser = train_scene_recogniser(targets, CLASSES, options=MiningOptions(chip_spec=BANK_CHIP_SPEC),
+                                            run=RunOptions(workers=a.workers))
+    t_rec = time.perf_counter() - t_rec
     banks = {c: train_bank(targets, channel=c, chip_spec=BANK_CHIP_SPEC) for c in a.channels}
     hogs = {} if a.no_hog else {c: HogSvm.train(targets, channel=c, chip_spec=BANK_CHIP_SPEC) for c in a.channels}
-    runs = [(c, "bank", b) for c, b in banks.items()] + [(c, "hog", m) for c, m in hogs.items()]
+    runs = [("shape+depth", "recogniser", recogniser)] + [(c, "bank", b) for c, b in banks.items()] \
+        + [(c, "hog", m) for c, m in hogs.items()]
     best3d = "shape" if "shape" in banks else next((c for c in banks if c != "intensity"), None)
     if a.true_depth and best3d is not None:
         runs.append((best3d, "bank-true-depth", banks[best3d]))
@@ -93,7 +112,7 @@ def main() -> None:
             if kind == "bank-true-depth":
                 dets = detect_scene(model, sc_true)  # already in the left view
             else:
-                dets = detect_scene(model, sc) if kind == "bank" else detect_scene_hog(model, sc)
+                dets = detect_scene(model, sc) if kind in ("bank", "recogniser") else detect_scene_hog(model, sc)
             det_s[(c, kind)].append(time.perf_counter() - t4)
             for dt in dets if kind != "bank-true-depth" else []:  # rectified grid -> left view, as detect_shot does
                 if dt["xyz_mm"] is not None:
@@ -103,7 +122,8 @@ def main() -> None:
                     dt["col"], dt["row"] = float(uv[0]), float(uv[1])
             pairs[(c, kind)].append(({"detections": dets}, truth))
         print(d.name, f"channels {t3 - t2:.1f} s", flush=True)
-    out = {"n_scenes": a.n, "generated": made, "generation_s": gen_s,
+    out = {"n_scenes": a.n, "generated": made, "generation_s": gen_s, "recogniser_train_s": round(t_rec, 1),
+           "recogniser": recogniser.metadata.get("mining", {}),
            "scenes_per_minute": 60 * made / gen_s if made else None,
            "reconstruct_s_median": float(np.median(rec_s)) if rec_s else None,
            "channels_s_median": float(np.median(ch_s)), "runs": {}}

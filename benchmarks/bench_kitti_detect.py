@@ -1,9 +1,10 @@
 """A real street scene (KITTI 2015, frame 000046_10; ../shared/data/stereo): reconstructed
 with our matcher, then ``prism3d detect --targets car`` (the recogniser of the civilian
 cars, trained on rendered models and mined simulated scenes) and, beside it, a plain filter
-bank of the same cars (``bank train --scenes 0``). Passes when the top detection falls on
-the crossing car (drawn by hand: rows 185-262, columns 615-835) and is called a car; the
-sky's and far points' depths (our matcher gives them kilometres) must not stop ``detect``.
+bank of the same cars and the van (``bank train --scenes 0``: a bank needs two classes).
+Passes when the top detection falls on the crossing car (drawn by hand: rows 185-262,
+columns 615-835) and is called a car; the sky's and far points' depths (our matcher gives
+them kilometres) must not stop ``detect``.
 
     python benchmarks/bench_kitti_detect.py --data ../shared/data
 """
@@ -47,7 +48,7 @@ def main() -> None:
            "sky_share_with_depth": float(np.isfinite(depth[:60]).mean()), "runs": {}}
     cmd = [sys.executable, "-m", "prism3d.cli", "-q", "detect", "--image", str(a.work / "left.png"), "--depth",
            str(a.work / "depth.npy"), "--fx", str(KITTI_F)]
-    subprocess.run([sys.executable, "-m", "prism3d.cli", "-q", "bank", "train", "--scenes", "0", "--targets", "car",
+    subprocess.run([sys.executable, "-m", "prism3d.cli", "-q", "bank", "train", "--scenes", "0", "--targets", "car", "van",
                     "--channel", "shape", "-o", str(a.work / "car_bank.npz")], check=True)
     for name, extra in (("recogniser", ["--targets", "car"]), ("bank", ["--bank", str(a.work / "car_bank.npz")])):
         out = a.work / f"det_{name}.json"

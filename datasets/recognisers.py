@@ -21,11 +21,22 @@ from typing import Any
 
 import numpy as np
 
+import prism3d.atr.aerial as aerial_module
+import prism3d.atr.aerial_features as aerial_features_module
+import prism3d.atr.aerial_scenes as aerial_scenes_module
+import prism3d.atr.aerial_train as aerial_train_module
+import prism3d.atr.bank as bank_module
+import prism3d.atr.scene as scene_module
+import prism3d.atr.verifier as verifier_module
+import prism3d.capture.nadir as nadir_module
+import prism3d.datasets.mining as mining_module
 from prism3d.atr.aerial import AERIAL_SCHEMA_VERSION, AerialModel
 from prism3d.atr.aerial_train import AerialTrainOptions, train_aerial
+from prism3d.atr.verifier import SceneRecogniser
 from prism3d.capture.mesh import SceneMesh
 from prism3d.datasets.carpark import person_mesh, pole_mesh
 from prism3d.datasets.field import prop_mesh
+from prism3d.datasets.mining import MiningOptions, default_rejects, train_scene_recogniser
 from prism3d.datasets.targets import builtin_classes, builtin_target, builtin_targets_of_class
 from prism3d.errors import InputError
 
@@ -61,7 +72,14 @@ def aerial_negatives(target_classes: Sequence[str], *, seed: int = 0) -> list[tu
     return out
 
 
-def _mesh_digest(h: "hashlib._Hash", mesh: SceneMesh) -> None:
+def _code_digest(h: hashlib._Hash, modules: Sequence[Any]) -> None:
+    """The source of the modules that train a recogniser: a change to how it is trained is a
+    new cache entry, not a stale model."""
+    for mod in modules:
+        h.update(Path(mod.__file__).read_bytes())
+
+
+def _mesh_digest(h: hashlib._Hash, mesh: SceneMesh) -> None:
     h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
     # the paint as the renderer sees it: sampled at the vertices and face centres
@@ -75,6 +93,7 @@ def _key(targets: Sequence[tuple[str, SceneMesh]], negatives: Sequence[tuple[str
     h = hashlib.sha256()
     h.update(json.dumps({"schema": AERIAL_SCHEMA_VERSION, "options": asdict(options)}, sort_keys=True,
                         default=str).encode())
+    _code_digest(h, [aerial_train_module, aerial_scenes_module, aerial_features_module, aerial_module, nadir_module])
     for label, items in (("t", targets), ("n", negatives)):
         for cls, m in items:
             h.update(f"{label}:{cls}".encode())
@@ -135,8 +154,6 @@ def scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], *, scenes: int, c
     """The scene recogniser of ``targets`` (:func:`prism3d.datasets.mining.train_scene_recogniser`),
     from the cache when this exact training was done before. Returns it and
     ``{"cached": bool, "path": str | None}``."""
-    from prism3d.atr.verifier import SceneRecogniser
-    from prism3d.datasets.mining import MiningOptions, default_rejects, train_scene_recogniser
 
     specs = field_specs(targets)
     rejects = default_rejects(targets)
@@ -147,6 +164,7 @@ def scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], *, scenes: int, c
         for cls, m in items:
             h.update(f"{label}:{cls}".encode())
             _mesh_digest(h, m)
+    _code_digest(h, [mining_module, verifier_module, scene_module, bank_module])
     path = cache_dir() / "recognisers" / f"scene-{h.hexdigest()[:24]}.npz"
     if cache and path.is_file():
         try:
