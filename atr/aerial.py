@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -134,42 +136,52 @@ class AerialModel:
         return out
 
     def _candidates(self, g: NDArray, z: NDArray, roi: NDArray | None, angles_rad: Sequence[float]) -> list[dict]:
+        """The headings on a pool of threads (one per core, at most two: each holds a turned
+        copy of the scene; OpenCV and numpy's large operations release the GIL), gathered
+        in heading order."""
+        workers = max(1, min(2, os.cpu_count() or 1, len(angles_rad)))
+        if workers == 1:
+            return [d for ang in angles_rad for d in self._at_heading(g, z, roi, float(ang))]
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            parts = list(pool.map(lambda a: self._at_heading(g, z, roi, float(a)), angles_rad))
+        return [d for part in parts for d in part]
+
+    def _at_heading(self, g: NDArray, z: NDArray, roi: NDArray | None, ang: float) -> list[dict]:
         k = self.cell_px
         pad = k * (max(max(gr.cells) for gr in self.groups) // 2 + 2)
         out: list[dict] = []
-        for ang in angles_rad:
-            gr_img, z_img, M = rotate_scene(g, z, float(ang), pad)
-            F = cell_features(gr_img, z_img, k, self.channels)
-            roi_r = None
-            if roi is not None:
-                rr = cv2.warpAffine(roi.astype(np.uint8), M, (gr_img.shape[1], gr_img.shape[0]), flags=cv2.INTER_NEAREST)
-                hc, wc = F.shape[:2]
-                roi_r = rr[: hc * k, : wc * k].reshape(hc, k, wc, k).max(axis=(1, 3)) > 0
-            Minv = cv2.invertAffineTransform(M)
-            for gi, grp in enumerate(self.groups):
-                # the window learnt nose to +x, and turned half round (nose to -x); the better wins
-                fwd = correlate_cells(F, grp.weights)
-                back = correlate_cells(F, grp.weights[::-1, ::-1])
-                turned = back > fwd
-                raw = np.maximum(fwd, back) + grp.bias
-                p = _sigmoid(grp.platt[0] * raw + grp.platt[1])
-                keep = (p >= CANDIDATE_FLOOR) & (raw == cv2.dilate(raw, np.ones((3, 3), np.uint8)))
-                if roi_r is not None:
-                    keep &= roi_r
-                rows, cols = np.nonzero(keep)
-                for i, j in zip(rows, cols):
-                    x = window_features(F, i, j, grp.cells, turned=bool(turned[i, j]))
-                    if x is None:
-                        continue
-                    # named either way round: a car's nose and tail are alike to the detector, not
-                    # to the namer (a pickup's bed is at one end)
-                    cls, cp = grp.name(x, window_features(F, i, j, grp.cells, turned=not bool(turned[i, j])))
-                    xr, yr = (j + 0.5) * k - 0.5, (i + 0.5) * k - 0.5
-                    xo, yo = Minv @ np.array([xr, yr, 1.0])
-                    head = (float(ang) + (math.pi if turned[i, j] else 0.0)) % (2 * math.pi)
-                    out.append({"row": float(yo), "col": float(xo), "heading_rad": head, "group": gi,
-                                "raw": float(raw[i, j]), "score": float(p[i, j]), "class": cls,
-                                "class_p": [round(float(v), 4) for v in cp]})
+        gr_img, z_img, M = rotate_scene(g, z, float(ang), pad)
+        F = cell_features(gr_img, z_img, k, self.channels)
+        roi_r = None
+        if roi is not None:
+            rr = cv2.warpAffine(roi.astype(np.uint8), M, (gr_img.shape[1], gr_img.shape[0]), flags=cv2.INTER_NEAREST)
+            hc, wc = F.shape[:2]
+            roi_r = rr[: hc * k, : wc * k].reshape(hc, k, wc, k).max(axis=(1, 3)) > 0
+        Minv = cv2.invertAffineTransform(M)
+        for gi, grp in enumerate(self.groups):
+            # the window learnt nose to +x, and turned half round (nose to -x); the better wins
+            fwd = correlate_cells(F, grp.weights)
+            back = correlate_cells(F, grp.weights[::-1, ::-1])
+            turned = back > fwd
+            raw = np.maximum(fwd, back) + grp.bias
+            p = _sigmoid(grp.platt[0] * raw + grp.platt[1])
+            keep = (p >= CANDIDATE_FLOOR) & (raw == cv2.dilate(raw, np.ones((3, 3), np.uint8)))
+            if roi_r is not None:
+                keep &= roi_r
+            rows, cols = np.nonzero(keep)
+            for i, j in zip(rows, cols):
+                x = window_features(F, i, j, grp.cells, turned=bool(turned[i, j]))
+                if x is None:
+                    continue
+                # named either way round: a car's nose and tail are alike to the detector, not
+                # to the namer (a pickup's bed is at one end)
+                cls, cp = grp.name(x, window_features(F, i, j, grp.cells, turned=not bool(turned[i, j])))
+                xr, yr = (j + 0.5) * k - 0.5, (i + 0.5) * k - 0.5
+                xo, yo = Minv @ np.array([xr, yr, 1.0])
+                head = (float(ang) + (math.pi if turned[i, j] else 0.0)) % (2 * math.pi)
+                out.append({"row": float(yo), "col": float(xo), "heading_rad": head, "group": gi,
+                            "raw": float(raw[i, j]), "score": float(p[i, j]), "class": cls,
+                            "class_p": [round(float(v), 4) for v in cp]})
         return out
 
     def detect(self, grey: NDArray, ndsm: NDArray, *, roi: NDArray | None = None,
