@@ -21,15 +21,21 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.atr.aerial import DEFAULT_THRESHOLD
+from prism3d.capture.geotag import enu_to_wgs84
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_paths, atomic_write_text
+from prism3d.io.geo import read_geotiff
 
 __all__ = ["NadirTemplate", "SurveyScene", "detect_in_survey", "draw_survey_detections", "find_vehicles",
            "load_survey_scene", "nadir_templates", "score_detections", "write_geojson"]
@@ -122,7 +128,6 @@ def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplat
     map position, heading of its long axis (deg clockwise from north), length, width,
     height, the best-fitting class and template and ``score`` (their height-shape
     correlation; -1 when no class fits its size), best first."""
-    import cv2
 
     if not templates:
         raise InputError("detect: no class templates")
@@ -243,12 +248,10 @@ def write_geojson(path: str | Path, dets: Sequence[dict], *, origin_lla: Sequenc
     """Detections as a GeoJSON FeatureCollection: WGS84 longitude/latitude points (RFC
     7946) when ``origin_lla`` georeferences the local frame, else local coordinates with
     a note that the scale is unknown."""
-    from prism3d.io.atomic import atomic_write_text
 
     feats = []
     for d in dets:
         if origin_lla is not None:
-            from prism3d.capture.geotag import enu_to_wgs84
 
             z = d.get("z")
             lat, lon, _ = enu_to_wgs84(np.array([[d["x"], d["y"], 0.0 if z is None else z]]),
@@ -300,7 +303,6 @@ class SurveyScene:
 
 
 def _read_checked(path: Path, what: str) -> tuple[NDArray, dict]:
-    from prism3d.io.geo import read_geotiff
 
     if not path.is_file():
         raise InputError(f"{path.parent}: no {path.name}; give a folder written by 'prism3d survey'")
@@ -314,7 +316,6 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
                       ) -> SurveyScene:
     """A survey folder's orthophoto and nDSM on one grid of ``gsd`` m over the nDSM's
     extent (the orthophoto area-averaged or interpolated onto it, the nDSM nearest-cell)."""
-    import cv2
 
     d = Path(survey_dir)
     nd, mn = _read_checked(d / "ndsm.tif", "nDSM")
@@ -388,7 +389,6 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
 def _remap_rows(img: NDArray, mx: NDArray, my: NDArray, interp: int, *, nan: bool = False) -> NDArray:
     """``img`` sampled at every (mx[c], my[r]) of a separable grid, in bands of rows
     (OpenCV's maps hold at most 32767 a side)."""
-    import cv2
 
     H, W = len(my), len(mx)
     out = np.empty((H, W) + img.shape[2:], dtype=img.dtype)
@@ -417,9 +417,7 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *
     at least ``threshold``, default the model's calibrated 0.5, unless ``all_candidates``)
     and drawn on the orthophoto to ``draw`` (PNG). A survey without GPS is refused (its
     sizes are in unknown units)."""
-    import time
 
-    from prism3d.atr.aerial import DEFAULT_THRESHOLD
 
     t0 = time.perf_counter()
     d = Path(survey_dir)
@@ -451,7 +449,6 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *
     t2 = time.perf_counter()
     kept = [x for x in dets if all_candidates or x["score"] >= th]
     feats = [_feature(x, scene) for x in kept]
-    from prism3d.io.atomic import atomic_paths
 
     with atomic_paths(*([out] if draw is None else [out, Path(draw)])) as tmps:  # both files or neither
         _write_feature_collection(tmps[0], feats, scene, th, all_candidates, model)
@@ -473,7 +470,6 @@ _SURVEY_NAMES = {"poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", 
 def _feature(x: dict, scene: SurveyScene) -> dict[str, Any]:
     """One detection as a GeoJSON Feature: a WGS84 point at its centre, its footprint a
     WGS84 polygon, local metres kept beside."""
-    from prism3d.capture.geotag import enu_to_wgs84
 
     g = scene.gsd
     r, c = x["row"], x["col"]
@@ -509,7 +505,6 @@ def _write_feature_collection(out: Path, feats: list[dict], scene: SurveyScene, 
 def draw_survey_detections(path: str | Path, scene: SurveyScene, dets: list[dict], threshold: float) -> None:
     """The orthophoto with each detection's footprint (vehicles at or above ``threshold``
     in red with class and score; candidates below in thin blue), as PNG at ``path``."""
-    import cv2
 
     img = np.ascontiguousarray(scene.rgb[..., ::-1])
     f = max(1, int(round(0.25 / max(scene.gsd, 1e-6) / 4)))

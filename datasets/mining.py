@@ -14,6 +14,7 @@ Dask); only their features come back. Method: docs/atr.md "Learning what is not 
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 import time
@@ -98,7 +99,6 @@ def _labels_rect(rig: StereoRig, K_rect: NDArray, R1: NDArray, oid_left: NDArray
 
 def mine_scene(folder: str | Path, recogniser: SceneRecogniser) -> tuple[NDArray[np.float64], list[str], dict]:
     """The labelled verifier rows of one field scene folder (module docstring)."""
-    import json
 
     d = Path(folder)
     rig = StereoRig.load(d / "rig.yaml")
