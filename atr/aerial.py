@@ -15,7 +15,6 @@ detection each. Training: :mod:`prism3d.atr.aerial_train`; method and figures: d
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Sequence
@@ -29,7 +28,7 @@ from numpy.typing import NDArray
 
 from prism3d.atr.aerial_features import CHANNEL_SETS, cell_features, rotate_scene
 from prism3d.errors import InputError
-from prism3d.io.atomic import atomic_path
+from prism3d.io.model_file import read_model_npz, write_model_npz
 
 __all__ = ["AERIAL_SCHEMA_VERSION", "DEFAULT_THRESHOLD", "AerialGroup", "AerialModel", "correlate_cells", "window_features"]
 
@@ -215,27 +214,18 @@ class AerialModel:
                             "bias": g.bias, "platt": list(g.platt), "dims": {c: list(v) for c, v in g.dims.items()}}
                            for g in self.groups],
                 "metadata": self.metadata}
-        arrays = {"meta_json": np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8)}
+        arrays = {}
         for i, g in enumerate(self.groups):
             arrays[f"g{i}_weights"] = g.weights.astype(np.float32)
             arrays[f"g{i}_class_coef"] = g.class_coef.astype(np.float32)
             arrays[f"g{i}_class_bias"] = g.class_bias.astype(np.float32)
-        with atomic_path(p) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-        return p
+        return write_model_npz(p, meta, arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> AerialModel:
         """Read a model written by :meth:`save`; a file of another kind or version is refused."""
         p = Path(path)
-        if not p.is_file():
-            raise InputError(f"{p}: no such model file")
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                meta = json.loads(bytes(z["meta_json"]).decode("utf-8"))
-                arr = {k: z[k] for k in z.files}
-        except (OSError, ValueError, KeyError) as exc:
-            raise InputError(f"{p}: not a prism3d model file ({exc})") from None
+        meta, arr = read_model_npz(p, "model")
         if meta.get("kind") != "aerial_recogniser":
             raise InputError(f"{p}: a {meta.get('kind', 'unknown')} model, not an aerial recogniser "
                              "(train one with 'prism3d bank train --view nadir')")

@@ -17,7 +17,6 @@ Method and figures: docs/atr.md "Learning what is not a target".
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -29,7 +28,7 @@ from numpy.typing import NDArray
 from prism3d.atr.bank import FilterBank, spectrum_metrics
 from prism3d.atr.scene import DetectOptions, SceneChannels, bank_scale, chip_channel, class_size, project
 from prism3d.errors import InputError
-from prism3d.io.atomic import atomic_path
+from prism3d.io.model_file import read_model_npz, write_model_npz
 
 __all__ = ["NONE", "RECOGNISER_SCHEMA_VERSION", "SceneRecogniser", "Verifier", "detect_objects",
            "filter_features", "object_features", "object_gate", "n_size_features", "size_features", "train_prefilter", "train_verifier"]
@@ -218,30 +217,20 @@ class SceneRecogniser:
                 "banks": [{"classes": list(b.classes), "channel": b.channel, "size": int(b.size),
                            "bin_deg": float(b.bin_deg), "metric": b.metric, "metadata": b.metadata}
                           for b in self.banks]}
-        arrays = {"meta_json": np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8),
-                  "verifier_mean": self.verifier.mean, "verifier_scale": self.verifier.scale,
+        arrays = {"verifier_mean": self.verifier.mean, "verifier_scale": self.verifier.scale,
                   "verifier_coef": self.verifier.coef, "verifier_intercept": self.verifier.intercept}
         if self.prefilter is not None:
             arrays.update({f"prefilter_{k}": getattr(self.prefilter, k) for k in ("mean", "scale", "coef", "intercept")})
         for i, b in enumerate(self.banks):
             arrays.update({f"b{i}_freqs": b.freqs.astype(np.complex128), f"b{i}_filter_class": b.filter_class,
                            f"b{i}_filter_az_deg": b.filter_az_deg, f"b{i}_params": b.params})
-        with atomic_path(p) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-        return p
+        return write_model_npz(p, meta, arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> SceneRecogniser:
         """Read a recogniser written by :meth:`save`; another kind or version is refused."""
         p = Path(path)
-        if not p.is_file():
-            raise InputError(f"{p}: no such recogniser file")
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                meta = json.loads(bytes(z["meta_json"]).decode("utf-8"))
-                arr = {k: z[k] for k in z.files}
-        except Exception as exc:  # noqa: BLE001 - zip/numpy/json raise many types on a damaged file
-            raise InputError(f"{p}: not a prism3d model file ({exc or type(exc).__name__})") from None
+        meta, arr = read_model_npz(p, "recogniser")
         if not isinstance(meta, dict) or meta.get("kind") != "scene_recogniser":
             raise InputError(f"{p}: not a scene recogniser")
         if meta.get("schema_version") != RECOGNISER_SCHEMA_VERSION:
