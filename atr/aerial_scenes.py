@@ -46,9 +46,10 @@ class PatchSpec:
     """Range of the emulated DSM's cell, m."""
     dsm_noise_m: tuple[float, float] = (0.03, 0.15)
     """Range of the emulated DSM's height noise, m."""
-    hole_share: tuple[float, float] = (0.0, 0.6)
+    hole_share: tuple[float, float] = (0.0, 1.0)
     """Range of the share of textureless cells (shadow, dark paint, smooth asphalt) left
-    without a height, as stereo leaves them."""
+    without a height, as stereo leaves them: up to all of them (a black roof is often
+    wholly missing from a survey's nDSM)."""
     missing_dsm_share: float = 0.1
     """Share of patches whose DSM is missing altogether (appearance only)."""
     repaint: float = 0.7

@@ -77,6 +77,24 @@ def test_features_turn_with_the_scene() -> None:
     del rng
 
 
+def test_a_black_car_beside_a_painted_line_keeps_its_edges() -> None:
+    """Grey levels from the survey simulator: asphalt 0.14, a painted line 0.8, a body
+    0.04 (black) or 0.8 (white). Next to the line, the car's long edge (gradient across,
+    90 deg bin) must hold at least half as much of its cell's normalised histogram for
+    the black car as for the white one: an edge counts by its brightness ratio (by the
+    grey levels' difference, the line would leave the black car's edge a fifth)."""
+    names = feature_names("appearance")
+    share = {}
+    for body in (0.04, 0.8):
+        grey = np.full((160, 160), 0.14, np.float32)
+        grey[64:96, 16:144] = body  # the car, along x; its top edge at row 64
+        grey[56:59, 16:144] = 0.8  # a bay line along it, in the cell above
+        f = cell_features(grey, np.full_like(grey, np.nan), 8, "appearance")
+        cell = f[64 // 8, 10]  # the cell holding the car's top edge (row 64 starts it)
+        share[body] = cell[names.index("hog4")]
+    assert share[0.04] >= 0.5 * share[0.8], share
+
+
 def test_groups_by_length() -> None:
     targets, _ = _items()
     groups = window_groups([(c, render_nadir(m, 0.2)) for c, m in targets])
