@@ -108,7 +108,8 @@ def cell_features(grey: NDArray, ndsm: NDArray, cell_px: int, channels: str = "b
         gx = cv2.Sobel(lg, cv2.CV_32F, 1, 0, ksize=1)
         gy = cv2.Sobel(lg, cv2.CV_32F, 0, 1, ksize=1)
         mag, ang = cv2.cartToPolar(gx, gy)
-        mag[outside] = 0.0
+        # the coverage's edge is no edge of the scene: nothing within a pixel of it counts
+        mag[cv2.dilate(outside.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0] = 0.0
         b = _orientation_bins(ang)
         hist = np.empty((hc, wc, N_BINS), dtype=np.float32)
         tmp = np.empty_like(mag)
