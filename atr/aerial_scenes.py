@@ -285,10 +285,14 @@ def _carpark_layout(rng: np.random.Generator, n: int, gsd: float, targets: Seque
         b += 2 * bay_d + aisle
     # 0-2 long vehicles along an aisle (buses, box trucks, parked lengthwise)
     longs = [q for q in pool if q[0].length_m > 6.0]
-    long_classes = sorted({c for _, _, c in longs})
     for _ in range(int(rng.integers(1, 5)) if longs else 0):
-        c_pick = long_classes[int(rng.integers(len(long_classes)))]  # a class, then one of its vehicles
-        of = [q for q in longs if q[2] == c_pick]
+        # a class, then one of its vehicles; three times in four a target's (buses are few in
+        # a car park, and a window learns from each one)
+        mine = [q for q in longs if q[1] == "target"]
+        src = mine if mine and rng.uniform() < 0.75 else longs
+        long_classes = sorted({c for _, _, c in src})
+        c_pick = long_classes[int(rng.integers(len(long_classes)))]
+        of = [q for q in src if q[2] == c_pick]
         sp, kind, cls = of[int(rng.integers(len(of)))]
         a = rng.uniform(-0.4, 0.4) * n
         p = ctr + ua * a + ub * (2 * bay_d + aisle / 2.0 - span / 2.0 + rng.integers(0, 3) * (2 * bay_d + aisle))
