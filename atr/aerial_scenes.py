@@ -46,10 +46,12 @@ class PatchSpec:
     """Range of the emulated DSM's cell, m."""
     dsm_noise_m: tuple[float, float] = (0.03, 0.15)
     """Range of the emulated DSM's height noise, m."""
-    hole_share: tuple[float, float] = (0.0, 1.0)
-    """Range of the share of textureless cells (shadow, dark paint, smooth asphalt) left
-    without a height, as stereo leaves them: up to all of them (a black roof is often
-    wholly missing from a survey's nDSM)."""
+    hole_share: tuple[float, float] = (0.0, 0.6)
+    """Range of the share of bright textureless cells (smooth asphalt, concrete slabs)
+    left without a height, as stereo leaves them."""
+    dark_hole_share: tuple[float, float] = (0.0, 1.0)
+    """The same for dark cells (shadow, dark paint): up to all of them (a black roof is
+    often wholly missing from a survey's nDSM; a bright slab between paving joints is not)."""
     missing_dsm_share: float = 0.1
     """Share of patches whose DSM is missing altogether (appearance only)."""
     repaint: float = 0.7
@@ -419,8 +421,10 @@ def _emulate_ndsm(rng: np.random.Generator, height: NDArray, rgb: NDArray, gsd: 
     grey = rgb[: m * k, : m * k].mean(axis=2).reshape(m, k, m, k)
     texture = grey.std(axis=(1, 3))
     mean = grey.mean(axis=(1, 3))
-    poor = (texture < rng.uniform(0.002, 0.012)) | (mean < rng.uniform(0.02, 0.07))
-    drop = poor & (rng.uniform(size=poor.shape) < rng.uniform(*o.hole_share))
+    dark = mean < rng.uniform(0.02, 0.07)
+    flat = (texture < rng.uniform(0.002, 0.012)) & ~dark
+    u = rng.uniform(size=dark.shape)
+    drop = (dark & (u < rng.uniform(*o.dark_hole_share))) | (flat & (u < rng.uniform(*o.hole_share)))
     drop = cv2.morphologyEx(drop.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
     blobs = _noise((m, m), cell, rng.uniform(1.0, 4.0), int(rng.integers(1 << 30))) > rng.uniform(0.8, 0.98)
     if keep is not None:  # painted decoys keep their (flat) height: appearance without height

@@ -49,14 +49,21 @@ def test_patches_hold_their_truth() -> None:
     tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
     nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
     p = compose_patch(np.random.default_rng(5), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0, carpark_share=1.0,
-                                                                   missing_dsm_share=0.0, hole_share=(0.0, 0.0)))
+                                                                   missing_dsm_share=0.0, hole_share=(0.0, 0.0),
+                                                                   dark_hole_share=(0.0, 0.0)))
     n = p.rgb.shape[0]
     assert p.rgb.shape == (n, n, 3) and n == 400 and p.vehicles
+    checked = 0
     for v in p.vehicles:
         r, c = int(round(v["row"])), int(round(v["col"]))
         if v["visible"] > 0.9 and 5 < r < n - 5 and 5 < c < n - 5:
-            # a vehicle stands its height over its centre (the roof, give or take the DSM's cell)
-            assert p.ndsm[r - 2:r + 3, c - 2:c + 3].max() > 0.6 * v["height_m"]
+            # a vehicle stands its height over its centre (the roof, give or take the DSM's cell;
+            # the emulated DSM's random blobs may leave some of it without a height)
+            around = p.ndsm[r - 2:r + 3, c - 2:c + 3]
+            if np.isfinite(around).any():
+                checked += 1
+                assert np.nanmax(around) > 0.6 * v["height_m"]
+    assert checked >= len(p.vehicles) // 2
     assert {v["cls"] for v in p.vehicles} <= {"car", "bus"}
 
 
@@ -113,7 +120,7 @@ def test_finds_each_vehicle_of_a_row_at_its_heading(model: AerialModel) -> None:
     nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
     found = total = fp = right = 0
     inner = lambda r, c: 40 < r < 360 and 40 < c < 360
-    for seed in (101, 102, 103, 104):
+    for seed in (101, 102, 103, 104, 105):
         p = compose_patch(np.random.default_rng(seed), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0,
                                                                            missing_dsm_share=0.0))
         dets = [d for d in model.detect(p.rgb.mean(axis=2), p.ndsm) if d["score"] >= 0.5]
