@@ -128,7 +128,6 @@ def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplat
     map position, heading of its long axis (deg clockwise from north), length, width,
     height, the best-fitting class and template and ``score`` (their height-shape
     correlation; -1 when no class fits its size), best first."""
-
     if not templates:
         raise InputError("detect: no class templates")
     z = np.asarray(ndsm, dtype=np.float32)
@@ -248,11 +247,9 @@ def write_geojson(path: str | Path, dets: Sequence[dict], *, origin_lla: Sequenc
     """Detections as a GeoJSON FeatureCollection: WGS84 longitude/latitude points (RFC
     7946) when ``origin_lla`` georeferences the local frame, else local coordinates with
     a note that the scale is unknown."""
-
     feats = []
     for d in dets:
         if origin_lla is not None:
-
             z = d.get("z")
             lat, lon, _ = enu_to_wgs84(np.array([[d["x"], d["y"], 0.0 if z is None else z]]),
                                        np.asarray(origin_lla, float))[0]
@@ -316,7 +313,6 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
                       ) -> SurveyScene:
     """A survey folder's orthophoto and nDSM on one grid of ``gsd`` m over the nDSM's
     extent (the orthophoto area-averaged or interpolated onto it, the nDSM nearest-cell)."""
-
     d = Path(survey_dir)
     nd, mn = _read_checked(d / "ndsm.tif", "nDSM")
     if nd.ndim != 2 or not np.issubdtype(nd.dtype, np.floating):
@@ -389,7 +385,6 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
 def _remap_rows(img: NDArray, mx: NDArray, my: NDArray, interp: int, *, nan: bool = False) -> NDArray:
     """``img`` sampled at every (mx[c], my[r]) of a separable grid, in bands of rows
     (OpenCV's maps hold at most 32767 a side)."""
-
     H, W = len(my), len(mx)
     out = np.empty((H, W) + img.shape[2:], dtype=img.dtype)
     border = float("nan") if nan else 0
@@ -417,8 +412,6 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *
     at least ``threshold``, default the model's calibrated 0.5, unless ``all_candidates``)
     and drawn on the orthophoto to ``draw`` (PNG). A survey without GPS is refused (its
     sizes are in unknown units)."""
-
-
     t0 = time.perf_counter()
     d = Path(survey_dir)
     out = Path(out_path)
@@ -470,7 +463,6 @@ _SURVEY_NAMES = {"poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", 
 def _feature(x: dict, scene: SurveyScene) -> dict[str, Any]:
     """One detection as a GeoJSON Feature: a WGS84 point at its centre, its footprint a
     WGS84 polygon, local metres kept beside."""
-
     g = scene.gsd
     r, c = x["row"], x["col"]
     ri, ci = int(min(max(round(r), 0), scene.ground.shape[0] - 1)), int(min(max(round(c), 0), scene.ground.shape[1] - 1))
@@ -505,7 +497,6 @@ def _write_feature_collection(out: Path, feats: list[dict], scene: SurveyScene, 
 def draw_survey_detections(path: str | Path, scene: SurveyScene, dets: list[dict], threshold: float) -> None:
     """The orthophoto with each detection's footprint (vehicles at or above ``threshold``
     in red with class and score; candidates below in thin blue), as PNG at ``path``."""
-
     img = np.ascontiguousarray(scene.rgb[..., ::-1])
     f = max(1, int(round(0.25 / max(scene.gsd, 1e-6) / 4)))
     for x in sorted(dets, key=lambda t: t["score"]):

@@ -99,7 +99,6 @@ def _labels_rect(rig: StereoRig, K_rect: NDArray, R1: NDArray, oid_left: NDArray
 
 def mine_scene(folder: str | Path, recogniser: SceneRecogniser) -> tuple[NDArray[np.float64], list[str], dict]:
     """The labelled verifier rows of one field scene folder (module docstring)."""
-
     d = Path(folder)
     rig = StereoRig.load(d / "rig.yaml")
     truth = json.loads((d / "truth.json").read_text())

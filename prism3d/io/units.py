@@ -55,5 +55,4 @@ def forward_yaw_deg(forward: str, up: str) -> float:
         v = (v[0], -v[2], v[1])
     if abs(v[2]) > 0.5:
         raise ValueError(f"forward {forward} lies along the up axis ({up}); give a horizontal axis")
-
     return -math.degrees(math.atan2(v[1], v[0]))
