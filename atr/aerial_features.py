@@ -5,11 +5,14 @@ The scene (grey appearance and normalised DSM on one grid) is turned so that veh
 the heading under test lie along the image's columns, then cut into square cells. Each
 cell holds:
 
-* 9 gradient-orientation bins (unsigned, 20 deg each) of the appearance, each weighted by
-  the gradient's magnitude and normalised by the gradient energy of the 3 x 3 cells
-  around (Dalal and Triggs [1]_; one normalisation instead of four overlapping blocks, as
-  in Felzenszwalb et al. [2]_): edges and stripes whatever their contrast sign, so a
-  white car and a black one look alike;
+* 9 gradient-orientation bins (unsigned, 20 deg each) of the appearance's logarithm, each
+  weighted by the gradient's magnitude and normalised by the gradient energy of the 3 x 3
+  cells around (Dalal and Triggs [1]_; one normalisation instead of four overlapping
+  blocks, as in Felzenszwalb et al. [2]_): edges and stripes whatever their contrast sign,
+  so a white car and a black one look alike. The logarithm makes an edge's strength its
+  brightness ratio, not its difference: a black car's outline on dark asphalt and its
+  windscreen count as much as a white car's (the offset keeps sensor noise in deep
+  shadow from counting as edges);
 * the cell's contrast: its mean grey's distance from the median of the 7 x 7 cells
   around, and its grey spread;
 * the height above the ground: the cell's mean and highest nDSM value (m, clipped to
@@ -39,6 +42,9 @@ _HEIGHT = ["h_mean", "h_max", "h_missing"]
 #: Which per-cell features each input set reads.
 CHANNEL_SETS = {"both": _APPEARANCE + _HEIGHT, "appearance": _APPEARANCE, "height": _HEIGHT}
 MAX_HEIGHT_M = 6.0
+#: Added to the grey level (0-1) before its logarithm: about 13 of 255 grey levels, above
+#: the sensor noise in shadow.
+LOG_OFFSET = 0.05
 
 
 def feature_names(channels: str) -> list[str]:
@@ -98,10 +104,12 @@ def cell_features(grey: NDArray, ndsm: NDArray, cell_px: int, channels: str = "b
         inside = g[::4, ::4][np.isfinite(g[::4, ::4])]  # a sixteenth of the pixels: the same median
         fill = float(np.median(inside)) if inside.size else 0.0
         gf = np.where(outside, fill, g).astype(np.float32)
-        gx = cv2.Sobel(gf, cv2.CV_32F, 1, 0, ksize=1)
-        gy = cv2.Sobel(gf, cv2.CV_32F, 0, 1, ksize=1)
+        lg = np.log(gf + np.float32(LOG_OFFSET))
+        gx = cv2.Sobel(lg, cv2.CV_32F, 1, 0, ksize=1)
+        gy = cv2.Sobel(lg, cv2.CV_32F, 0, 1, ksize=1)
         mag, ang = cv2.cartToPolar(gx, gy)
-        mag[outside] = 0.0
+        # the coverage's edge is no edge of the scene: nothing within a pixel of it counts
+        mag[cv2.dilate(outside.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0] = 0.0
         b = _orientation_bins(ang)
         hist = np.empty((hc, wc, N_BINS), dtype=np.float32)
         tmp = np.empty_like(mag)

@@ -47,8 +47,11 @@ class PatchSpec:
     dsm_noise_m: tuple[float, float] = (0.03, 0.15)
     """Range of the emulated DSM's height noise, m."""
     hole_share: tuple[float, float] = (0.0, 0.6)
-    """Range of the share of textureless cells (shadow, dark paint, smooth asphalt) left
-    without a height, as stereo leaves them."""
+    """Range of the share of bright textureless cells (smooth asphalt, concrete slabs)
+    left without a height, as stereo leaves them."""
+    dark_hole_share: tuple[float, float] = (0.0, 1.0)
+    """The same for dark cells (shadow, dark paint): up to all of them (a black roof is
+    often wholly missing from a survey's nDSM; a bright slab between paving joints is not)."""
     missing_dsm_share: float = 0.1
     """Share of patches whose DSM is missing altogether (appearance only)."""
     repaint: float = 0.7
@@ -284,10 +287,14 @@ def _carpark_layout(rng: np.random.Generator, n: int, gsd: float, targets: Seque
         b += 2 * bay_d + aisle
     # 0-2 long vehicles along an aisle (buses, box trucks, parked lengthwise)
     longs = [q for q in pool if q[0].length_m > 6.0]
-    long_classes = sorted({c for _, _, c in longs})
     for _ in range(int(rng.integers(1, 5)) if longs else 0):
-        c_pick = long_classes[int(rng.integers(len(long_classes)))]  # a class, then one of its vehicles
-        of = [q for q in longs if q[2] == c_pick]
+        # a class, then one of its vehicles; three times in four a target's (buses are few in
+        # a car park, and a window learns from each one)
+        mine = [q for q in longs if q[1] == "target"]
+        src = mine if mine and rng.uniform() < 0.75 else longs
+        long_classes = sorted({c for _, _, c in src})
+        c_pick = long_classes[int(rng.integers(len(long_classes)))]
+        of = [q for q in src if q[2] == c_pick]
         sp, kind, cls = of[int(rng.integers(len(of)))]
         a = rng.uniform(-0.4, 0.4) * n
         p = ctr + ua * a + ub * (2 * bay_d + aisle / 2.0 - span / 2.0 + rng.integers(0, 3) * (2 * bay_d + aisle))
@@ -414,8 +421,10 @@ def _emulate_ndsm(rng: np.random.Generator, height: NDArray, rgb: NDArray, gsd: 
     grey = rgb[: m * k, : m * k].mean(axis=2).reshape(m, k, m, k)
     texture = grey.std(axis=(1, 3))
     mean = grey.mean(axis=(1, 3))
-    poor = (texture < rng.uniform(0.002, 0.012)) | (mean < rng.uniform(0.02, 0.07))
-    drop = poor & (rng.uniform(size=poor.shape) < rng.uniform(*o.hole_share))
+    dark = mean < rng.uniform(0.02, 0.07)
+    flat = (texture < rng.uniform(0.002, 0.012)) & ~dark
+    u = rng.uniform(size=dark.shape)
+    drop = (dark & (u < rng.uniform(*o.dark_hole_share))) | (flat & (u < rng.uniform(*o.hole_share)))
     drop = cv2.morphologyEx(drop.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
     blobs = _noise((m, m), cell, rng.uniform(1.0, 4.0), int(rng.integers(1 << 30))) > rng.uniform(0.8, 0.98)
     if keep is not None:  # painted decoys keep their (flat) height: appearance without height

@@ -49,14 +49,21 @@ def test_patches_hold_their_truth() -> None:
     tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
     nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
     p = compose_patch(np.random.default_rng(5), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0, carpark_share=1.0,
-                                                                   missing_dsm_share=0.0, hole_share=(0.0, 0.0)))
+                                                                   missing_dsm_share=0.0, hole_share=(0.0, 0.0),
+                                                                   dark_hole_share=(0.0, 0.0)))
     n = p.rgb.shape[0]
     assert p.rgb.shape == (n, n, 3) and n == 400 and p.vehicles
+    checked = 0
     for v in p.vehicles:
         r, c = int(round(v["row"])), int(round(v["col"]))
         if v["visible"] > 0.9 and 5 < r < n - 5 and 5 < c < n - 5:
-            # a vehicle stands its height over its centre (the roof, give or take the DSM's cell)
-            assert p.ndsm[r - 2:r + 3, c - 2:c + 3].max() > 0.6 * v["height_m"]
+            # a vehicle stands its height over its centre (the roof, give or take the DSM's cell;
+            # the emulated DSM's random blobs may leave some of it without a height)
+            around = p.ndsm[r - 2:r + 3, c - 2:c + 3]
+            if np.isfinite(around).any():
+                checked += 1
+                assert np.nanmax(around) > 0.6 * v["height_m"]
+    assert checked >= len(p.vehicles) // 2
     assert {v["cls"] for v in p.vehicles} <= {"car", "bus"}
 
 
@@ -77,6 +84,24 @@ def test_features_turn_with_the_scene() -> None:
     del rng
 
 
+def test_a_black_car_beside_a_painted_line_keeps_its_edges() -> None:
+    """Grey levels from the survey simulator: asphalt 0.14, a painted line 0.8, a body
+    0.04 (black) or 0.8 (white). Next to the line, the car's long edge (gradient across,
+    90 deg bin) must hold at least half as much of its cell's normalised histogram for
+    the black car as for the white one: an edge counts by its brightness ratio (by the
+    grey levels' difference, the line would leave the black car's edge a fifth)."""
+    names = feature_names("appearance")
+    share = {}
+    for body in (0.04, 0.8):
+        grey = np.full((160, 160), 0.14, np.float32)
+        grey[64:96, 16:144] = body  # the car, along x; its top edge at row 64
+        grey[56:59, 16:144] = 0.8  # a bay line along it, in the cell above
+        f = cell_features(grey, np.full_like(grey, np.nan), 8, "appearance")
+        cell = f[64 // 8, 10]  # the cell holding the car's top edge (row 64 starts it)
+        share[body] = cell[names.index("hog4")]
+    assert share[0.04] >= 0.5 * share[0.8], share
+
+
 def test_groups_by_length() -> None:
     targets, _ = _items()
     groups = window_groups([(c, render_nadir(m, 0.2)) for c, m in targets])
@@ -95,7 +120,7 @@ def test_finds_each_vehicle_of_a_row_at_its_heading(model: AerialModel) -> None:
     nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
     found = total = fp = right = 0
     inner = lambda r, c: 40 < r < 360 and 40 < c < 360
-    for seed in (101, 102, 103, 104):
+    for seed in (101, 102, 103, 104, 105):
         p = compose_patch(np.random.default_rng(seed), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0,
                                                                            missing_dsm_share=0.0))
         dets = [d for d in model.detect(p.rgb.mean(axis=2), p.ndsm) if d["score"] >= 0.5]
