@@ -55,8 +55,12 @@ class PatchSpec:
     missing_dsm_share: float = 0.1
     """Share of patches whose DSM is missing altogether (appearance only)."""
     repaint: float = 0.7
-    """Share of vehicles repainted in a body colour drawn as in car parks (the sprite's
-    commonest colour is taken for its body)."""
+    """Share of target vehicles in car parks repainted in a body colour drawn as in car
+    parks (the sprite's commonest colour is taken for its body); vehicles of other classes
+    half as often, so a camouflaged tank is refused mostly as what it is."""
+    repaint_open: float = 0.3
+    """The same share on open ground, where vehicles are more often seen in their own
+    paint (a camouflaged truck on grass is still a truck)."""
 
 
 @dataclass(frozen=True)
@@ -366,7 +370,9 @@ def compose_patch(rng: np.random.Generator, targets: Sequence[tuple[str, NadirSp
                     break
     canvas = _Canvas(albedo, np.dstack([np.zeros((n, n, 2), np.float32), np.ones((n, n, 1), np.float32)]),
                      np.zeros((n, n), np.float32), np.full((n, n), -1, np.int32))
-    objs = [(_repaint(sp, rng) if rng.uniform() < o.repaint else sp, *rest) for sp, *rest in objs]
+    share = o.repaint if carpark else o.repaint_open
+    objs = [(_repaint(sp, rng) if rng.uniform() < share * (1.0 if kind == "target" else 0.5) else sp, r, c, hd,
+             kind, cls) for sp, r, c, hd, kind, cls in objs]
     everything = objs + clutter
     for i, (sp, r, c, hd, _, _) in enumerate(everything):
         _place(canvas, sp, r, c, hd, 0.0, i)

@@ -59,13 +59,13 @@ class AerialTrainOptions:
     """Feature cell side, px (0.48 m at the default grid)."""
     angle_step_deg: float = 15.0
     """Heading step of the search, deg (a cell's orientation bins are 20 deg wide)."""
-    patches: int = 48
+    patches: int = 80
     """Training patches (36 m squares) for the first fit."""
-    mining_patches: int = 16
+    mining_patches: int = 24
     """Fresh patches per round of hard negatives."""
     mining_rounds: int = 3
     """Rounds of hard negatives."""
-    calibration_patches: int = 16
+    calibration_patches: int = 24
     """Held-out patches for the calibration."""
     random_negatives: int = 40
     """Random negative windows per patch and heading."""
