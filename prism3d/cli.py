@@ -48,11 +48,24 @@ def _say(args: argparse.Namespace, text: str) -> None:
         print(text)
 
 
+def _global_options(p: argparse.ArgumentParser, *, top: bool) -> None:
+    """-q, -v and --max-pixels: before the command with their defaults, and accepted after
+    it too (there without a default, so a command's parser never undoes what was given
+    before it)."""
+    d: dict[str, Any] = {} if top else {"default": argparse.SUPPRESS}
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summaries", **d)
+    p.add_argument("-v", "--verbose", action="count", help="more logging (-vv for debug)",
+                   **(d or {"default": 0}))
+    p.add_argument("--max-pixels", type=int, metavar="N",
+                   help="largest image or array decoded, pixels (default 100 MP; or PRISM3D_MAX_PIXELS)", **d)
+
+
 def _command(
     sub: Any, name: str, run: Handler, *, help: str, description: str
 ) -> argparse.ArgumentParser:
     """Add the subcommand ``name``, run by ``run(args)``."""
     p = sub.add_parser(name, help=help, description=description)
+    _global_options(p, top=False)
     p.set_defaults(func=run)
     return p
 
@@ -1194,6 +1207,7 @@ def _add_db(sub: Any) -> None:
 
     def action(name: str, help: str, description: str) -> argparse.ArgumentParser:
         q = dsub.add_parser(name, help=help, description=description)
+        _global_options(q, top=False)
         q.add_argument("db", type=Path, metavar="DB")
         return q
 
@@ -1277,10 +1291,7 @@ def build_parser() -> argparse.ArgumentParser:
         "angles degrees. Docs: README.md.",
     )
     parser.add_argument("--version", action="version", version=f"prism3d {__version__}")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summaries")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
-    parser.add_argument("--max-pixels", type=int, metavar="N",
-                        help="largest image or array decoded, pixels (default 100 MP; or PRISM3D_MAX_PIXELS)")
+    _global_options(parser, top=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for add in _COMMANDS:
         add(sub)

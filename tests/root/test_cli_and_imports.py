@@ -112,6 +112,27 @@ def test_max_pixels_flag_sets_the_image_budget(tmp_path, monkeypatch, capsys):
         main(["--max-pixels", "0", "demo", "x"])
 
 
+def test_global_options_after_the_command(tmp_path, monkeypatch, capsys):
+    """-q, -v and --max-pixels after the command act as before it: the same refusal, the
+    same silence; one given before the command is not undone by the command's parser."""
+    from prism3d.cli import build_parser
+    from prism3d.io.images import write_image
+
+    monkeypatch.delenv("PRISM3D_MAX_PIXELS", raising=False)
+    img = tmp_path / "i.png"
+    write_image(img, np.zeros((1200, 1000, 3), np.uint8))
+    out = tmp_path / "d.pfm"
+    run = ["match", str(img), str(img), "--num-disp", "16", "-o", str(out)]
+    assert main([*run, "--max-pixels", "1000000", "-q"]) == 2
+    assert "more than the 1.0 MP limit (--max-pixels" in capsys.readouterr().err and not out.exists()
+    assert main([*run, "-q"]) == 0 and out.exists()
+    assert capsys.readouterr().out == ""
+    p = build_parser()
+    assert p.parse_args(["-q", "-v", *run]).quiet and p.parse_args(["-q", "-v", *run]).verbose == 1
+    a = p.parse_args(["db", "info", "D", "-vv", "--quiet"])
+    assert a.quiet and a.verbose == 2 and a.max_pixels is None
+
+
 def test_unexpected_error_keeps_traceback(monkeypatch):
     import prism3d.demo as demo
 
