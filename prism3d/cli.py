@@ -1287,8 +1287,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="prism3d",
         description="One flash photograph through a prism stereo adapter -> a calibrated, "
         "metric 3D model; ATR datasets and features on that 3D core.",
-        epilog="Run 'prism3d COMMAND --help' for a command's options. Lengths are millimetres, "
-        "angles degrees. Docs: README.md.",
+        epilog="Run 'prism3d COMMAND --help' for a command's options. Lengths: millimetres in the "
+        "prism stereo core, metres in the drone survey (survey, survey-detect, simulate flight); "
+        "angles degrees. Docs: README.md, docs/cli.md.",
     )
     parser.add_argument("--version", action="version", version=f"prism3d {__version__}")
     _global_options(parser, top=True)
