@@ -68,6 +68,7 @@ from prism3d.datasets.jobs import RunOptions, run_survey_pairs
 from prism3d.datasets.survey_eval import evaluate_survey, ground_roughness
 from prism3d.datasets.targets import builtin_target
 from prism3d.errors import InputError
+from prism3d.geometry import rotation_angle_deg
 from prism3d.reconstruct.survey import SurveyOptions, run_survey
 
 HERE = Path(__file__).resolve().parent
@@ -113,10 +114,6 @@ def _git() -> dict[str, Any]:
 
 def _n(v: float | None, digits: int = 4) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
-
-
-def _rot_deg(R: np.ndarray) -> float:
-    return math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0))))
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -244,14 +241,14 @@ def poses(flight: Path, ours: dict[str, Any], ev: dict[str, Any]) -> dict[str, A
     for i in range(len(T_true) - 1):
         j = i + 1
         R_t, t_t = _relative(T_true[i], T_true[j])
-        rec: dict[str, Any] = {"i": i, "j": j, "true_rotation_deg": round(_rot_deg(R_t), 3),
+        rec: dict[str, Any] = {"i": i, "j": j, "true_rotation_deg": round(rotation_angle_deg(R_t), 3),
                                "same_line": truth["frames"][i]["line"] == truth["frames"][j]["line"]}
         t0 = time.perf_counter()
         a, b = frame(i), frame(j)
         t1 = time.perf_counter()
         try:
             p = relative_pose(a, b, Ks)
-            rec.update(anchor_rotation_error_deg=_rot_deg(p.R.T @ R_t),
+            rec.update(anchor_rotation_error_deg=rotation_angle_deg(p.R.T @ R_t),
                        anchor_direction_error_deg=_angle_deg(p.t, t_t), anchor_inliers=p.n_inliers,
                        anchor_failed=None)
         except InputError as exc:
@@ -261,7 +258,7 @@ def poses(flight: Path, ours: dict[str, Any], ev: dict[str, Any]) -> dict[str, A
         rec.update(anchor_s=round(t2 - t0, 2), anchor_pose_s=round(t2 - t1, 2))
         if T_est[i] is not None and T_est[j] is not None:
             R_e, t_e = _relative(T_est[i], T_est[j])
-            rec.update(survey_rotation_error_deg=_rot_deg(R_e.T @ R_t),
+            rec.update(survey_rotation_error_deg=rotation_angle_deg(R_e.T @ R_t),
                        survey_direction_error_deg=_angle_deg(t_e, t_t))
         else:
             rec.update(survey_rotation_error_deg=None, survey_direction_error_deg=None)

@@ -11,7 +11,6 @@ absolute placement is reported beside it.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,16 +19,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.errors import InputError
+from prism3d.geometry import rotation_angle_deg
 
 __all__ = ["evaluate_survey", "ground_roughness"]
 
 #: Open ground for the DSM score: ground or road cells at least this far (m) from any object.
 OPEN_MARGIN_M = 1.5
-
-
-def _rotation_deg(R: NDArray) -> float:
-    c = (np.trace(R) - 1.0) / 2.0
-    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
 
 
 def _to_truth_frame(P: NDArray, survey_origin: NDArray, truth_origin: NDArray) -> NDArray[np.float64]:
@@ -78,13 +73,13 @@ def _pose_scores(poses: dict, truth: dict) -> tuple[dict[str, Any], _Frames]:
     Ct = np.array([T[:3, 3] for T in tru])
     s, R, t = similarity_align(C, Ct)
     pos_err = np.linalg.norm(s * C @ R.T + t - Ct, axis=1)
-    rot_err = np.array([_rotation_deg(T[:3, :3].T @ (R @ Re)) for (_, Re), T in zip(est, tru)])
+    rot_err = np.array([rotation_angle_deg(T[:3, :3].T @ (R @ Re)) for (_, Re), T in zip(est, tru)])
     scores = {
         "frames_placed": len(est), "frames": len(truth["frames"]), "gsd_m": gsd,
         "position_error_gsd": {"max": float(pos_err.max() / gsd), "rms": float(np.sqrt(np.mean(pos_err**2)) / gsd)},
         "rotation_error_deg": {"max": float(rot_err.max()), "rms": float(np.sqrt(np.mean(rot_err**2)))},
         "absolute_placement_m": {"max": float(np.linalg.norm(C - Ct, axis=1).max()),
-                                 "alignment_scale": float(s), "alignment_rotation_deg": _rotation_deg(R)},
+                                 "alignment_scale": float(s), "alignment_rotation_deg": rotation_angle_deg(R)},
     }
     return scores, _Frames(so, to, s, R, t, tru)
 

@@ -10,7 +10,6 @@ not its length (GPS gives that).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +18,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array
 from prism3d.errors import InputError
 
-__all__ = ["TwoViewPose", "pose_from_matches", "relative_pose", "rotation_angle_deg"]
+__all__ = ["TwoViewPose", "pose_from_matches", "relative_pose"]
 
 
 @dataclass(frozen=True)
@@ -44,12 +43,6 @@ class TwoViewPose:
     @property
     def n_inliers(self) -> int:
         return len(self.pts1)
-
-
-def rotation_angle_deg(R: NDArray) -> float:
-    """The angle of a rotation matrix, degrees."""
-    c = (float(np.trace(np.asarray(R, dtype=np.float64))) - 1.0) / 2.0
-    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
 
 
 def _grey8(img: NDArray, name: str) -> NDArray[np.uint8]:

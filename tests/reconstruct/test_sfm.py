@@ -12,8 +12,8 @@ import pytest
 
 from prism3d.capture.rig import CameraModel
 from prism3d.errors import InputError
+from prism3d.geometry import rotation_angle_deg
 from prism3d.reconstruct.sfm import SfmOptions, map_frames, similarity_align
-from prism3d.reconstruct.two_view import rotation_angle_deg
 
 W, H, F = 800, 600, 600.0
 K_TRUE = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1.0]])

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from prism3d.errors import InputError
-from prism3d.reconstruct.two_view import pose_from_matches, relative_pose, rotation_angle_deg
+from prism3d.geometry import rotation_angle_deg
+from prism3d.reconstruct.two_view import pose_from_matches, relative_pose
 
 
 def _rot(axis: str, deg: float) -> np.ndarray:
