@@ -14,16 +14,32 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.capture.calib_formats import load_camera_calibration
+from prism3d.capture.geotag import exif_focal_px, exif_geotag, read_position_table, wgs84_to_enu
+from prism3d.capture.rig import CameraModel
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_path, atomic_write_text, staged_folder
+from prism3d.io.geo import local_enu_crs_wkt, write_geotiff, write_las
+from prism3d.io.images import read_image
+from prism3d.io.ply import write_ply
+from prism3d.reconstruct.dsm import MAX_CELLS, grid_points, normalised_dsm
+from prism3d.reconstruct.flatness import ransac_plane
+from prism3d.reconstruct.match_options import MatchOptions
+from prism3d.reconstruct.ortho import true_orthophoto
+from prism3d.reconstruct.sfm import SfmOptions, map_frames, similarity_align
+from prism3d.reconstruct.survey_pair import pair_cloud
+from prism3d.reconstruct.two_view import TwoViewPose
 
 __all__ = [
     "SURVEY_SCHEMA_VERSION", "SURVEY_FILES", "Georef", "SurveyOptions", "dense_pair", "fuse_tiles",
@@ -125,8 +141,6 @@ class Georef:
 def _ground_up(points: NDArray, centres: NDArray) -> NDArray[np.float64]:
     """The dominant plane's normal of sparse ``points`` (a nadir survey's ground),
     pointing towards the cameras."""
-    from prism3d.reconstruct.flatness import ransac_plane
-
     rng = np.random.default_rng(0)
     P = np.asarray(points, dtype=np.float64)
     if len(P) < 20:
@@ -163,7 +177,6 @@ def georeference(centres: NDArray, gps_enu: NDArray | None, points: NDArray) -> 
         raise InputError(f"GPS: {len(G)} positions for {len(C)} cameras")
     sv = np.linalg.svd(G - G.mean(axis=0), compute_uv=False)
     if len(C) >= 3 and sv[1] > 0.05 * sv[0]:
-        from prism3d.reconstruct.sfm import similarity_align
 
         keep = np.ones(len(C), bool)
         for _ in range(2):
@@ -209,9 +222,7 @@ def _dense_scale(size: tuple[int, int], max_pixels: float) -> int:
 
 def _load_frame(path: str, K: NDArray, dist: NDArray, factor: int) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
     """A frame undistorted onto ``K`` and area-downscaled by ``factor``: the image and its K."""
-    import cv2
 
-    from prism3d.io.images import read_image
 
     img = read_image(path)
     if img.ndim == 2:
@@ -255,10 +266,6 @@ def dense_pair(req: dict[str, Any]) -> dict[str, Any]:
     the pair's record (status "ok" or "skipped" with a reason) and, when ok, its tile
     (per-cell median height, point count, mean colour) and camera i's depth map. A pair
     that cannot be a stereo pair is skipped, never raised: other pairs carry on."""
-    from prism3d.reconstruct.dsm import grid_points
-    from prism3d.reconstruct.survey_pair import pair_cloud
-    from prism3d.reconstruct.two_view import TwoViewPose
-
     t0 = time.perf_counter()
     i, j = int(req["i"]), int(req["j"])
     rec: dict[str, Any] = {"i": i, "j": j, "status": "skipped", "reason": None}
@@ -285,7 +292,6 @@ def dense_pair(req: dict[str, Any]) -> dict[str, Any]:
     t = Tcj[:3, :3] @ ci + Tcj[:3, 3]
     pose = TwoViewPose(R, t / np.linalg.norm(t), q1, q2, len(P), 0.0)
     try:
-        from prism3d.reconstruct.match_options import MatchOptions
 
         lk = int(req.get("lk_window", 5))
         pc = pair_cloud(img_i, img_j, Ks, pose, baseline=base, matcher=req.get("matcher", "ours"),
@@ -356,7 +362,6 @@ def fuse_tiles(tiles: Sequence[dict[str, Any]], sigmas: Sequence[float], *, band
         h, w = t["dsm"].shape
         offs.append((r0, c0, h, w))
         H, W = max(H, r0 + h), max(W, c0 + w)
-    from prism3d.reconstruct.dsm import MAX_CELLS
 
     if H * W > MAX_CELLS:
         raise InputError(f"fusion: {W} x {H} cells is over the {MAX_CELLS:,} budget; give a larger cell")
@@ -427,8 +432,6 @@ def video_frames(video: str | Path, folder: Path, *, step_s: float = 1.0, max_fr
     """Frames of a video every ``step_s`` seconds (by its frame rate; every frame when it
     states none) written as JPEGs into ``folder``: the survey's frames. A video without
     two readable frames is refused."""
-    import cv2
-
     v = Path(video)
     if not v.is_file():
         raise InputError(f"{v}: video not found")
@@ -480,8 +483,6 @@ def check_frames(images: Sequence[str | Path]) -> tuple[list[Path], tuple[int, i
 def _gps_positions(paths: Sequence[Path], gps_table: str | Path | None) -> tuple[list[Any] | None, str]:
     """GeoTags per frame from a position table (every frame must be in it, and every
     image the table names must exist), else from EXIF when every frame has it."""
-    from prism3d.capture.geotag import exif_geotag, read_position_table
-
     if gps_table is not None:
         folders = {p.resolve().parent for p in paths}
         table = read_position_table(gps_table, images_dir=folders.pop() if len(folders) == 1 else None)
@@ -504,10 +505,6 @@ def _gps_positions(paths: Sequence[Path], gps_table: str | Path | None) -> tuple
 
 def _starting_camera(paths: Sequence[Path], size: tuple[int, int], calib: str | Path | None):
     """The starting calibration: a camera YAML, else the EXIF focal length."""
-    from prism3d.capture.calib_formats import load_camera_calibration
-    from prism3d.capture.geotag import exif_focal_px
-    from prism3d.capture.rig import CameraModel
-
     if calib is not None:
         return load_camera_calibration(calib, image_size=size), "calibration file"
     f = exif_focal_px(paths[0])
@@ -556,7 +553,6 @@ def _georeference_model(sfm: Any, tags: list[Any] | None) -> tuple[Georef, dict[
     C_model = np.array([np.linalg.inv(sfm.cam_from_world[k])[:3, 3] for k in reg])
     origin = gps_enu = None
     if tags is not None:
-        from prism3d.capture.geotag import wgs84_to_enu
 
         origin = np.array([tags[0].lat_deg, tags[0].lon_deg, 0.0])
         gps_enu = wgs84_to_enu(np.array([[t.lat_deg, t.lon_deg, t.alt_m] for t in tags]), origin)
@@ -606,10 +602,7 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     per-pair depth maps, cloud (PLY, LAS), DSM, ground, nDSM and orthophoto (GeoTIFF),
     poses.json and a drawing; all written together or nothing. ``run_pairs`` runs the
     dense pairs (default: here, one after the other)."""
-    import shutil
 
-    from prism3d.io.atomic import atomic_write_text, staged_folder
-    from prism3d.reconstruct.sfm import SfmOptions, map_frames
 
     o = SurveyOptions() if options is None else options
     t_all = time.perf_counter()
@@ -679,11 +672,6 @@ def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], sho
                     T_enu: dict[int, NDArray], recs: list[dict], origin: NDArray | None, gps_enu: NDArray | None,
                     gps_source: str, calib_source: str, refined: list[str], factor: int,
                     o: SurveyOptions) -> dict[str, Any]:
-    from prism3d.io.atomic import atomic_write_text
-    from prism3d.io.geo import local_enu_crs_wkt, write_geotiff, write_las
-    from prism3d.io.ply import write_ply
-    from prism3d.reconstruct.dsm import normalised_dsm
-    from prism3d.reconstruct.ortho import true_orthophoto
 
     scaled = origin is not None
     crs = local_enu_crs_wkt(float(origin[0]), float(origin[1])) if scaled else None
@@ -820,8 +808,6 @@ def footprint(T_enu_cam: NDArray, K: NDArray, size: tuple[int, int], ground_z: f
 def overlap_mask(quads: Sequence[NDArray], shape: tuple[int, int], west: float, north: float,
                  cell: float) -> NDArray[np.bool_]:
     """Cells of a (H, W) grid inside the intersection of convex ground quads (n, 4, 2)."""
-    import cv2
-
     poly = np.asarray(quads[0], dtype=np.float32)
     for q in quads[1:]:
         area, inter = cv2.intersectConvexConvex(poly, np.asarray(q, dtype=np.float32))
@@ -841,7 +827,6 @@ def _draw_survey(path: Path, fused: FusedSurface, ndsm: NDArray, T_enu: dict[int
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from prism3d.io.atomic import atomic_path
 
     unit = "m" if scaled else "units"
     H, W = fused.dsm.shape
