@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from prism3d._env import configured_threads
 from prism3d.atr.bank import GRADIENT_SIGMA_PX, spectrum_metrics
 from prism3d.atr.models import load_scene_model
 from prism3d.atr.scene import (
@@ -57,12 +58,15 @@ from prism3d.atr.scene import (
     scene_channels,
 )
 from prism3d.atr.verifier import SceneRecogniser, detect_objects
-from prism3d.capture.render import configured_threads
 from prism3d.capture.rig import StereoRig
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
 from prism3d.io.images import read_depth, read_image
-from prism3d.reconstruct.pipeline import ReconstructOptions, convergence_distance_mm, reconstruct_shot
+from prism3d.reconstruct.pipeline import (
+    ReconstructOptions,
+    convergence_distance_mm,
+    reconstruct_shot,
+)
 
 __all__ = [
     "DetectOptions", "SceneChannels", "SceneSource", "bank_scale", "detect_scene", "detect_scene_hog", "detect_shot",

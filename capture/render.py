@@ -15,9 +15,22 @@ from typing import cast as _narrow
 
 import numpy as np
 from numpy.typing import NDArray
+
+from prism3d._env import configured_threads
+from prism3d.capture._render_kernels import (
+    cull_rays,
+    grid_rays,
+    on_plane,
+    pack_rays_sel,
+    pack_segments,
+    quantize_u8,
+    refine_compact,
+    rotate_rays,
+    sensor_noise,
+)
+from prism3d.capture.camouflage import CamouflageField
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.rig import CameraModel
-
 from prism3d.checks import check_array, check_positive
 from prism3d.errors import InputError
 
@@ -65,17 +78,6 @@ class RenderResult:
     object_id: NDArray[np.int32]
     face_id: NDArray[np.int64]
     rgb: NDArray[np.uint8] | None = None
-
-
-def configured_threads() -> int:
-    """Threads a parallel stage may use: ``PRISM3D_NUM_THREADS`` (0 or unset = the stage
-    decides: all cores for Open3D's ray casting; job runners set 1 per worker)."""
-    import os
-
-    try:
-        return max(0, int(os.environ.get("PRISM3D_NUM_THREADS", "0")))
-    except ValueError:
-        return 0
 
 
 @dataclass(eq=False)
@@ -256,7 +258,6 @@ class RaycastRenderer:
         ``consume(start, end, hits)``, one call per chunk in reused buffers (returns None).
         """
         import open3d as o3d
-        from prism3d.capture._render_kernels import cull_rays, pack_rays_sel, refine_compact
 
         keep = np.empty(min(n, chunk), dtype=np.bool_)
         # accumulate: outputs sized for the worst case (every ray hits); pages never
@@ -330,8 +331,6 @@ class RaycastRenderer:
         Same values as ``SceneMesh.albedo_at``; a :class:`CamouflageField` (the
         common case) is evaluated through its labels and palette directly.
         """
-        from prism3d.capture.camouflage import CamouflageField
-
         m = len(obj)
         whole = len(self._meshes) == 1 and m > 0 and int(obj.min()) == 0
         out = np.empty((m, 3), dtype=dtype) if whole else np.zeros((m, 3), dtype=dtype)
@@ -386,7 +385,6 @@ class RaycastRenderer:
     ) -> NDArray[np.bool_]:
         """:meth:`visible_from` of the points ``p[sel]`` (all of ``p`` when ``sel`` is None)."""
         import open3d as o3d
-        from prism3d.capture._render_kernels import on_plane, pack_segments
 
         p = np.ascontiguousarray(p, dtype=np.float64)
         src = np.ascontiguousarray(src, dtype=np.float64)
@@ -483,8 +481,6 @@ class RaycastRenderer:
         intrinsics (K, distortion, size) on this renderer: the Newton inversion of
         the distortion is paid once per camera model, not once per render (the two
         views of a symmetric rig share one entry)."""
-        from prism3d.capture._render_kernels import grid_rays
-
         key = (camera.K.tobytes(), camera.dist.tobytes(), tuple(camera.size))
         hit = self._ray_cache.pop(key, None)
         if hit is None:
@@ -532,8 +528,6 @@ class RaycastRenderer:
         rows_multiple: int,
         out: list[CameraHits],
     ) -> None:
-        from prism3d.capture._render_kernels import rotate_rays
-
         w, h = camera.size
         T = np.asarray(T_world_cam, dtype=np.float64)
         R = np.ascontiguousarray(T[:3, :3])
@@ -614,8 +608,6 @@ def camera_rays(
     centre, in the world frame (``R_world_cam @ ray_cam``; camera frame when None),
     and their camera z (depth = t * z_cam). Same as ``camera.pixel_grid_rays()``.
     """
-    from prism3d.capture._render_kernels import grid_rays
-
     R = np.eye(3) if R_world_cam is None else np.asarray(R_world_cam, dtype=np.float64)
     w, h = camera.size
     out = np.empty((h, w, 3), dtype=np.float64)
@@ -682,8 +674,6 @@ class SensorNoise:
         .. [2] G. L. Steele, D. Lea, C. H. Flood, "Fast splittable pseudorandom
            number generators", OOPSLA 2014 (splitmix64).
         """
-        from prism3d.capture._render_kernels import sensor_noise
-
         x = np.asarray(image01, dtype=np.float64)
         flat = np.ascontiguousarray(x).reshape(-1)
         key = np.uint64(int(rng.integers(0, 2**63, dtype=np.int64)))
@@ -694,8 +684,6 @@ class SensorNoise:
 
 def quantize(image_dn: NDArray) -> NDArray[np.uint8]:
     """Round DN values to uint8 (half to even, as ``np.rint``) with clipping to [0, 255]."""
-    from prism3d.capture._render_kernels import quantize_u8
-
     x = np.asarray(image_dn, dtype=np.float64)
     out = np.empty(x.shape, dtype=np.uint8)
     quantize_u8(np.ascontiguousarray(x).reshape(-1), out.reshape(-1))

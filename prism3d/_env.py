@@ -18,6 +18,15 @@ if TYPE_CHECKING:
 OPENGL_PLATFORMS = ("osmesa", "egl")
 
 
+def configured_threads() -> int:
+    """Threads a parallel stage may use: ``PRISM3D_NUM_THREADS`` (0 or unset = the stage
+    decides: all cores for Open3D's ray casting and COLMAP; job runners set 1 per worker)."""
+    try:
+        return max(0, int(os.environ.get("PRISM3D_NUM_THREADS", "0")))
+    except ValueError:
+        return 0
+
+
 def configure_environment() -> None:
     """Set ``PYOPENGL_PLATFORM`` and ``NUMBA_THREADING_LAYER`` unless already set."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")

@@ -34,17 +34,16 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d._env import configured_threads
+from prism3d.capture.rig import CameraModel
 from prism3d.checks import check_array, check_choice, check_int, check_positive
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.io.atomic import atomic_write_text
-
-if TYPE_CHECKING:
-    from prism3d.capture.rig import CameraModel
+from prism3d.io.images import check_image_size
 
 __all__ = ["SfmOptions", "SfmResult", "map_frames", "similarity_align"]
 
@@ -150,8 +149,6 @@ class SfmResult:
     @property
     def camera(self) -> CameraModel:
         """The refined calibration as a :class:`~prism3d.capture.rig.CameraModel`."""
-        from prism3d.capture.rig import CameraModel
-
         return CameraModel(K=self.K, dist=self.dist, size=self.size)
 
     @property
@@ -258,8 +255,6 @@ def map_frames(images: Sequence[str | Path], work_dir: str | Path, *, camera: Ca
     staged = _stage_images(paths, wd / "images")
     threads = opts.threads
     if threads == 0:
-        from prism3d.capture.render import configured_threads
-
         threads = configured_threads() or -1  # COLMAP: -1 = all cores
     matching = opts.matching
     if matching == "auto":
@@ -316,7 +311,6 @@ def _frame_size(paths: list[Path]) -> tuple[int, int]:
 
     from PIL import Image, UnidentifiedImageError
 
-    from prism3d.io.images import check_image_size
 
     sizes = []
     for p in paths:
@@ -341,8 +335,6 @@ def _starting_params(camera: CameraModel | None, focal_px: float | None, size: t
     """COLMAP RADIAL parameters (f, cx, cy, k1, k2), COLMAP's pixel convention."""
     w, h = size
     if camera is not None:
-        from prism3d.capture.rig import CameraModel
-
         if not isinstance(camera, CameraModel):
             raise InputError(f"camera: expected a CameraModel, got {type(camera).__name__}")
         if tuple(camera.size) != (w, h):
