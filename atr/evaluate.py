@@ -15,11 +15,20 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from prism3d.atr.bank import FilterBank, check_targets, render_class_chips
-from prism3d.atr.chips import ChipSpec, as_chip_spec, bounding_sphere, ground_mesh, render_chips, spec_poses
-from prism3d.atr.poses import parse_range
 
+from prism3d.atr.bank import FilterBank, check_targets, render_class_chips
+from prism3d.atr.chips import (
+    ChipSpec,
+    as_chip_spec,
+    bounding_sphere,
+    ground_mesh,
+    render_chips,
+    spec_poses,
+)
+from prism3d.atr.features import view_features
+from prism3d.atr.poses import parse_range
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_paths
 
 __all__ = [
     "EVAL_CHIP_SPEC",
@@ -283,8 +292,6 @@ def _conditions(spec: ChipSpec, azimuth: list[float]) -> dict:
 def _write_results(res: dict, df, path: Path) -> None:
     """The results JSON, the chip table and the four plots: written under temp names,
     renamed together only when all of them were written (a failure leaves none)."""
-    from prism3d.io.atomic import atomic_paths
-
     plt = _plt()
     stem = path.with_suffix("")
     figs = {"confusion": plot_confusion(res), "aspect": plot_per_aspect(res),
@@ -411,12 +418,7 @@ def feature_baseline(
 
     items = check_targets(targets)
     if feature_fn is None:
-        try:
-            from prism3d.atr.features import view_features as feature_fn  # type: ignore[no-redef]
-        except ImportError:
-            raise InputError(
-                "feature_baseline: prism3d.atr.features.view_features is not available; pass feature_fn"
-            ) from None
+        feature_fn = view_features
     classes = sorted({c for c, _ in items}, key=[c for c, _ in items].index)
     tr = parse_range(train_azimuth)
     if test_azimuth is None:

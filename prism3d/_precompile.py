@@ -15,6 +15,10 @@ checks that a fresh process then compiles nothing.
 Where the cache goes is numba's choice: ``__pycache__`` beside each kernel module
 (ignored by git), or ``NUMBA_CACHE_DIR`` when set, or numba's per-user cache when
 the source folder is not writable.
+
+Each group imports what it warms up inside its own function: the groups run in separate
+processes, and a process that imported every kernel module would load (and, with a cold
+cache, compile) kernels it was not asked for, so these in-function imports are the point.
 """
 
 from __future__ import annotations

@@ -13,6 +13,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from prism3d._env import on_import
+
 __all__ = ["COMPILE_NOTICE", "ProgressFn", "compile_notice", "make_progress", "null_progress"]
 
 ProgressFn = Callable[[int, int, str], None]
@@ -120,8 +122,6 @@ def compile_notice(*, quiet: bool = False, stream: Any = None) -> Iterator[None]
     if "numba" in sys.modules:
         register()
     else:
-        from prism3d._env import on_import
-
         hook = on_import("numba", after=lambda module: register())
     try:
         yield

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array, check_file
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
+from prism3d.io.pfm import read_pfm
 
 __all__ = ["DEFAULT_MAX_PIXELS", "IMAGE_EXTENSIONS", "max_pixels", "check_image_size", "check_npy_header", "read_image", "write_image",
            "read_depth", "write_depth", "split_npz_spec", "decode_image"]
@@ -205,8 +206,6 @@ def read_depth(spec: str | Path) -> NDArray[np.float32]:
                     check_npy_header(member, f"{path}:{key}")
                 arr = z[key]
         elif suffix == ".pfm":
-            from prism3d.io.pfm import read_pfm
-
             arr = read_pfm(path)
         else:
             raise InputError(f"{path}: unsupported depth format {suffix!r} (use .tiff, .npy, .npz:KEY, .pfm)")
