@@ -24,13 +24,22 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from prism3d.atr.chips import ChipSet, ChipSpec, as_chip_spec, bounding_sphere, render_chips, spec_poses
+
+from prism3d.atr.chips import (
+    ChipSet,
+    ChipSpec,
+    as_chip_spec,
+    bounding_sphere,
+    render_chips,
+    spec_poses,
+)
 from prism3d.atr.filters import PSR_EXCLUDE, PSR_WINDOW, otmach_from_moments, peak_metrics
 from prism3d.atr.poses import parse_range
 from prism3d.capture.mesh import SceneMesh
-
-from prism3d.checks import check_array, check_choice
+from prism3d.checks import check_array, check_choice, check_file
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_path
+from prism3d.io.images import check_npy_header
 
 __all__ = [
     "BANK_CHIP_SPEC",
@@ -359,8 +368,6 @@ class FilterBank:
     # -- persistence --------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
         """Write the bank as ``.npz`` (no pickle) atomically; returns the path."""
-        from prism3d.io.atomic import atomic_path
-
         meta = {
             "schema_version": BANK_SCHEMA_VERSION,
             "classes": list(self.classes),
@@ -385,10 +392,6 @@ class FilterBank:
     @classmethod
     def load(cls, path: str | Path) -> FilterBank:
         """Read a bank written by :meth:`save`; rejects unknown schema versions."""
-        from prism3d.checks import check_file
-
-        from prism3d.io.images import check_npy_header
-
         p = check_file(path, "filter bank")
         names = ("freqs", "filter_class", "filter_az_deg", "params")
         try:  # our own handle: np.load leaves a file it fails to parse open

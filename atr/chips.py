@@ -19,12 +19,16 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+
 from prism3d.atr.poses import ChipPose, camera_T_obj_cam, parse_range, poses_table
 from prism3d.capture.mesh import SceneMesh
-
-from prism3d.io.mesh import UNITS_MM
+from prism3d.capture.render import RaycastRenderer
+from prism3d.capture.render_gl import PyrenderRenderer
+from prism3d.capture.rig import CameraModel
 from prism3d.checks import check_array, check_choice
 from prism3d.errors import InputError
+from prism3d.io.atomic import staged_folder
+from prism3d.io.mesh import UNITS_MM, read_mesh
 
 __all__ = [
     "CHANNELS",
@@ -543,8 +547,6 @@ def _batch_rays(
 def _render_raycast(
     mesh: SceneMesh, poses: list[ChipPose], spec: ChipSpec, sh: _Shading, buf: _Buffers
 ) -> None:
-    from prism3d.capture.render import RaycastRenderer
-
     size = spec.size
     objects = [(mesh, np.eye(4))]
     if spec.clutter == "ground":
@@ -585,9 +587,6 @@ def _render_raycast(
 def _render_pyrender(
     mesh: SceneMesh, poses: list[ChipPose], size: int, sh: _Shading, buf: _Buffers
 ) -> None:
-    from prism3d.capture.render_gl import PyrenderRenderer
-    from prism3d.capture.rig import CameraModel
-
     with PyrenderRenderer([(mesh, np.eye(4))]) as renderer:
         for i, p in enumerate(poses):
             cam = CameraModel(p.K, np.zeros(5), (size, size))
@@ -631,8 +630,6 @@ def load_mesh_file(
     Returns vertices in mm, z up, origin at the footprint centre on the ground, vertex
     albedo from the file's colours (grey when none).
     """
-    from prism3d.io.mesh import read_mesh
-
     check_choice(units, "units", tuple(UNITS_MM))
     check_choice(up, "up", ("y", "z"))
     data = read_mesh(path)
@@ -684,8 +681,6 @@ def render_to_folder(
     (poses table, light, file names, size, framing, schema_version). The files appear
     together or not at all. Returns the manifest path.
     """
-    from prism3d.io.atomic import staged_folder
-
     spec = as_chip_spec(chip_spec)
     check_choice(fmt, "fmt", ("npz", "png"))
     if not isinstance(mesh, SceneMesh):

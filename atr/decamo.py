@@ -20,11 +20,20 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from prism3d.atr.geometry import as_camera, depth_to_points, normals_from_depth
-from prism3d.capture.rig import CameraModel
 
-from prism3d.checks import check_array, check_choice, check_in_range, check_positive, check_same_shape
+from prism3d.atr.geometry import as_camera, depth_to_points, normals_from_depth
+from prism3d.capture.rig import CameraModel, StereoRig
+from prism3d.checks import (
+    check_array,
+    check_choice,
+    check_in_range,
+    check_positive,
+    check_same_shape,
+)
 from prism3d.errors import InputError
+from prism3d.io.atomic import staged_folder
+from prism3d.io.images import read_depth, read_image, split_npz_spec, write_depth, write_image
+from prism3d.reconstruct.pipeline import reconstruct_shot
 
 __all__ = [
     "CANONICAL_LIGHT_CAM",
@@ -379,8 +388,6 @@ def lmse(estimate: NDArray, truth: NDArray, mask: NDArray, *, window: int = 20) 
 def _write_outputs(res: DecamoResult, out_dir: Path, extra: dict[str, Any]) -> dict[str, Any]:
     import tifffile
 
-    from prism3d.io.atomic import staged_folder
-    from prism3d.io.images import write_image
 
     alb = np.nan_to_num(res.albedo, nan=0.0)
     alb_u8 = (np.clip(alb / max(float(alb.max()), 1e-9), 0, 1) * 255 + 0.5).astype(np.uint8)
@@ -408,8 +415,6 @@ def _view_camera(image: NDArray, depth_spec: str | Path, depth_shape: tuple[int,
                  view: str) -> tuple[NDArray, NDArray | CameraModel, str]:
     """``(image of the view, intrinsics, description)`` from ``calib``, ``focal_px`` or a
     ``rig.yaml`` beside the depth file; a side-by-side sensor image is split."""
-    from prism3d.io.images import split_npz_spec
-
     h, w = depth_shape
     if calib is None and focal_px is None:
         beside = split_npz_spec(depth_spec)[0].parent / "rig.yaml"
@@ -424,7 +429,6 @@ def _view_camera(image: NDArray, depth_spec: str | Path, depth_shape: tuple[int,
         f = check_positive(focal_px, "focal_px")
         cam = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
         return image, cam, f"focal {f} px"
-    from prism3d.capture.rig import StereoRig
 
     rig = StereoRig.load(calib)
     sw, sh = rig.split.sensor_size
@@ -453,8 +457,6 @@ def decamo_to_folder(
     Intrinsics: the ``view`` camera of ``calib``, else ``focal_px`` (principal point at
     the centre), else ``rig.yaml`` beside the depth. ``options`` go to :func:`decamouflage`.
     """
-    from prism3d.io.images import read_depth, read_image
-
     check_choice(view, "view", ("left", "right"))
     if calib is not None and focal_px is not None:
         raise InputError("give either --calib or --focal, not both")
@@ -481,11 +483,6 @@ def decamo_from_shot(
     """Decamouflage the rectified left view of a side-by-side shot, depth reconstructed
     with default options; outputs as :func:`decamo_to_folder` plus ``depth_rect.tiff``
     (mm). ``options`` go to :func:`decamouflage`."""
-    from prism3d.capture.rig import StereoRig
-    from prism3d.reconstruct.pipeline import reconstruct_shot
-
-    from prism3d.io.images import read_image, write_depth
-
     shot = read_image(shot_path)
     rig = StereoRig.load(calib_path)
     rec = reconstruct_shot(shot, rig)

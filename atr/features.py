@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
 from prism3d.atr.geometry import (
     UP_AXES,
     as_camera,
@@ -36,11 +37,14 @@ from prism3d.atr.geometry import (
     up_rotation,
 )
 from prism3d.capture.rig import CameraModel
-
 from prism3d.checks import check_array, check_choice, check_same_shape
-from prism3d.io.mesh import UNITS_MM
-from prism3d.io.units import FORWARD_AXES, declared_units
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_path
+from prism3d.io.mesh import UNITS_MM, read_mesh
+from prism3d.io.pcd import read_pcd
+from prism3d.io.ply import read_ply
+from prism3d.io.units import FORWARD_AXES, declared_units
+from prism3d.reconstruct.fusion import poisson_mesh
 
 __all__ = [
     "FEATURES_SCHEMA_VERSION",
@@ -370,7 +374,6 @@ def surface_near_data(points: NDArray, normals: NDArray, *, spacing: float | Non
     """
     from scipy.spatial import cKDTree
 
-    from prism3d.reconstruct.fusion import poisson_mesh
 
     P = np.asarray(points, dtype=np.float64)
     N = np.asarray(normals, dtype=np.float64)
@@ -560,21 +563,15 @@ def _load(path: Path) -> tuple[str, NDArray, NDArray | None, NDArray | None, str
     """``(kind, points_or_vertices, faces, normals, units_in_file)``."""
     ext = path.suffix.lower()
     if ext == ".ply":
-        from prism3d.io.ply import read_ply
-
         ply = read_ply(path)
         units, _ = declared_units(ply.comments)
         if ply.faces is not None and len(ply.faces):
             return "mesh", ply.points, ply.faces, None, units
         return "scan", ply.points, None, ply.normals, units
     if ext in _MESH_EXT:
-        from prism3d.io.mesh import read_mesh
-
         mesh = read_mesh(path)
         return "mesh", mesh.vertices, mesh.faces, None, None
     if ext == ".pcd":
-        from prism3d.io.pcd import read_pcd
-
         pc = read_pcd(path)
         if len(pc.points) == 0:
             raise InputError(f"{path}: empty point cloud")
@@ -680,7 +677,6 @@ def features_to_parquet(
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from prism3d.io.atomic import atomic_path
 
     if Path(out_path).suffix.lower() != ".parquet":
         raise InputError(f"{out_path}: the features are written as Parquet; name the file .parquet")

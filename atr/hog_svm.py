@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+
 from prism3d.atr.bank import (
     BANK_CHIP_SPEC,
     check_targets,
@@ -42,9 +43,10 @@ from prism3d.atr.bank import (
 from prism3d.atr.chips import ChipSpec, as_chip_spec
 from prism3d.atr.poses import parse_range
 from prism3d.capture.mesh import SceneMesh
-
-from prism3d.checks import check_array, check_choice, check_positive, check_seed
+from prism3d.checks import check_array, check_choice, check_file, check_positive, check_seed
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_path
+from prism3d.io.images import check_npy_header
 
 __all__ = ["HOG_CHANNELS", "HOG_DEFAULTS", "HOG_SVM_SCHEMA_VERSION", "HogSvm", "chip_units"]
 
@@ -322,8 +324,6 @@ class HogSvm:
     # -- persistence ----------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
         """Write the model as ``.npz`` (no pickle, JSON metadata) atomically; returns the path."""
-        from prism3d.io.atomic import atomic_path
-
         p = Path(path)
         if p.suffix.lower() != ".npz":
             raise InputError(f"{p}: expected a .npz file name")
@@ -354,10 +354,6 @@ class HogSvm:
     @classmethod
     def load(cls, path: str | Path) -> HogSvm:
         """Read a model written by :meth:`save`; InputError for anything else."""
-        from prism3d.checks import check_file
-
-        from prism3d.io.images import check_npy_header
-
         p = check_file(path, "HOG + SVM model")
         try:  # our own handle: np.load leaves a file it fails to parse open
             with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_paths
 
 __all__ = ["FPPI_POINTS", "check_scene_folders", "plot_fppi", "plot_scene", "score_scenes", "write_scene_results"]
 
@@ -246,7 +247,6 @@ def write_scene_results(res: dict, path) -> None:
 
     import matplotlib.pyplot as plt
 
-    from prism3d.io.atomic import atomic_paths
 
     fig = plot_fppi(res)
     try:

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from prism3d.atr.aerial import DEFAULT_THRESHOLD
 from prism3d.capture.geotag import enu_to_wgs84
+from prism3d.capture.render import RaycastRenderer
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths, atomic_write_text
 from prism3d.io.geo import read_geotiff
@@ -65,8 +66,6 @@ def nadir_templates(items: Sequence[tuple[str, Any]], cell_m: float, *, units_pe
     """Top-down height templates of ``(name, SceneMesh)`` items (vertices in mm, z up,
     as the target library and database keep them) at ``cell_m``; each mesh's long axis
     is turned onto x first."""
-    from prism3d.capture.render import RaycastRenderer
-
     if not (math.isfinite(cell_m) and cell_m > 0):
         raise InputError(f"cell: expected > 0 m, got {cell_m}")
     out = []

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from prism3d.capture.rig import CameraModel, PrismSplit, StereoRig
 from prism3d.errors import InputError
+from prism3d.io.opencv_yaml import read_filestorage
 
 __all__ = [
     "StereoCalibration",
@@ -160,8 +161,6 @@ def read_opencv_calibration(
     """Read prism3d or OpenCV FileStorage YAML/XML: ``K1 D1 K2 D2 R T`` in one file, or
     ``M1 D1 M2 D2`` + ``R T`` in one file or in two files (intrinsics, extrinsics; any order).
     """
-    from prism3d.io.opencv_yaml import read_filestorage
-
     ps = _as_paths(paths)
     values: dict[str, Any] = {}
     owner: dict[str, Path] = {}
@@ -396,8 +395,6 @@ def load_camera_calibration(path: PathLike, *, image_size: Size | None = None) -
                          "(camera_matrix, distortion_coefficients, image_width, image_height) or a ROS "
                          "camera_info YAML") from None
     if kind == "filestorage":
-        from prism3d.io.opencv_yaml import read_filestorage
-
         doc = read_filestorage(p)
         K = next((doc[k] for k in ("camera_matrix", "K", "M", "cameraMatrix") if k in doc), None)
         D = next((doc[k] for k in ("distortion_coefficients", "D", "dist_coeffs", "distCoeffs") if k in doc),

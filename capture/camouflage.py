@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.capture._scene_kernels import camouflage_labels
 from prism3d.capture.mesh import UniformAlbedo
 from prism3d.checks import check_array, check_choice, check_in_range, check_positive
 from prism3d.errors import InputError
@@ -285,8 +286,6 @@ class CamouflageField:
         """``(N,) uint8`` paint colour index (0 = base coat) of ``(N, 3)`` object-frame
         points in mm.
         """
-        from prism3d.capture._scene_kernels import camouflage_labels
-
         pts = check_array(points_obj, "points_obj", shape=(None, 3), dtype_kind="fiu")
         out = np.zeros(len(pts), dtype=np.uint8)
         octaves = len(self._rotations)

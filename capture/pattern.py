@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array, check_positive
 from prism3d.errors import InputError
+from prism3d.io.images import write_image
 
 __all__ = [
     "DEFAULT_COLORS",
@@ -254,8 +255,6 @@ def check_window_unique(ids: NDArray, window: int) -> bool:
 
 def save_pattern_png(path: str | Path, pattern: NDArray) -> None:
     """Write an RGB ``(H, W, 3) uint8`` pattern as PNG, atomically."""
-    from prism3d.io.images import write_image
-
     p = check_array(pattern, "pattern", ndim=(2, 3), dtype_kind="u")
     if p.dtype != np.uint8:
         raise InputError(f"pattern: expected uint8, got {p.dtype}")

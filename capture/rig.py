@@ -22,6 +22,8 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
+from prism3d.io.images import max_pixels
+from prism3d.io.opencv_yaml import read_filestorage, write_filestorage
 
 __all__ = [
     "CameraModel",
@@ -58,8 +60,6 @@ def _frozen_array(a: NDArray, dtype: Any = np.float64) -> NDArray:
 def _check_pixels(w: int, h: int) -> None:
     """A camera or sensor whose images would not fit the decode budget is refused where it
     is declared, before anything is rendered or read at that size."""
-    from prism3d.io.images import max_pixels
-
     if w * h > max_pixels():
         raise InputError(f"size: {w}x{h} is {w * h / 1e6:,.0f} MP, more than the {max_pixels() / 1e6:,.0f} MP "
                          "limit (--max-pixels or PRISM3D_MAX_PIXELS raises it)")
@@ -507,8 +507,6 @@ class StereoRig:
 
     def save(self, path: str | Path, extra: dict[str, Any] | None = None) -> None:
         """Write the rig as OpenCV FileStorage YAML (atomically), plus ``extra`` entries."""
-        from prism3d.io.opencv_yaml import write_filestorage
-
         values = self.to_filestorage()
         if extra:
             values.update(extra)
@@ -517,8 +515,6 @@ class StereoRig:
     @classmethod
     def load(cls, path: str | Path) -> StereoRig:
         """Read a rig (or calibration) YAML written by prism3d or by OpenCV tools."""
-        from prism3d.io.opencv_yaml import read_filestorage
-
         return cls.from_filestorage(read_filestorage(path), source=str(path))
 
 

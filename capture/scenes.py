@@ -16,9 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d import geometry
+from prism3d.capture._scene_kernels import value_noise as _kernel
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
 from prism3d.capture.rig import StereoRig, look_at
-from prism3d import geometry
 from prism3d.checks import check_array, check_positive
 from prism3d.errors import InputError
 from prism3d.geometry import make_transform
@@ -48,8 +49,6 @@ def value_noise(points: NDArray[np.float64], cell_mm: float, seed: int = 0) -> N
     ----------
     .. [1] K. Perlin, "Improving noise", SIGGRAPH 2002 (the quintic fade curve).
     """
-    from prism3d.capture._scene_kernels import value_noise as _kernel
-
     p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
     cell = check_positive(cell_mm, "cell_mm")
     out = np.empty(len(p))

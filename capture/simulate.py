@@ -15,6 +15,16 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from prism3d.capture._render_kernels import (
+    box_mean,
+    gain_vignetting,
+    light_hits,
+    scatter_truth,
+    shade_colour,
+    shade_colour_specular,
+    specular_weight,
+)
 from prism3d.capture.camera_effects import CameraEffects, jpeg_roundtrip
 from prism3d.capture.camouflage import CamouflageField
 from prism3d.capture.mesh import SceneMesh
@@ -43,11 +53,11 @@ from prism3d.capture.scenes import (
     translation,
     turntable_poses,
 )
-
 from prism3d.checks import check_array, check_choice, check_in_range, check_positive, check_seed
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path, atomic_write_text, staged_folder
 from prism3d.io.images import write_image
+from prism3d.io.ply import write_ply
 
 __all__ = [
     "TRUTH_SCHEMA_VERSION",
@@ -293,8 +303,6 @@ class Projector:
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
         """``(k, rgb, white, lit)`` at rig-frame points with unit normals, before the
         shadow test (one parallel pass of ``light_hits``)."""
-        from prism3d.capture._render_kernels import light_hits
-
         m = len(P)
         k = np.empty(m)
         rgb = np.empty((m, 3))
@@ -383,8 +391,6 @@ def _shade(
     """Shade hits into ``img`` rows ``pix``: clipped diffuse when ``spec`` is None,
     else diffuse + highlight (``spec``: per output pixel; ray ``first + pix`` of an
     ``ss``-supersampled camera with ``row_len`` rays per row), unclipped."""
-    from prism3d.capture._render_kernels import shade_colour, shade_colour_specular
-
     if spec is None:
         shade_colour(pix, alb, k, rgb, ambient, img)
     else:
@@ -424,8 +430,6 @@ def _truth_pass(
     """One exact ray per output pixel centre, streamed in bands of rows: the truth
     maps, the highlight weights ``spec`` (filled in place) and, at supersample 1,
     the colour image (else None)."""
-    from prism3d.capture._render_kernels import scatter_truth, specular_weight
-
     w, h = cam.size
     n = h * w
     depth = np.full(n, np.nan, dtype=np.float32)
@@ -480,8 +484,6 @@ def _colour_pass(
 ) -> NDArray[np.float64]:
     """The supersampled colour image: rays streamed in bands of whole output rows,
     each band shaded and box-averaged at once (memory stays ~one band)."""
-    from prism3d.capture._render_kernels import box_mean
-
     w, h = cam.size
     ss = opts.supersample
     cs = cam.scaled(ss)
@@ -617,8 +619,6 @@ def apply_view_optics(
     img: NDArray[np.float64], cam: CameraModel, fx: CameraEffects, view: str
 ) -> None:
     """In place: the view's RGB gain and vignetting about its principal point."""
-    from prism3d.capture._render_kernels import gain_vignetting
-
     gain = fx.view_gain(view)
     cx, cy = float(cam.K[0, 2]), float(cam.K[1, 2])
     a, inv_rc2 = fx.vignetting_coefficients(cam.size, (cx, cy))
@@ -645,8 +645,6 @@ def write_npz(path: Path, arrays: dict[str, NDArray], *, compress: bool) -> None
 def _write_target_ply(path: Path, mesh: SceneMesh) -> None:
     """The true target mesh as PLY: float64 xyz in mm, RGB, ``units mm``, ``up z``
     (the turntable frame), so ``prism3d features`` reads it as it is."""
-    from prism3d.io.ply import write_ply
-
     write_ply(path, mesh.vertices, colors=mesh.vertex_colors(), faces=mesh.faces, double=True,
               comments=[f"prism3d true target mesh ({mesh.name})", "units mm", "up z"])
 

@@ -23,8 +23,9 @@ from numpy.typing import NDArray
 from prism3d.capture.mesh import SceneMesh
 from prism3d.datasets.targets import builtin_target
 from prism3d.errors import DatasetError, InputError
-from prism3d.io.ply import read_ply
+from prism3d.io.atomic import atomic_path, staged_folder
 from prism3d.io.hashes import sha256_file  # noqa: F401 - re-exported: callers import it from here
+from prism3d.io.ply import read_ply
 
 __all__ = [
     "target_mesh",
@@ -113,7 +114,6 @@ def write_table(
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from prism3d.io.atomic import atomic_path
 
     df = df.copy()
     df["schema_version"] = np.int64(TABLE_SCHEMA_VERSION)
@@ -368,8 +368,6 @@ class TargetDB:
         ``classes``), ``classes`` (K,) unicode, ``target_id`` (N,) unicode, and
         ``az_deg``, ``el_deg``, ``range_mm`` (N,) float64.
         """
-        from prism3d.io.atomic import atomic_path
-
         rows = self.select(job, **filters)
         if len(rows) == 0:
             raise DatasetError(f"export_split: no chips of job {job!r} match the filters")
@@ -447,7 +445,6 @@ def init_db(path: str | Path) -> TargetDB:
     """
     import yaml
 
-    from prism3d.io.atomic import staged_folder
 
     p = Path(path)
     if (p / "db.yaml").exists():

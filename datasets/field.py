@@ -27,13 +27,24 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.atr.detect import detect_shot
+from prism3d.atr.models import load_scene_model
+from prism3d.atr.scene_eval import check_scene_folders, score_scenes, write_scene_results
+from prism3d.capture.camera_effects import CameraEffects
+from prism3d.capture.camouflage import CamouflageField
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
+from prism3d.capture.render import RaycastRenderer
 from prism3d.capture.rig import StereoRig, look_at, paper_rig
+from prism3d.capture.scenes import value_noise
+from prism3d.capture.simulate import Projector, ShotOptions, effects_entries, simulate_shot
 from prism3d.checks import check_seed
 from prism3d.datasets._primitives import Part, box, cylinder, ellipse, loft, prism
+from prism3d.datasets.jobs import RunOptions, run_tasks
 from prism3d.datasets.resolve import resolve_model
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_write_text, staged_folder
+from prism3d.io.images import read_image, write_image
 
 __all__ = [
     "FIELD_SCHEMA_VERSION", "FieldOptions", "FieldScene", "detect_scene_folder", "eval_scene_folders", "plan_field",
@@ -123,8 +134,6 @@ class GroundAlbedo:
     water_y_mm: float = 200_000.0
 
     def __call__(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        from prism3d.capture.scenes import value_noise
-
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         a = value_noise(p, 9000.0, self.seed)
         b = value_noise(p, 1800.0, self.seed + 1)
@@ -217,8 +226,6 @@ def _prop(kind: str, rng: np.random.Generator) -> tuple[list[Part], tuple[float,
 
 
 def prop_mesh(kind: str, rng: np.random.Generator, seed: int) -> SceneMesh:
-    from prism3d.capture.camouflage import CamouflageField
-
     parts, rgb, name = _prop(kind, rng)
     V, F = _join(parts)
     if kind in SHAPE_CONFUSERS:  # painted like the targets, so paint alone gives nothing away
@@ -373,8 +380,6 @@ def distant_sun(sun_dir_world: NDArray, centre_world: NDArray, radius_mm: float,
                  T_rig_world: NDArray | None = None) -> Any:
     """A white projector 10 km from ``centre_world`` (mm) along ``sun_dir_world``, lighting
     a disc of ``radius_mm`` there with margin; its pose in the rig frame (world by default)."""
-    from prism3d.capture.simulate import Projector
-
     dist = 1.0e7
     sun = np.asarray(sun_dir_world, dtype=np.float64)
     centre = np.asarray(centre_world, dtype=np.float64)
@@ -399,12 +404,6 @@ def simulate_field(out_dir: str | Path, options: FieldOptions | None = None, *,
     below :data:`DIFFICULT_VISIBLE_FRACTION`), ``instance``, ``name`` (built-in target or
     shape), ``object_index`` (its id in ``truth.npz`` ``object_id_left``; 0 is the ground).
     """
-    from prism3d.capture.render import RaycastRenderer
-    from prism3d.capture.simulate import ShotOptions, effects_entries, simulate_shot
-    from prism3d.capture.camera_effects import CameraEffects
-    from prism3d.io.atomic import atomic_write_text, staged_folder
-    from prism3d.io.images import write_image
-
     o = FieldOptions() if options is None else options
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -467,8 +466,6 @@ def simulate_field(out_dir: str | Path, options: FieldOptions | None = None, *,
 
 def _silhouette(mesh: SceneMesh, T_rig_obj: NDArray, rig: StereoRig) -> NDArray[np.bool_]:
     """Pixels of the left view the object would cover with nothing in front of it."""
-    from prism3d.capture.render import RaycastRenderer
-
     r = RaycastRenderer([(mesh, T_rig_obj)])
     w, h = rig.left.size
     mask = np.zeros(w * h, dtype=bool)
@@ -503,9 +500,6 @@ def simulate_field_batch(out_dir: str | Path, count: int, options: FieldOptions 
     at all, so a rerun resumes: complete scene folders are kept and counted as skipped;
     ``batch.json`` (seeds, options, seconds, scenes per minute) is rewritten at the end.
     Returns the :class:`~prism3d.datasets.jobs.JobReport`."""
-    from prism3d.datasets.jobs import RunOptions, run_tasks
-    from prism3d.io.atomic import atomic_write_text
-
     o = FieldOptions() if options is None else options
     if isinstance(count, bool) or int(count) != count or not 1 <= int(count) <= 100_000:
         raise InputError(f"count: expected an integer in [1, 100000], got {count!r}")
@@ -554,11 +548,6 @@ def simulate_field_batch(out_dir: str | Path, count: int, options: FieldOptions 
 def detect_scene_folder(bank_path: str, scene: str) -> dict:
     """One unit of ``eval-scenes`` (a Dask task): the bank's detections in one scene folder
     (``scene``, ``detections``, ``timings_s``)."""
-    from prism3d.atr.detect import detect_shot
-    from prism3d.atr.models import load_scene_model
-    from prism3d.capture.rig import StereoRig
-    from prism3d.io.images import read_image
-
     p = Path(scene)
     dets, times = detect_shot(load_scene_model(bank_path), read_image(p / "shot.png"), StereoRig.load(p / "rig.yaml"))
     return {"scene": str(p), "timings_s": times, "detections": dets}
@@ -571,10 +560,6 @@ def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progr
     progress wins over ``progress``); results (with each scene's detections and timings) go to ``out_json``
     atomically when given. A scene that fails stops the evaluation (a score over fewer
     scenes would not be the score asked for)."""
-    from prism3d.atr.models import load_scene_model
-    from prism3d.atr.scene_eval import check_scene_folders, score_scenes, write_scene_results
-    from prism3d.datasets.jobs import RunOptions, run_tasks
-
     if out_json is not None and Path(out_json).suffix.lower() != ".json":
         raise InputError(f"{out_json}: expected a .json file name for the results")
     folders = check_scene_folders(scenes)

@@ -32,10 +32,27 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.capture.camera_effects import CameraEffects
+from prism3d.capture.geotag import enu_to_wgs84
 from prism3d.capture.mesh import SceneMesh
+from prism3d.capture.render import (
+    RaycastRenderer,
+    SensorNoise,
+    camera_rays,
+    gaussian_blur,
+    quantize,
+)
 from prism3d.capture.rig import CameraModel
 from prism3d.capture.scenes import value_noise
+from prism3d.capture.simulate import (
+    ShotOptions,
+    apply_view_optics,
+    gloss_table,
+    render_view,
+    write_npz,
+)
 from prism3d.checks import check_seed
+from prism3d.datasets.carpark import Lot, lot_albedo, lot_clutter, park_vehicles, plan_lot
 from prism3d.datasets.field import (
     SCENE_CAMO_SEED_BASE,
     SHAPE_CONFUSERS,
@@ -44,8 +61,10 @@ from prism3d.datasets.field import (
     distant_sun,
     prop_mesh,
 )
-from prism3d.datasets.carpark import Lot, lot_albedo, lot_clutter, park_vehicles, plan_lot
+from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_write_text, staged_folder
+from prism3d.io.opencv_yaml import write_filestorage
 
 __all__ = ["FLIGHT_SCHEMA_VERSION", "FlightOptions", "FlightPlan", "nadir_camera_rotation", "plan_flight",
            "simulate_flight"]
@@ -540,8 +559,6 @@ def _corners_enu(mesh: SceneMesh, T_mm: NDArray) -> NDArray[np.float64]:
 def _place_targets(o: FlightOptions, rng: np.random.Generator, placer: _Placer, cam: CameraModel,
                    poses: list[NDArray], dsm: dict[str, Any]) -> tuple[list, list[dict[str, Any]]]:
     """Ground vehicles and confusers inside the DSM area, each wholly in at least two frames."""
-    from prism3d.datasets.targets import builtin_target, list_builtin_targets
-
     vehicles = [n for n in list_builtin_targets("military") if n.split("_")[0] in GROUND_VEHICLE_CLASSES]
     n_t = int(rng.integers(5, 11)) if o.targets is None else int(o.targets)
     n_c = int(rng.integers(0, 4)) if o.confusers is None else int(o.confusers)
@@ -667,9 +684,6 @@ def _frame_image(renderer: Any, plan: FlightPlan, k: int, projector: Any, shot: 
                  effects: Any) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.int32]]:
     """One frame as the camera records it (optics, PSF, noise, quantised; JPEG is the file),
     and its true z-depth (mm) and renderer object ids."""
-    from prism3d.capture.render import SensorNoise, gaussian_blur, quantize
-    from prism3d.capture.simulate import apply_view_optics, render_view
-
     T_mm = plan.T_enu_cam[k].copy()
     T_mm[:3, 3] *= 1000.0
     img, truth = render_view(renderer, plan.camera, T_mm, projector, shot, gloss)
@@ -843,9 +857,6 @@ def _fly(stage: Path, plan: FlightPlan, o: FlightOptions, names: list[str], lla:
     while the next renders, one frame behind, so at most two frames are in memory."""
     from concurrent.futures import Future, ThreadPoolExecutor
 
-    from prism3d.capture.camera_effects import CameraEffects
-    from prism3d.capture.render import RaycastRenderer, camera_rays
-    from prism3d.capture.simulate import ShotOptions, gloss_table, write_npz
 
     effects = CameraEffects()
     shot = ShotOptions(ambient=_AMBIENT, flash=_SUN, supersample=o.supersample, noise=o.noise, seed=o.seed,
@@ -897,13 +908,6 @@ def simulate_flight(out_dir: str | Path, options: FlightOptions | None = None, *
     and ``frames`` where it is fully visible. Returns ``out_dir``, ``n_frames``,
     ``n_targets``, ``gsd_m``, ``seconds``, ``files``.
     """
-    from prism3d.capture.camera_effects import CameraEffects
-    from prism3d.capture.geotag import enu_to_wgs84
-    from prism3d.capture.render import RaycastRenderer
-    from prism3d.capture.simulate import write_npz
-    from prism3d.io.atomic import atomic_write_text, staged_folder
-    from prism3d.io.opencv_yaml import write_filestorage
-
     o = FlightOptions() if options is None else options
     if not isinstance(o, FlightOptions):
         raise InputError(f"options: expected a FlightOptions or None, got {type(o).__name__}")

@@ -21,6 +21,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from prism3d.atr.chips import load_mesh_file
+from prism3d.atr.features import read_units_sidecar
+from prism3d.capture.mesh import SceneMesh
 from prism3d.datasets.db import (
     TABLE_SCHEMA_VERSION,
     TargetDB,
@@ -30,10 +34,12 @@ from prism3d.datasets.db import (
     utc_timestamp,
     write_table,
 )
-
-from prism3d.io.mesh import UNITS_MM
-from prism3d.io.units import declared_units
+from prism3d.datasets.targets import builtin_target, export_builtin_target, list_builtin_targets
 from prism3d.errors import DatasetError, Prism3dError
+from prism3d.io.atomic import atomic_write_bytes
+from prism3d.io.mesh import UNITS_MM
+from prism3d.io.ply import read_ply, write_ply
+from prism3d.io.units import FORWARD_AXES, declared_forward, declared_units, forward_yaw_deg
 
 __all__ = [
     "mesh_units",
@@ -106,8 +112,6 @@ def _sanitize(name: str) -> str:
 
 def _file_units(path: Path) -> tuple[str | None, str | None]:
     """``(units, up)`` a PLY file declares in its comments; ``(None, None)`` for other types."""
-    from prism3d.io.ply import read_ply
-
     if path.suffix.lower() != ".ply":
         return None, None
     try:
@@ -131,8 +135,6 @@ def mesh_units(path: Path, units: str | None, up: str | None, *, rescaled: bool 
     or a PLY's ``units``/``up`` comments; a contradiction is an error, and nothing is
     guessed (DatasetError naming what to pass). ``rescaled``: the mesh is rescaled to a
     stated length, so undeclared units do not matter (read as mm)."""
-    from prism3d.atr.features import read_units_sidecar
-
     try:
         side = read_units_sidecar(path) or {}
     except Prism3dError as exc:
@@ -175,10 +177,6 @@ def mesh_forward(path: Path, forward: str | None, up: str) -> str:
     the given ``forward`` (a flag or a per-target spec), the ``FILE.units.yaml`` sidecar's
     ``forward``, or a PLY's ``frame x forward`` / ``forward x`` comment; a contradiction is
     an error and nothing is guessed (the heading of every detection and chip depends on it)."""
-    from prism3d.atr.features import read_units_sidecar
-    from prism3d.io.ply import read_ply
-    from prism3d.io.units import FORWARD_AXES, declared_forward, forward_yaw_deg
-
     try:
         side = read_units_sidecar(path) or {}
     except Prism3dError as exc:
@@ -206,8 +204,6 @@ def mesh_forward(path: Path, forward: str | None, up: str) -> str:
 
 
 def _model_bytes(mesh: Any, comments: list[str]) -> bytes:
-    from prism3d.io.ply import write_ply
-
     cols = (
         mesh.vertex_albedo
         if mesh.vertex_albedo is not None
@@ -227,9 +223,6 @@ def _load_file(
     length_mm: float | None,
     yaw_deg: float,
 ) -> _Pending:
-    from prism3d.atr.chips import load_mesh_file
-    from prism3d.capture.mesh import SceneMesh
-
     if not path.is_file():
         raise DatasetError(f"{path}: file not found")
     if path.suffix.lower() not in MESH_SUFFIXES:
@@ -321,7 +314,6 @@ def _is_scan(path: Path) -> bool:
     """A model ``prism3d stitch`` wrote (its PLY header says so)."""
     if path.suffix.lower() != ".ply":
         return False
-    from prism3d.io.ply import read_ply
 
     try:
         return any(c.startswith("prism3d stitch") for c in read_ply(path).comments)
@@ -331,8 +323,6 @@ def _is_scan(path: Path) -> bool:
 
 def _ply_meta(path: Path) -> dict[str, str]:
     """``key value`` comments of a PLY header (the scan's metadata); {} when unreadable."""
-    from prism3d.io.ply import read_ply
-
     try:
         comments = read_ply(path).comments
     except Prism3dError:
@@ -435,8 +425,6 @@ def _commit(db: TargetDB, pending: list[_Pending], strict: bool) -> AddReport:
 def _write_models(db: TargetDB, rows: list[tuple[str, _Pending]], written: list[Path]) -> list[dict]:
     """Write each new target's model file (appending to ``written`` the ones this call
     created) and return the targets-table rows."""
-    from prism3d.io.atomic import atomic_write_bytes
-
     new_rows = []
     for tid, p in rows:
         rel = f"models/{tid}.ply"
@@ -529,8 +517,6 @@ def add_builtin(
     :func:`~prism3d.datasets.targets.builtin_target` at the same ``scale``. The
     duplicate key is the sha256 of the generated model.
     """
-    from prism3d.datasets.targets import builtin_target, export_builtin_target, list_builtin_targets
-
     db = as_db(db)
     all_names = list_builtin_targets()
     names = list_builtin_targets("military") if not names else list(names)  # no names: the military set

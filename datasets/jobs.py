@@ -23,7 +23,17 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from prism3d.atr.chips import CHANNELS, ChipSpec, as_chip_spec
+
+from prism3d.atr.chips import (
+    CHANNELS,
+    ChipSpec,
+    as_chip_spec,
+    check_ranges,
+    render_chips,
+    spec_poses,
+)
+from prism3d.atr.features import model_features, view_features
+from prism3d.atr.poses import parse_range
 from prism3d.datasets.db import (
     TargetDB,
     as_db,
@@ -36,9 +46,11 @@ from prism3d.datasets.db import (
     target_mesh,
     write_table,
 )
-
 from prism3d.errors import DatasetError, Prism3dError
+from prism3d.io.atomic import atomic_path, atomic_write_text
+from prism3d.io.ply import read_ply
 from prism3d.progress import ProgressFn
+from prism3d.reconstruct.survey import dense_pair
 
 __all__ = [
     "JOB_CHIP_FIELDS",
@@ -101,9 +113,6 @@ class RenderSpec:
     backend: str = ChipSpec.backend
 
     def __post_init__(self) -> None:
-        from prism3d.atr.chips import check_ranges
-        from prism3d.atr.poses import parse_range
-
         check_name(self.name, "job")
         if not self.targets:
             raise DatasetError(f"job {self.name}: no targets to render (add targets first)")
@@ -202,8 +211,6 @@ class RenderSpec:
     @property
     def n_poses(self) -> int:
         """Poses per target (azimuths x elevations x ranges)."""
-        from prism3d.atr.poses import parse_range
-
         n_r = 1 if self.range_mm is None else len(parse_range(self.range_mm))
         return len(parse_range(self.azimuth)) * len(parse_range(self.elevation)) * n_r
 
@@ -241,8 +248,6 @@ def write_npz_deterministic(path: str | Path, arrays: dict[str, NDArray]) -> str
 
     The same arrays give the same bytes, so the returned sha256 identifies the content.
     """
-    from prism3d.io.atomic import atomic_path
-
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
         for name in sorted(arrays):
@@ -279,8 +284,6 @@ def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str
     dict
         Unit stats: ``unit``, ``chips``, ``seconds``, ``pid``, ``rss_mb``.
     """
-    from prism3d.atr.chips import render_chips, spec_poses
-
     t0 = time.perf_counter()
     db = open_db(db_path)
     spec = RenderSpec.from_dict(spec_dict)
@@ -329,8 +332,6 @@ def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str
 
 def features_unit(db_path: str, job: str, unit_id: str) -> dict[str, Any]:
     """View features of one finished render unit (worker entry point)."""
-    from prism3d.atr.features import view_features
-
     t0 = time.perf_counter()
     db = open_db(db_path)
     src = db.job_dir(job) / "manifest" / f"part-{unit_id}.parquet"
@@ -371,9 +372,7 @@ def features_unit(db_path: str, job: str, unit_id: str) -> dict[str, Any]:
 def model_features_unit(db_path: str, target_id: str) -> dict[str, Any]:
     """Model features of one target's normalised model (worker entry point)."""
     import pandas as pd
-    from prism3d.atr.features import model_features
 
-    from prism3d.io.ply import read_ply
 
     db = open_db(db_path)
     t = db.targets()
@@ -531,8 +530,6 @@ def run_survey_pairs(reqs: Sequence[dict[str, Any]], run: RunOptions,
 
 
 def _dense_pair(req: dict[str, Any]) -> dict[str, Any]:
-    from prism3d.reconstruct.survey import dense_pair
-
     return dense_pair(req)
 
 
@@ -780,7 +777,6 @@ def _store_spec(db: TargetDB, spec: RenderSpec) -> None:
     """Write ``job.yaml``, or check that the stored spec is the same."""
     import yaml
 
-    from prism3d.io.atomic import atomic_write_text
 
     jf = db.job_dir(spec.name) / "job.yaml"
     if jf.is_file():

@@ -30,8 +30,14 @@ import numpy as np
 from prism3d.atr.chips import load_mesh_file
 from prism3d.atr.models import model_kind
 from prism3d.capture.mesh import SceneMesh
+from prism3d.datasets.db import as_db, target_mesh
 from prism3d.datasets.ingest import check_length_mm, mesh_forward, mesh_units, size_warning
-from prism3d.datasets.targets import builtin_classes, builtin_target, builtin_targets_of_class, list_builtin_targets
+from prism3d.datasets.targets import (
+    builtin_classes,
+    builtin_target,
+    builtin_targets_of_class,
+    list_builtin_targets,
+)
 from prism3d.errors import InputError
 from prism3d.io.units import forward_yaw_deg
 
@@ -118,8 +124,6 @@ def resolve_db_targets(db: str | Path, *, classes: list[str] | None = None, scal
     """The targets of a database (its normalised models: mm, z up, x forward; built-ins at
     their stored scale, or full size with ``scale="full"``), optionally only those of
     ``classes`` (a class the database lacks is an error)."""
-    from prism3d.datasets.db import as_db, target_mesh
-
     d = as_db(db)
     table = d.targets()
     if classes:

@@ -15,8 +15,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
+from prism3d.atr.evaluate import EVAL_CHIP_SPEC, evaluate_bank, heldout_seed
+from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
+from prism3d.datasets.targets import builtin_target
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.progress import ProgressFn, null_progress
+from prism3d.reconstruct.pipeline import reconstruct_to_files
+from prism3d.reconstruct.stitch import StitchOptions, stitch_to_files
 
 __all__ = ["ScannedTarget", "compare_scan_banks", "scan_builtin_target", "SCAN_RETRY_CONFIDENCE"]
 
@@ -63,11 +69,6 @@ def scan_builtin_target(
     there are reused (an interrupted run resumes). ``rig``: the simulated rig (None: the
     simulator's); ``calib_rig``: the rig the shots are reconstructed with (None: the true
     one, as written beside the shots)."""
-    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
-    from prism3d.reconstruct.pipeline import reconstruct_to_files
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_to_files
-
     if not isinstance(views, int) or views < 3:
         raise InputError(f"views: expected an integer >= 3, got {views!r}")
     out = Path(out_dir)
@@ -139,9 +140,6 @@ def compare_scan_banks(
     keeps its own paint in training (a scan's is what the camera saw). Returns
     ``{channel: {"scan": result, "mesh": result, "difference_points": float}}`` (results
     as :func:`~prism3d.atr.evaluate.evaluate_bank` gives them)."""
-    from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
-    from prism3d.atr.evaluate import EVAL_CHIP_SPEC, evaluate_bank, heldout_seed
-
     if sorted(c for c, _ in scanned) != sorted(c for c, _ in true):
         raise InputError("scanned and true targets must name the same classes")
     train_spec = dataclasses.replace(BANK_CHIP_SPEC, seed=seed)  # camouflage on: the meshes' own paint

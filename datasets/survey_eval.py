@@ -18,8 +18,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.atr.survey_detect import score_detections
+from prism3d.capture.geotag import enu_to_wgs84, wgs84_to_enu
 from prism3d.errors import InputError
 from prism3d.geometry import rotation_angle_deg
+from prism3d.io.geo import read_geotiff
+from prism3d.reconstruct.sfm import similarity_align
 
 __all__ = ["evaluate_survey", "ground_roughness"]
 
@@ -28,8 +32,6 @@ OPEN_MARGIN_M = 1.5
 
 
 def _to_truth_frame(P: NDArray, survey_origin: NDArray, truth_origin: NDArray) -> NDArray[np.float64]:
-    from prism3d.capture.geotag import enu_to_wgs84, wgs84_to_enu
-
     return wgs84_to_enu(enu_to_wgs84(np.asarray(P, dtype=np.float64), survey_origin), truth_origin)
 
 
@@ -52,8 +54,6 @@ class _Frames:
 
 
 def _pose_scores(poses: dict, truth: dict) -> tuple[dict[str, Any], _Frames]:
-    from prism3d.reconstruct.sfm import similarity_align
-
     so = np.asarray(poses["origin_lla"], dtype=np.float64)
     to = np.asarray(truth["origin_lla"], dtype=np.float64)
     gsd = float(truth["gsd_m"])
@@ -104,7 +104,6 @@ def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames) -> 
     the estimated height there, and that estimated point back into the truth's frame."""
     import cv2
 
-    from prism3d.capture.geotag import enu_to_wgs84, wgs84_to_enu
 
     gsd = float(truth["gsd_m"])
     tdsm, tid = tz["dsm"], tz["object_id"]
@@ -169,8 +168,6 @@ def _vehicle_scores(dsm: NDArray, ndsm: NDArray, meta: dict, truth: dict, fr: _F
 
 def _detection_scores(path: str | Path, truth: dict, fr: _Frames, radius_m: float | None = None,
                       threshold: float | None = None) -> dict[str, Any]:
-    from prism3d.atr.survey_detect import score_detections
-
     gj = json.loads(Path(path).read_text())
     dets = []
     for f in gj["features"]:
@@ -196,8 +193,6 @@ def evaluate_survey(survey_dir: str | Path, flight_dir: str | Path, *, detection
     its true height; with ``detections`` (survey-detect GeoJSON), Pd against false
     positives per frame (a hit within ``radius_m`` of a vehicle's centre, default half its
     length; ``threshold``: also Pd, false positives and class accuracy at that score)."""
-    from prism3d.io.geo import read_geotiff
-
     sd, fd = Path(survey_dir), Path(flight_dir)
     poses = json.loads((sd / "poses.json").read_text())
     truth = json.loads((fd / "truth.json").read_text())

@@ -16,9 +16,48 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from prism3d.atr.bank import FilterBank, train_bank
+from prism3d.atr.chips import ChipSpec, load_mesh_file
+from prism3d.atr.decamo import decamouflage
+from prism3d.atr.detect import detect_shot
+from prism3d.atr.evaluate import (
+    EVAL_CHIP_SPEC,
+    evaluate_bank,
+    heldout_seed,
+    plot_confusion,
+    plot_per_aspect,
+    plot_roc,
+)
+from prism3d.atr.features import model_features, scan_features
+from prism3d.atr.scene_eval import plot_scene, score_scenes
+from prism3d.atr.survey_detect import DEFAULT_CLASSES, detect_in_survey
+from prism3d.browser import check_page, find_chromium
+from prism3d.capture.rig import StereoRig, paper_rig
+from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
+from prism3d.datasets import db as dbm
+from prism3d.datasets.field import FieldOptions, simulate_field
+from prism3d.datasets.flight import FlightOptions, simulate_flight
+from prism3d.datasets.ingest import add_builtin, add_meshes
+from prism3d.datasets.jobs import run_features_job, run_render_job
+from prism3d.datasets.recognisers import aerial_recogniser
+from prism3d.datasets.resolve import resolve_targets
+from prism3d.datasets.scanned import compare_scan_banks, scan_builtin_target
+from prism3d.datasets.survey_eval import evaluate_survey
+from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
+from prism3d.geometry import rotation_angle_deg
+from prism3d.io.atomic import atomic_path, atomic_write_text
+from prism3d.io.images import read_image
+from prism3d.io.ply import write_ply
 from prism3d.progress import ProgressFn, null_progress
-from prism3d.report import Report, Section
+from prism3d.reconstruct.calibrate import CalibrationOptions, calibrate_stereo
+from prism3d.reconstruct.flatness import REGIONS, flatness_test
+from prism3d.reconstruct.meshing import smooth_depth, smoothing_resolution_mm
+from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
+from prism3d.reconstruct.rectify import rectify_shot
+from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE, StitchOptions, stitch_scans
+from prism3d.reconstruct.survey import run_survey
+from prism3d.report import Report, Section, figure_png, image_png, point_cloud_viewer
 
 __all__ = ["DemoContext", "run_demo", "STAGES"]
 
@@ -69,7 +108,6 @@ def depth_figure(depth_mm: Any, title: str) -> bytes:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from prism3d.report import figure_png
 
     fig, ax = plt.subplots(figsize=(5, 4.2))
     d = np.asarray(depth_mm, dtype=np.float32)
@@ -86,9 +124,6 @@ def _stage_simulate(ctx: DemoContext) -> Section:
     """The virtual prism rig: one flash shot of a camouflaged target, with ground truth."""
     import numpy as np
 
-    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
-    from prism3d.report import image_png
 
     s = Section("Virtual prism rig: a simulated flash shot and its ground truth")
     out = ctx.path("simulate")
@@ -96,7 +131,6 @@ def _stage_simulate(ctx: DemoContext) -> Section:
     summary = simulate_to_folder("scene", out, SimulateOptions(views=1, seed=ctx.seed,
                                                                supersample=1 if ctx.fast else 2),
                                  target=target)
-    from prism3d.io.images import read_image
 
     shot = read_image(out / "shot_00.png")
     with np.load(out / "truth_00.npz", allow_pickle=False) as t:
@@ -130,8 +164,6 @@ DEMO_SQUARE_MM = 12.0
 
 def demo_rig(ctx: DemoContext) -> Any:
     """The rig the demo simulates: the paper's, or a quarter-size one with ``--fast``."""
-    from prism3d.capture.rig import paper_rig
-
     if ctx.fast:
         return paper_rig(sensor_size=(1296, 972), focal_px=5107.0 / 2)
     return paper_rig()
@@ -140,9 +172,6 @@ def demo_rig(ctx: DemoContext) -> Any:
 def _stage_calibration(ctx: DemoContext) -> Section:
     """Simulated chessboard shots -> calibration by bundle adjustment; recovered vs true."""
 
-    from prism3d.geometry import rotation_angle_deg
-    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.reconstruct.calibrate import CalibrationOptions, calibrate_stereo
 
     s = Section(f"Calibration: 5 simulated chessboard shots ({DEMO_BOARD[0]}x{DEMO_BOARD[1]} corners, "
                 f"{DEMO_SQUARE_MM:g} mm squares), bundle adjustment")
@@ -181,8 +210,6 @@ def _stage_calibration(ctx: DemoContext) -> Section:
         ["rectification residual: vertical disparity RMS of corners (px)", cal.rectification_rms_px],
         ["views used", cal.n_views],
     ])
-    from prism3d.io.images import read_image
-    from prism3d.report import image_png
 
     s.figure("one of the chessboard shots", image_png(read_image(shots[0])))
     s.link("calib.yaml", "calib.yaml")
@@ -190,11 +217,6 @@ def _stage_calibration(ctx: DemoContext) -> Section:
 
 
 def _table1_run(ctx: DemoContext, rig: Any, out: Any, *, pattern: bool) -> Any:
-    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.io.images import read_image
-    from prism3d.reconstruct.flatness import flatness_test
-    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
-
     simulate_to_folder("plate", out, SimulateOptions(pattern=pattern, camouflage=False, seed=ctx.seed,
                                                        supersample=1 if ctx.fast else 2), rig=ctx.results["true_rig"])
     shot = read_image(out / "shot.png")
@@ -208,9 +230,6 @@ def _table1_run(ctx: DemoContext, rig: Any, out: Any, *, pattern: bool) -> Any:
 
 def _stage_table1(ctx: DemoContext) -> Section:
     """The paper's accuracy test (Table I) on a simulated flat plate."""
-    from prism3d.reconstruct.flatness import REGIONS
-    from prism3d.reconstruct.meshing import smoothing_resolution_mm
-
     s = Section("Accuracy test (the paper's Table I): flat 30x30 cm plate at 1250 mm")
     if "calibration" not in ctx.results:
         ctx.results["true_rig"] = demo_rig(ctx)
@@ -252,7 +271,6 @@ def cloud_figure(points: Any, colors: Any, title: str, *, max_points: int = 3000
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from prism3d.report import figure_png
 
     p = np.asarray(points, dtype=np.float64)
     c = None if colors is None else np.asarray(colors, dtype=np.float64) / 255.0
@@ -273,10 +291,6 @@ def _scan_views(ctx: DemoContext, out: Path, rig: Any, n: int) -> list[tuple[Any
     confidence (what `prism3d stitch` keeps from scan files) and save them."""
     import numpy as np
 
-    from prism3d.io.images import read_image
-    from prism3d.io.ply import write_ply
-    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
-    from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE
 
     scans = []
     for k in range(n):
@@ -294,8 +308,6 @@ def _scan_views(ctx: DemoContext, out: Path, rig: Any, n: int) -> list[tuple[Any
 def _size_rows(res: Any, T_w0: Any, target: Any) -> list[list[Any]]:
     """Gravity-aligned size of the stitched model (turntable frame, z up) against the
     true mesh: the box of the fitted surface and the box of every point."""
-    from prism3d.atr.features import model_features, scan_features
-
     P_w, N_w = res.points @ T_w0[:3, :3].T + T_w0[:3, 3], res.normals @ T_w0[:3, :3].T
     f_scan = scan_features(P_w, N_w, up="z", box="surface")
     f_pts = scan_features(P_w, N_w, up="z", box="points")
@@ -310,12 +322,6 @@ def _stage_model360(ctx: DemoContext) -> Section:
 
     import numpy as np
 
-    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
-    from prism3d.geometry import rotation_angle_deg
-    from prism3d.io.ply import write_ply
-    from prism3d.report import point_cloud_viewer
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
 
     s = Section("360-degree model: 8 shots on a turntable, reconstructed and stitched")
     true = ctx.results.get("true_rig") or demo_rig(ctx)
@@ -369,13 +375,7 @@ def _stage_decamo(ctx: DemoContext) -> Section:
     """Camouflage removal on one reconstructed view."""
     import numpy as np
 
-    from prism3d.atr.decamo import decamouflage
-    from prism3d.report import image_png
 
-    from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
-    from prism3d.io.images import read_image
-    from prism3d.reconstruct.rectify import rectify_shot
 
     s = Section("Camouflage removal on one view (depth from the reconstruction)")
     rec = ctx.results.get("view0")
@@ -389,7 +389,6 @@ def _stage_decamo(ctx: DemoContext) -> Section:
     simulate_to_folder("scene", out, SimulateOptions(views=1, pattern=False, seed=ctx.seed, supersample=1),
                        rig=true, target=builtin_target("tank_t1", seed=ctx.seed))
     left, _, _ = rectify_shot(read_image(out / "shot_00.png"), cal.rig if cal is not None else true)
-    from prism3d.reconstruct.meshing import smooth_depth
 
     # normals need a smooth surface: per-pixel depth noise (~0.2 mm at 0.25 mm pixel
     # spacing) would make them useless
@@ -422,9 +421,6 @@ def _stage_features(ctx: DemoContext) -> Section:
     """Size/profile/surface features of the built-in targets -> Parquet."""
     import pandas as pd
 
-    from prism3d.atr.features import model_features
-    from prism3d.datasets.targets import builtin_target, list_builtin_targets
-    from prism3d.io.atomic import atomic_path
 
     s = Section("ATR features of the built-in targets")
     rows = []
@@ -444,11 +440,6 @@ def _stage_features(ctx: DemoContext) -> Section:
 
 def _stage_database(ctx: DemoContext) -> Section:
     """A small target database of the built-in targets, one render job and its features."""
-    from prism3d.datasets import db as dbm
-    from prism3d.datasets.ingest import add_builtin
-    from prism3d.atr.chips import ChipSpec
-    from prism3d.datasets.jobs import run_features_job, run_render_job
-
     s = Section("Target database: built-in targets, a render job and a features job")
     path = ctx.path("targets_db")
     if not (path / "db.yaml").exists():
@@ -476,12 +467,6 @@ def _stage_bank(ctx: DemoContext) -> Section:
     """Correlation filter banks trained on renders, evaluated on unseen poses."""
     from dataclasses import replace
 
-    from prism3d.atr.bank import train_bank
-    from prism3d.atr.chips import ChipSpec
-    from prism3d.atr.evaluate import (EVAL_CHIP_SPEC, evaluate_bank, heldout_seed, plot_confusion,
-                                      plot_per_aspect, plot_roc)
-    from prism3d.datasets.resolve import resolve_targets
-    from prism3d.report import figure_png
 
     s = Section("Recognition: OT-MACH correlation filter banks on rendered chips")
     names = ["tank_t1", "jet_j1", "ship_s1", "truck_k1"]
@@ -519,13 +504,6 @@ def _stage_scanned_bank(ctx: DemoContext) -> Section:
     on the scans, evaluated on renders of the true meshes beside a bank trained on them."""
     import numpy as np
 
-    from prism3d.atr.chips import load_mesh_file
-    from prism3d.atr.evaluate import heldout_seed, plot_confusion
-    from prism3d.datasets import db as dbm
-    from prism3d.datasets.ingest import add_meshes
-    from prism3d.datasets.scanned import compare_scan_banks, scan_builtin_target
-    from prism3d.datasets.targets import builtin_target
-    from prism3d.report import figure_png
 
     s = Section("Scanned targets train the bank: 4 targets scanned on the turntable, banks from scans vs true meshes")
     true_rig = ctx.results.get("true_rig") or demo_rig(ctx)
@@ -591,16 +569,6 @@ def _stage_scene(ctx: DemoContext) -> Section:
     reconstructed, and the shape bank's detections drawn against the truth."""
     import json
 
-    from prism3d.atr.bank import FilterBank, train_bank
-    from prism3d.atr.chips import ChipSpec
-    from prism3d.atr.detect import detect_shot
-    from prism3d.atr.scene_eval import plot_scene, score_scenes
-    from prism3d.capture.rig import StereoRig
-    from prism3d.datasets.field import FieldOptions, simulate_field
-    from prism3d.datasets.resolve import resolve_targets
-    from prism3d.io.atomic import atomic_write_text
-    from prism3d.io.images import read_image
-    from prism3d.report import figure_png
 
     s = Section("Whole-scene ATR: camouflaged targets found in a field shot (shape channel)")
     folder = ctx.path("field")
@@ -653,12 +621,6 @@ def _stage_survey(ctx: DemoContext) -> Section:
     import glob
     import json
 
-    from prism3d.atr.survey_detect import DEFAULT_CLASSES, detect_in_survey
-    from prism3d.datasets.flight import FlightOptions, simulate_flight
-    from prism3d.datasets.recognisers import aerial_recogniser
-    from prism3d.datasets.resolve import resolve_targets
-    from prism3d.datasets.survey_eval import evaluate_survey
-    from prism3d.reconstruct.survey import run_survey
 
     s = Section("UAV mode: a drone survey of a car park from one moving camera (simulated flight)")
     flight = ctx.path("flight")
@@ -792,8 +754,6 @@ def _run_stages(out: Path, stages: list, seed: int, fast: bool, progress: Progre
 
 def _screenshot(out: Path) -> None:
     """Save ``report_screenshot.png`` when a headless Chromium is available."""
-    from prism3d.browser import check_page, find_chromium
-
     if find_chromium() is None:
         log.info("no Chromium: skipping the report screenshot")
         return

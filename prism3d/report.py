@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from prism3d import __version__
 from prism3d.io.atomic import atomic_write_text
 
 __all__ = ["Section", "Report", "figure_png", "image_png", "point_cloud_viewer"]
@@ -179,8 +180,6 @@ class Report:
         self.sections.append(section)
 
     def to_html(self) -> str:
-        from prism3d import __version__
-
         parts = [
             "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
             f"<title>{html.escape(self.title)}</title><style>{_CSS}</style></head><body>",

@@ -29,6 +29,7 @@ from prism3d.capture.rig import CameraModel, PrismSplit, StereoRig, compute_rect
 from prism3d.checks import check_array, check_choice, check_positive
 from prism3d.errors import CalibrationError, InputError
 from prism3d.geometry import make_transform, matrix_from_rotvec, rotation_angle_deg
+from prism3d.io.opencv_yaml import read_filestorage
 from prism3d.reconstruct._bundle import (
     CAM_PARAM_NAMES,
     N_CAM,
@@ -175,8 +176,6 @@ class Calibration:
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
         """Read a calibration YAML; a plain ``rig.yaml`` (no quality figures) also loads."""
-        from prism3d.io.opencv_yaml import read_filestorage
-
         values = read_filestorage(path)
         rig = StereoRig.from_filestorage(values, source=str(path))
 

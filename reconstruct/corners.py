@@ -27,8 +27,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.capture.rig import PrismSplit
 from prism3d.checks import check_array, check_choice, check_file
 from prism3d.errors import InputError
+from prism3d.io.images import check_image_size, decode_image
 
 __all__ = [
     "DETECTORS",
@@ -406,7 +408,6 @@ def load_image(path: str | Path) -> NDArray[np.uint8]:
     """Read an image file as RGB uint8 ``(H, W, 3)`` (grey files become 3 channels)."""
     import cv2
 
-    from prism3d.io.images import check_image_size, decode_image
 
     p = check_file(path, "image")
     check_image_size(p)  # the pixel budget, from the header, before decoding
@@ -540,8 +541,6 @@ def _sharpness(gray: NDArray[np.uint8], board: tuple[int, int], corners: NDArray
 
 def _shot_views(img: NDArray, name: str, split: object | None) -> list[tuple[NDArray, str]]:
     """The (left, right) views of a side-by-side shot (default split: the two halves)."""
-    from prism3d.capture.rig import PrismSplit
-
     check_array(img, name, ndim=(2, 3))
     sp = split
     if sp is None:

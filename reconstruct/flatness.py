@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array, check_in_range
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.io.ply import read_ply
 
 __all__ = ["REGIONS", "FlatnessReport", "PlaneFit", "fit_plane", "flatness_of_ply", "flatness_test", "ransac_plane"]
 
@@ -180,8 +181,6 @@ def flatness_test(
 def flatness_of_ply(path: str | Path, **kwargs: float) -> FlatnessReport:
     """Run :func:`flatness_test` on a PLY scan; reads ``focal_px``/``baseline_mm``
     from the scan's comments (written by ``prism3d reconstruct``) when not given."""
-    from prism3d.io.ply import read_ply
-
     ply = read_ply(path)
     meta = {}
     for c in ply.comments:

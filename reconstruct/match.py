@@ -31,6 +31,9 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array, check_choice, check_int, check_same_shape
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.io.atomic import atomic_paths
+from prism3d.io.images import IMAGE_EXTENSIONS, read_image, write_image
+from prism3d.io.pfm import write_pfm
 
 from . import _match_kernels as _k
 from .match_options import MatchOptions
@@ -590,10 +593,6 @@ def match_files(
     ``valid_out``, the validity mask image. InputError: missing or unreadable files,
     different sizes, bad options; ReconstructionError: nothing matched.
     """
-    from prism3d.io.atomic import atomic_paths
-    from prism3d.io.images import read_image, write_image
-    from prism3d.io.pfm import write_pfm
-
     outs = [Path(out_path)] + ([] if valid_out is None else [Path(valid_out)])
     _check_match_outputs(outs)
     left = read_image(left_path)
@@ -615,8 +614,6 @@ def match_files(
 def _check_match_outputs(outs: list[Path]) -> None:
     """The disparity ``.pfm`` and the optional mask image: file names, distinct, their
     folders present, checked before any work."""
-    from prism3d.io.images import IMAGE_EXTENSIONS
-
     if outs[0].suffix.lower() != ".pfm":
         raise InputError(f"{outs[0]}: disparity is written as PFM (.pfm)")
     if len(outs) > 1 and outs[1].suffix.lower() not in IMAGE_EXTENSIONS:

@@ -7,6 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.checks import check_array, check_positive, check_same_shape
+from prism3d.reconstruct._mesh_kernels import range_limited_gaussian
 
 __all__ = ["mesh_from_grid", "smooth_depth", "smoothing_resolution_mm"]
 
@@ -70,8 +71,6 @@ def smooth_depth(
     """Edge-preserving Gaussian smoothing of a depth map (mm, NaN = hole) over neighbours
     within ``jump_mm`` (default 10 px of disparity with ``focal_px`` and ``baseline_mm``,
     else 1 % of the depth); resolution lost: :func:`smoothing_resolution_mm`."""
-    from prism3d.reconstruct._mesh_kernels import range_limited_gaussian
-
     d = check_array(depth_mm, "depth_mm", ndim=2, dtype_kind="f").astype(np.float64)
     s = check_positive(sigma_px, "sigma_px")
     r = int(np.ceil(_KERNEL_SIGMAS * s))

@@ -23,6 +23,8 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.geometry import rotvec_from_matrix
+from prism3d.reconstruct.registration import point_spacing
 
 __all__ = ["ObjectFrame", "object_frame"]
 
@@ -179,8 +181,6 @@ def _upright(poses: list[NDArray]) -> NDArray[np.float64]:
 def _turntable_up(poses: list[NDArray], upright: NDArray) -> NDArray[np.float64] | None:
     """The turntable axis, pointing the cameras' upright way; None when the poses do not
     share one rotation axis."""
-    from prism3d.geometry import rotvec_from_matrix
-
     rv = [rotvec_from_matrix(T[:3, :3] @ np.linalg.inv(poses[0][:3, :3])) for T in poses[1:]]
     turned = [v for v in rv if np.degrees(np.linalg.norm(v)) > MIN_TURN_DEG]
     if len(turned) < MIN_TURNTABLE_VIEWS - 1:
@@ -199,7 +199,6 @@ def _support_up(P: NDArray, upright: NDArray) -> tuple[NDArray[np.float64], floa
     inlier distance (points within it of the plane belong to the support)."""
     import open3d as o3d
 
-    from prism3d.reconstruct.registration import point_spacing
 
     spacing = point_spacing(P)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
@@ -297,7 +296,6 @@ def _surface_extents(P: NDArray, R: NDArray) -> tuple[NDArray, NDArray]:
     neighbourhood (moving least squares), then their extremes."""
     from scipy.spatial import cKDTree
 
-    from prism3d.reconstruct.registration import point_spacing
 
     Q = P @ R.T
     band = EXTREME_BAND_SPACINGS * point_spacing(P)

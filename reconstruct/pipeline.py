@@ -19,20 +19,38 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.capture.calib_formats import load_stereo_calibration
 from prism3d.capture.rig import Rectification, StereoRig, compute_rectification
 from prism3d.checks import check_array, check_choice, check_in_range
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.io.atomic import atomic_path
+from prism3d.io.hashes import sha256_files
+from prism3d.io.images import read_image, write_depth
+from prism3d.io.pfm import write_pfm
+from prism3d.io.ply import write_ply
 from prism3d.progress import ProgressFn, null_progress
 from prism3d.reconstruct.defaults import DEFAULT_MIN_CONFIDENCE
+from prism3d.reconstruct.match import match_stereo_full
 from prism3d.reconstruct.match_options import MatchOptions
 from prism3d.reconstruct.meshing import mesh_from_grid, smooth_depth
+from prism3d.reconstruct.rectify import RectifyMaps, rectify_maps
+from prism3d.reconstruct.refine import refine_slanted
+from prism3d.reconstruct.selection import (
+    REASONS,
+    Coverage,
+    enclosed,
+    estimate_noise,
+    fill_from_planes,
+    near,
+    occlusions,
+    std_from_confidence,
+    textured,
+    unlit,
+)
 from prism3d.reconstruct.triangulate import Scan, scan_from_depth
 
 if TYPE_CHECKING:
     from prism3d.reconstruct.match import StereoResult
-    from prism3d.reconstruct.rectify import RectifyMaps
-    from prism3d.reconstruct.selection import Coverage
 
 __all__ = [
     "DEFAULT_MIN_CONFIDENCE",
@@ -132,8 +150,6 @@ def convergence_distance_mm(rig: StereoRig) -> float | None:
 
 def _bspline_views(views: tuple[NDArray, NDArray], maps: RectifyMaps, r0: int, r1: int) -> tuple[NDArray, NDArray]:
     """Both views rectified with cubic B-splines (float32, 0..255) on rows ``r0..r1``."""
-    from prism3d.reconstruct.rectify import RectifyMaps
-
     scale = np.float32(1.0) if views[0].dtype == np.uint8 else np.float32(255.0)
     r0, r1 = max(int(r0), 0), min(int(r1) + 1, maps.left_x.shape[0])
     band = RectifyMaps(maps.rect, maps.left_x[r0:r1], maps.left_y[r0:r1], maps.right_x[r0:r1], maps.right_y[r0:r1])
@@ -377,8 +393,6 @@ class _Selection:
 def _rectify(views: tuple[NDArray, NDArray], rig: StereoRig, alpha: float
              ) -> tuple[Rectification, RectifyMaps, NDArray, NDArray, NDArray[np.bool_]]:
     """The rectification, its maps, both rectified views and the left view's coverage."""
-    from prism3d.reconstruct.rectify import rectify_maps
-
     rect = compute_rectification(rig, alpha=alpha)
     maps = rectify_maps(rig, rect)
     left, right = maps.remap(*views)
@@ -388,8 +402,6 @@ def _rectify(views: tuple[NDArray, NDArray], rig: StereoRig, alpha: float
 def _select(left: NDArray, res: StereoResult, covered: NDArray[np.bool_], min_disp: int, num_disp: int,
             opts: ReconstructOptions) -> tuple[float, _Selection]:
     """The shot's noise and which pixels to refine (``measured``) or estimate (``holes``)."""
-    from prism3d.reconstruct.selection import estimate_noise, near, occlusions, textured, unlit
-
     noise = estimate_noise(left, covered)
     dense = res.disparity
     in_range = covered & (dense > min_disp + _RANGE_LOW_MARGIN_PX) & \
@@ -411,8 +423,6 @@ def _refine(views: tuple[NDArray, NDArray], maps: RectifyMaps, left: NDArray, ri
             ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Slanted-plane refinement of the measured pixels and the holes: disparity and its
     std (NaN where not refined or inconsistent)."""
-    from prism3d.reconstruct.refine import refine_slanted
-
     dense = res.disparity
     refined = np.full(dense.shape, np.nan, np.float32)
     own_std = np.full(dense.shape, np.nan, np.float32)
@@ -444,7 +454,6 @@ def _fill(dense: NDArray, refined: NDArray, own_std: NDArray, disparity: NDArray
     """Unmeasured pixels keep the matcher's estimate with the local planes' prediction
     std widened by the estimate's distance from them: ``(estimated, disparity, std)``."""
     # untextured pixels are filled only where measured surface encloses them
-    from prism3d.reconstruct.selection import enclosed, fill_from_planes
 
     blank = sel.usable & ~sel.textured & ~measured_ok
     targets = sel.usable & ~measured_ok & (sel.textured | enclosed(blank, sel.dark | sel.rim | ~sel.covered))
@@ -476,8 +485,6 @@ def _keep(disparity: NDArray, std: NDArray, candidates: NDArray[np.bool_], max_s
 def _report(kept: NDArray, measured_ok: NDArray, inconsistent: NDArray, low_conf: NDArray,
             sel: _Selection) -> Coverage:
     """The share kept and, for each of the dropped, the first reason that applies."""
-    from prism3d.reconstruct.selection import REASONS, Coverage
-
     not_kept = sel.covered & ~kept
     hidden = sel.hidden
     reason_masks = {
@@ -537,9 +544,6 @@ _STAGES = 5  # rectify, match, select, refine, triangulate (fill is timed within
 def _reconstruct_views(views: tuple[NDArray, NDArray], rig: StereoRig, opts: ReconstructOptions,
                        progress: ProgressFn) -> Reconstruction:
     """The pipeline on the two (un-flipped) views of a calibrated rig."""
-    from prism3d.reconstruct.match import match_stereo_full
-    from prism3d.reconstruct.selection import std_from_confidence
-
     max_std = std_from_confidence(opts.min_confidence) if opts.min_confidence > 0 else np.inf
     clock = _Stopwatch(progress, _STAGES)
     clock.start("rectify")
@@ -626,8 +630,6 @@ def _check_outputs(out_ply: Path, disparity_out: Path | None, depth_out: Path | 
 def _read_views(shot_path: str | Path | None, left_path: str | Path | None, right_path: str | Path | None,
                 rig: StereoRig) -> tuple[tuple[NDArray, NDArray], str]:
     """The two views (from a side-by-side shot or two files) and their source's name."""
-    from prism3d.io.images import read_image
-
     if left_path is not None:
         left, right = read_image(left_path), read_image(right_path)  # type: ignore[arg-type]
         if left.shape != right.shape:
@@ -645,10 +647,6 @@ def _read_views(shot_path: str | Path | None, left_path: str | Path | None, righ
 def _write_outputs(rec: Reconstruction, outs: list[Path], out_ply: Path, disparity_out: Path | None,
                    depth_out: Path | None, mesh_out: Path | None) -> None:
     """All files to temporary names first, then moved into place together."""
-    from prism3d.io.images import write_depth
-    from prism3d.io.pfm import write_pfm
-    from prism3d.io.ply import write_ply
-
     faces = verts = None
     if mesh_out is not None:
         grid, m = rec.scan.grid()
@@ -688,8 +686,6 @@ def reconstruct_to_files(
     reads) to the scan PLY (with per-point ``confidence``, ``disparity_std``,
     ``depth_std``) and optionally the disparity (PFM, ``inf`` where no point), the depth
     (float32 mm) and a mesh. A range the calibration states bounds an estimated one."""
-    from prism3d.capture.calib_formats import load_stereo_calibration
-
     opts = ReconstructOptions() if options is None else options
     out_ply = Path(out_ply)
     outs = _check_outputs(out_ply, disparity_out, depth_out, mesh_out)  # type: ignore[arg-type]
@@ -705,7 +701,6 @@ def reconstruct_to_files(
         rec = reconstruct_pair(*views, cal.rig, opts, progress=progress)
     except InputError as exc:
         raise InputError(f"{source}: {exc}") from exc
-    from prism3d.io.hashes import sha256_files
 
     # what the scan came from, in its header: a model stitched from it can say so
     shots = [shot_path] if shot_path is not None else [left_path, right_path]

@@ -15,9 +15,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from prism3d.capture.calib_formats import load_stereo_calibration
 from prism3d.capture.rig import CameraModel, Rectification, StereoRig, compute_rectification
 from prism3d.checks import check_array
 from prism3d.errors import InputError
+from prism3d.io.atomic import staged_folder
+from prism3d.io.images import read_image, write_image
+from prism3d.io.opencv_yaml import write_filestorage
 
 __all__ = [
     "RectifyMaps",
@@ -188,8 +192,6 @@ def save_rectification(path: str | Path, rect: Rectification, rig: StereoRig | N
     """Write ``R1 R2 P1 P2 Q`` and ``image_size`` as FileStorage YAML (atomic), with
     the calibration (``K1 D1 K2 D2 R T``) when ``rig`` is given.
     """
-    from prism3d.io.opencv_yaml import write_filestorage
-
     values: dict = {
         "schema_version": 1,
         "R1": rect.R1,
@@ -218,8 +220,6 @@ def save_rectification(path: str | Path, rect: Rectification, rig: StereoRig | N
 
 def _write_png(path: Path, image: NDArray) -> None:
     """A rectified view (uint8, or float in [0, 1]) as PNG, atomically."""
-    from prism3d.io.images import write_image
-
     img = image
     if img.dtype.kind == "f":
         img = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
@@ -243,10 +243,6 @@ def rectify_to_folder(
     Raises InputError for missing or unreadable files or views that do not fit the
     calibration.
     """
-    from prism3d.capture.calib_formats import load_stereo_calibration
-    from prism3d.io.atomic import staged_folder
-    from prism3d.io.images import read_image
-
     two_files = left_path is not None or right_path is not None
     if two_files == (shot_path is not None) or (two_files and (left_path is None or right_path is None)):
         raise InputError("give either a side-by-side SHOT or both --left and --right view files")

@@ -19,6 +19,8 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array, check_positive, check_same_shape
 from prism3d.errors import InputError
+from prism3d.io.images import read_image
+from prism3d.io.pfm import read_pfm
 
 __all__ = ["DisparityScore", "score_disparity"]
 
@@ -112,8 +114,6 @@ def load_benchmark_pair(data_root: str | Path, name: str) -> tuple[NDArray, NDAr
     """
     import cv2
 
-    from prism3d.io.images import read_image
-    from prism3d.io.pfm import read_pfm
 
     if name not in BENCHMARK_SCENES:
         raise InputError(f"unknown benchmark scene {name!r}; valid: {', '.join(BENCHMARK_SCENES)}")

@@ -26,8 +26,17 @@ from prism3d.checks import check_array, check_choice, check_in_range, check_int,
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import invert_transform, rotation_angle_deg, rotvec_from_matrix
 from prism3d.io.atomic import atomic_paths, atomic_write_text
+from prism3d.io.pcd import read_pcd
+from prism3d.io.ply import read_ply, write_ply
 from prism3d.progress import ProgressFn
 from prism3d.reconstruct.fusion import fuse_clouds, mesh_is_closed, poisson_mesh
+from prism3d.reconstruct.multiview import (
+    fit_turntable,
+    overlapping_pairs,
+    refine_multiview,
+    refine_turntable,
+)
+from prism3d.reconstruct.object_frame import object_frame
 from prism3d.reconstruct.registration import (
     RegistrationResult,
     ScanFeatures,
@@ -214,8 +223,6 @@ def load_cloud(path: str | Path, *, min_confidence: float = 0.0) -> Cloud:
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix == ".ply":
-        from prism3d.io.ply import read_ply
-
         d = read_ply(p)
         pts, col, nrm = d.points, d.colors, d.normals
         conf = d.extra.get("confidence")
@@ -225,8 +232,6 @@ def load_cloud(path: str | Path, *, min_confidence: float = 0.0) -> Cloud:
             col = None if col is None else col[keep]
             nrm = None if nrm is None else nrm[keep]
     elif suffix == ".pcd":
-        from prism3d.io.pcd import read_pcd
-
         d2 = read_pcd(p)
         pts, col, nrm = d2.points, d2.colors, d2.normals
     else:
@@ -590,8 +595,6 @@ def _edge_report(prep: _Prepared, opts: StitchOptions, run: _Run, results: dict[
 
 def _looks_like_turntable(T_model: list[NDArray], voxel: float) -> bool:
     """Do poses (first view the identity) share one rotation axis (see _TT_* above)?"""
-    from prism3d.reconstruct.multiview import fit_turntable
-
     if len(T_model) < 3:
         return False
     u, p, _ = fit_turntable(T_model)
@@ -609,8 +612,6 @@ def _looks_like_turntable(T_model: list[NDArray], voxel: float) -> bool:
 def _joint_refinement(prep: _Prepared, opts: StitchOptions, run: _Run, T_model: list[NDArray],
                       kept_pairs_ij: set[Pair]) -> tuple[list[NDArray], dict[str, Any]]:
     """All poses refined jointly over every overlapping pair, then on one turntable axis."""
-    from prism3d.reconstruct.multiview import overlapping_pairs, refine_multiview
-
     t0 = time.perf_counter()
     fine_p = [p for p, _ in (pyr.finest() for pyr in prep.pyramids)]
     fine_n = [v for _, v in (pyr.finest() for pyr in prep.pyramids)]
@@ -634,8 +635,6 @@ def _refine_on_turntable(opts: StitchOptions, run: _Run, fine_p: list[NDArray], 
                          T_free: list[NDArray], pairs: list[Pair], rsp: float,
                          info: dict[str, Any]) -> tuple[list[NDArray], dict[str, Any]]:
     """Turntable-constrained poses, kept when their RMS stays near the free poses'."""
-    from prism3d.reconstruct.multiview import refine_turntable
-
     t0 = time.perf_counter()
     T_tt, tt_info = refine_turntable(fine_p, fine_n, T_free, pairs, spacing=rsp)
     run.seconds["turntable"] = time.perf_counter() - t0
@@ -800,8 +799,6 @@ def stitch_to_files(
     support; PLY header ``up z``), with ``object_frame`` (``T_object_model`` ...) in
     poses.json; ``T_model_scan`` stays in the first scan's frame. ``front_view``: the scan
     (index) that faced the object's front, which sets x's sign (else a stated guess)."""
-    from prism3d.io.ply import write_ply
-
     if isinstance(scan_paths, (str, Path)):
         raise InputError("scan_paths: expected a list of scan files")
     paths = [str(p) for p in scan_paths]
@@ -832,8 +829,6 @@ def stitch_to_files(
     }
     T_out, where = np.eye(4), ["frame of the first scan"]
     if frame == "object":
-        from prism3d.reconstruct.object_frame import object_frame
-
         of = object_frame(res.points, res.T_model_scan, front_view=front_view)  # before anything is written
         T_out, doc["object_frame"] = of.T_object_model, of.to_dict()
         where = [f"object frame: z up (from the {of.up_from}), x forward, origin on the support", "up z"]

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array
 from prism3d.errors import InputError
 from prism3d.reconstruct.flatness import ransac_plane
+from prism3d.reconstruct.match import match_stereo_full
 from prism3d.reconstruct.two_view import TwoViewPose
 
 __all__ = ["PAIR_MATCHERS", "PairCloud", "RectifiedPair", "pair_cloud", "rectify_pair"]
@@ -122,7 +123,6 @@ def pair_cloud(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose, *, b
     rotated back into camera 1's frame and scaled so the cameras are ``baseline`` apart."""
     import cv2
 
-    from prism3d.reconstruct.match import match_stereo_full
 
     if not (np.isfinite(baseline) and baseline > 0):
         raise InputError(f"baseline: expected a length > 0, got {baseline}")

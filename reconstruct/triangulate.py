@@ -9,10 +9,16 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.capture.rig import Rectification, StereoRig
+from prism3d.capture.calib_formats import load_stereo_calibration
+from prism3d.capture.rig import Rectification, StereoRig, compute_rectification
 from prism3d.checks import check_array, check_same_shape
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import backproject
+from prism3d.io.images import read_image
+from prism3d.io.pfm import read_pfm
+from prism3d.io.ply import write_ply
+from prism3d.reconstruct.rectify import rectify_maps
+from prism3d.reconstruct.selection import confidence_from_std
 
 __all__ = [
     "Scan",
@@ -112,8 +118,6 @@ class Scan:
 
     def save(self, path: str | Path, *, faces: NDArray | None = None) -> None:
         """Write a binary PLY (points, colours, normals, per-point scalars[, faces]) atomically."""
-        from prism3d.io.ply import write_ply
-
         write_ply(path, self.points, colors=self.colors, normals=self.normals, faces=faces,
                   extra=self.point_properties(),
                   comments=["prism3d scan", "units mm", "frame left camera (OpenCV axes)"])
@@ -131,8 +135,6 @@ def triangulate(
     """A :class:`Scan` of the ``valid`` pixels of a rectified-left disparity ``(H, W)``
     float32 (NaN = invalid) with colours from the rectified left ``image``; points whose
     confidence (from ``disparity_std``, px) is below ``min_confidence`` are dropped."""
-    from prism3d.reconstruct.selection import confidence_from_std
-
     d = check_array(disparity, "disparity", ndim=2, dtype_kind="f")
     m = check_array(valid, "valid", ndim=2).astype(bool)
     img = check_array(image, "image", ndim=(2, 3))
@@ -156,8 +158,6 @@ def scan_from_depth(
     """A :class:`Scan` from a rectified-left depth map (mm, NaN = no point), its image and
     ``disparity_std`` (px; NaN or absent: confidence 1). A point without neighbours
     gets the normal along its ray."""
-    from prism3d.reconstruct.selection import confidence_from_std
-
     depth = check_array(depth_mm, "depth_mm", ndim=2, dtype_kind="f").astype(np.float32)
     img = check_array(image, "image", ndim=(2, 3))
     check_same_shape(depth, img, ("depth_mm", "image"), dims=2)
@@ -243,12 +243,6 @@ def triangulate_to_file(
     """What ``prism3d triangulate`` calls: a disparity PFM (see :func:`disparity_to_rectified`)
     and the (rectified or original) left view to a coloured cloud PLY, like OpenCV's
     ``reprojectImageTo3D``; points beyond ``max_depth_mm`` are dropped."""
-    from prism3d.capture.calib_formats import load_stereo_calibration
-    from prism3d.capture.rig import compute_rectification
-    from prism3d.io.images import read_image
-    from prism3d.io.pfm import read_pfm
-    from prism3d.reconstruct.rectify import rectify_maps
-
     out = Path(out_ply)
     if out.suffix.lower() != ".ply":
         raise InputError(f"{out}: the cloud is written as .ply")
@@ -281,7 +275,6 @@ def triangulate_to_file(
         raise InputError(f"{disparity_path}: no positive finite disparity to triangulate")
     scan = triangulate(np.where(valid, d, np.nan).astype(np.float32), valid, rect, colours)
     scan.meta.update(focal_px=rect.focal_px, baseline_mm=rect.baseline_mm)
-    from prism3d.io.ply import write_ply
 
     write_ply(out, scan.points, colors=scan.colors, normals=scan.normals,
               comments=["prism3d cloud from a disparity map", "units mm", "frame left camera (OpenCV axes)",

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_path
 
 __all__ = ["local_enu_crs_wkt", "read_geotiff", "write_geotiff", "write_las"]
 
@@ -37,7 +38,6 @@ def write_las(path: str | Path, xyz: NDArray, rgb: NDArray | None = None, *, crs
     most 32 characters) says how the points were made (e.g. that their scale is unknown)."""
     import laspy
 
-    from prism3d.io.atomic import atomic_path
 
     p = check_array(xyz, "points", ndim=2).astype(np.float64)
     if p.shape[1] != 3 or not np.isfinite(p).all():
@@ -76,7 +76,6 @@ def write_geotiff(path: str | Path, raster: NDArray, *, west: float, north: floa
     import rasterio
     from rasterio.transform import from_origin
 
-    from prism3d.io.atomic import atomic_path
 
     a = np.asarray(raster)
     if a.ndim == 2:

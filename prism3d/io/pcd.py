@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_file
 from prism3d.errors import InputError
+from prism3d.io._pcd_kernels import lzf_decompress
 
 __all__ = ["PcdData", "read_pcd"]
 
@@ -138,8 +139,6 @@ _LZF_MAX_RATIO = 88
 
 
 def _decode_binary_compressed(path: Path, body: bytes, dtype: np.dtype, n: int) -> np.ndarray:
-    from prism3d.io._pcd_kernels import lzf_decompress
-
     if len(body) < 8:
         raise InputError(f"{path}: binary_compressed PCD is truncated (no size words)")
     comp, uncomp = np.frombuffer(body[:8], dtype="<u4")
