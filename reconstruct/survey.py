@@ -17,7 +17,6 @@ import math
 import shutil
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,20 +24,33 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.capture.calib_formats import load_camera_calibration
-from prism3d.capture.geotag import exif_focal_px, exif_geotag, read_position_table, wgs84_to_enu
-from prism3d.capture.rig import CameraModel
+from prism3d.capture.geotag import wgs84_to_enu
 from prism3d.errors import InputError
-from prism3d.io.atomic import atomic_path, atomic_write_text, staged_folder
-from prism3d.io.geo import local_enu_crs_wkt, write_geotiff, write_las
+from prism3d.io.atomic import atomic_write_text, staged_folder
 from prism3d.io.images import read_image
-from prism3d.io.ply import write_ply
-from prism3d.reconstruct.dsm import MAX_CELLS, grid_points, normalised_dsm
+from prism3d.reconstruct.dsm import MAX_CELLS, grid_points
 from prism3d.reconstruct.flatness import ransac_plane
 from prism3d.reconstruct.match_options import MatchOptions
-from prism3d.reconstruct.ortho import true_orthophoto
 from prism3d.reconstruct.sfm import SfmOptions, map_frames, similarity_align
+from prism3d.reconstruct.survey_inputs import (
+    VIDEO_SUFFIXES,
+    check_frames,
+    gps_positions,
+    starting_camera,
+    video_frames,
+)
+from prism3d.reconstruct.survey_model import (
+    DISPARITY_SIGMA_PX,
+    SURVEY_FILES,
+    SURVEY_SCHEMA_VERSION,
+    FusedSurface,
+    Georef,
+    SurveyOptions,
+)
 from prism3d.reconstruct.survey_pair import pair_cloud
+from prism3d.reconstruct.survey_products import (
+    write_products,
+)
 from prism3d.reconstruct.two_view import TwoViewPose
 
 __all__ = [
@@ -46,96 +58,8 @@ __all__ = [
     "georeference", "run_survey",
 ]
 
-SURVEY_SCHEMA_VERSION = 1
-#: Files every survey writes (``survey -o OUT``), besides ``colmap/`` and ``depth/``.
-SURVEY_FILES = ("poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", "ground.tif", "ortho.tif",
-                "ortho_quality.tif", "survey.png")
-#: Disparity noise assumed for a pair's height tolerance, px at the matched scale.
-DISPARITY_SIGMA_PX = 0.25
-
-
-@dataclass(frozen=True)
-class SurveyOptions:
-    """How a survey is computed (``prism3d survey`` options)."""
-
-    max_image_size: int = 2000
-    """Features for the poses on frames downscaled to this side (keypoints stay full-res)."""
-    dense_max_pixels: float = 3.2e6
-    """Frames are matched at the largest scale (1, 1/2, 1/3...) keeping them under this
-    many pixels: dense matching dominates the time and its memory grows with the area."""
-    pair_steps: tuple[int, ...] = (1, 2)
-    """Pairs: each frame with the next (1) and the next-but-one (2, twice the baseline)."""
-    cross_pairs: bool = True
-    """Also pair each frame with the frame further along the sequence that shares most of
-    its view (the neighbouring flight line): the strips' ends and edges are seen only so."""
-    cell_m: float | None = None
-    """DSM cell, m (model units without GPS); None: twice the matched frames' ground sample distance."""
-    ortho_gsd_m: float | None = None
-    """Orthophoto cell, m; None: the photographs' own ground sample distance (the median
-    camera height above the ground over the focal length), finer than the DSM's cell."""
-    min_shared_points: int = 30
-    """A pair needs this many sparse points seen by both frames, else it is skipped (no overlap)."""
-    min_base_to_height: float = 0.03
-    """A pair whose baseline is below this fraction of its depth is skipped (too short)."""
-    refine_intrinsics: str = "auto"
-    """What the bundle adjustment refines: "focal+distortion" (f, k1, k2), "none", or
-    "auto": none when the start is a calibration file, f, k1 and k2 from EXIF. Nadir
-    frames over gentle relief hardly tell the focal length from the flying height (the
-    image scale gives only their ratio), so a calibrated camera is best left as it is."""
-    refine_principal_point: bool = False
-    """Free the principal point in the bundle adjustment (poorly fixed by few nadir frames)."""
-    matcher: str = "ours"
-    """The dense matcher: ours, or "sgbm" (OpenCV's, the benchmarks' anchor)."""
-    lk_window: int = 9
-    """Our matcher's sub-pixel (Lucas-Kanade) window, px, with 3 iterations: nadir pairs
-    see ground that is flat at the window's scale, and a wider window than the stereo
-    default (5) averages more noise (docs/uav.md: on the simulator the DSM's median error
-    0.26 -> 0.19 GSD; the real pair's open ground 7.3 -> 5.3 cm rough)."""
-
-    def __post_init__(self) -> None:
-        if isinstance(self.max_image_size, bool) or not 320 <= int(self.max_image_size) <= 20000:
-            raise InputError(f"max_image_size: expected 320-20000 px, got {self.max_image_size!r}")
-        if not (math.isfinite(self.dense_max_pixels) and self.dense_max_pixels >= 1e4):
-            raise InputError(f"dense_max_pixels: expected >= 10000, got {self.dense_max_pixels!r}")
-        steps = tuple(int(s) for s in self.pair_steps)
-        if not steps or any(s < 1 or s > 10 for s in steps) or len(set(steps)) != len(steps):
-            raise InputError(f"pair_steps: expected distinct steps in 1-10, got {self.pair_steps!r}")
-        object.__setattr__(self, "pair_steps", steps)
-        if self.cell_m is not None and not (math.isfinite(self.cell_m) and self.cell_m > 0):
-            raise InputError(f"cell: expected a DSM cell size > 0, got {self.cell_m!r}")
-        if self.ortho_gsd_m is not None and not (math.isfinite(self.ortho_gsd_m) and self.ortho_gsd_m > 0):
-            raise InputError(f"ortho-gsd: expected an orthophoto cell > 0, got {self.ortho_gsd_m!r}")
-        if isinstance(self.lk_window, bool) or int(self.lk_window) != self.lk_window or self.lk_window < 3 \
-                or self.lk_window % 2 == 0:
-            raise InputError(f"lk_window: expected an odd integer >= 3, got {self.lk_window!r}")
-        if self.matcher not in ("ours", "sgbm"):
-            raise InputError(f"matcher: expected ours or sgbm, got {self.matcher!r}")
-        if self.refine_intrinsics not in ("auto", "focal+distortion", "none"):
-            raise InputError(f"refine_intrinsics: expected auto, focal+distortion or none, got {self.refine_intrinsics!r}")
-
 
 # -- georeferencing ----------------------------------------------------------------------
-@dataclass(frozen=True)
-class Georef:
-    """``x_enu = s R x_model + t``; ``method`` says how it was found, ``residual_rms_m``
-    the camera centres' RMS distance to their GPS positions after it (None without GPS)."""
-
-    s: float
-    R: NDArray[np.float64]
-    t: NDArray[np.float64]
-    method: str
-    residual_rms_m: float | None
-
-    def apply(self, P: NDArray) -> NDArray[np.float64]:
-        return self.s * np.asarray(P, dtype=np.float64) @ self.R.T + self.t
-
-    def pose(self, cam_from_model: NDArray) -> NDArray[np.float64]:
-        """``T_enu_cam`` (4, 4) of a camera given ``cam_from_model`` (4, 4)."""
-        T = np.linalg.inv(np.asarray(cam_from_model, dtype=np.float64))  # model <- cam
-        out = np.eye(4)
-        out[:3, :3] = self.R @ T[:3, :3]
-        out[:3, 3] = self.apply(T[:3, 3])
-        return out
 
 
 def _ground_up(points: NDArray, centres: NDArray) -> NDArray[np.float64]:
@@ -329,18 +253,6 @@ def dense_pair(req: dict[str, Any]) -> dict[str, Any]:
 
 
 # -- fusion ------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class FusedSurface:
-    """The fused DSM (H, W) float32 (NaN: no consistent height), its colour (H, W, 3)
-    uint8, per-cell number of agreeing pairs and of pairs seen, north-west corner, cell."""
-
-    dsm: NDArray[np.float32]
-    rgb: NDArray[np.uint8]
-    agree: NDArray[np.uint8]
-    seen: NDArray[np.uint8]
-    west: float
-    north: float
-    cell: float
 
 
 def fuse_tiles(tiles: Sequence[dict[str, Any]], sigmas: Sequence[float], *, band_rows: int = 512) -> FusedSurface:
@@ -407,113 +319,6 @@ def fuse_tiles(tiles: Sequence[dict[str, Any]], sigmas: Sequence[float], *, band
 
 
 # -- the survey ---------------------------------------------------------------------------
-def _image_sizes(paths: Sequence[Path]) -> list[tuple[int, int]]:
-    from PIL import Image, UnidentifiedImageError
-
-    sizes = []
-    for p in paths:
-        if p.is_dir():
-            raise InputError(f"{p}: is a folder; give the frames themselves (e.g. {p}/*.JPG)")
-        if not p.is_file():
-            raise InputError(f"{p}: image not found")
-        try:
-            with Image.open(p) as im:
-                sizes.append(im.size)
-        except (UnidentifiedImageError, OSError) as exc:
-            raise InputError(f"{p}: not an image this tool can read ({exc})") from None
-    return sizes
-
-
-#: Inputs read as videos (frames taken every ``video_step_s``).
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v")
-
-
-def video_frames(video: str | Path, folder: Path, *, step_s: float = 1.0, max_frames: int = 500) -> list[Path]:
-    """Frames of a video every ``step_s`` seconds (by its frame rate; every frame when it
-    states none) written as JPEGs into ``folder``: the survey's frames. A video without
-    two readable frames is refused."""
-    v = Path(video)
-    if not v.is_file():
-        raise InputError(f"{v}: video not found")
-    if not (math.isfinite(step_s) and step_s > 0):
-        raise InputError(f"video step: expected seconds > 0, got {step_s}")
-    cap = cv2.VideoCapture(str(v))
-    try:
-        if not cap.isOpened():
-            raise InputError(f"{v}: cannot open as a video (unknown container or codec)")
-        fps = cap.get(cv2.CAP_PROP_FPS)
-        every = max(1, int(round(step_s * fps))) if fps and math.isfinite(fps) and fps > 0 else 1
-        folder.mkdir(parents=True, exist_ok=True)
-        out, k = [], 0
-        while len(out) < max_frames:
-            ok, img = cap.read()
-            if not ok:
-                break
-            if k % every == 0:
-                p = folder / f"{v.stem}_{k:06d}.jpg"
-                if not cv2.imwrite(str(p), img, [cv2.IMWRITE_JPEG_QUALITY, 95]):
-                    raise InputError(f"{p}: cannot write the frame")
-                out.append(p)
-            k += 1
-    finally:
-        cap.release()
-    if len(out) < 2:
-        raise InputError(f"{v}: {len(out)} frame(s) read every {step_s:g} s; a survey needs at least 2")
-    return out
-
-
-def check_frames(images: Sequence[str | Path]) -> tuple[list[Path], tuple[int, int]]:
-    """The frames as paths and their common (width, height); one-line errors for fewer
-    than two frames, a missing or unreadable one, a repeated one, or different sizes."""
-    paths = [Path(p) for p in images]
-    if len(paths) < 2:
-        raise InputError(f"survey: {len(paths)} frame(s) given; a survey needs at least 2 overlapping frames")
-    names = [p.name for p in paths]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise InputError(f"survey: frames named {', '.join(dup[:3])} more than once; names identify frames")
-    sizes = _image_sizes(paths)
-    for p, s in zip(paths[1:], sizes[1:]):
-        if s != sizes[0]:
-            raise InputError(f"survey: frames of different sizes: {paths[0].name} is {sizes[0][0]}x{sizes[0][1]}, "
-                             f"{p.name} is {s[0]}x{s[1]}; one camera at one setting is needed")
-    return paths, sizes[0]
-
-
-def _gps_positions(paths: Sequence[Path], gps_table: str | Path | None) -> tuple[list[Any] | None, str]:
-    """GeoTags per frame from a position table (every frame must be in it, and every
-    image the table names must exist), else from EXIF when every frame has it."""
-    if gps_table is not None:
-        folders = {p.resolve().parent for p in paths}
-        table = read_position_table(gps_table, images_dir=folders.pop() if len(folders) == 1 else None)
-        if len({p.parent for p in paths}) > 1:
-            given = {p.name for p in paths}
-            absent = [n for n in table if n not in given]
-            if absent:
-                raise InputError(f"{gps_table}: names {len(absent)} image(s) not among the frames: "
-                                 f"{', '.join(absent[:5])}")
-        missing = [p.name for p in paths if p.name not in table]
-        if missing:
-            raise InputError(f"{gps_table}: no position for {', '.join(missing[:5])}"
-                             + (" ..." if len(missing) > 5 else ""))
-        return [table[p.name] for p in paths], f"table {Path(gps_table).name}"
-    tags = [exif_geotag(p) for p in paths]
-    if all(t is not None for t in tags):
-        return tags, "EXIF"
-    return None, "none"
-
-
-def _starting_camera(paths: Sequence[Path], size: tuple[int, int], calib: str | Path | None):
-    """The starting calibration: a camera YAML, else the EXIF focal length."""
-    if calib is not None:
-        return load_camera_calibration(calib, image_size=size), "calibration file"
-    f = exif_focal_px(paths[0])
-    if f is None:
-        raise InputError("survey: no starting calibration: give --calib or frames whose EXIF has the focal "
-                         "length and focal-plane resolution")
-    w, h = size
-    K = np.array([[f, 0, (w - 1) / 2.0], [0, f, (h - 1) / 2.0], [0, 0, 1.0]])
-    return CameraModel(K, np.zeros(5), size), "EXIF focal length"
 
 
 def _shared_points(P: NDArray, Ti: NDArray, Tj: NDArray, K: NDArray, size: tuple[int, int],
@@ -614,8 +419,8 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         raise InputError("survey: give one video, or image frames, not both")
     if not videos:
         paths, size = check_frames(images)
-        tags, gps_source = _gps_positions(paths, gps_table)
-        camera0, calib_source = _starting_camera(paths, size, calib)
+        tags, gps_source = gps_positions(paths, gps_table)
+        camera0, calib_source = starting_camera(paths, size, calib)
     refine = o.refine_intrinsics if o.refine_intrinsics != "auto" else ("none" if calib else "focal+distortion")
     free = refine != "none"
     seconds: dict[str, float] = {}
@@ -623,8 +428,8 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         if videos:  # frames into the survey's own folder, then the same checks
             images = [str(p) for p in video_frames(videos[0], stage / "frames", step_s=video_step_s)]
             paths, size = check_frames(images)
-            tags, gps_source = _gps_positions(paths, gps_table)
-            camera0, calib_source = _starting_camera(paths, size, calib)
+            tags, gps_source = gps_positions(paths, gps_table)
+            camera0, calib_source = starting_camera(paths, size, calib)
         t0 = time.perf_counter()
         sfm = map_frames([str(p) for p in images], stage / "sfm_work", camera=camera0,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
@@ -654,7 +459,7 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         t0 = time.perf_counter()
         refined = (["f", "k1", "k2"] if free else []) + (["cx", "cy"] if o.refine_principal_point else [])
         shown = [str(out / "frames" / p.name) for p in paths] if videos else [str(p) for p in images]
-        summary = _write_products(stage, fused, paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, gps_source,
+        summary = write_products(stage, fused, paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, gps_source,
                                   calib_source, refined, factor, o)
         shutil.copytree(sfm.model_dir, stage / "colmap", dirs_exist_ok=True)
         shutil.rmtree(stage / "sfm_work", ignore_errors=True)
@@ -668,191 +473,3 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     return summary
 
 
-def _write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], shown: Sequence[str], sfm: Any, geo: Georef,
-                    T_enu: dict[int, NDArray], recs: list[dict], origin: NDArray | None, gps_enu: NDArray | None,
-                    gps_source: str, calib_source: str, refined: list[str], factor: int,
-                    o: SurveyOptions) -> dict[str, Any]:
-
-    scaled = origin is not None
-    crs = local_enu_crs_wkt(float(origin[0]), float(origin[1])) if scaled else None
-    tags = {"SCALE": "gps" if scaled else "unknown", "SOFTWARE": "prism3d survey",
-            "HEIGHTS": "metres above the WGS84 ellipsoid" if scaled else "model units, frame levelled on the ground"}
-    cell = fused.cell
-    ground, ndsm = normalised_dsm(fused.dsm * (1000.0 if scaled else 1.0), cell * (1000.0 if scaled else 1.0))
-    if scaled:
-        ground, ndsm = ground / 1000.0, ndsm / 1000.0
-    common = dict(west=fused.west, north=fused.north, gsd=cell, crs_wkt=crs, tags=tags)
-    write_geotiff(stage / "dsm.tif", fused.dsm, nodata=float("nan"), band_names=["height"], **common)
-    write_geotiff(stage / "ground.tif", ground.astype(np.float32), nodata=float("nan"), band_names=["ground"], **common)
-    write_geotiff(stage / "ndsm.tif", ndsm.astype(np.float32), nodata=float("nan"),
-                  band_names=["height above ground"], **common)
-    ortho = true_orthophoto(fused.dsm, fused.west, fused.north, cell,
-                            [(str(paths[k]), T_enu[k]) for k in sorted(T_enu)], np.asarray(sfm.K, dtype=np.float64),
-                            np.asarray(sfm.dist, dtype=np.float64), tuple(sfm.size), gsd=o.ortho_gsd_m)
-    ocommon = dict(common, gsd=ortho.gsd)
-    write_geotiff(stage / "ortho.tif", ortho.rgba, **ocommon)
-    write_geotiff(stage / "ortho_quality.tif", ortho.quality, nodata=0, band_names=[
-        "1 measured surface, 2 interpolated surface"], **ocommon)
-    rr, cc = np.nonzero(np.isfinite(fused.dsm))
-    xyz = np.c_[fused.west + (cc + 0.5) * cell, fused.north - (rr + 0.5) * cell, fused.dsm[rr, cc]]
-    col = fused.rgb[rr, cc]
-    write_ply(stage / "cloud.ply", xyz, colors=col, double=True,
-              comments=[f"prism3d survey: fused surface, one point per {cell:g} cell",
-                        "frame: local east-north-up, metres" if scaled else "frame: model, scale unknown"])
-    write_las(stage / "cloud.las", xyz, col, crs_wkt=crs, scale_m=min(0.001, cell / 100.0),
-              system_identifier="prism3d survey" if scaled else "prism3d survey: scale unknown")
-    depth_dir = stage / "depth"
-    depth_dir.mkdir()
-    finite = np.isfinite(fused.dsm)
-    per_pair, overlap_filled = overlap_coverage(recs, T_enu, np.asarray(sfm.K, dtype=np.float64), sfm.size,
-                                                float(np.nanmedian(ground)), fused)
-    pairs = []
-    for r in recs:
-        entry = {k: v for k, v in r.items() if k not in ("tile", "depth", "K_depth")}
-        entry["frames"] = [shown[r["i"]], shown[r["j"]]]
-        if (r["i"], r["j"]) in per_pair:
-            entry["overlap_filled_fraction"] = per_pair[(r["i"], r["j"])]
-        if r["status"] == "ok":
-            name = f"{paths[r['i']].stem}__{paths[r['j']].stem}.npz"
-            np.savez_compressed(depth_dir / name, depth=r["depth"], K=np.asarray(r["K_depth"]),
-                                T_enu_cam=T_enu[r["i"]])
-            entry["depth_map"] = f"depth/{name}"
-        pairs.append(entry)
-    frames = []
-    for k, p in enumerate(paths):
-        fr: dict[str, Any] = {"image": shown[k], "colmap_name": sfm.model_names[k], "registered": bool(sfm.registered[k]),
-                              "T_enu_cam": T_enu[k].tolist() if k in T_enu else None}
-        if gps_enu is not None:
-            fr["gps_enu"] = [float(v) for v in gps_enu[k]]
-            if k in T_enu:
-                fr["gps_residual_m"] = float(np.linalg.norm(T_enu[k][:3, 3] - gps_enu[k]))
-        frames.append(fr)
-    doc = {
-        "schema_version": SURVEY_SCHEMA_VERSION,
-        "frames": frames,
-        "reprojection_rms_px": float(sfm.reprojection_rms_px),
-        "n_observations": int(sfm.n_observations),
-        "n_sparse_points": int(len(sfm.points)),
-        "scale": "gps" if scaled else "unknown",
-        "units": "m" if scaled else "model units (scale unknown)",
-        "frame": ("local east-north-up at the origin (x east, y north, z up; heights above the WGS84 "
-                  "ellipsoid); T_enu_cam maps OpenCV camera coordinates (x right, y down, z forward)")
-        if scaled else "the model levelled on its ground (z up), camera 1 above the origin; scale unknown",
-        "origin_lla": None if origin is None else [float(v) for v in origin],
-        "crs_wkt": crs,
-        "gps_source": gps_source,
-        "georeference": {"method": geo.method, "scale": geo.s, "residual_rms_m": geo.residual_rms_m},
-        "camera": {"model": "RADIAL (f, cx, cy, k1, k2)", "start": calib_source, "refined": refined,
-                   "K": np.asarray(sfm.K).tolist(),
-                   "dist": np.asarray(sfm.dist).tolist(), "size": list(sfm.size)},
-        "dense": {"downscale": factor, "pair_steps": list(o.pair_steps), "pairs": pairs},
-        "ortho": {"gsd": ortho.gsd, "shape": list(ortho.rgba.shape[:2]),
-                  "cells_per_frame": {shown[k]: v for k, v in sorted(ortho.cells_per_frame.items())},
-                  "interpolated_surface_fraction": float((ortho.quality == 2).sum() / max(1, (ortho.quality > 0).sum()))},
-        "dsm": {"cell": cell, "west": fused.west, "north": fused.north, "shape": list(fused.dsm.shape),
-                "filled_cells": int(finite.sum()), "cells_seen_by_2_or_more_pairs": int((fused.seen >= 2).sum()),
-                "overlap_filled_fraction": overlap_filled},
-        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(o).items()},
-    }
-    atomic_write_text(stage / "poses.json", json.dumps(doc, indent=1))
-    _draw_survey(stage / "survey.png", fused, ndsm, T_enu, scaled)
-    n_ok = sum(r["status"] == "ok" for r in recs)
-    return {"n_frames": len(paths), "n_registered": int(sum(sfm.registered)),
-            "reprojection_rms_px": float(sfm.reprojection_rms_px), "scale": doc["scale"],
-            "pairs_ok": n_ok, "pairs_skipped": len(recs) - n_ok, "cell": cell, "dsm_cells": int(finite.sum()),
-            "overlap_filled_fraction": doc["dsm"]["overlap_filled_fraction"]}
-
-
-def overlap_coverage(recs: Sequence[dict], T_enu: dict[int, NDArray], K: NDArray, size: tuple[int, int],
-                     ground_z: float, fused: FusedSurface) -> tuple[dict[tuple[int, int], float], float]:
-    """The share of each pair's ground overlap (the two frames' footprints on the plane
-    ``z = ground_z`` intersected) holding a fused height, and of the union of those
-    overlaps; on the DSM's lattice widened to hold every footprint whole."""
-    cell = fused.cell
-    finite = np.isfinite(fused.dsm)
-    quads = {(r["i"], r["j"]): [footprint(T_enu[r["i"]], K, size, ground_z), footprint(T_enu[r["j"]], K, size, ground_z)]
-             for r in recs if r["i"] in T_enu and r["j"] in T_enu}
-    if not quads:
-        return {}, 0.0
-    allq = np.concatenate([np.concatenate(q) for q in quads.values()])
-    pad_w = max(0, int(math.ceil((fused.west - allq[:, 0].min()) / cell)))
-    pad_n = max(0, int(math.ceil((allq[:, 1].max() - fused.north) / cell)))
-    H0, W0 = finite.shape
-    Hc = max(H0 + pad_n, int(math.ceil((fused.north + pad_n * cell - allq[:, 1].min()) / cell)))
-    Wc = max(W0 + pad_w, int(math.ceil((allq[:, 0].max() - fused.west + pad_w * cell) / cell)))
-    if Hc * Wc > 800_000_000:
-        raise InputError("survey: the frames' footprints are far larger than the DSM; poses or GPS are wrong")
-    filled = np.zeros((Hc, Wc), bool)
-    filled[pad_n:pad_n + H0, pad_w:pad_w + W0] = finite
-    union = np.zeros((Hc, Wc), bool)
-    per_pair = {}
-    for key, q in quads.items():
-        m = overlap_mask(q, (Hc, Wc), fused.west - pad_w * cell, fused.north + pad_n * cell, cell)
-        union |= m
-        per_pair[key] = round(float(filled[m].mean()) if m.any() else 0.0, 4)
-    return per_pair, round(float(filled[union].mean()) if union.any() else 0.0, 4)
-
-
-def footprint(T_enu_cam: NDArray, K: NDArray, size: tuple[int, int], ground_z: float) -> NDArray[np.float64]:
-    """The frame's corners (4, 2) on the horizontal plane ``z = ground_z`` (east, north)."""
-    w, h = size
-    uv = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=np.float64)
-    rays = np.c_[(uv - [K[0, 2], K[1, 2]]) / [K[0, 0], K[1, 1]], np.ones(4)] @ T_enu_cam[:3, :3].T
-    c = T_enu_cam[:3, 3]
-    if np.any(rays[:, 2] >= 0):
-        raise InputError("survey: a frame's corner looks above the horizon; not a nadir survey")
-    s = (ground_z - c[2]) / rays[:, 2]
-    return c[:2] + s[:, None] * rays[:, :2]
-
-
-def overlap_mask(quads: Sequence[NDArray], shape: tuple[int, int], west: float, north: float,
-                 cell: float) -> NDArray[np.bool_]:
-    """Cells of a (H, W) grid inside the intersection of convex ground quads (n, 4, 2)."""
-    poly = np.asarray(quads[0], dtype=np.float32)
-    for q in quads[1:]:
-        area, inter = cv2.intersectConvexConvex(poly, np.asarray(q, dtype=np.float32))
-        if area <= 0 or inter is None:
-            return np.zeros(shape, bool)
-        poly = inter.reshape(-1, 2)
-    px = np.c_[(poly[:, 0] - west) / cell - 0.5, (north - poly[:, 1]) / cell - 0.5]
-    m = np.zeros(shape, np.uint8)
-    cv2.fillConvexPoly(m, np.round(px * 16).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
-    return m.astype(bool)
-
-
-def _draw_survey(path: Path, fused: FusedSurface, ndsm: NDArray, T_enu: dict[int, NDArray], scaled: bool) -> None:
-    """The orthophoto, the DSM (hill-shaded) and the nDSM side by side, cameras marked."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-
-    unit = "m" if scaled else "units"
-    H, W = fused.dsm.shape
-    ext = (fused.west, fused.west + W * fused.cell, fused.north - H * fused.cell, fused.north)
-    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2), constrained_layout=True)
-    rgba = np.dstack([fused.rgb, np.where(np.isfinite(fused.dsm), 255, 0).astype(np.uint8)])
-    axes[0].imshow(rgba, extent=ext)
-    axes[0].set_title("orthophoto")
-    d = np.where(np.isfinite(fused.dsm), fused.dsm, np.nanmedian(fused.dsm))
-    gy, gx = np.gradient(d, fused.cell)
-    shade = np.clip(0.5 + 0.5 * (-gx - gy) / np.sqrt(1 + gx**2 + gy**2), 0, 1)
-    lo, hi = (np.nanpercentile(fused.dsm, [1, 99]) if np.isfinite(fused.dsm).any() else (0.0, 1.0))
-    im = axes[1].imshow(np.where(np.isfinite(fused.dsm), fused.dsm, np.nan), extent=ext, cmap="terrain",
-                        vmin=lo, vmax=max(hi, lo + 1e-6))
-    axes[1].imshow(np.where(np.isfinite(fused.dsm), shade, np.nan), extent=ext, cmap="gray", alpha=0.35)
-    fig.colorbar(im, ax=axes[1], shrink=0.8, label=f"height ({unit})")
-    axes[1].set_title("DSM")
-    lim = float(np.nanpercentile(ndsm, 99.5)) if np.isfinite(ndsm).any() else 1.0
-    im2 = axes[2].imshow(ndsm, extent=ext, cmap="magma", vmin=0, vmax=max(lim, 1e-6))
-    fig.colorbar(im2, ax=axes[2], shrink=0.8, label=f"above ground ({unit})")
-    axes[2].set_title("normalised DSM")
-    C = np.array([T[:3, 3] for T in T_enu.values()])
-    for ax in axes:
-        ax.plot(C[:, 0], C[:, 1], "c.-", ms=6, lw=0.8)
-        ax.set_xlabel(f"east ({unit})")
-    axes[0].set_ylabel(f"north ({unit})")
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
