@@ -32,10 +32,12 @@ __all__ = ["draw_survey", "footprint", "overlap_coverage", "overlap_mask", "writ
 
 
 def write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], shown: Sequence[str], sfm: Any, geo: Georef,
-                    T_enu: dict[int, NDArray], recs: list[dict], origin: NDArray | None, gps_enu: NDArray | None,
-                    gps_source: str, calib_source: str, refined: list[str], factor: int,
-                    o: SurveyOptions) -> dict[str, Any]:
-
+                   T_enu: dict[int, NDArray], recs: list[dict], origin: NDArray | None, gps_enu: NDArray | None,
+                   gps_source: str, calib_source: str, refined: list[str], factor: int,
+                   o: SurveyOptions) -> dict[str, Any]:
+    """Every product of a survey into the staging folder ``stage`` (the caller moves it in
+    place whole): GeoTIFFs in the local ENU frame at ``origin`` (model units without GPS),
+    cloud.ply / cloud.las, the figure and poses.json, whose summary it returns."""
     scaled = origin is not None
     crs = local_enu_crs_wkt(float(origin[0]), float(origin[1])) if scaled else None
     tags = {"SCALE": "gps" if scaled else "unknown", "SOFTWARE": "prism3d survey",
