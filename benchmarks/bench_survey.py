@@ -64,7 +64,7 @@ import numpy as np
 
 from prism3d.atr.survey_detect import DEFAULT_VEHICLES, detect_in_survey
 from prism3d.datasets.flight import FlightOptions, simulate_flight
-from prism3d.datasets.jobs import RunOptions, run_survey_pairs
+from prism3d.datasets.runner import RunOptions, run_survey_pairs
 from prism3d.datasets.survey_eval import evaluate_survey, ground_roughness
 from prism3d.datasets.targets import builtin_target
 from prism3d.errors import InputError

@@ -39,8 +39,8 @@ from prism3d.capture.scenes import value_noise
 from prism3d.capture.simulate import Projector, ShotOptions, effects_entries, simulate_shot
 from prism3d.checks import check_seed
 from prism3d.datasets._primitives import Part, box, cylinder, ellipse, loft, prism
-from prism3d.datasets.jobs import RunOptions, run_tasks
 from prism3d.datasets.resolve import resolve_model
+from prism3d.datasets.runner import RunOptions, run_tasks
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_write_text, staged_folder

@@ -32,20 +32,24 @@ from prism3d.atr.scene import scene_channels
 from prism3d.atr.verifier import (
     NONE,
     SceneRecogniser,
+    n_size_features,
     object_features,
     object_gate,
-    n_size_features,
     train_prefilter,
     train_verifier,
 )
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.rig import StereoRig
 from prism3d.datasets.field import SHAPE_CONFUSERS, FieldOptions, prop_mesh, simulate_field
-from prism3d.datasets.jobs import RunOptions, run_tasks
+from prism3d.datasets.runner import RunOptions, run_tasks
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 from prism3d.io.images import read_image
-from prism3d.reconstruct.pipeline import ReconstructOptions, convergence_distance_mm, reconstruct_shot
+from prism3d.reconstruct.pipeline import (
+    ReconstructOptions,
+    convergence_distance_mm,
+    reconstruct_shot,
+)
 
 __all__ = ["MINING_SEED_BASE", "MiningOptions", "default_rejects", "mine_scene", "train_scene_recogniser"]
 

@@ -180,7 +180,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                           **({"classes": tuple(args.classes)} if args.classes else {}))
         if args.count is not None:
             from prism3d.datasets.field import simulate_field_batch
-            from prism3d.datasets.jobs import RunOptions
+            from prism3d.datasets.runner import RunOptions
 
             report = simulate_field_batch(args.out_dir, args.count, fo, RunOptions(
                 workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "simulate field")))
@@ -793,7 +793,7 @@ def _cmd_bank(args: argparse.Namespace) -> int:
     _finish_targets(args)
     if args.action == "eval-scenes":
         from prism3d.datasets.field import eval_scene_folders
-        from prism3d.datasets.jobs import RunOptions
+        from prism3d.datasets.runner import RunOptions
 
         res = eval_scene_folders(args.bank, args.scenes, out_json=args.json, run=RunOptions(
             workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "bank eval-scenes")))
@@ -837,7 +837,7 @@ def _bank_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
-    from prism3d.datasets.jobs import RunOptions
+    from prism3d.datasets.runner import RunOptions
     from prism3d.datasets.mining import DEFAULT_SCENES
     from prism3d.datasets.recognisers import aerial_recogniser, scene_recogniser
 
@@ -990,7 +990,7 @@ def _cmd_survey(args: argparse.Namespace) -> int:
                          refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point)
     run_pairs = None
     if args.workers or args.scheduler:
-        from prism3d.datasets.jobs import RunOptions, run_survey_pairs
+        from prism3d.datasets.runner import RunOptions, run_survey_pairs
 
         run = RunOptions(workers=args.workers, scheduler=args.scheduler, retries=0)
 
