@@ -16,20 +16,18 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.capture.rig import CameraModel, PrismSplit, StereoRig, compute_rectification
-from prism3d.checks import check_array, check_choice, check_positive
+from prism3d.capture.rig import PrismSplit, StereoRig, compute_rectification
+from prism3d.checks import check_array, check_choice
 from prism3d.errors import CalibrationError, InputError
-from prism3d.geometry import make_transform, matrix_from_rotvec, rotation_angle_deg
-from prism3d.io.opencv_yaml import read_filestorage
+from prism3d.geometry import rotation_angle_deg
 from prism3d.reconstruct._bundle import (
     CAM_PARAM_NAMES,
     N_CAM,
@@ -37,6 +35,17 @@ from prism3d.reconstruct._bundle import (
     BundleResult,
     rodrigues_inv,
     solve_bundle,
+)
+from prism3d.reconstruct.calibration_model import (
+    Calibration,
+    CameraCalibration,
+    check_square,
+)
+from prism3d.reconstruct.calibration_pinning import (
+    camera_from_vector,
+    check_pinning,
+    pose_matrix,
+    rig_param_names,
 )
 from prism3d.reconstruct.corners import (
     DEFAULT_WINDOW,
@@ -72,209 +81,8 @@ _POSE_AGREE_REL = 0.1
 
 
 # --------------------------------------------------------------------------------------
-# results
-# --------------------------------------------------------------------------------------
-#: Largest chessboard square, mm: a 100 m square is no calibration board (and 1e300
-#: overflows the float32 corner arithmetic).
-MAX_SQUARE_MM = 1e5
-
-
-def _check_square(square_mm: float) -> float:
-    v = check_positive(square_mm, "square_mm")
-    if v > MAX_SQUARE_MM:
-        raise InputError(f"square_mm: expected at most {MAX_SQUARE_MM:g} mm, got {square_mm!r}")
-    return v
-
-
-@dataclass(frozen=True, eq=False)
-class CameraCalibration:
-    """Result of :func:`calibrate_camera`: the camera, RMS reprojection error (px,
-    ``sqrt(mean(du^2 + dv^2))`` as ``cv2.calibrateCamera``) overall and per view ``(V,)``,
-    standard deviation per parameter name (0 when fixed), ``T_cam_board (V, 4, 4)``."""
-
-    camera: CameraModel
-    rms_px: float
-    per_view_rms_px: NDArray[np.float64]
-    std: dict[str, float]
-    T_cam_board: NDArray[np.float64]
-
-
-@dataclass(frozen=True, eq=False)
-class Calibration:
-    """A calibrated stereo rig and its quality figures.
-
-    RMS reprojection errors are px (``per_view_rms_px`` ``(V, 2)``, NaN where a camera
-    missed the board); ``std`` holds ``fx_left ... k3_right``, ``rx ry rz`` (rad) and
-    ``tx ty tz`` (mm); ``outlier_views`` exceed ``OUTLIER_FACTOR`` x the median view RMS.
-    ``precision`` (working distance, 1-sigma rectified row offset and disparity px at the
-    worst image point, depth mm), ``needs`` (per parameter, the std that alone reaches
-    ``ROW_OFFSET_NEED_PX`` / ``DISPARITY_NEED_PX``) and ``warnings`` come from the pinning
-    check; they are empty for loaded files and not stored in the YAML.
-    """
-
-    rig: StereoRig
-    rms_px: float = float("nan")
-    rms_left_px: float = float("nan")
-    rms_right_px: float = float("nan")
-    per_view_rms_px: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
-    std: dict[str, float] = field(default_factory=dict)
-    rectification_rms_px: float = float("nan")
-    n_views: int = 0
-    board: tuple[int, int] = (0, 0)
-    square_mm: float = float("nan")
-    flags: dict[str, bool] = field(default_factory=dict)
-    outlier_views: tuple[int, ...] = ()
-    sources: tuple[str, ...] = ()
-    detections: tuple[CornerDetection, ...] = ()
-    precision: dict[str, float] = field(default_factory=dict)
-    needs: dict[str, float] = field(default_factory=dict)
-    warnings: tuple[str, ...] = ()
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.rig, StereoRig):
-            raise InputError(f"rig: expected a StereoRig, got {type(self.rig).__name__}")
-        pv = np.asarray(self.per_view_rms_px, dtype=np.float64)
-        if pv.ndim != 2 or pv.shape[1] != 2:
-            raise InputError(f"per_view_rms_px: expected shape (V, 2), got {pv.shape}")
-        object.__setattr__(self, "per_view_rms_px", pv)
-        object.__setattr__(self, "board", (int(self.board[0]), int(self.board[1])))
-        object.__setattr__(self, "outlier_views", tuple(int(v) for v in self.outlier_views))
-
-    # -- file I/O ----------------------------------------------------------------------
-    def save(self, path: str | Path) -> None:
-        """Write OpenCV FileStorage YAML: ``K1 D1 K2 D2 R T``, the RMS figures and the
-        standard deviations ``std_K1 std_D1 std_K2 std_D2 std_om`` (rad) ``std_T`` (mm)."""
-        extra: dict[str, Any] = {
-            "rms_px": float(self.rms_px),
-            "rms_left_px": float(self.rms_left_px),
-            "rms_right_px": float(self.rms_right_px),
-            "rectification_rms_px": float(self.rectification_rms_px),
-            "n_views": int(self.n_views),
-        }
-        if self.board != (0, 0):
-            extra["board"] = np.array(self.board, dtype=np.int32)
-            extra["square_mm"] = float(self.square_mm)
-        if self.per_view_rms_px.size:
-            extra["per_view_rms_px"] = np.asarray(self.per_view_rms_px, dtype=np.float64)
-        if self.outlier_views:
-            extra["outlier_views"] = np.array(self.outlier_views, dtype=np.int32)
-        for k in ("skew", "tangential", "k3"):
-            if k in self.flags:
-                extra[f"calib_{k}"] = int(bool(self.flags[k]))
-        if self.std:
-            for cam, tag in (("left", "1"), ("right", "2")):
-                extra[f"std_K{tag}"] = np.array(
-                    [self.std.get(f"{n}_{cam}", 0.0) for n in CAM_PARAM_NAMES[:5]]
-                )
-                extra[f"std_D{tag}"] = np.array(
-                    [self.std.get(f"{n}_{cam}", 0.0) for n in CAM_PARAM_NAMES[5:]]
-                )
-            extra["std_om"] = np.array([self.std.get(n, 0.0) for n in ("rx", "ry", "rz")])
-            extra["std_T"] = np.array([self.std.get(n, 0.0) for n in ("tx", "ty", "tz")])
-        self.rig.save(path, extra=extra)
-
-    @classmethod
-    def load(cls, path: str | Path) -> Calibration:
-        """Read a calibration YAML; a plain ``rig.yaml`` (no quality figures) also loads."""
-        values = read_filestorage(path)
-        rig = StereoRig.from_filestorage(values, source=str(path))
-
-        def num(key: str) -> float:
-            v = values.get(key)
-            return float(np.asarray(v).ravel()[0]) if v is not None else float("nan")
-
-        std: dict[str, float] = {}
-        if "std_K1" in values:
-            for cam, tag in (("left", "1"), ("right", "2")):
-                k = np.asarray(values.get(f"std_K{tag}", np.zeros(5))).ravel()
-                d = np.asarray(values.get(f"std_D{tag}", np.zeros(5))).ravel()
-                for n, v in zip(CAM_PARAM_NAMES, np.concatenate([k, d]), strict=False):
-                    std[f"{n}_{cam}"] = float(v)
-            for names, key in ((("rx", "ry", "rz"), "std_om"), (("tx", "ty", "tz"), "std_T")):
-                vals = np.asarray(values.get(key, np.zeros(3))).ravel()
-                std.update({n: float(v) for n, v in zip(names, vals, strict=False)})
-        pv = values.get("per_view_rms_px")
-        board = values.get("board")
-        return cls(
-            rig=rig,
-            rms_px=num("rms_px"),
-            rms_left_px=num("rms_left_px"),
-            rms_right_px=num("rms_right_px"),
-            per_view_rms_px=np.zeros((0, 2))
-            if pv is None
-            else np.asarray(pv, dtype=np.float64).reshape(-1, 2),
-            std=std,
-            rectification_rms_px=num("rectification_rms_px"),
-            n_views=int(num("n_views")) if "n_views" in values else 0,
-            board=(0, 0) if board is None else tuple(int(b) for b in np.asarray(board).ravel()[:2]),
-            square_mm=num("square_mm"),
-            flags={
-                k: bool(int(num(f"calib_{k}")))
-                for k in ("skew", "tangential", "k3")
-                if f"calib_{k}" in values
-            },
-            outlier_views=tuple(
-                int(v) for v in np.asarray(values.get("outlier_views", [])).ravel()
-            ),
-        )
-
-    def summary(self) -> str:
-        """A printable multi-line report (what the CLI shows)."""
-        rig = self.rig
-        lines = [
-            (
-                f"views: {self.n_views}   board: {self.board[0]}x{self.board[1]}, "
-                f"{self.square_mm:g} mm squares"
-            ),
-            (
-                f"RMS reprojection error: {self.rms_px:.4f} px "
-                f"(left {self.rms_left_px:.4f}, right {self.rms_right_px:.4f})"
-            ),
-            f"rectification residual (vertical disparity RMS): {self.rectification_rms_px:.4f} px",
-        ]
-        if self.precision:
-            pr = self.precision
-            lines.append(
-                f"precision at the working distance ({pr['working_distance_mm']:.0f} mm, 1 sigma, worst image "
-                f"point): rectified rows ±{pr['row_offset_px']:.3f} px (needs <= {ROW_OFFSET_NEED_PX:g}), "
-                f"disparity ±{pr['disparity_px']:.3f} px = ±{pr['depth_mm']:.3f} mm of depth "
-                f"(needs <= {DISPARITY_NEED_PX:g})"
-            )
-        for cam, name in ((rig.left, "left"), (rig.right, "right")):
-            s = self.std
-            lines.append(
-                f"{name:5s}: fx {cam.fx:.2f} ±{s.get(f'fx_{name}', 0):.2f}  fy {cam.fy:.2f} "
-                f"±{s.get(f'fy_{name}', 0):.2f}  cx {cam.cx:.2f} ±{s.get(f'cx_{name}', 0):.2f}  "
-                f"cy {cam.cy:.2f} ±{s.get(f'cy_{name}', 0):.2f}  skew {cam.skew:.3f}"
-            )
-            d = cam.dist
-            lines.append(
-                f"       k1 {d[0]:.5f} ±{s.get(f'k1_{name}', 0):.5f}  k2 {d[1]:.5f} "
-                f"±{s.get(f'k2_{name}', 0):.5f}  p1 {d[2]:.6f}  p2 {d[3]:.6f}  k3 {d[4]:.5f}"
-            )
-        t = rig.T
-        lines.append(
-            f"baseline {rig.baseline_mm:.3f} mm  T = ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) mm "
-            f"±({self.std.get('tx', 0):.3f}, {self.std.get('ty', 0):.3f}, {self.std.get('tz', 0):.3f})"
-            f"  rotation {rotation_angle_deg(rig.R):.4f} deg"
-        )
-        if self.per_view_rms_px.size:
-            lines.append("per-view RMS (left, right) px:")
-            for i, (a, b) in enumerate(self.per_view_rms_px):
-                src = self.sources[i] if i < len(self.sources) else f"view {i}"
-                flag = "  <-- outlier" if i in self.outlier_views else ""
-                lines.append(f"  {i:3d} {a:8.4f} {b:8.4f}  {src}{flag}")
-        missing = [d for d in self.detections if not d.found]
-        for d in missing:
-            lines.append(f"board not found: {d.source} ({d.view} view)")
-        return "\n".join(lines)
-
-
-# --------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------
-def _pose_matrix(rvec: NDArray, tvec: NDArray) -> NDArray[np.float64]:
-    return make_transform(matrix_from_rotvec(np.asarray(rvec, dtype=np.float64).ravel()), tvec)
 
 
 def _pose_vec(T: NDArray) -> NDArray[np.float64]:
@@ -311,7 +119,7 @@ def _zhang_init(
         raise CalibrationError(
             f"{who}: initial calibration failed ({str(exc).strip().splitlines()[-1]})"
         ) from exc
-    poses = [_pose_matrix(r, t) for r, t in zip(rvecs, tvecs, strict=True)]
+    poses = [pose_matrix(r, t) for r, t in zip(rvecs, tvecs, strict=True)]
     d = np.zeros(5)
     d[: min(5, dist.size)] = dist.ravel()[:5]
     return K, d, poses
@@ -325,7 +133,7 @@ def _solve_pnp(obj: NDArray, img: NDArray, K: NDArray, dist: NDArray) -> NDArray
     )
     if not ok:  # pragma: no cover - a planar grid with valid intrinsics always solves
         raise CalibrationError("solvePnP failed on a detected board")
-    return _pose_matrix(rvec, tvec)
+    return pose_matrix(rvec, tvec)
 
 
 def _mean_pose(Ts: Sequence[NDArray]) -> NDArray[np.float64]:
@@ -350,12 +158,6 @@ def _free_mask_cam(*, skew: bool, tangential: bool, k3: bool) -> NDArray[np.bool
 
 def _cam_vector(K: NDArray, dist: NDArray) -> NDArray[np.float64]:
     return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], *np.asarray(dist).ravel()[:5]])
-
-
-def _camera_from_vector(p: NDArray, size: tuple[int, int]) -> CameraModel:
-    fx, fy, cx, cy, s = p[:5]
-    K = np.array([[fx, s, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return CameraModel(K, p[5:10], size)
 
 
 def _rms(r: NDArray) -> float:
@@ -449,7 +251,7 @@ def calibrate_camera(
         n_views=V,
     )
     res = solve_bundle(prob)
-    cam = _camera_from_vector(res.params[:N_CAM], size)
+    cam = camera_from_vector(res.params[:N_CAM], size)
     per_view = np.array([_rms(res.residuals[prob.view_index == v]) for v in range(V)])
     views = res.params[N_CAM:].reshape(V, 6)
     return CameraCalibration(
@@ -457,7 +259,7 @@ def calibrate_camera(
         rms_px=_rms(res.residuals),
         per_view_rms_px=per_view,
         std={n: float(s) for n, s in zip(CAM_PARAM_NAMES, res.std[:N_CAM], strict=True)},
-        T_cam_board=np.stack([_pose_matrix(v[:3], v[3:]) for v in views]),
+        T_cam_board=np.stack([pose_matrix(v[:3], v[3:]) for v in views]),
     )
 
 
@@ -507,290 +309,6 @@ def _rig_frame(T_right_left: NDArray) -> NDArray[np.float64]:
         c_right / 2.0,
     )
     return np.linalg.inv(T_left_rig)
-
-
-# --------------------------------------------------------------------------------------
-# do the shots pin the rig?
-# --------------------------------------------------------------------------------------
-#: Largest row offset (px) the calibration may leave between the rectified views: the
-#: matcher searches along one row, and its finest sub-pixel precision is 1/10 px (paper).
-ROW_OFFSET_NEED_PX = 0.1
-#: Largest disparity error (px) the calibration may add: half that finest precision, so
-#: that the depth error z^2 / (f B) * dd (eq. 16) stays below the matching noise.
-DISPARITY_NEED_PX = 0.05
-# Each parameter's need follows from these two through the rectification geometry
-# (_stereo_errors), evaluated by _check_pinning: no per-parameter constants.
-#: Board tilts to ask for: f and the principal point improve with the angle between board
-#: and image plane up to ~45 deg, where foreshortening starts to spoil the corners
-#: (Zhang 2000, sec. 5.1); 20-40 deg keeps clear of both ends.
-_TILT_ADVICE_DEG = (20, 40)
-#: Image points per axis and view on which the needs are checked (edges included).
-_CHECK_GRID = 9
-_REGIONS = (
-    ("upper-left corner", "top edge", "upper-right corner"),
-    ("left edge", "centre", "right edge"),
-    ("lower-left corner", "bottom edge", "lower-right corner"),
-)
-#: Parameter groups of the advice: label, members, and the tilt axis that separates
-#: each member from the board's distance and turn (a tilt about the vertical axis
-#: foreshortens along x, so it pins fx and cx; about the horizontal axis, fy and cy).
-_GROUPS: tuple[tuple[str, tuple[str, ...], dict[str, str]], ...] = (
-    ("principal point", ("cx", "cy"), {"cx": "vertical", "cy": "horizontal"}),
-    ("focal length", ("fx", "fy"), {"fx": "vertical", "fy": "horizontal"}),
-    ("skew", ("skew",), {}),
-    ("distortion", ("k1", "k2", "k3", "p1", "p2"), {}),
-    ("rig rotation", ("rx", "ry", "rz"), {}),
-    ("rig translation", ("baseline", "tx", "ty", "tz"), {}),
-)
-_RIG_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
-_N_RIG = 2 * N_CAM + 6  # bundle parameters of the rig: both cameras, then R, T
-#: Sensitivity steps: a hundredth of a parameter's std (well inside the linear range), or
-#: a relative 1e-6 for a parameter without variance.
-_DIFF_STEP_SIGMA = 1e-2
-_DIFF_STEP_REL = 1e-6
-#: Fewer common pixel pairs than this at the working distance: nothing to check.
-_MIN_CHECK_PAIRS = 3
-
-
-@dataclass(frozen=True)
-class _Pinning:
-    """What :func:`_check_pinning` found (fields of :class:`Calibration`)."""
-
-    warnings: tuple[str, ...] = ()
-    needs: dict[str, float] = field(default_factory=dict)
-    precision: dict[str, float] = field(default_factory=dict)
-
-
-def _rig_param_names() -> list[str]:
-    """Keys of :attr:`Calibration.std` for the first ``2 * N_CAM + 6`` bundle parameters."""
-    return [f"{n}_{cam}" for cam in ("left", "right") for n in CAM_PARAM_NAMES] + list(_RIG_NAMES)
-
-
-def _rig_from_vector(p: NDArray, size: tuple[int, int], split: PrismSplit) -> StereoRig:
-    T = _pose_matrix(p[2 * N_CAM : 2 * N_CAM + 3], p[2 * N_CAM + 3 : 2 * N_CAM + 6])
-    left = _camera_from_vector(p[:N_CAM], size)
-    return StereoRig(left, _camera_from_vector(p[N_CAM : 2 * N_CAM], size), T, split)
-
-
-def _check_pixels(rig: StereoRig, depth_mm: float) -> tuple[NDArray, NDArray]:
-    """Pixel pairs ``(uv_left, uv_right)`` of scene points ``depth_mm`` in front of the
-    left camera (its z), on a grid over each view, where both views see them."""
-    R, t = rig.R, rig.T
-    c_right = -R.T @ t  # right camera centre, left frame
-    pairs: list[tuple[NDArray, NDArray]] = []
-    for from_left, cam, other in ((True, rig.left, rig.right), (False, rig.right, rig.left)):
-        w, h = cam.size
-        u, v = np.meshgrid(np.linspace(0, w - 1, _CHECK_GRID), np.linspace(0, h - 1, _CHECK_GRID))
-        uv = np.stack([u.ravel(), v.ravel()], axis=1)
-        rays = cam.pixel_rays(uv)
-        if from_left:
-            uvo = other.project((rays / rays[:, 2:3] * depth_mm) @ R.T + t)
-        else:
-            d = rays @ R  # the right camera's rays in the left frame
-            with np.errstate(divide="ignore", invalid="ignore"):
-                uvo = other.project(c_right + ((depth_mm - c_right[2]) / d[:, 2])[:, None] * d)
-        ow, oh = other.size
-        with np.errstate(invalid="ignore"):
-            ok = (uvo[:, 0] >= 0) & (uvo[:, 1] >= 0) & (uvo[:, 0] <= ow - 1) & (uvo[:, 1] <= oh - 1)
-        pairs.append((uv[ok], uvo[ok]) if from_left else (uvo[ok], uv[ok]))
-    return np.concatenate([p[0] for p in pairs]), np.concatenate([p[1] for p in pairs])
-
-
-def _stereo_errors(
-    p: NDArray, size: tuple[int, int], split: PrismSplit, uv_l: NDArray, uv_r: NDArray, f0: float, b0: float
-) -> NDArray[np.float64]:
-    """Rectified row offsets, then disparities, of fixed pixel pairs under the rig
-    parameters ``p`` (px at focal length ``f0``). The disparity is scaled to the
-    baseline ``b0``, so that a baseline error shows as the disparity error that makes
-    the same depth error."""
-    rig = _rig_from_vector(p, size, split)
-    rect = compute_rectification(rig)
-    a = rig.left.pixel_rays(uv_l) @ rect.R1.T
-    b = rig.right.pixel_rays(uv_r) @ rect.R2.T
-    a = a[:, :2] / a[:, 2:3]
-    b = b[:, :2] / b[:, 2:3]
-    return np.concatenate([f0 * (a[:, 1] - b[:, 1]), f0 * b0 / rig.baseline_mm * (a[:, 0] - b[:, 0])])
-
-
-def _regions_without_corners(points: Sequence[NDArray | None], size: tuple[int, int]) -> list[str]:
-    """The 3x3 image regions (named) with a part -- a cell of a 6x6 grid, a sixth of the
-    image each way -- that no corner reaches."""
-    w, h = size
-    seen = np.zeros((6, 6), bool)
-    for pts in points:
-        if pts is not None:
-            col = np.clip((pts[:, 0] + 0.5) * 6 // w, 0, 5).astype(int)
-            row = np.clip((pts[:, 1] + 0.5) * 6 // h, 0, 5).astype(int)
-            seen[row, col] = True
-    return [_REGIONS[r][c] for r in range(3) for c in range(3)
-            if not seen[2 * r : 2 * r + 2, 2 * c : 2 * c + 2].all()]
-
-
-def _join(items: Sequence[str]) -> str:
-    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
-
-
-def _with_unit(name: str, value: float) -> str:
-    """A parameter's value with its unit (the rig rotation in degrees)."""
-    base = name.split("_")[0]
-    if base in ("rx", "ry", "rz"):
-        return f"{math.degrees(value):.2g} deg"
-    if base in ("tx", "ty", "tz", "baseline"):
-        return f"{value:.2g} mm"
-    if base in ("fx", "fy", "cx", "cy", "skew"):
-        return f"{value:.2g} px"
-    return f"{value:.2g}"
-
-
-def _rig_covariance(prob: BundleProblem, res: BundleResult) -> tuple[NDArray, NDArray[np.intp], list[str]]:
-    """Covariance of the free rig parameters (both cameras, ``R``, ``T``) from the bundle
-    Jacobian, their indices in the full vector, and their :attr:`Calibration.std` names."""
-    x = res.params[prob.free]
-    J = prob.jacobian(x)
-    r = res.residuals.ravel()
-    sigma2 = float(r @ r) / max(r.size - x.size, 1)
-    JtJ = J.T @ J
-    s = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))  # column scaling for a well-conditioned inverse
-    cov = np.linalg.pinv(JtJ / np.outer(s, s)) / np.outer(s, s) * sigma2
-    cols = np.flatnonzero(prob.free[:_N_RIG])  # free rig parameters, full indices
-    at = np.cumsum(prob.free) - 1  # full index -> free index
-    return cov[np.ix_(at[cols], at[cols])], cols, [_rig_param_names()[j] for j in cols]
-
-
-def _stereo_gradients(
-    rig: StereoRig, p0: NDArray, cols: NDArray[np.intp], C: NDArray, uv: tuple[NDArray, NDArray], f0: float
-) -> NDArray[np.float64]:
-    """Central-difference derivatives ``(2 M, k)`` of the row offsets and disparities of the
-    pixel pairs ``uv`` by each free rig parameter (steps of a hundredth of its std)."""
-    G = np.empty((2 * len(uv[0]), len(cols)))
-    for k, j in enumerate(cols):
-        step = np.zeros(_N_RIG)
-        if C[k, k] > 0:
-            step[j] = _DIFF_STEP_SIGMA * math.sqrt(C[k, k])
-        else:
-            step[j] = _DIFF_STEP_REL * max(1.0, abs(p0[j]))
-        args = (rig.left.size, rig.split, uv[0], uv[1], f0, rig.baseline_mm)
-        G[:, k] = (_stereo_errors(p0 + step, *args) - _stereo_errors(p0 - step, *args)) / (2.0 * step[j])
-    return G
-
-
-def _needs(
-    G: NDArray, C: NDArray, names: list[str], T: NDArray, m: int
-) -> tuple[dict[str, float], dict[str, float]]:
-    """Standard deviation and need of each parameter (and of the baseline ``|T|``), the need
-    from the effective sensitivity ``cov(q, p) / var(p)`` of the ``m`` row offsets and the
-    disparities ``q``."""
-    GC = G @ C
-    std = {n: math.sqrt(C[k, k]) for k, n in enumerate(names) if C[k, k] > 0}
-    g_eff = {n: GC[:, k] / C[k, k] for k, n in enumerate(names) if C[k, k] > 0}
-    if {"tx", "ty", "tz"} <= set(names):
-        u = np.zeros(len(names))
-        u[[names.index(n) for n in ("tx", "ty", "tz")]] = T / float(np.linalg.norm(T))
-        if (var_b := float(u @ C @ u)) > 0:
-            std["baseline"], g_eff["baseline"] = math.sqrt(var_b), GC @ u / var_b
-    needs = {
-        n: min(ROW_OFFSET_NEED_PX / max(float(np.abs(g[:m]).max()), 1e-300),
-               DISPARITY_NEED_PX / max(float(np.abs(g[m:]).max()), 1e-300))
-        for n, g in g_eff.items()
-    }
-    return std, needs
-
-
-def _precision_warning(n_views: int, pr: dict[str, float]) -> list[str]:
-    """The line saying the rows or disparities are not pinned at the working distance."""
-    row_px, disp_px = pr["row_offset_px"], pr["disparity_px"]
-    parts = []
-    if row_px > ROW_OFFSET_NEED_PX:
-        parts.append(f"rectified rows may be {row_px:.2f} px apart (needs <= {ROW_OFFSET_NEED_PX:g} px)")
-    if disp_px > DISPARITY_NEED_PX:
-        parts.append(f"disparities off by {disp_px:.2f} px = {pr['depth_mm']:.2f} mm of depth "
-                     f"(needs <= {DISPARITY_NEED_PX:g} px)")
-    if not parts:
-        return []
-    return [f"the {n_views} shots do not pin the rig to what stereo matching needs at "
-            f"the working distance ({pr['working_distance_mm']:.0f} mm): {' and '.join(parts)} "
-            "(1 sigma, worst image point)"]
-
-
-def _group_warnings(
-    flagged: list[str], std: dict[str, float], needs: dict[str, float], rots: NDArray, dists: NDArray,
-    corners_advice: str,
-) -> list[str]:
-    """One line per parameter group with a parameter looser than its need, with advice."""
-    normals = rots[:, :, 2] * np.where(rots[:, 2, 2] < 0, -1.0, 1.0)[:, None]  # facing away
-    tilt = {"vertical": np.degrees(np.arctan2(normals[:, 0], normals[:, 2])),
-            "horizontal": np.degrees(np.arctan2(normals[:, 1], normals[:, 2]))}
-
-    def tilt_advice(axis: str) -> str:
-        lo, hi = tilt[axis].min(), tilt[axis].max()
-        return (f"add shots tilted {_TILT_ADVICE_DEG[0]}-{_TILT_ADVICE_DEG[1]} deg about the {axis} axis, "
-                f"both ways (now {lo:+.0f}..{hi:+.0f} deg)")
-
-    out = []
-    for label, members, tilt_axis in _GROUPS:
-        hit = [n for n in flagged if n.split("_")[0] in members]
-        if not hit:
-            continue
-        items = ", ".join(
-            f"{n.replace('_', ' ')} ±{_with_unit(n, std[n])} (needs <= {_with_unit(n, needs[n])})" for n in hit)
-        axes = sorted({tilt_axis[n.split("_")[0]] for n in hit if n.split("_")[0] in tilt_axis}, reverse=True)
-        advice = [tilt_advice(a) for a in axes] or [corners_advice]
-        if label.startswith("rig"):
-            lo, hi = dists[:, 2].min(), dists[:, 2].max()
-            advice.append(f"place boards nearer and farther (now {lo:.0f}-{hi:.0f} mm)")
-        out.append(f"{label}: {items}: {'; '.join(advice)}")
-    return out
-
-
-def _check_pinning(
-    prob: BundleProblem,
-    res: BundleResult,
-    rig: StereoRig,
-    board_points: NDArray,
-    left_points: Sequence[NDArray | None],
-    right_points: Sequence[NDArray | None],
-) -> _Pinning:
-    """Compare the calibration's precision with what stereo matching needs.
-
-    The rig parameters' covariance is propagated to the rectified row offsets and
-    disparities of pixel pairs over both views at the boards' median distance; each
-    parameter's need follows from its effective sensitivity ``cov(q, p) / var(p)``, since
-    the parameters are strongly correlated (docs/calibration.md).
-    """
-    C, cols, names = _rig_covariance(prob, res)
-    views = res.params[prob.view_offset :].reshape(prob.n_views, 6)
-    rots = matrix_from_rotvec(views[:, :3])
-    dists = rots @ board_points.mean(axis=0) + views[:, 3:]
-    depth = float(np.median(dists[:, 2]))
-    uv_l, uv_r = _check_pixels(rig, depth)
-    if len(uv_l) < _MIN_CHECK_PAIRS:
-        log.info("calibration precision not checked: the views share too few pixels at %.0f mm", depth)
-        return _Pinning()
-    f0, b0 = (rig.left.fy + rig.right.fy) / 2.0, rig.baseline_mm
-    G = _stereo_gradients(rig, res.params[:_N_RIG], cols, C, (uv_l, uv_r), f0)
-    m = len(uv_l)
-    std_q = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
-    row_px, disp_px = float(std_q[:m].max()), float(std_q[m:].max())
-    precision = {"working_distance_mm": depth, "row_offset_px": row_px, "disparity_px": disp_px,
-                 "depth_mm": disp_px * depth**2 / (f0 * b0)}
-    std, needs = _needs(G, C, names, rig.T, m)
-
-    # what the board poses lack: tilts about the camera's axes, corners in the image
-    holes = [f"the {_join(regions)} of the {side} view"
-             for side, pts in (("left", left_points), ("right", right_points))
-             if (regions := _regions_without_corners(pts, rig.left.size))]
-    corners_advice = ("add shots with corners in the image regions that have none" if holes
-                      else "add shots with the board reaching into the image corners")
-    flagged = [n for n in [*names, "baseline"] if n in needs and std[n] > needs[n]]
-    warnings = _precision_warning(prob.n_views, precision)
-    warnings += _group_warnings(flagged, std, needs, rots, dists, corners_advice)
-    if warnings and not flagged:  # jointly, not singly, too loose
-        warnings[0] += f"; {corners_advice}"
-    if warnings and holes:
-        warnings.append(f"image regions without corners: {'; '.join(holes)}")
-    for w in warnings:
-        log.warning("%s", w, extra={"prism3d_calibration_warning": True})
-    return _Pinning(tuple(warnings), needs, precision)
 
 
 # --------------------------------------------------------------------------------------
@@ -929,18 +447,18 @@ def _stereo_quality(
     view_rms = np.array([_rms(r[prob.view_index == k]) for k in range(prob.n_views)])
     med = float(np.median(view_rms))
     outliers = tuple(int(k) for k in np.flatnonzero(view_rms > OUTLIER_FACTOR * med))
-    std = {n: float(res.std[j]) for j, n in enumerate(_rig_param_names())}
+    std = {n: float(res.std[j]) for j, n in enumerate(rig_param_names())}
     return per_view, outliers, std
 
 
 def _calibrated_rig(p: NDArray, size: tuple[int, int], split: PrismSplit | None) -> StereoRig:
     """The rig of the solved bundle vector ``p`` (default split: two views side by side)."""
-    T_rl = _pose_matrix(p[2 * N_CAM : 2 * N_CAM + 3], p[2 * N_CAM + 3 : 2 * N_CAM + 6])
+    T_rl = pose_matrix(p[2 * N_CAM : 2 * N_CAM + 3], p[2 * N_CAM + 3 : 2 * N_CAM + 6])
     if split is None:
         split = PrismSplit.side_by_side((2 * size[0], size[1]))
     try:
-        left_cam = _camera_from_vector(p[:N_CAM], size)
-        right_cam = _camera_from_vector(p[N_CAM : 2 * N_CAM], size)
+        left_cam = camera_from_vector(p[:N_CAM], size)
+        right_cam = camera_from_vector(p[N_CAM : 2 * N_CAM], size)
         return StereoRig(left_cam, right_cam, T_rl, split, _rig_frame(T_rl))
     except InputError as exc:
         raise CalibrationError(f"calibration produced an invalid rig ({exc})") from exc
@@ -970,7 +488,7 @@ def calibrate_stereo_points(
     ``(left, right)`` per view, flattened, carried into the report (right-view order
     corrected). Raises CalibrationError with fewer than ``MIN_VIEWS`` views in both cameras.
     """
-    _check_square(square_mm)
+    check_square(square_mm)
     obj, L, Rt = _view_points(left_points, right_points, board, square_mm)
     size = (int(image_size[0]), int(image_size[1]))
     V = len(L)
@@ -996,7 +514,7 @@ def calibrate_stereo_points(
     rig = _calibrated_rig(res.params, size, split)
     per_view, outliers, std = _stereo_quality(prob, res)
     r = res.residuals
-    pinning = _check_pinning(prob, res, rig, obj, [L[i] for i in used], [Rt[i] for i in used])
+    pinning = check_pinning(prob, res, rig, obj, [L[i] for i in used], [Rt[i] for i in used])
     return Calibration(
         rig=rig,
         rms_px=_rms(r),
@@ -1043,7 +561,7 @@ class CalibrationOptions:
     """``cornerSubPix`` half-window, px; None: a fraction of the square size."""
 
     def __post_init__(self) -> None:
-        _check_square(self.square_mm)
+        check_square(self.square_mm)
         check_choice(self.method, "method", DETECTORS)
         if self.window is not None and int(self.window) < 1:
             raise InputError(f"window: expected a half-window >= 1 pixel, got {self.window}")

@@ -491,7 +491,8 @@ def test_pinning_precision_is_honest() -> None:
     0.127 / 0.125). Putting the true principal point into each calibration, the rest
     unchanged, makes them 8-10x worse (1.2 px): its error is compensated by the others,
     which is why it is not named."""
-    from prism3d.reconstruct.calibrate import _cam_vector, _check_pixels, _pose_vec, _stereo_errors
+    from prism3d.reconstruct.calibrate import _cam_vector, _pose_vec
+    from prism3d.reconstruct.calibration_pinning import _check_pixels, _stereo_errors
 
     def vec(r):
         return np.concatenate([_cam_vector(r.left.K, r.left.dist), _cam_vector(r.right.K, r.right.dist),
@@ -546,9 +547,9 @@ def test_pinning_not_checked_without_common_pixels(monkeypatch, caplog) -> None:
     check: no figures, no warnings, a note in the log."""
     import logging
 
-    import prism3d.reconstruct.calibrate as calibrate
+    import prism3d.reconstruct.calibration_pinning as pinning
 
-    monkeypatch.setattr(calibrate, "_check_pixels", lambda rig, depth: (np.zeros((2, 2)), np.zeros((2, 2))))
+    monkeypatch.setattr(pinning, "_check_pixels", lambda rig, depth: (np.zeros((2, 2)), np.zeros((2, 2))))
     rig, L, R = _board_corners(_seed7_poses(), SEED7_RESIDUAL_NOISE, 0)
     with caplog.at_level(logging.INFO, logger="prism3d.reconstruct.calibrate"):
         cal = calibrate_stereo_points(L, R, rig.left.size, board=(19, 13), square_mm=12.0)
