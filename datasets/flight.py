@@ -43,7 +43,6 @@ from prism3d.capture.render import (
     quantize,
 )
 from prism3d.capture.rig import CameraModel
-from prism3d.capture.scenes import value_noise
 from prism3d.capture.simulate import (
     ShotOptions,
     apply_view_optics,
@@ -52,15 +51,23 @@ from prism3d.capture.simulate import (
     write_npz,
 )
 from prism3d.checks import check_seed
-from prism3d.datasets.carpark import Lot, lot_albedo, lot_clutter, park_vehicles, plan_lot
+from prism3d.datasets.carpark import Lot, lot_clutter, park_vehicles, plan_lot
 from prism3d.datasets.field import (
     SCENE_CAMO_SEED_BASE,
     SHAPE_CONFUSERS,
-    GroundAlbedo,
     Terrain,
     distant_sun,
     prop_mesh,
 )
+from prism3d.datasets.flight_ground import (
+    ROAD_WIDTH_M,
+    HeightField,
+    Land,
+    Road,
+    SurveyGroundAlbedo,
+    on_road,
+)
+from prism3d.datasets.flight_placing import Placer, corners_enu
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_write_text, staged_folder
@@ -70,8 +77,6 @@ __all__ = ["FLIGHT_SCHEMA_VERSION", "FlightOptions", "FlightPlan", "nadir_camera
            "simulate_flight"]
 
 FLIGHT_SCHEMA_VERSION = 1
-#: Width of the gravel roads, m.
-ROAD_WIDTH_M = 6.0
 #: Geoid height at the default site (EGM96, 37.5 N 139.0 E), m: altitude_amsl = altitude_wgs84 - this.
 GEOID_UNDULATION_M = 39.7
 #: Most true-DSM cells (about 10 bytes each): an automatic cell is coarsened to stay under it.
@@ -224,124 +229,6 @@ def nadir_camera_rotation(heading_deg: float, pitch_deg: float = 0.0, roll_deg: 
     return _R_ENU_NED @ Rz @ Ry @ Rx @ _R_BODY_CAM
 
 
-@dataclass(frozen=True)
-class _Road:
-    """A straight road: a point on its centre line and its direction (ENU m), its width."""
-
-    x0: float
-    y0: float
-    ux: float
-    uy: float
-    width: float = ROAD_WIDTH_M
-
-    def offset(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
-        """Distance from the centre line, m."""
-        return np.abs((np.asarray(x) - self.x0) * self.uy - (np.asarray(y) - self.y0) * self.ux)
-
-    def foot(self, x: NDArray, y: NDArray) -> tuple[NDArray, NDArray]:
-        s = (np.asarray(x) - self.x0) * self.ux + (np.asarray(y) - self.y0) * self.uy
-        return self.x0 + s * self.ux, self.y0 + s * self.uy
-
-
-def _on_road(roads: tuple[_Road, ...], x: NDArray, y: NDArray) -> NDArray[np.bool_]:
-    on = np.zeros(np.shape(x), dtype=bool)
-    for rd in roads:
-        on |= rd.offset(x, y) <= rd.width / 2.0
-    return on
-
-
-@dataclass(frozen=True)
-class _HeightField:
-    """The hills (plane waves, m) levelled across each road and its 3.5 m shoulders, and
-    flat on each car park (``lots``, blended over 4 m)."""
-
-    hills: Terrain
-    roads: tuple[_Road, ...]
-    lots: tuple[Lot, ...] = ()
-
-    def __call__(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
-        h = self.hills.height(x, y)
-        for rd in self.roads:
-            fx, fy = rd.foot(x, y)
-            s = np.clip((rd.offset(x, y) - rd.width / 2.0 - 0.5) / 3.5, 0.0, 1.0)
-            w = 1.0 - s * s * (3.0 - 2.0 * s)
-            h = h + w * (self.hills.height(fx, fy) - h)
-        for lot in self.lots:
-            h = h + lot.level_weight(x, y) * (lot.z - h)
-        return h
-
-
-@dataclass(frozen=True, eq=False)
-class _Land:
-    """The terrain mesh: heights ``z`` (ny, nx) m at ``x0 + i d``, ``y0 + j d``; two
-    triangles a square, split along the (i, j)-(i+1, j+1) diagonal."""
-
-    x0: float
-    y0: float
-    d: float
-    z: NDArray[np.float64]
-
-    @property
-    def bounds(self) -> tuple[float, float, float, float]:
-        ny, nx = self.z.shape
-        return self.x0, self.x0 + (nx - 1) * self.d, self.y0, self.y0 + (ny - 1) * self.d
-
-    def height_at(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
-        """The mesh's height (exactly its piecewise-linear surface) at ENU points, m."""
-        ny, nx = self.z.shape
-        u = (np.asarray(x, dtype=np.float64) - self.x0) / self.d
-        v = (np.asarray(y, dtype=np.float64) - self.y0) / self.d
-        i = np.clip(np.floor(u).astype(np.int64), 0, nx - 2)
-        j = np.clip(np.floor(v).astype(np.int64), 0, ny - 2)
-        fu, fv = u - i, v - j
-        z = self.z
-        h00, h10, h01, h11 = z[j, i], z[j, i + 1], z[j + 1, i], z[j + 1, i + 1]
-        lower = fu >= fv  # triangle (i, j), (i+1, j), (i+1, j+1)
-        return np.where(lower, h00 + fu * (h10 - h00) + fv * (h11 - h10),
-                        h00 + fv * (h01 - h00) + fu * (h11 - h01))
-
-    def mesh(self, albedo: Any) -> SceneMesh:
-        ny, nx = self.z.shape
-        xs = self.x0 + self.d * np.arange(nx)
-        ys = self.y0 + self.d * np.arange(ny)
-        X, Y = np.meshgrid(xs, ys)
-        V = np.stack([X.ravel(), Y.ravel(), self.z.ravel()], axis=1) * 1000.0
-        i = (np.arange(ny - 1)[:, None] * nx + np.arange(nx - 1)[None, :]).ravel()
-        F = np.concatenate([np.stack([i, i + 1, i + nx + 1], 1), np.stack([i, i + nx + 1, i + nx], 1)])
-        return SceneMesh(V, F, None, albedo, "ground", {"material": "lambertian"})
-
-
-@dataclass(frozen=True)
-class _SurveyGroundAlbedo:
-    """The field scenes' grass and soil with every noise cell ``scale`` times larger (no
-    texture finer than the camera resolves) and gravel roads painted on (mm in)."""
-
-    seed: int
-    scale: float
-    roads: tuple[_Road, ...]
-    lots: tuple[Lot, ...] = ()
-
-    def __call__(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        out = GroundAlbedo(self.seed, math.inf)(p / self.scale)
-        for lot in self.lots:
-            on, paved = lot_albedo(lot, p, self.scale)
-            out[on] = paved[on]
-        x, y = p[:, 0] / 1000.0, p[:, 1] / 1000.0
-        edge = np.full(len(p), np.inf)
-        for rd in self.roads:
-            edge = np.minimum(edge, rd.offset(x, y) - rd.width / 2.0)
-        road = np.flatnonzero(edge < 0.6)
-        if len(road):
-            q = p[road]
-            n = 0.6 * value_noise(q, 250.0 * self.scale, self.seed + 11) \
-                + 0.4 * value_noise(q, 90.0 * self.scale, self.seed + 12)
-            gravel = np.array([0.36, 0.34, 0.31])[None, :] * (0.7 + 0.6 * n)[:, None]
-            t = np.clip((0.6 - edge[road]) / 0.6, 0.0, 1.0)[:, None]  # a soft verge
-            out[road] = (1.0 - t) * out[road] + t * gravel
-        return np.clip(out, 0.0, 1.0)
-
-
 # -- the plan -----------------------------------------------------------------------------
 @dataclass(eq=False)
 class FlightPlan:
@@ -353,8 +240,8 @@ class FlightPlan:
     line: list[int]
     attitude_deg: NDArray[np.float64]  # (n, 3) heading, pitch, roll
     gps_enu: NDArray[np.float64]  # (n, 3)
-    land: _Land
-    roads: tuple[_Road, ...]
+    land: Land
+    roads: tuple[Road, ...]
     objects: list[tuple[SceneMesh, NDArray[np.float64]]]  # (mesh, T_world_obj) mm; 0 = the ground
     kinds: list[dict[str, Any]]  # truth ids: 0 ground, 1 road, renderer object i >= 1 -> i + 1
     records: list[dict[str, Any]]  # targets and confusers
@@ -393,7 +280,7 @@ def _layout(o: FlightOptions, cam: CameraModel,
 
 
 def _carpark_site(rng: np.random.Generator, centres: NDArray, foot: tuple[float, float], psi: float,
-                  hills: Terrain, seed: int) -> tuple[Lot, list, tuple[_Road, ...]]:
+                  hills: Terrain, seed: int) -> tuple[Lot, list, tuple[Road, ...]]:
     """A car park in the middle frame's footprint (rows along or across the flight, 10 deg
     of play) and two roads skirting it (one along its rows, one across)."""
     along = math.pi / 2.0 - psi  # the flight direction, from east counter-clockwise
@@ -406,14 +293,14 @@ def _carpark_site(rng: np.random.Generator, centres: NDArray, foot: tuple[float,
     ua, ub = np.array([math.cos(d), math.sin(d)]), np.array([-math.sin(d), math.cos(d)])
     p1 = c - ub * (lot.half_b + 2.0 + ROAD_WIDTH_M / 2.0)
     p2 = c + ua * (lot.half_a + 2.0 + ROAD_WIDTH_M / 2.0)
-    roads = (_Road(float(p1[0]), float(p1[1]), float(ua[0]), float(ua[1])),
-             _Road(float(p2[0]), float(p2[1]), float(ub[0]), float(ub[1])))
+    roads = (Road(float(p1[0]), float(p1[1]), float(ua[0]), float(ua[1])),
+             Road(float(p2[0]), float(p2[1]), float(ub[0]), float(ub[1])))
     return lot, bays, roads
 
 
 def _terrain(rng: np.random.Generator, centres: NDArray, foot: tuple[float, float],
              psi: float, scene: str = "field", seed: int = 0
-             ) -> tuple[_Land, tuple[_Road, ...], dict[str, Any]]:
+             ) -> tuple[Land, tuple[Road, ...], dict[str, Any]]:
     """The hills and two roads (one along the lines, one across) over the flown area and a
     margin; a car park scene levels a lot in the middle (``meta["lot"]``, ``meta["bays"]``)."""
     half = 0.5 * math.hypot(*foot) + 0.15 * max(foot) + 10.0
@@ -430,17 +317,17 @@ def _terrain(rng: np.random.Generator, centres: NDArray, foot: tuple[float, floa
     for turn, spread in ((rng.uniform(-20, 20), 0.3), (90.0 + rng.uniform(-30, 30), 0.3)):
         a = psi + math.radians(turn)
         off = rng.uniform(-spread, spread, 2) * span
-        roads.append(_Road(float(off[0]), float(off[1]), math.sin(a), math.cos(a)))
+        roads.append(Road(float(off[0]), float(off[1]), math.sin(a), math.cos(a)))
     meta: dict[str, Any] = {}
     lots: tuple[Lot, ...] = ()
     if scene == "carpark":
         lot, bays, roads_t = _carpark_site(rng, centres, foot, psi, Terrain(waves, math.inf), seed)
         roads, lots = list(roads_t), (lot,)
         meta.update(lot=lot, bays=bays)
-    hf = _HeightField(Terrain(waves, math.inf), tuple(roads), lots)
+    hf = HeightField(Terrain(waves, math.inf), tuple(roads), lots)
     nx, ny = int(math.ceil((x1 - x0) / d)) + 1, int(math.ceil((y1 - y0) / d)) + 1
     X, Y = np.meshgrid(x0 + d * np.arange(nx), y0 + d * np.arange(ny))
-    land = _Land(float(x0), float(y0), d, hf(X, Y))
+    land = Land(float(x0), float(y0), d, hf(X, Y))
     return land, tuple(roads), {"waves_per_m": [list(w) for w in waves], "spacing_m": d, **meta}
 
 
@@ -501,62 +388,7 @@ def _dsm_grid(o: FlightOptions, cam: CameraModel, poses: list[NDArray], z_mean: 
             "east": round(west + width * cell, 6), "south": round(north - height * cell, 6)}
 
 
-class _Placer:
-    """Places footprints on open ground: clear of roads and of each other (ENU m)."""
-
-    def __init__(self, rng: np.random.Generator, land: _Land, roads: tuple[_Road, ...]) -> None:
-        self.rng, self.land, self.roads = rng, land, roads
-        self.taken = np.zeros((0, 3))  # (x, y, radius) of the placed footprints
-
-    def place(self, mesh: SceneMesh, zone: tuple[float, float, float, float], *, spacing: float, tries: int,
-              tilt: bool, accept: Callable[[NDArray], bool] | None = None) -> NDArray[np.float64] | None:
-        """``T_world_obj`` (mm) of a free spot in ``zone`` (x0, x1, y0, y1), or None."""
-        lo, hi = mesh.bounds / 1000.0
-        rad = float(np.hypot(*(hi[:2] - lo[:2])) / 2.0)
-        for _ in range(tries):
-            x, y = self.rng.uniform(zone[0], zone[1]), self.rng.uniform(zone[2], zone[3])
-            tk = self.taken
-            if np.any(np.hypot(tk[:, 0] - x, tk[:, 1] - y) < spacing * (tk[:, 2] + rad)):
-                continue
-            if any(float(rd.offset(x, y)) < rd.width / 2.0 + rad + 1.0 for rd in self.roads):
-                continue
-            T = self._stand(lo, hi, x, y, math.radians(self.rng.uniform(0.0, 360.0)), tilt)
-            if accept is not None and not accept(T):
-                continue
-            self.taken = np.vstack([self.taken, [x, y, rad]])
-            T[:3, 3] *= 1000.0
-            return T
-        return None
-
-    def _stand(self, lo: NDArray, hi: NDArray, x: float, y: float, a: float, tilt: bool) -> NDArray[np.float64]:
-        """The pose (m) at (x, y), turned by ``a`` (rad, from east), its base below the ground
-        at 5 x 5 footprint points and touching it at one; tilted to the fitted slope."""
-        u, v = np.meshgrid(np.linspace(lo[0], hi[0], 5), np.linspace(lo[1], hi[1], 5))
-        fp = np.stack([u.ravel(), v.ravel(), np.full(u.size, lo[2])], axis=1)
-        R = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
-        if tilt:
-            w = fp[:, :2] @ R[:2, :2].T
-            g = self.land.height_at(x + w[:, 0], y + w[:, 1])
-            (ga, gb, _), *_ = np.linalg.lstsq(np.c_[w, np.ones(len(w))], g, rcond=None)
-            n = np.array([-ga, -gb, 1.0]) / math.sqrt(ga * ga + gb * gb + 1.0)
-            k = np.cross([0.0, 0.0, 1.0], n)
-            K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-            R = (np.eye(3) + K + K @ K / (1.0 + n[2])) @ R
-        P = fp @ R.T
-        g = self.land.height_at(x + P[:, 0], y + P[:, 1])
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = (x, y, float(np.min(g - P[:, 2])) - 0.03)
-        return T
-
-
-def _corners_enu(mesh: SceneMesh, T_mm: NDArray) -> NDArray[np.float64]:
-    lo, hi = mesh.bounds
-    c = np.array([[a, b, z] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    return (c @ T_mm[:3, :3].T + T_mm[:3, 3]) / 1000.0
-
-
-def _place_targets(o: FlightOptions, rng: np.random.Generator, placer: _Placer, cam: CameraModel,
+def _place_targets(o: FlightOptions, rng: np.random.Generator, placer: Placer, cam: CameraModel,
                    poses: list[NDArray], dsm: dict[str, Any]) -> tuple[list, list[dict[str, Any]]]:
     """Ground vehicles and confusers inside the DSM area, each wholly in at least two frames."""
     vehicles = [n for n in list_builtin_targets("military") if n.split("_")[0] in GROUND_VEHICLE_CLASSES]
@@ -574,7 +406,7 @@ def _place_targets(o: FlightOptions, rng: np.random.Generator, placer: _Placer, 
         def seen_twice(T: NDArray, mesh: SceneMesh = mesh) -> bool:
             T_mm = T.copy()
             T_mm[:3, 3] *= 1000.0
-            return len(_frames_seeing(cam, poses, _corners_enu(mesh, T_mm))) >= 2
+            return len(_frames_seeing(cam, poses, corners_enu(mesh, T_mm))) >= 2
 
         T = placer.place(mesh, zone, spacing=1.3, tries=300, tilt=True, accept=seen_twice)
         if T is None:
@@ -586,14 +418,14 @@ def _place_targets(o: FlightOptions, rng: np.random.Generator, placer: _Placer, 
     return placed, records
 
 
-def _park(o: FlightOptions, rng: np.random.Generator, placer: _Placer, cam: CameraModel, poses: list[NDArray],
+def _park(o: FlightOptions, rng: np.random.Generator, placer: Placer, cam: CameraModel, poses: list[NDArray],
           lot: Lot, bays: list) -> tuple[list, list[dict[str, Any]], list]:
     """The car park's vehicles (those wholly in two frames or more), its trees, people and
     poles (merged per kind, as :func:`_place_clutter` does); the lot kept clear of other clutter."""
     parked = park_vehicles(rng, lot, bays, o.targets, SCENE_CAMO_SEED_BASE + o.seed * 512)
     targets, records, ab = [], [], []
     for mesh, T, rec in parked:
-        if len(_frames_seeing(cam, poses, _corners_enu(mesh, T))) < 2:
+        if len(_frames_seeing(cam, poses, corners_enu(mesh, T))) < 2:
             continue
         targets.append((mesh, T))
         records.append(rec)
@@ -621,7 +453,7 @@ def _merge_kinds(parts: dict[str, list[tuple[NDArray, NDArray, NDArray]]], order
     return out
 
 
-def _place_clutter(o: FlightOptions, rng: np.random.Generator, placer: _Placer) -> list:
+def _place_clutter(o: FlightOptions, rng: np.random.Generator, placer: Placer) -> list:
     """Rocks, bushes, trees and buildings, merged into one mesh per kind (world frame, each
     instance in its own colour): a renderer of a few meshes shades faster than of hundreds."""
     x0, x1, y0, y1 = placer.land.bounds
@@ -652,8 +484,8 @@ def plan_flight(options: FlightOptions | None = None) -> FlightPlan:
     gsd = o.altitude_m / cam.fx
     dsm = _dsm_grid(o, cam, poses, z_mean, gsd)
     scale = max(1.0, 2.5 * gsd * 1000.0 / 60.0)  # GroundAlbedo's finest cell is 60 mm
-    ground = land.mesh(_SurveyGroundAlbedo(o.seed, scale, roads, () if lot is None else (lot,)))
-    placer = _Placer(rng, land, roads)
+    ground = land.mesh(SurveyGroundAlbedo(o.seed, scale, roads, () if lot is None else (lot,)))
+    placer = Placer(rng, land, roads)
     if lot is None:
         targets, records = _place_targets(o, rng, placer, cam, poses, dsm)
         clutter = _place_clutter(o, rng, placer)
@@ -705,7 +537,7 @@ def _truth_ids(plan: FlightPlan, k: int, depth_m: NDArray, oid: NDArray, xn: NDA
     pc = np.stack([xn.ravel()[g] * d, yn.ravel()[g] * d, d], axis=1)
     x = T[0, 3] + pc @ T[0, :3]
     y = T[1, 3] + pc @ T[1, :3]
-    ids.ravel()[g[_on_road(plan.roads, x, y)]] = 1
+    ids.ravel()[g[on_road(plan.roads, x, y)]] = 1
     return ids
 
 
@@ -717,7 +549,7 @@ def _visibility(plan: FlightPlan, k: int, ids: NDArray[np.int16], solo: list[Any
     T_mm = plan.T_enu_cam[k].copy()
     T_mm[:3, 3] *= 1000.0
     for t, (mesh, T_obj) in enumerate(plan.objects[1:len(plan.records) + 1]):
-        corners = _corners_enu(mesh, T_obj)
+        corners = corners_enu(mesh, T_obj)
         if not _frames_seeing(cam, [plan.T_enu_cam[k]], corners):
             continue
         uv = cam.project((corners - plan.T_enu_cam[k][:3, 3]) @ plan.T_enu_cam[k][:3, :3])
@@ -738,7 +570,7 @@ def _true_dsm(renderer: Any, plan: FlightPlan) -> dict[str, NDArray]:
     """Highest surface (vertical rays from above), bare ground and truth ids at the DSM cell centres."""
     g = plan.dsm
     H, W, cell = g["height"], g["width"], g["cell_m"]
-    top = 1000.0 * max(float(_corners_enu(m, T)[:, 2].max()) for m, T in plan.objects) + 1000.0  # mm
+    top = 1000.0 * max(float(corners_enu(m, T)[:, 2].max()) for m, T in plan.objects) + 1000.0  # mm
     dsm = np.empty((H, W), dtype=np.float32)
     ground = np.empty((H, W), dtype=np.float32)
     oid = np.empty((H, W), dtype=np.int16)
@@ -753,7 +585,7 @@ def _true_dsm(renderer: Any, plan: FlightPlan) -> dict[str, NDArray]:
         dsm[r0:r1] = np.where(hits.hit, (top - hits.t) / 1000.0, np.nan).reshape(X.shape)
         ground[r0:r1] = plan.land.height_at(X, Y)
         ids = np.where(hits.object_id >= 1, hits.object_id + 1, hits.object_id).reshape(X.shape)
-        ids[(ids == 0) & _on_road(plan.roads, X, Y)] = 1
+        ids[(ids == 0) & on_road(plan.roads, X, Y)] = 1
         oid[r0:r1] = ids
     return {"dsm": dsm, "ground": ground, "object_id": oid}
 
