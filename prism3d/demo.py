@@ -55,7 +55,8 @@ from prism3d.reconstruct.flatness import REGIONS, flatness_test
 from prism3d.reconstruct.meshing import smooth_depth, smoothing_resolution_mm
 from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
 from prism3d.reconstruct.rectify import rectify_shot
-from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE, StitchOptions, stitch_scans
+from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
+from prism3d.reconstruct.stitch_options import STITCH_MIN_CONFIDENCE
 from prism3d.reconstruct.survey import run_survey
 from prism3d.report import Report, Section, figure_png, image_png, point_cloud_viewer
 

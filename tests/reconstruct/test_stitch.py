@@ -9,10 +9,11 @@ import json
 
 import numpy as np
 import pytest
-from prism3d.geometry import rotation_angle_deg
-from prism3d.reconstruct.stitch import STITCH_MIN_CONFIDENCE, StitchOptions, stitch_scans, stitch_to_files
 
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.geometry import rotation_angle_deg
+from prism3d.reconstruct.stitch import StitchOptions, stitch_scans, stitch_to_files
+from prism3d.reconstruct.stitch_options import STITCH_MIN_CONFIDENCE
 
 
 def _rz(deg):
@@ -203,7 +204,6 @@ def _truth_scans(folder, stride=1, noise_mm=0.15, dropout=0.1, seed=0):
     """Scans back-projected from the simulator's true left depth (every pixel, as a
     reconstruction gives), with noise along the ray and dropouts."""
     from prism3d.capture.rig import StereoRig
-
     from prism3d.io.ply import read_ply
 
     rig = StereoRig.load(folder / "rig.yaml")
@@ -663,6 +663,7 @@ def test_rotation_lever_warning_for_an_unheld_view(tank_views, monkeypatch):
     """A view whose correspondences do not hold its turn at all (lever 0) is named,
     and the warning gives a bounded factor, not a division by zero."""
     import prism3d.reconstruct.multiview as mv
+    import prism3d.reconstruct.stitch as st
 
     scans, _, _, _ = tank_views
     real = mv.refine_turntable
@@ -673,7 +674,7 @@ def test_rotation_lever_warning_for_an_unheld_view(tank_views, monkeypatch):
         info["levers"][3] = 0.0
         return T, info
 
-    monkeypatch.setattr(mv, "refine_turntable", zero_lever)
+    monkeypatch.setattr(st, "refine_turntable", zero_lever)  # stitch holds its own reference
     res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False))
     assert _lever_warnings(res) == ["scan 3"]
     (msg,) = [w for w in res.diagnostics["warnings"] if "rotation lever" in w]
