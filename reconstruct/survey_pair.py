@@ -18,7 +18,7 @@ from prism3d.reconstruct.flatness import ransac_plane
 from prism3d.reconstruct.match import match_stereo_full
 from prism3d.reconstruct.two_view import TwoViewPose
 
-__all__ = ["PAIR_MATCHERS", "PairCloud", "RectifiedPair", "pair_cloud", "rectify_pair"]
+__all__ = ["PAIR_MATCHERS", "PairCloud", "RectifiedPair", "pair_cloud", "rectify_from_pose"]
 
 
 @dataclass(frozen=True)
@@ -37,7 +37,7 @@ class RectifiedPair:
     R_rect: NDArray[np.float64]
 
 
-def rectify_pair(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose) -> RectifiedPair:
+def rectify_from_pose(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose) -> RectifiedPair:
     """Rectify two views of one camera (intrinsics ``K``) whose relative pose is
     ``pose``: the new x axis is the motion from camera 1 to camera 2, the new z the mean
     of the two optical axes made orthogonal to it (Fusiello's construction); the canvas
@@ -117,7 +117,7 @@ def _sgbm(left: NDArray, right: NDArray, lo: int, n: int) -> tuple[NDArray[np.fl
 
 def pair_cloud(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose, *, baseline: float = 1.0,
                margin_px: int = 8, options=None, matcher: str = "ours") -> PairCloud:
-    """Dense points of a pair: :func:`rectify_pair`, the disparity range from the pose's
+    """Dense points of a pair: :func:`rectify_from_pose`, the disparity range from the pose's
     inlier matches (0.5-99.5 %, widened by ``margin_px``), our matcher (or ``matcher=
     "sgbm"``: OpenCV's, for comparison), triangulation in the rectified frame, then
     rotated back into camera 1's frame and scaled so the cameras are ``baseline`` apart."""
@@ -126,7 +126,7 @@ def pair_cloud(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose, *, b
 
     if not (np.isfinite(baseline) and baseline > 0):
         raise InputError(f"baseline: expected a length > 0, got {baseline}")
-    rp = rectify_pair(img1, img2, K, pose)
+    rp = rectify_from_pose(img1, img2, K, pose)
     q1 = cv2.perspectiveTransform(pose.pts1[None], rp.H1)[0]
     q2 = cv2.perspectiveTransform(pose.pts2[None], rp.H2)[0]
     dx = q1[:, 0] - q2[:, 0]

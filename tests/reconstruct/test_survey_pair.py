@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from prism3d.errors import InputError
-from prism3d.reconstruct.survey_pair import pair_cloud, rectify_pair
+from prism3d.reconstruct.survey_pair import pair_cloud, rectify_from_pose
 from prism3d.reconstruct.two_view import TwoViewPose
 
 F, W, H = 700.0, 640, 480
@@ -81,9 +81,9 @@ def test_forward_motion_and_bad_pairs_are_refused():
                       n_matches=30, inlier_rms_px=0.0)
     img = np.zeros((H, W), np.uint8)
     with pytest.raises(InputError, match="forward motion"):
-        rectify_pair(img, img, K, fwd)
+        rectify_from_pose(img, img, K, fwd)
     with pytest.raises(InputError, match="one size"):
-        rectify_pair(img, np.zeros((H, W + 2), np.uint8), K, fwd)
+        rectify_from_pose(img, np.zeros((H, W + 2), np.uint8), K, fwd)
     with pytest.raises(InputError, match="baseline"):
         pair_cloud(img, img, K, fwd, baseline=0.0)
 
