@@ -7,7 +7,11 @@ sun, side by side in car parks and among clutter, with exact truth.
 2. Windows are cut from training patches at the headings of the grid: positives centred
    on a group's vehicles turned within half a heading step; negatives anywhere else,
    drawn at random, half a vehicle off a vehicle (the windows between two parked cars),
-   and on vehicles at other headings.
+   and on vehicles at other headings. With ``positive_views``, a group with fewer
+   vehicles than the best-stocked one sees each of its vehicles again at more headings
+   (the ratio of the two, less one, at most ``positive_views``), jittered within half a
+   step; off by default (benchmarks/RESULTS.md: it found more buses and trucks in car parks, and
+   called a camouflaged tank a truck).
 3. One logistic regression per group (balanced classes, L2), then rounds of hard
    negatives: the best-scoring false windows of fresh patches are added and the group
    refitted (Felzenszwalb et al.'s data mining).
@@ -69,6 +73,9 @@ class AerialTrainOptions:
     """Held-out patches for the calibration."""
     random_negatives: int = 40
     """Random negative windows per patch and heading."""
+    positive_views: int = 0
+    """At most this many more views of each vehicle of a group with fewer vehicles than the
+    best-stocked one (module docstring; 0: none, the default)."""
     regularisation_c: float = 0.05
     """Inverse L2 strength of the logistic regressions."""
     seed: int = 0
@@ -83,6 +90,9 @@ class AerialTrainOptions:
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or not 1 <= v <= 100_000:
                 raise InputError(f"{name}: expected a positive integer, got {v!r}")
+        if isinstance(self.positive_views, bool) or int(self.positive_views) != self.positive_views \
+                or not 0 <= self.positive_views <= 20:
+            raise InputError(f"positive_views: expected 0-20, got {self.positive_views!r}")
         if isinstance(self.mining_rounds, bool) or not 0 <= int(self.mining_rounds) <= 10:
             raise InputError(f"mining_rounds: expected 0-10, got {self.mining_rounds!r}")
         if not (0.01 <= self.gsd_m <= 0.5):
@@ -143,8 +153,11 @@ def _cut(patches: Sequence[AerialPatch], groups: list, cells: list[tuple[int, in
     grid = np.arange(0.0, math.pi, step)
     names = [{sp.name for _, sp in g} for g in groups]
     out = [_Samples() for _ in groups]
+    stock = [sum(v["visible"] >= 0.6 and v["name"] in nm for p in patches for v in p.vehicles) for nm in names]
+    extra = [min(o.positive_views, max(0, int(round(max(stock) / n)) - 1)) if n else 0 for n in stock]
     for p in patches:
         vis = [v for v in p.vehicles if v["visible"] >= 0.6]
+        _add_views(p, vis, names, cells, extra, o, rng, out)
         angs = {float(grid[int(round((v["heading_rad"] % math.pi) / step)) % len(grid)]) for v in vis}
         # across the vehicles too: a row of cars side by side lies along that heading (a bus's look)
         angs |= {float(grid[int(round(((a + math.pi / 2) % math.pi) / step)) % len(grid)]) for a in list(angs)}
@@ -185,6 +198,42 @@ def _cut(patches: Sequence[AerialPatch], groups: list, cells: list[tuple[int, in
                         s.X.append(x)
                         s.y.append(0)
                         s.cls.append("")
+    return out
+
+
+def _add_views(p: AerialPatch, vis: Sequence[dict], names: list[set], cells: list[tuple[int, int]], extra: list[int],
+               o: AerialTrainOptions, rng: np.random.Generator, out: list[_Samples]) -> None:
+    """Each group's ``extra`` more views of its visible vehicles (positives)."""
+    for gi, wcells in enumerate(cells):
+        for v in vis if extra[gi] else []:
+            if v["name"] in names[gi]:
+                for x in _more_views(p, v, wcells, extra[gi], o, rng):
+                    out[gi].X.append(x)
+                    out[gi].y.append(1)
+                    out[gi].cls.append(v["cls"])
+
+
+def _more_views(p: AerialPatch, v: dict, wcells: tuple[int, int], n: int, o: AerialTrainOptions,
+                rng: np.random.Generator) -> list[NDArray]:
+    """``n`` more positive windows of vehicle ``v``: the patch around it turned to its
+    heading plus a jitter within half a heading step (so its cells fall differently too)."""
+    step = math.radians(o.angle_step_deg)
+    cell_m = o.gsd_m * o.cell_px
+    # the window's half diagonal and the 3 cells the features look around, px
+    reach = int(math.ceil((math.hypot(*wcells) / 2 + 4) * cell_m / o.gsd_m))
+    r0, c0 = max(0, int(v["row"]) - reach), max(0, int(v["col"]) - reach)
+    r1, c1 = min(p.ndsm.shape[0], int(v["row"]) + reach + 1), min(p.ndsm.shape[1], int(v["col"]) + reach + 1)
+    grey = p.rgb[r0:r1, c0:c1].mean(axis=2)
+    out = []
+    for _ in range(n):
+        ang = float(v["heading_rad"] % math.pi + rng.uniform(-step / 2, step / 2))
+        g, z, M = rotate_scene(grey, p.ndsm[r0:r1, c0:c1], ang, 0)
+        F = cell_features(g, z, o.cell_px, o.channels)
+        x, y = M @ np.array([v["col"] - c0, v["row"] - r0, 1.0])
+        w = window_features(F, int(y // o.cell_px), int(x // o.cell_px), wcells,
+                            turned=math.cos(v["heading_rad"] - ang) < 0)
+        if w is not None:
+            out.append(w)
     return out
 
 

@@ -15,6 +15,8 @@ from prism3d.atr.aerial_scenes import PatchSpec, compose_patch
 from prism3d.atr.aerial_train import (
     GROUP_LENGTH_RATIO,
     AerialTrainOptions,
+    _cut,
+    _window_cells,
     train_aerial,
     window_groups,
 )
@@ -112,6 +114,35 @@ def test_groups_by_length() -> None:
         if i:  # shortest first; the next group starts where the last could not stretch
             assert min(ls) > GROUP_LENGTH_RATIO * min(lengths[i - 1])
     assert {c for c, _ in groups[-1]} == {"bus"} and all("bus" not in {c for c, _ in g} for g in groups[:-1])
+
+
+def test_a_scarce_group_sees_its_vehicles_at_more_headings() -> None:
+    """A rare long vehicle gets more positive windows, each centred on it (its roof height
+    in the window's middle), while the well-stocked cars keep theirs."""
+    targets, negatives = _items()
+    tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
+    nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
+    spec = PatchSpec(gsd_m=GSD, size_m=32.0, carpark_share=1.0, missing_dsm_share=0.0, hole_share=(0.0, 0.0),
+                     dark_hole_share=(0.0, 0.0))
+    patches = [compose_patch(np.random.default_rng(40 + k), tsp, nsp, spec) for k in range(4)]
+    groups = window_groups(tsp)
+    cells = [_window_cells(g, GSD * OPTIONS.cell_px) for g in groups]
+    counts = {}
+    for views in (0, 4):
+        o = AerialTrainOptions(**{**OPTIONS.__dict__, "positive_views": views})
+        samples = _cut(patches, groups, cells, o, np.random.default_rng(0))
+        # the share of the bus windows with its roof in their middle cell (a bus cut by the
+        # patch's edge may show none), the same for the first views and the extra ones
+        names = feature_names(o.channels)
+        mids = [np.asarray(x).reshape(cells[-1][0], cells[-1][1], len(names))[
+            cells[-1][0] // 2, cells[-1][1] // 2, names.index("h_max")] * 2.0  # stored as m / 2
+            for x, y in zip(samples[-1].X, samples[-1].y) if y]
+        counts[views] = [int(sum(s.y)) for s in samples] + [float(np.mean(np.array(mids) > 0.5 * 3.2))]
+    assert counts[0][-2] >= 2, counts  # the patches hold buses
+    assert counts[4][-2] >= 4 * counts[0][-2], counts
+    assert counts[4][-1] >= counts[0][-1] - 0.05 and counts[4][-1] >= 0.7, counts
+    best = int(np.argmax(counts[0][:-1]))
+    assert counts[4][best] == counts[0][best], counts
 
 
 def test_finds_each_vehicle_of_a_row_at_its_heading(model: AerialModel) -> None:
