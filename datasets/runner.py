@@ -18,6 +18,7 @@ from typing import Any
 from prism3d.errors import DatasetError
 from prism3d.progress import ProgressFn
 from prism3d.reconstruct.survey import dense_pair
+from prism3d.reconstruct.survey_model import PairRequest, PairResult
 
 __all__ = [
     "SCHEDULER_TIMEOUT_S", "JobReport", "RunOptions", "Task", "check_scheduler", "execute_tasks", "run_survey_pairs",
@@ -38,7 +39,7 @@ class JobReport:
     skipped_units: int = 0
     done_units: int = 0
     failed: list[dict[str, str]] = field(default_factory=list)
-    stats: list[dict[str, Any]] = field(default_factory=list)
+    stats: list[Any] = field(default_factory=list)
     seconds: float = 0.0
 
     @property
@@ -68,7 +69,7 @@ class JobReport:
         return "\n".join(lines)
 
 
-Task = tuple[str, str, Callable[..., dict[str, Any]], tuple]
+Task = tuple[str, str, Callable[..., Any], tuple]
 
 
 @dataclass(frozen=True)
@@ -143,12 +144,12 @@ def run_tasks(job: str, tasks: Sequence[Task], run: RunOptions | None = None) ->
     return report
 
 
-def run_survey_pairs(reqs: Sequence[dict[str, Any]], run: RunOptions,
-                     progress: ProgressFn | None = None) -> list[dict[str, Any]]:
+def run_survey_pairs(reqs: Sequence[PairRequest], run: RunOptions,
+                     progress: ProgressFn | None = None) -> list[PairResult]:
     """A survey's dense pairs (:func:`prism3d.reconstruct.survey.dense_pair`), one unit
     each, where ``run`` says; a pair that fails (not one skipped with a reason) stops the
     survey with its error."""
-    report = run_tasks("survey dense", [(f"pair {r['i']}-{r['j']}", f"{Path(r['path_i']).name}+{Path(r['path_j']).name}",
+    report = run_tasks("survey dense", [(f"pair {r.i}-{r.j}", f"{Path(r.path_i).name}+{Path(r.path_j).name}",
                                          _dense_pair, (r,)) for r in reqs],
                        replace(run, progress=progress))
     if not report.ok:
@@ -156,7 +157,7 @@ def run_survey_pairs(reqs: Sequence[dict[str, Any]], run: RunOptions,
     return list(report.stats)
 
 
-def _dense_pair(req: dict[str, Any]) -> dict[str, Any]:
+def _dense_pair(req: PairRequest) -> PairResult:
     return dense_pair(req)
 
 

@@ -17,6 +17,7 @@ import math
 import shutil
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,11 @@ from prism3d.reconstruct.survey_model import (
     SURVEY_SCHEMA_VERSION,
     FusedSurface,
     Georef,
+    PairRequest,
+    PairResult,
+    PairTile,
     SurveyOptions,
+    SurveyState,
 )
 from prism3d.reconstruct.survey_pair import pair_cloud
 from prism3d.reconstruct.survey_products import (
@@ -54,8 +59,8 @@ from prism3d.reconstruct.survey_products import (
 from prism3d.reconstruct.two_view import TwoViewPose
 
 __all__ = [
-    "SURVEY_SCHEMA_VERSION", "SURVEY_FILES", "Georef", "SurveyOptions", "dense_pair", "fuse_tiles",
-    "georeference", "run_survey",
+    "SURVEY_SCHEMA_VERSION", "SURVEY_FILES", "Georef", "PairRequest", "PairResult", "PairTile", "SurveyOptions",
+    "dense_pair", "fuse_tiles", "georeference", "run_survey",
 ]
 
 
@@ -101,7 +106,6 @@ def georeference(centres: NDArray, gps_enu: NDArray | None, points: NDArray) -> 
         raise InputError(f"GPS: {len(G)} positions for {len(C)} cameras")
     sv = np.linalg.svd(G - G.mean(axis=0), compute_uv=False)
     if len(C) >= 3 and sv[1] > 0.05 * sv[0]:
-
         keep = np.ones(len(C), bool)
         for _ in range(2):
             s, R, t = similarity_align(C[keep], G[keep])
@@ -147,7 +151,6 @@ def _dense_scale(size: tuple[int, int], max_pixels: float) -> int:
 def _load_frame(path: str, K: NDArray, dist: NDArray, factor: int) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
     """A frame undistorted onto ``K`` and area-downscaled by ``factor``: the image and its K."""
 
-
     img = read_image(path)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
@@ -182,80 +185,77 @@ def _tile_bounds(P: NDArray, cell: float) -> tuple[float, float, float, float]:
     return w, s, e, n - 1e-9 * cell
 
 
-def dense_pair(req: dict[str, Any]) -> dict[str, Any]:
-    """One pair's dense heights: frames ``i`` and ``j`` (paths, shared ``K``/``dist``,
-    ``T_enu_cam``) undistorted and downscaled by ``factor``, rectified from their poses,
-    matched over the disparity range of the sparse points both see (``shared`` ENU
-    points), triangulated in ENU and gridded on the survey's lattice (``cell``). Returns
-    the pair's record (status "ok" or "skipped" with a reason) and, when ok, its tile
-    (per-cell median height, point count, mean colour) and camera i's depth map. A pair
-    that cannot be a stereo pair is skipped, never raised: other pairs carry on."""
+def dense_pair(req: PairRequest) -> PairResult:
+    """One pair's dense heights: frames ``i`` and ``j`` undistorted and downscaled by
+    ``factor``, rectified from their poses, matched over the disparity range of the sparse
+    points both see, triangulated in ENU and gridded on the survey's lattice. Returns the
+    pair's result (status "ok" or "skipped" with a reason) and, when ok, its tile and
+    camera i's depth map. A pair that cannot be a stereo pair is skipped, never raised:
+    other pairs carry on."""
     t0 = time.perf_counter()
-    i, j = int(req["i"]), int(req["j"])
-    rec: dict[str, Any] = {"i": i, "j": j, "status": "skipped", "reason": None}
-    Ti, Tj = np.asarray(req["T_enu_cam_i"]), np.asarray(req["T_enu_cam_j"])
+    Ti, Tj = np.asarray(req.T_enu_cam_i, dtype=np.float64), np.asarray(req.T_enu_cam_j, dtype=np.float64)
     ci, cj = Ti[:3, 3], Tj[:3, 3]
     base = float(np.linalg.norm(cj - ci))
-    rec["baseline"] = base
-    P = np.asarray(req["shared"], dtype=np.float64)
-    if len(P) < int(req["min_shared"]):
-        rec["reason"] = f"no overlap ({len(P)} shared sparse points)"
-        return rec
+    res = PairResult(int(req.i), int(req.j), baseline=base)
+    P = np.asarray(req.shared, dtype=np.float64)
+    if len(P) < int(req.min_shared):
+        res.reason = f"no overlap ({len(P)} shared sparse points)"
+        return res
     Tci, Tcj = np.linalg.inv(Ti), np.linalg.inv(Tj)
-    K, dist, factor = np.asarray(req["K"]), np.asarray(req["dist"]), int(req["factor"])
-    img_i, Ks = _load_frame(req["path_i"], K, dist, factor)
-    img_j, _ = _load_frame(req["path_j"], K, dist, factor)
+    K, dist, factor = np.asarray(req.K, dtype=np.float64), np.asarray(req.dist, dtype=np.float64), int(req.factor)
+    img_i, Ks = _load_frame(req.path_i, K, dist, factor)
+    img_j, _ = _load_frame(req.path_j, K, dist, factor)
     q1, zi = _project(Tci, Ks, P)
     q2, _ = _project(Tcj, Ks, P)
     zmed = float(np.median(zi))
-    rec["depth_median"] = zmed
-    if base < float(req["min_base_to_height"]) * zmed:
-        rec["reason"] = f"baseline {base:.3g} is under {req['min_base_to_height']:g} of the depth {zmed:.3g}"
-        return rec
-    R = Tcj[:3, :3] @ Ti[:3, :3]
+    res.depth_median = zmed
+    if base < float(req.min_base_to_height) * zmed:
+        res.reason = f"baseline {base:.3g} is under {req.min_base_to_height:g} of the depth {zmed:.3g}"
+        return res
     t = Tcj[:3, :3] @ ci + Tcj[:3, 3]
-    pose = TwoViewPose(R, t / np.linalg.norm(t), q1, q2, len(P), 0.0)
+    pose = TwoViewPose(Tcj[:3, :3] @ Ti[:3, :3], t / np.linalg.norm(t), q1, q2, len(P), 0.0)
+    lk = int(req.lk_window)
     try:
-
-        lk = int(req.get("lk_window", 5))
-        pc = pair_cloud(img_i, img_j, Ks, pose, baseline=base, matcher=req.get("matcher", "ours"),
+        pc = pair_cloud(img_i, img_j, Ks, pose, baseline=base, matcher=req.matcher,
                         options=MatchOptions(lk_window=lk, lk_iters=3 if lk > 5 else 1))
     except InputError as exc:
-        rec["reason"] = str(exc).removeprefix("pair: ")
-        return rec
+        res.reason = str(exc).removeprefix("pair: ")
+        return res
     except Exception as exc:  # noqa: BLE001 - the matcher finding nothing is a skipped pair
-        rec["reason"] = f"matching failed ({type(exc).__name__}: {exc})"
-        return rec
+        res.reason = f"matching failed ({type(exc).__name__}: {exc})"
+        return res
     Pe = pc.points @ Ti[:3, :3].T + ci
-    cell = float(req["cell"])
     if len(Pe) < 100:
-        rec["reason"] = f"matching kept {len(Pe)} points"
-        return rec
-    g = grid_points(Pe, pc.colours, cell, bounds=_tile_bounds(Pe, cell))
-    # camera i's depth map at the matched scale (nearest surface per pixel)
-    h, w = img_i.shape[:2]
-    Z = pc.points[:, 2]
-    u = np.round(pc.points[:, 0] / Z * Ks[0, 0] + Ks[0, 2]).astype(np.int64)
-    v = np.round(pc.points[:, 1] / Z * Ks[1, 1] + Ks[1, 2]).astype(np.int64)
+        res.reason = f"matching kept {len(Pe)} points"
+        return res
+    g = grid_points(Pe, pc.colours, float(req.cell), bounds=_tile_bounds(Pe, float(req.cell)))
+    res.status, res.n_points, res.valid_fraction = "ok", int(len(Pe)), round(pc.valid_fraction, 4)
+    res.disparity_range = list(pc.disparity_range)
+    res.sigma_z = float(zmed**2 / (Ks[0, 0] * base) * DISPARITY_SIGMA_PX)
+    res.seconds = round(time.perf_counter() - t0, 3)
+    res.tile = PairTile(g.west, g.north, g.gsd, g.dsm, g.count, g.ortho[..., :3])
+    res.depth, res.K_depth = _depth_map(pc.points, Ks, img_i.shape[:2]), Ks
+    return res
+
+
+def _depth_map(points: NDArray, Ks: NDArray, shape: tuple[int, int]) -> NDArray[np.float32]:
+    """Camera i's depth map at the matched scale from its points (camera frame): the
+    nearest surface per pixel (NaN: none)."""
+    h, w = shape
+    Z = points[:, 2]
+    u = np.round(points[:, 0] / Z * Ks[0, 0] + Ks[0, 2]).astype(np.int64)
+    v = np.round(points[:, 1] / Z * Ks[1, 1] + Ks[1, 2]).astype(np.int64)
     ok = (Z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     depth = np.full((h, w), np.nan, dtype=np.float32)
     order = np.argsort(-Z[ok])
     depth[v[ok][order], u[ok][order]] = Z[ok][order]
-    rec.update(status="ok", reason=None, n_points=int(len(Pe)), valid_fraction=round(pc.valid_fraction, 4),
-               disparity_range=list(pc.disparity_range),
-               sigma_z=float(zmed**2 / (Ks[0, 0] * base) * DISPARITY_SIGMA_PX),
-               seconds=round(time.perf_counter() - t0, 3))
-    rec["tile"] = {"west": g.west, "north": g.north, "cell": g.gsd, "dsm": g.dsm, "count": g.count,
-                   "rgb": g.ortho[..., :3]}
-    rec["depth"] = depth
-    rec["K_depth"] = Ks.tolist()
-    return rec
+    return depth
 
 
 # -- fusion ------------------------------------------------------------------------------
 
 
-def fuse_tiles(tiles: Sequence[dict[str, Any]], sigmas: Sequence[float], *, band_rows: int = 512) -> FusedSurface:
+def fuse_tiles(tiles: Sequence[PairTile], sigmas: Sequence[float], *, band_rows: int = 512) -> FusedSurface:
     """Fuse pairs' height tiles on one lattice: per cell the median of the pairs'
     heights; a pair agrees when within ``3 sigma + cell/2`` of it (``sigma`` its
     expected height noise); cells seen by two or more pairs keep the mean of those that
@@ -263,18 +263,17 @@ def fuse_tiles(tiles: Sequence[dict[str, Any]], sigmas: Sequence[float], *, band
     only one pair saw keep its height. Processed in bands of rows (memory ~ one band)."""
     if not tiles:
         raise InputError("fusion: no pair produced heights")
-    cell = float(tiles[0]["cell"])
-    west = min(float(t["west"]) for t in tiles)
-    north = max(float(t["north"]) for t in tiles)
+    cell = float(tiles[0].cell)
+    west = min(float(t.west) for t in tiles)
+    north = max(float(t.north) for t in tiles)
     offs = []
     H = W = 0
     for t in tiles:
-        c0 = int(round((float(t["west"]) - west) / cell))
-        r0 = int(round((north - float(t["north"])) / cell))
-        h, w = t["dsm"].shape
+        c0 = int(round((float(t.west) - west) / cell))
+        r0 = int(round((north - float(t.north)) / cell))
+        h, w = t.dsm.shape
         offs.append((r0, c0, h, w))
         H, W = max(H, r0 + h), max(W, c0 + w)
-
     if H * W > MAX_CELLS:
         raise InputError(f"fusion: {W} x {H} cells is over the {MAX_CELLS:,} budget; give a larger cell")
     dsm = np.full((H, W), np.nan, dtype=np.float32)
@@ -292,30 +291,35 @@ def fuse_tiles(tiles: Sequence[dict[str, Any]], sigmas: Sequence[float], *, band
         for n, k in enumerate(idx):
             r0, c0, h, w = offs[k]
             s0, s1 = max(b0, r0), min(b1, r0 + h)
-            Z[n, s0 - b0:s1 - b0, c0:c0 + w] = tiles[k]["dsm"][s0 - r0:s1 - r0]
-            C[n, s0 - b0:s1 - b0, c0:c0 + w] = tiles[k]["rgb"][s0 - r0:s1 - r0]
+            Z[n, s0 - b0:s1 - b0, c0:c0 + w] = tiles[k].dsm[s0 - r0:s1 - r0]
+            C[n, s0 - b0:s1 - b0, c0:c0 + w] = tiles[k].rgb[s0 - r0:s1 - r0]
             tol[n] = 3.0 * float(sigmas[k]) + 0.5 * cell
-        fin = np.isfinite(Z)
-        nseen = fin.sum(axis=0)
-        if len(idx) == 1:
-            med = Z[0]
-        else:  # median of the finite values: NaN sorts last, so take the middle of the first n
-            Zs = np.sort(Z, axis=0)
-            lo_i = np.maximum(nseen - 1, 0) // 2
-            hi_i = np.maximum(nseen, 1) // 2
-            med = 0.5 * (np.take_along_axis(Zs, lo_i[None], 0)[0] + np.take_along_axis(Zs, hi_i[None], 0)[0])
-        ok = fin & (np.abs(Z - med[None]) <= tol)
-        nok = ok.sum(axis=0)
-        keep = (nseen == 1) | (nok >= 2)
-        wsum = np.where(ok, 1.0, 0.0).astype(np.float32)
-        zf = np.where(ok, Z, 0.0).sum(axis=0) / np.maximum(nok, 1)
-        cf = (C * wsum[..., None]).sum(axis=0) / np.maximum(nok, 1)[..., None]
-        dsm[b0:b1] = np.where(keep & (nok > 0), zf, np.nan)
-        rgb[b0:b1] = np.clip(np.round(cf), 0, 255).astype(np.uint8)
-        agree[b0:b1] = np.minimum(nok, 255)
-        seen[b0:b1] = np.minimum(nseen, 255)
+        dsm[b0:b1], rgb[b0:b1], agree[b0:b1], seen[b0:b1] = _fuse_band(Z, C, tol)
     rgb[~np.isfinite(dsm)] = 0
     return FusedSurface(dsm, rgb, agree, seen, west, north, cell)
+
+
+def _fuse_band(Z: NDArray, C: NDArray, tol: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """One band's fusion (:func:`fuse_tiles`) from the pairs' heights ``Z`` (n, h, w),
+    colours ``C`` (n, h, w, 3) and tolerances ``tol`` (n, 1, 1): height, colour, agreeing
+    and seeing pairs per cell."""
+    fin = np.isfinite(Z)
+    nseen = fin.sum(axis=0)
+    if len(Z) == 1:
+        med = Z[0]
+    else:  # median of the finite values: NaN sorts last, so take the middle of the first n
+        Zs = np.sort(Z, axis=0)
+        lo_i = np.maximum(nseen - 1, 0) // 2
+        hi_i = np.maximum(nseen, 1) // 2
+        med = 0.5 * (np.take_along_axis(Zs, lo_i[None], 0)[0] + np.take_along_axis(Zs, hi_i[None], 0)[0])
+    ok = fin & (np.abs(Z - med[None]) <= tol)
+    nok = ok.sum(axis=0)
+    keep = (nseen == 1) | (nok >= 2)
+    wsum = np.where(ok, 1.0, 0.0).astype(np.float32)
+    zf = np.where(ok, Z, 0.0).sum(axis=0) / np.maximum(nok, 1)
+    cf = (C * wsum[..., None]).sum(axis=0) / np.maximum(nok, 1)[..., None]
+    return (np.where(keep & (nok > 0), zf, np.nan), np.clip(np.round(cf), 0, 255).astype(np.uint8),
+            np.minimum(nok, 255), np.minimum(nseen, 255))
 
 
 # -- the survey ---------------------------------------------------------------------------
@@ -335,16 +339,16 @@ def _shared_points(P: NDArray, Ti: NDArray, Tj: NDArray, K: NDArray, size: tuple
 
 #: Runs the dense pairs: ``run_pairs(requests, progress) -> records`` (any order); the
 #: CLI passes one on the database jobs' runner (local processes or Dask).
-PairRunner = Callable[[list[dict[str, Any]], Callable[[int, int, str], None] | None], list[dict[str, Any]]]
+PairRunner = Callable[[list[PairRequest], Callable[[int, int, str], None] | None], list[PairResult]]
 
 
-def run_pairs_here(reqs: list[dict[str, Any]], progress: Callable[[int, int, str], None] | None = None
-                   ) -> list[dict[str, Any]]:
+def run_pairs_here(reqs: list[PairRequest], progress: Callable[[int, int, str], None] | None = None
+                   ) -> list[PairResult]:
     """The dense pairs one after the other in this process."""
     out = []
     for k, r in enumerate(reqs):
         if progress:
-            progress(k, len(reqs), f"pair {r['i']}-{r['j']}")
+            progress(k, len(reqs), f"pair {r.i}-{r.j}")
         out.append(dense_pair(r))
     if progress:
         progress(len(reqs), len(reqs), "pairs")
@@ -358,7 +362,6 @@ def _georeference_model(sfm: Any, tags: list[Any] | None) -> tuple[Georef, dict[
     C_model = np.array([np.linalg.inv(sfm.cam_from_world[k])[:3, 3] for k in reg])
     origin = gps_enu = None
     if tags is not None:
-
         origin = np.array([tags[0].lat_deg, tags[0].lon_deg, 0.0])
         gps_enu = wgs84_to_enu(np.array([[t.lat_deg, t.lon_deg, t.alt_m] for t in tags]), origin)
     geo = georeference(C_model, None if gps_enu is None else gps_enu[reg], sfm.points)
@@ -407,8 +410,6 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     per-pair depth maps, cloud (PLY, LAS), DSM, ground, nDSM and orthophoto (GeoTIFF),
     poses.json and a drawing; all written together or nothing. ``run_pairs`` runs the
     dense pairs (default: here, one after the other)."""
-
-
     o = SurveyOptions() if options is None else options
     t_all = time.perf_counter()
     out = Path(out_dir)
@@ -417,59 +418,84 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     videos = [p for p in images if Path(p).suffix.lower() in VIDEO_SUFFIXES]
     if videos and len(images) > 1:
         raise InputError("survey: give one video, or image frames, not both")
-    if not videos:
-        paths, size = check_frames(images)
-        tags, gps_source = gps_positions(paths, gps_table)
-        camera0, calib_source = starting_camera(paths, size, calib)
+    if not videos:  # checked before anything is written
+        frames = _Frames.of(images, gps_table, calib)
     refine = o.refine_intrinsics if o.refine_intrinsics != "auto" else ("none" if calib else "focal+distortion")
     free = refine != "none"
     seconds: dict[str, float] = {}
     with staged_folder(out) as stage:
         if videos:  # frames into the survey's own folder, then the same checks
             images = [str(p) for p in video_frames(videos[0], stage / "frames", step_s=video_step_s)]
-            paths, size = check_frames(images)
-            tags, gps_source = gps_positions(paths, gps_table)
-            camera0, calib_source = starting_camera(paths, size, calib)
+            frames = _Frames.of(images, gps_table, calib)
         t0 = time.perf_counter()
-        sfm = map_frames([str(p) for p in images], stage / "sfm_work", camera=camera0,
+        sfm = map_frames([str(p) for p in images], stage / "sfm_work", camera=frames.camera,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
                                             refine_principal_point=o.refine_principal_point),
                          progress=progress)
         seconds["poses"] = time.perf_counter() - t0
-        geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, tags)
-        K, dist = np.asarray(sfm.K, dtype=np.float64), np.asarray(sfm.dist, dtype=np.float64)
-        factor = _dense_scale(size, o.dense_max_pixels)
-        cell = o.cell_m if o.cell_m is not None else _default_cell(T_enu, K, points_enu, factor)
+        geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
+        factor = _dense_scale(frames.size, o.dense_max_pixels)
         t0 = time.perf_counter()
-        reqs = [{"i": i, "j": j, "path_i": str(paths[i]), "path_j": str(paths[j]), "K": K.tolist(),
-                 "dist": dist.tolist(), "factor": factor, "T_enu_cam_i": T_enu[i].tolist(),
-                 "T_enu_cam_j": T_enu[j].tolist(), "cell": cell, "min_shared": o.min_shared_points,
-                 "min_base_to_height": o.min_base_to_height, "shared": sp, "matcher": o.matcher,
-                 "lk_window": o.lk_window}
-                for (i, j), sp in plan_pairs(T_enu, points_enu, K, size, o).items()]
-        recs = sorted((run_pairs or run_pairs_here)(reqs, progress), key=lambda r: (r["i"], r["j"]))
+        reqs = _pair_requests(frames, sfm, T_enu, points_enu, factor, o)
+        recs = sorted((run_pairs or run_pairs_here)(reqs, progress), key=lambda r: (r.i, r.j))
         seconds["dense"] = time.perf_counter() - t0
-        ok = [r for r in recs if r["status"] == "ok"]
+        ok = [r for r in recs if r.ok]
         if not ok:
-            reasons = "; ".join(f"{paths[r['i']].name}+{paths[r['j']].name}: {r['reason']}" for r in recs[:3])
+            reasons = "; ".join(f"{frames.paths[r.i].name}+{frames.paths[r.j].name}: {r.reason}" for r in recs[:3])
             raise InputError(f"survey: no pair of frames gave depth ({reasons})")
         t0 = time.perf_counter()
-        fused = fuse_tiles([r["tile"] for r in ok], [r["sigma_z"] for r in ok])
+        fused = fuse_tiles([r.tile for r in ok], [r.sigma_z for r in ok])
         seconds["fusion"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         refined = (["f", "k1", "k2"] if free else []) + (["cx", "cy"] if o.refine_principal_point else [])
-        shown = [str(out / "frames" / p.name) for p in paths] if videos else [str(p) for p in images]
-        summary = write_products(stage, fused, paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, gps_source,
-                                  calib_source, refined, factor, o)
+        shown = [str(out / "frames" / p.name) for p in frames.paths] if videos else [str(p) for p in images]
+        summary = write_products(stage, fused, SurveyState(
+            frames.paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, frames.gps_source, frames.calib_source,
+            refined, factor, o))
         shutil.copytree(sfm.model_dir, stage / "colmap", dirs_exist_ok=True)
         shutil.rmtree(stage / "sfm_work", ignore_errors=True)
         seconds["products"] = time.perf_counter() - t0
         seconds["total"] = time.perf_counter() - t_all
-        summary["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
-        doc = json.loads((stage / "poses.json").read_text())
-        doc["seconds"] = summary["seconds"]
-        atomic_write_text(stage / "poses.json", json.dumps(doc, indent=1))
+        summary["seconds"] = _record_seconds(stage / "poses.json", seconds)
     summary["out_dir"] = str(out)
     return summary
 
 
+def _record_seconds(poses: Path, seconds: dict[str, float]) -> dict[str, float]:
+    """The stages' times, rounded, added to poses.json (written before the last stage ended)."""
+    out = {k: round(v, 2) for k, v in seconds.items()}
+    doc = json.loads(poses.read_text())
+    doc["seconds"] = out
+    atomic_write_text(poses, json.dumps(doc, indent=1))
+    return out
+
+
+@dataclass(frozen=True)
+class _Frames:
+    """A survey's checked frames: paths, size (w, h), GPS tags and their source, the
+    starting camera and its source."""
+
+    paths: list[Path]
+    size: tuple[int, int]
+    tags: list[Any] | None
+    gps_source: str
+    camera: Any
+    calib_source: str
+
+    @classmethod
+    def of(cls, images: Sequence[str | Path], gps_table: str | Path | None, calib: str | Path | None) -> _Frames:
+        paths, size = check_frames(images)
+        tags, gps_source = gps_positions(paths, gps_table)
+        camera, calib_source = starting_camera(paths, size, calib)
+        return cls(list(paths), size, tags, gps_source, camera, calib_source)
+
+
+def _pair_requests(frames: _Frames, sfm: Any, T_enu: dict[int, NDArray], points_enu: NDArray, factor: int,
+                   o: SurveyOptions) -> list[PairRequest]:
+    """The dense pairs to match (:func:`plan_pairs`) as requests on the survey's lattice."""
+    K, dist = np.asarray(sfm.K, dtype=np.float64), np.asarray(sfm.dist, dtype=np.float64)
+    cell = o.cell_m if o.cell_m is not None else _default_cell(T_enu, K, points_enu, factor)
+    return [PairRequest(i, j, str(frames.paths[i]), str(frames.paths[j]), K, dist, factor, T_enu[i], T_enu[j], sp,
+                        cell, min_shared=o.min_shared_points, min_base_to_height=o.min_base_to_height,
+                        matcher=o.matcher, lk_window=o.lk_window)
+            for (i, j), sp in plan_pairs(T_enu, points_enu, K, frames.size, o).items()]

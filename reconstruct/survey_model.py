@@ -5,14 +5,17 @@ surface, the folder's file list and schema.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.errors import InputError
 
-__all__ = ["DISPARITY_SIGMA_PX", "FusedSurface", "Georef", "SURVEY_FILES", "SURVEY_SCHEMA_VERSION", "SurveyOptions"]
+__all__ = ["DISPARITY_SIGMA_PX", "FusedSurface", "Georef", "PairRequest", "PairResult", "PairTile", "SURVEY_FILES",
+           "SURVEY_SCHEMA_VERSION", "SurveyOptions", "SurveyState"]
 
 
 SURVEY_SCHEMA_VERSION = 1
@@ -122,3 +125,106 @@ class FusedSurface:
     west: float
     north: float
     cell: float
+
+
+@dataclass(frozen=True)
+class PairRequest:
+    """One dense pair to match (:func:`~prism3d.reconstruct.survey.dense_pair`): frames
+    ``i`` and ``j`` (their paths and ``T_enu_cam`` poses, 4 x 4), the camera ``K`` and
+    ``dist`` shared by the flight, the matching ``factor`` (1, 2, 3...: frames downscaled
+    by it), the sparse ENU points both see (``shared``, N x 3), the survey's lattice
+    ``cell`` and the options that decide whether the pair is skipped and how it is matched.
+    Picklable: the jobs' runner ships it to worker processes or a Dask cluster."""
+
+    i: int
+    j: int
+    path_i: str
+    path_j: str
+    K: NDArray[np.float64]
+    dist: NDArray[np.float64]
+    factor: int
+    T_enu_cam_i: NDArray[np.float64]
+    T_enu_cam_j: NDArray[np.float64]
+    shared: NDArray[np.float64]
+    cell: float
+    min_shared: int = 30
+    min_base_to_height: float = 0.03
+    matcher: str = "ours"
+    lk_window: int = 5
+
+
+@dataclass(frozen=True)
+class PairTile:
+    """A pair's heights on the survey's lattice: north-west corner and ``cell`` (m), the
+    per-cell median height ``dsm`` (NaN: none), point ``count`` and mean colour ``rgb``."""
+
+    west: float
+    north: float
+    cell: float
+    dsm: NDArray[np.float32]
+    count: NDArray[np.int32]
+    rgb: NDArray
+
+
+@dataclass
+class PairResult:
+    """What one dense pair gave: ``status`` "ok" or "skipped" with a ``reason``; the
+    figures measured on the way (None until measured); when ok, its ``tile``, camera i's
+    ``depth`` map (m, NaN: none) and that map's intrinsics ``K_depth``."""
+
+    i: int
+    j: int
+    status: str = "skipped"
+    reason: str | None = None
+    baseline: float | None = None
+    depth_median: float | None = None
+    n_points: int | None = None
+    valid_fraction: float | None = None
+    disparity_range: list[float] | None = None
+    sigma_z: float | None = None
+    seconds: float | None = None
+    tile: PairTile | None = None
+    depth: NDArray[np.float32] | None = None
+    K_depth: NDArray[np.float64] | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def record(self) -> dict[str, Any]:
+        """The pair's entry in poses.json: the figures measured (tile and depth map aside)."""
+        out: dict[str, Any] = {"i": self.i, "j": self.j, "status": self.status, "reason": self.reason}
+        for k in ("baseline", "depth_median", "n_points", "valid_fraction", "disparity_range", "sigma_z", "seconds"):
+            v = getattr(self, k)
+            if v is not None:
+                out[k] = v
+        return out
+
+
+@dataclass(frozen=True)
+class SurveyState:
+    """What a survey knows when it writes its products: the frames (``paths``, and how the
+    products name them, ``shown``), the SfM model ``sfm``, its georeference ``geo`` and
+    ``T_enu_cam`` per placed frame, the dense ``pairs``, the ENU ``origin`` (lat, lon, 0;
+    None without GPS) and the frames' GPS positions in ENU, where the GPS and the starting
+    camera came from, the intrinsics the adjustment ``refined``, the matching ``factor``
+    and the ``options``."""
+
+    paths: list[Path]
+    shown: list[str]
+    sfm: Any
+    geo: Georef
+    T_enu: dict[int, NDArray[np.float64]]
+    pairs: list[PairResult]
+    origin: NDArray[np.float64] | None
+    gps_enu: NDArray[np.float64] | None
+    gps_source: str
+    calib_source: str
+    refined: list[str] = field(default_factory=list)
+    factor: int = 1
+    options: SurveyOptions = field(default_factory=SurveyOptions)
+
+    @property
+    def scaled(self) -> bool:
+        """Metres in a local ENU frame (GPS), or model units."""
+        return self.origin is not None

@@ -24,27 +24,36 @@ from prism3d.reconstruct.ortho import true_orthophoto
 from prism3d.reconstruct.survey_model import (
     SURVEY_SCHEMA_VERSION,
     FusedSurface,
-    Georef,
-    SurveyOptions,
+    SurveyState,
 )
 
 __all__ = ["draw_survey", "footprint", "overlap_coverage", "overlap_mask", "write_products"]
 
 
-def write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], shown: Sequence[str], sfm: Any, geo: Georef,
-                   T_enu: dict[int, NDArray], recs: list[dict], origin: NDArray | None, gps_enu: NDArray | None,
-                   gps_source: str, calib_source: str, refined: list[str], factor: int,
-                   o: SurveyOptions) -> dict[str, Any]:
+def write_products(stage: Path, fused: FusedSurface, st: SurveyState) -> dict[str, Any]:
     """Every product of a survey into the staging folder ``stage`` (the caller moves it in
-    place whole): GeoTIFFs in the local ENU frame at ``origin`` (model units without GPS),
+    place whole): GeoTIFFs in the local ENU frame at the origin (model units without GPS),
     cloud.ply / cloud.las, the figure and poses.json, whose summary it returns."""
-    scaled = origin is not None
-    crs = local_enu_crs_wkt(float(origin[0]), float(origin[1])) if scaled else None
-    tags = {"SCALE": "gps" if scaled else "unknown", "SOFTWARE": "prism3d survey",
-            "HEIGHTS": "metres above the WGS84 ellipsoid" if scaled else "model units, frame levelled on the ground"}
+    crs = local_enu_crs_wkt(float(st.origin[0]), float(st.origin[1])) if st.scaled else None
+    ground, ndsm, ortho = _write_rasters(stage, fused, st, crs)
+    _write_clouds(stage, fused, st.scaled, crs)
+    doc = _poses_doc(stage, fused, st, ground, ortho, crs)
+    atomic_write_text(stage / "poses.json", json.dumps(doc, indent=1))
+    draw_survey(stage / "survey.png", fused, ndsm, st.T_enu, st.scaled)
+    n_ok = sum(r.ok for r in st.pairs)
+    return {"n_frames": len(st.paths), "n_registered": int(sum(st.sfm.registered)),
+            "reprojection_rms_px": float(st.sfm.reprojection_rms_px), "scale": doc["scale"],
+            "pairs_ok": n_ok, "pairs_skipped": len(st.pairs) - n_ok, "cell": fused.cell,
+            "dsm_cells": int(np.isfinite(fused.dsm).sum()), "overlap_filled_fraction": doc["dsm"]["overlap_filled_fraction"]}
+
+
+def _write_rasters(stage: Path, fused: FusedSurface, st: SurveyState, crs: str | None) -> tuple[NDArray, NDArray, Any]:
+    """dsm, ground, ndsm, ortho and ortho_quality GeoTIFFs; returns ground, nDSM and the orthophoto."""
+    tags = {"SCALE": "gps" if st.scaled else "unknown", "SOFTWARE": "prism3d survey",
+            "HEIGHTS": "metres above the WGS84 ellipsoid" if st.scaled else "model units, frame levelled on the ground"}
     cell = fused.cell
-    ground, ndsm = normalised_dsm(fused.dsm * (1000.0 if scaled else 1.0), cell * (1000.0 if scaled else 1.0))
-    if scaled:
+    ground, ndsm = normalised_dsm(fused.dsm * (1000.0 if st.scaled else 1.0), cell * (1000.0 if st.scaled else 1.0))
+    if st.scaled:
         ground, ndsm = ground / 1000.0, ndsm / 1000.0
     common = dict(west=fused.west, north=fused.north, gsd=cell, crs_wkt=crs, tags=tags)
     write_geotiff(stage / "dsm.tif", fused.dsm, nodata=float("nan"), band_names=["height"], **common)
@@ -52,12 +61,19 @@ def write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], show
     write_geotiff(stage / "ndsm.tif", ndsm.astype(np.float32), nodata=float("nan"),
                   band_names=["height above ground"], **common)
     ortho = true_orthophoto(fused.dsm, fused.west, fused.north, cell,
-                            [(str(paths[k]), T_enu[k]) for k in sorted(T_enu)], np.asarray(sfm.K, dtype=np.float64),
-                            np.asarray(sfm.dist, dtype=np.float64), tuple(sfm.size), gsd=o.ortho_gsd_m)
+                            [(str(st.paths[k]), st.T_enu[k]) for k in sorted(st.T_enu)],
+                            np.asarray(st.sfm.K, dtype=np.float64), np.asarray(st.sfm.dist, dtype=np.float64),
+                            tuple(st.sfm.size), gsd=st.options.ortho_gsd_m)
     ocommon = dict(common, gsd=ortho.gsd)
     write_geotiff(stage / "ortho.tif", ortho.rgba, **ocommon)
     write_geotiff(stage / "ortho_quality.tif", ortho.quality, nodata=0, band_names=[
         "1 measured surface, 2 interpolated surface"], **ocommon)
+    return ground, ndsm, ortho
+
+
+def _write_clouds(stage: Path, fused: FusedSurface, scaled: bool, crs: str | None) -> None:
+    """cloud.ply and cloud.las: one point per filled DSM cell, with its colour."""
+    cell = fused.cell
     rr, cc = np.nonzero(np.isfinite(fused.dsm))
     xyz = np.c_[fused.west + (cc + 0.5) * cell, fused.north - (rr + 0.5) * cell, fused.dsm[rr, cc]]
     col = fused.rgb[rr, cc]
@@ -66,77 +82,86 @@ def write_products(stage: Path, fused: FusedSurface, paths: Sequence[Path], show
                         "frame: local east-north-up, metres" if scaled else "frame: model, scale unknown"])
     write_las(stage / "cloud.las", xyz, col, crs_wkt=crs, scale_m=min(0.001, cell / 100.0),
               system_identifier="prism3d survey" if scaled else "prism3d survey: scale unknown")
+
+
+def _pair_entries(stage: Path, fused: FusedSurface, st: SurveyState, ground: NDArray) -> tuple[list[dict], float]:
+    """poses.json's pair entries (each ok pair's depth map written to depth/) and the
+    share of the frames' overlap the DSM fills."""
     depth_dir = stage / "depth"
     depth_dir.mkdir()
-    finite = np.isfinite(fused.dsm)
-    per_pair, overlap_filled = overlap_coverage(recs, T_enu, np.asarray(sfm.K, dtype=np.float64), sfm.size,
-                                                float(np.nanmedian(ground)), fused)
+    per_pair, overlap_filled = overlap_coverage([(r.i, r.j) for r in st.pairs], st.T_enu, np.asarray(st.sfm.K, dtype=np.float64),
+                                                st.sfm.size, float(np.nanmedian(ground)), fused)
     pairs = []
-    for r in recs:
-        entry = {k: v for k, v in r.items() if k not in ("tile", "depth", "K_depth")}
-        entry["frames"] = [shown[r["i"]], shown[r["j"]]]
-        if (r["i"], r["j"]) in per_pair:
-            entry["overlap_filled_fraction"] = per_pair[(r["i"], r["j"])]
-        if r["status"] == "ok":
-            name = f"{paths[r['i']].stem}__{paths[r['j']].stem}.npz"
-            np.savez_compressed(depth_dir / name, depth=r["depth"], K=np.asarray(r["K_depth"]),
-                                T_enu_cam=T_enu[r["i"]])
+    for r in st.pairs:
+        entry = r.record()
+        entry["frames"] = [st.shown[r.i], st.shown[r.j]]
+        if (r.i, r.j) in per_pair:
+            entry["overlap_filled_fraction"] = per_pair[(r.i, r.j)]
+        if r.ok:
+            name = f"{st.paths[r.i].stem}__{st.paths[r.j].stem}.npz"
+            np.savez_compressed(depth_dir / name, depth=r.depth, K=np.asarray(r.K_depth), T_enu_cam=st.T_enu[r.i])
             entry["depth_map"] = f"depth/{name}"
         pairs.append(entry)
+    return pairs, overlap_filled
+
+
+def _frame_entries(st: SurveyState) -> list[dict]:
+    """poses.json's frame entries: image, COLMAP name, pose, GPS position and residual."""
     frames = []
-    for k, p in enumerate(paths):
-        fr: dict[str, Any] = {"image": shown[k], "colmap_name": sfm.model_names[k], "registered": bool(sfm.registered[k]),
-                              "T_enu_cam": T_enu[k].tolist() if k in T_enu else None}
-        if gps_enu is not None:
-            fr["gps_enu"] = [float(v) for v in gps_enu[k]]
-            if k in T_enu:
-                fr["gps_residual_m"] = float(np.linalg.norm(T_enu[k][:3, 3] - gps_enu[k]))
+    for k in range(len(st.paths)):
+        fr: dict[str, Any] = {"image": st.shown[k], "colmap_name": st.sfm.model_names[k],
+                              "registered": bool(st.sfm.registered[k]),
+                              "T_enu_cam": st.T_enu[k].tolist() if k in st.T_enu else None}
+        if st.gps_enu is not None:
+            fr["gps_enu"] = [float(v) for v in st.gps_enu[k]]
+            if k in st.T_enu:
+                fr["gps_residual_m"] = float(np.linalg.norm(st.T_enu[k][:3, 3] - st.gps_enu[k]))
         frames.append(fr)
-    doc = {
+    return frames
+
+
+def _poses_doc(stage: Path, fused: FusedSurface, st: SurveyState, ground: NDArray, ortho: Any,
+               crs: str | None) -> dict[str, Any]:
+    """The survey's record (poses.json; docs/formats.md)."""
+    pairs, overlap_filled = _pair_entries(stage, fused, st, ground)
+    sfm, o, shown = st.sfm, st.options, st.shown
+    return {
         "schema_version": SURVEY_SCHEMA_VERSION,
-        "frames": frames,
+        "frames": _frame_entries(st),
         "reprojection_rms_px": float(sfm.reprojection_rms_px),
         "n_observations": int(sfm.n_observations),
         "n_sparse_points": int(len(sfm.points)),
-        "scale": "gps" if scaled else "unknown",
-        "units": "m" if scaled else "model units (scale unknown)",
+        "scale": "gps" if st.scaled else "unknown",
+        "units": "m" if st.scaled else "model units (scale unknown)",
         "frame": ("local east-north-up at the origin (x east, y north, z up; heights above the WGS84 "
                   "ellipsoid); T_enu_cam maps OpenCV camera coordinates (x right, y down, z forward)")
-        if scaled else "the model levelled on its ground (z up), camera 1 above the origin; scale unknown",
-        "origin_lla": None if origin is None else [float(v) for v in origin],
+        if st.scaled else "the model levelled on its ground (z up), camera 1 above the origin; scale unknown",
+        "origin_lla": None if st.origin is None else [float(v) for v in st.origin],
         "crs_wkt": crs,
-        "gps_source": gps_source,
-        "georeference": {"method": geo.method, "scale": geo.s, "residual_rms_m": geo.residual_rms_m},
-        "camera": {"model": "RADIAL (f, cx, cy, k1, k2)", "start": calib_source, "refined": refined,
-                   "K": np.asarray(sfm.K).tolist(),
-                   "dist": np.asarray(sfm.dist).tolist(), "size": list(sfm.size)},
-        "dense": {"downscale": factor, "pair_steps": list(o.pair_steps), "pairs": pairs},
+        "gps_source": st.gps_source,
+        "georeference": {"method": st.geo.method, "scale": st.geo.s, "residual_rms_m": st.geo.residual_rms_m},
+        "camera": {"model": "RADIAL (f, cx, cy, k1, k2)", "start": st.calib_source, "refined": st.refined,
+                   "K": np.asarray(sfm.K).tolist(), "dist": np.asarray(sfm.dist).tolist(), "size": list(sfm.size)},
+        "dense": {"downscale": st.factor, "pair_steps": list(o.pair_steps), "pairs": pairs},
         "ortho": {"gsd": ortho.gsd, "shape": list(ortho.rgba.shape[:2]),
                   "cells_per_frame": {shown[k]: v for k, v in sorted(ortho.cells_per_frame.items())},
                   "interpolated_surface_fraction": float((ortho.quality == 2).sum() / max(1, (ortho.quality > 0).sum()))},
-        "dsm": {"cell": cell, "west": fused.west, "north": fused.north, "shape": list(fused.dsm.shape),
-                "filled_cells": int(finite.sum()), "cells_seen_by_2_or_more_pairs": int((fused.seen >= 2).sum()),
+        "dsm": {"cell": fused.cell, "west": fused.west, "north": fused.north, "shape": list(fused.dsm.shape),
+                "filled_cells": int(np.isfinite(fused.dsm).sum()), "cells_seen_by_2_or_more_pairs": int((fused.seen >= 2).sum()),
                 "overlap_filled_fraction": overlap_filled},
         "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(o).items()},
     }
-    atomic_write_text(stage / "poses.json", json.dumps(doc, indent=1))
-    draw_survey(stage / "survey.png", fused, ndsm, T_enu, scaled)
-    n_ok = sum(r["status"] == "ok" for r in recs)
-    return {"n_frames": len(paths), "n_registered": int(sum(sfm.registered)),
-            "reprojection_rms_px": float(sfm.reprojection_rms_px), "scale": doc["scale"],
-            "pairs_ok": n_ok, "pairs_skipped": len(recs) - n_ok, "cell": cell, "dsm_cells": int(finite.sum()),
-            "overlap_filled_fraction": doc["dsm"]["overlap_filled_fraction"]}
 
 
-def overlap_coverage(recs: Sequence[dict], T_enu: dict[int, NDArray], K: NDArray, size: tuple[int, int],
+def overlap_coverage(pairs: Sequence[tuple[int, int]], T_enu: dict[int, NDArray], K: NDArray, size: tuple[int, int],
                      ground_z: float, fused: FusedSurface) -> tuple[dict[tuple[int, int], float], float]:
-    """The share of each pair's ground overlap (the two frames' footprints on the plane
+    """The share of each pair of frames' ground overlap (the two frames' footprints on the plane
     ``z = ground_z`` intersected) holding a fused height, and of the union of those
     overlaps; on the DSM's lattice widened to hold every footprint whole."""
     cell = fused.cell
     finite = np.isfinite(fused.dsm)
-    quads = {(r["i"], r["j"]): [footprint(T_enu[r["i"]], K, size, ground_z), footprint(T_enu[r["j"]], K, size, ground_z)]
-             for r in recs if r["i"] in T_enu and r["j"] in T_enu}
+    quads = {(i, j): [footprint(T_enu[i], K, size, ground_z), footprint(T_enu[j], K, size, ground_z)]
+             for i, j in pairs if i in T_enu and j in T_enu}
     if not quads:
         return {}, 0.0
     allq = np.concatenate([np.concatenate(q) for q in quads.values()])
@@ -191,7 +216,6 @@ def draw_survey(path: Path, fused: FusedSurface, ndsm: NDArray, T_enu: dict[int,
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
 
     unit = "m" if scaled else "units"
     H, W = fused.dsm.shape

@@ -8,6 +8,7 @@ import pytest
 
 from prism3d.errors import InputError
 from prism3d.reconstruct.survey import SurveyOptions, _dense_scale, _tile_bounds, fuse_tiles, georeference
+from prism3d.reconstruct.survey_model import PairTile
 
 
 def _rot(axis: np.ndarray, deg: float) -> np.ndarray:
@@ -62,9 +63,9 @@ def test_georeference_refuses_frames_that_do_not_move() -> None:
         georeference(C[:2], np.zeros((2, 3)), P)
 
 
-def _tile(z: np.ndarray, west: float, north: float, cell: float) -> dict:
-    return {"west": west, "north": north, "cell": cell, "dsm": z.astype(np.float32),
-            "count": np.ones(z.shape, np.int32), "rgb": np.full(z.shape + (3,), 100, np.uint8)}
+def _tile(z: np.ndarray, west: float, north: float, cell: float) -> PairTile:
+    return PairTile(west, north, cell, z.astype(np.float32), np.ones(z.shape, np.int32),
+                    np.full(z.shape + (3,), 100, np.uint8))
 
 
 def test_fusion_keeps_agreement_and_drops_contradiction() -> None:
