@@ -337,37 +337,15 @@ def compose_patch(rng: np.random.Generator, targets: Sequence[tuple[str, NadirSp
     n = int(round(o.size_m / g))
     neg_veh = [(k.split(":", 1)[1], s) for k, s in negatives if k.startswith("vehicle:")]
     props = [(k, s) for k, s in negatives if not k.startswith("vehicle:")]
-    trees = [(k, s) for k, s in props if s.height_m > 3.0]
-    small = [(k, s) for k, s in props if s.height_m <= 3.0]
     carpark = rng.uniform() < o.carpark_share
-    if carpark:
-        surface = str(rng.choice(["asphalt", "asphalt", "asphalt_light", "concrete", "gravel"]))
-    else:
-        surface = str(rng.choice(["grass", "dry_grass", "soil", "gravel", "grass"]))
-    albedo = _surface(rng, surface, (n, n), g)
-    if surface in ("concrete", "asphalt_light", "gravel") and rng.uniform() < 0.6:
-        _joints(rng, albedo, g)
-    decoy = _decoys(rng, albedo, g, int(rng.integers(0, 7)))
+    albedo, decoy = _ground(rng, carpark, n, g)
     if carpark:
         objs, lines, _ = _carpark_layout(rng, n, g, targets, neg_veh)
         colour = np.array([0.8, 0.8, 0.76]) if rng.uniform() < 0.8 else np.array([0.75, 0.62, 0.12])
         _paint_lines(albedo, lines, rng.uniform(0.1, 0.15) / g, colour.astype(np.float32))
     else:
         objs = _scatter_layout(rng, n, g, targets, neg_veh, int(rng.integers(3, 9)))
-    # clutter: trees anywhere (crowns overhang vehicles), the rest clear of the vehicles
-    clutter = []
-    taken = [(r, c, (sp.length_m / 2 + 0.3) / g) for sp, r, c, *_ in objs]
-    for kinds, count in ((trees, int(rng.integers(1, 6))), (small, int(rng.integers(3, 14)))):
-        for _ in range(count if kinds else 0):
-            k, sp = kinds[int(rng.integers(len(kinds)))]
-            for _try in range(20):
-                r, c = rng.uniform(0, 1, 2) * n
-                rad = (max(sp.length_m, sp.width_m) / 2 + 0.3) / g
-                if sp.height_m > 3.0 and k != "building" or all(math.hypot(r - a, c - b) > rad + rb
-                                                                 for a, b, rb in taken):
-                    taken.append((r, c, rad))
-                    clutter.append((sp, r, c, rng.uniform(0, 2 * math.pi), "clutter", k))
-                    break
+    clutter = _clutter(rng, n, g, objs, props)
     canvas = _Canvas(albedo, np.dstack([np.zeros((n, n, 2), np.float32), np.ones((n, n, 1), np.float32)]),
                      np.zeros((n, n), np.float32), np.full((n, n), -1, np.int32))
     share = o.repaint if carpark else o.repaint_open
@@ -376,13 +354,7 @@ def compose_patch(rng: np.random.Generator, targets: Sequence[tuple[str, NadirSp
     everything = objs + clutter
     for i, (sp, r, c, hd, _, _) in enumerate(everything):
         _place(canvas, sp, r, c, hd, 0.0, i)
-    sun_el, sun_az = math.radians(rng.uniform(25.0, 70.0)), rng.uniform(0, 2 * math.pi)
-    sun = np.array([math.cos(sun_el) * math.cos(sun_az), math.cos(sun_el) * math.sin(sun_az), math.sin(sun_el)])
-    lit = _shadow(canvas.height, g, sun_az, sun_el)
-    ambient = rng.uniform(0.2, 0.45)
-    shade = ambient + (1.0 - ambient) * np.clip(canvas.normal @ sun.astype(np.float32), 0.0, 1.0) * lit
-    rgb = canvas.albedo * shade[..., None]
-    rgb = _camera(rng, rgb, g)
+    rgb = _camera(rng, _sunlit(rng, canvas, g), g)
     ndsm = _emulate_ndsm(rng, canvas.height, rgb, g, o, keep=decoy & (canvas.owner < 0))
     vehicles = []
     for i, (sp, r, c, hd, kind, cls) in enumerate(objs):
@@ -396,6 +368,50 @@ def compose_patch(rng: np.random.Generator, targets: Sequence[tuple[str, NadirSp
                "heading_rad": float(hd), "length_m": sp.length_m, "width_m": sp.width_m}
               for sp, r, c, hd, kind, cls in everything if kind != "target" and 0 <= r < n and 0 <= c < n]
     return AerialPatch(rgb.astype(np.float32), ndsm, g, vehicles, others)
+
+
+def _ground(rng: np.random.Generator, carpark: bool, n: int, g: float) -> tuple[NDArray[np.float32], NDArray]:
+    """The bare ground's albedo (a car park's paving, or open ground), with joints and
+    painted decoys (whose mask is returned)."""
+    if carpark:
+        surface = str(rng.choice(["asphalt", "asphalt", "asphalt_light", "concrete", "gravel"]))
+    else:
+        surface = str(rng.choice(["grass", "dry_grass", "soil", "gravel", "grass"]))
+    albedo = _surface(rng, surface, (n, n), g)
+    if surface in ("concrete", "asphalt_light", "gravel") and rng.uniform() < 0.6:
+        _joints(rng, albedo, g)
+    return albedo, _decoys(rng, albedo, g, int(rng.integers(0, 7)))
+
+
+def _clutter(rng: np.random.Generator, n: int, g: float, objs: Sequence[tuple], props: Sequence) -> list[tuple]:
+    """Clutter placed among the vehicles ``objs``: trees anywhere (crowns overhang
+    vehicles), buildings and the small things clear of everything placed."""
+    trees = [(k, s) for k, s in props if s.height_m > 3.0]
+    small = [(k, s) for k, s in props if s.height_m <= 3.0]
+    clutter = []
+    taken = [(r, c, (sp.length_m / 2 + 0.3) / g) for sp, r, c, *_ in objs]
+    for kinds, count in ((trees, int(rng.integers(1, 6))), (small, int(rng.integers(3, 14)))):
+        for _ in range(count if kinds else 0):
+            k, sp = kinds[int(rng.integers(len(kinds)))]
+            for _try in range(20):
+                r, c = rng.uniform(0, 1, 2) * n
+                rad = (max(sp.length_m, sp.width_m) / 2 + 0.3) / g
+                if sp.height_m > 3.0 and k != "building" or all(math.hypot(r - a, c - b) > rad + rb
+                                                                 for a, b, rb in taken):
+                    taken.append((r, c, rad))
+                    clutter.append((sp, r, c, rng.uniform(0, 2 * math.pi), "clutter", k))
+                    break
+    return clutter
+
+
+def _sunlit(rng: np.random.Generator, canvas: _Canvas, g: float) -> NDArray[np.float32]:
+    """The canvas lit by a random sun (its shadows cast) and the sky's ambient light."""
+    sun_el, sun_az = math.radians(rng.uniform(25.0, 70.0)), rng.uniform(0, 2 * math.pi)
+    sun = np.array([math.cos(sun_el) * math.cos(sun_az), math.cos(sun_el) * math.sin(sun_az), math.sin(sun_el)])
+    lit = _shadow(canvas.height, g, sun_az, sun_el)
+    ambient = rng.uniform(0.2, 0.45)
+    shade = ambient + (1.0 - ambient) * np.clip(canvas.normal @ sun.astype(np.float32), 0.0, 1.0) * lit
+    return canvas.albedo * shade[..., None]
 
 
 def _camera(rng: np.random.Generator, rgb: NDArray, gsd: float) -> NDArray[np.float32]:

@@ -322,18 +322,7 @@ class FilterBank:
                 f"scene: expected at least {S}x{S} pixels (the chip size), got {H}x{W}"
             )
         x = prepare_chips(g[None], self.channel, fx, intensity_prep=self.intensity_prep)[0]
-        G = np.fft.fft2(x)
-        spat = np.fft.ifft2(self.freqs, axes=(-2, -1)).real
-        pad = np.zeros((len(self), H, W))
-        pad[:, :S, :S] = spat
-        Fp = np.fft.fft2(pad, axes=(-2, -1))
-        planes = np.fft.ifft2(
-            G[None] * np.conj(Fp), axes=(-2, -1)
-        ).real  # (K, H, W), shift s at [s]
-        # normalise each plane by its own sidelobe statistics (global std) to compare filters
-        z = (planes - planes.mean(axis=(1, 2), keepdims=True)) / np.maximum(
-            planes.std(axis=(1, 2), keepdims=True), 1e-300
-        )
+        planes, z = _scene_planes(x, self.freqs, S)
         best_k = np.argmax(z, axis=0)
         best = np.max(z, axis=0)
         md = S // 2 if min_distance is None else int(min_distance)
@@ -429,6 +418,25 @@ class FilterBank:
             raise InputError(f"{p}: not a valid prism3d filter bank ({exc})") from None
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{p}: not a valid prism3d filter bank (bad or missing {exc})") from None
+
+
+def _scene_planes(
+    x: NDArray[np.float64], freqs: NDArray[np.complex128], S: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Correlation planes ``(K, H, W)`` of a prepared scene with every filter (zero-padded
+    to the scene size; shift s at [s]) and the planes standardised to compare filters."""
+    H, W = x.shape
+    G = np.fft.fft2(x)
+    spat = np.fft.ifft2(freqs, axes=(-2, -1)).real
+    pad = np.zeros((len(freqs), H, W))
+    pad[:, :S, :S] = spat
+    Fp = np.fft.fft2(pad, axes=(-2, -1))
+    planes = np.fft.ifft2(G[None] * np.conj(Fp), axes=(-2, -1)).real
+    # normalise each plane by its own sidelobe statistics (global std) to compare filters
+    z = (planes - planes.mean(axis=(1, 2), keepdims=True)) / np.maximum(
+        planes.std(axis=(1, 2), keepdims=True), 1e-300
+    )
+    return planes, z
 
 
 def _psr_at_origin(plane: NDArray) -> float:
@@ -633,6 +641,31 @@ def class_scale_facts(
     return out
 
 
+def _bank_metadata(
+    items: list[tuple[str, SceneMesh]], labels: list[str], fx: NDArray, rng: NDArray, *,
+    az_train: NDArray, elevation, range_mm, spec: ChipSpec, params, sep: float, chosen: NDArray,
+) -> dict:
+    """A trained bank's metadata: training poses and chips, the (alpha, beta, gamma) chosen
+    and their held-out accuracy ``sep``, the PSR window, each class's scale."""
+    return {
+        "azimuth": [float(a) for a in az_train],
+        "elevation": [float(e) for e in parse_range(elevation)],
+        "range_mm": None if range_mm is None else [float(r) for r in parse_range(range_mm)],
+        "framing": spec.framing,
+        "camouflage": bool(spec.camouflage),
+        "noise_sigma": float(spec.noise_sigma),
+        "depth_noise_mm": float(spec.depth_noise_mm),
+        "params": "auto" if params == "auto" else list(params),
+        "targets": [[c, m.name] for c, m in items],
+        "heldout_accuracy": None if not math.isfinite(float(sep)) else float(sep),
+        "chosen_params": [float(v) for v in chosen],
+        "psr_window": PSR_WINDOW,
+        "psr_exclude": PSR_EXCLUDE,
+        "intensity_prep": INTENSITY_PREP,
+        **class_scale_facts(items, labels, fx, rng),
+    }
+
+
 def train_bank(
     targets: Sequence[tuple[str, SceneMesh]],
     *,
@@ -677,23 +710,8 @@ def train_bank(
     freqs = np.stack([otmach_from_moments(*mo, *prm).freq for mo in moments])
     chosen = np.tile(np.asarray(prm), (len(groups), 1))
     fclass = np.array([g[0] for g in groups], dtype=np.int64)
-    meta = {
-        "azimuth": [float(a) for a in az_train],
-        "elevation": [float(e) for e in parse_range(elevation)],
-        "range_mm": None if range_mm is None else [float(r) for r in parse_range(range_mm)],
-        "framing": spec.framing,
-        "camouflage": bool(spec.camouflage),
-        "noise_sigma": float(spec.noise_sigma),
-        "depth_noise_mm": float(spec.depth_noise_mm),
-        "params": "auto" if params == "auto" else list(params),
-        "targets": [[c, m.name] for c, m in items],
-        "heldout_accuracy": None if not math.isfinite(float(sep)) else float(sep),
-        "chosen_params": [float(v) for v in chosen[0]],
-        "psr_window": PSR_WINDOW,
-        "psr_exclude": PSR_EXCLUDE,
-        "intensity_prep": INTENSITY_PREP,
-        **class_scale_facts(items, labels, fx, rng),
-    }
+    meta = _bank_metadata(items, labels, fx, rng, az_train=az_train, elevation=elevation,
+                          range_mm=range_mm, spec=spec, params=params, sep=sep, chosen=chosen[0])
     return FilterBank(
         classes,
         channel,

@@ -388,7 +388,6 @@ def lmse(estimate: NDArray, truth: NDArray, mask: NDArray, *, window: int = 20) 
 def _write_outputs(res: DecamoResult, out_dir: Path, extra: dict[str, Any]) -> dict[str, Any]:
     import tifffile
 
-
     alb = np.nan_to_num(res.albedo, nan=0.0)
     alb_u8 = (np.clip(alb / max(float(alb.max()), 1e-9), 0, 1) * 255 + 0.5).astype(np.uint8)
     names = {"albedo": "albedo.png", "shading": "shading.tiff", "shape": "shape.png",

@@ -12,6 +12,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -180,11 +181,7 @@ def evaluate_bank(
         items, channel=bank.channel, azimuth=azimuth, elevation=elevation, range_mm=range_mm,
         chip_spec=spec,
     )
-    df = bank.classify(X, fx)
-    df.insert(0, "true_class", labels)
-    df["az_deg"], df["el_deg"], df["range_mm"] = az, el, rng_
-    correct = df["true_class"].to_numpy() == df["pred_class"].to_numpy()
-    df["correct"] = correct
+    df, correct = _classify_test_chips(bank, X, fx, labels, az, el, rng_)
     cl_scores, cl_psr = _clutter_scores(bank, items, azimuth, elevation, range_mm, spec)
     cls_scores = np.array([df[f"score_{c}"].to_numpy() for c in bank.classes]).max(axis=0)
     roc = roc_curve(cls_scores, cl_scores)
@@ -194,15 +191,7 @@ def evaluate_bank(
         "metric": bank.metric,
         "pcc": float(correct.mean()),
         "confusion": confusion_matrix(labels, df["pred_class"].tolist(), bank.classes).tolist(),
-        "per_class": {
-            c: float(correct[np.array(labels) == c].mean()) for c in bank.classes if c in labels
-        },
-        "per_aspect": {
-            f"{k:g}": v
-            for k, v in accuracy_by(np.asarray(az) % 360.0, correct, bank.bin_deg).items()
-        },
-        "per_elevation": {f"{k:g}": v for k, v in accuracy_by(el, correct).items()},
-        "per_range": {f"{k:g}": v for k, v in accuracy_by(rng_, correct).items()},
+        **_accuracy_by_condition(bank, labels, correct, az, el, rng_),
         "roc": roc,
         "pd_at_pfa": _pd_at_pfa(roc),
         "scores_target": cls_scores.tolist(),
@@ -215,6 +204,38 @@ def evaluate_bank(
     if out_json is not None:
         _write_results(res, df, Path(out_json))
     return res
+
+
+def _classify_test_chips(
+    bank: FilterBank, X: NDArray, fx: NDArray, labels: list[str], az: NDArray, el: NDArray,
+    rng_: NDArray,
+) -> tuple[Any, NDArray[np.bool_]]:
+    """The bank's classification of the test chips (a DataFrame, one row per chip, with its
+    true class, pose and ``correct``) and that ``correct`` column."""
+    df = bank.classify(X, fx)
+    df.insert(0, "true_class", labels)
+    df["az_deg"], df["el_deg"], df["range_mm"] = az, el, rng_
+    correct = df["true_class"].to_numpy() == df["pred_class"].to_numpy()
+    df["correct"] = correct
+    return df, correct
+
+
+def _accuracy_by_condition(
+    bank: FilterBank, labels: list[str], correct: NDArray, az: NDArray, el: NDArray, rng_: NDArray
+) -> dict[str, dict]:
+    """Accuracy per true class, azimuth bin (the bank's), elevation and range, keyed as in
+    :func:`evaluate_bank`'s results."""
+    return {
+        "per_class": {
+            c: float(correct[np.array(labels) == c].mean()) for c in bank.classes if c in labels
+        },
+        "per_aspect": {
+            f"{k:g}": v
+            for k, v in accuracy_by(np.asarray(az) % 360.0, correct, bank.bin_deg).items()
+        },
+        "per_elevation": {f"{k:g}": v for k, v in accuracy_by(el, correct).items()},
+        "per_range": {f"{k:g}": v for k, v in accuracy_by(rng_, correct).items()},
+    }
 
 
 def format_results(res: dict) -> str:
@@ -424,27 +445,10 @@ def feature_baseline(
     if test_azimuth is None:
         step = float(np.median(np.diff(sorted(tr)))) if len(tr) > 1 else 10.0
         test_azimuth = [a + step / 4.0 for a in tr]
-
-    def table(az, sd):
-        rows, labs = [], []
-        for i, (c, mesh) in enumerate(items):
-            spec = ChipSpec(
-                size=size,
-                framing="range",
-                channels=("depth", "mask"),
-                camouflage=camouflage,
-                depth_noise_mm=depth_noise_mm,
-                seed=sd + i,
-            )
-            cs = render_chips(mesh, None, azimuth=az, elevation=elevation, chip_spec=spec)
-            for j, p in enumerate(cs.poses):
-                rows.append(feature_fn(cs["depth"][j], cs["mask"][j], p.K))
-                labs.append(c)
-        names = sorted(rows[0])
-        return np.array([[float(r.get(n, np.nan)) for n in names] for r in rows]), labs, names
-
-    Xtr, ytr, names = table(tr, seed)
-    Xte, yte, _ = table(parse_range(test_azimuth), seed + 100)
+    views = {"elevation": elevation, "size": size, "camouflage": camouflage,
+             "depth_noise_mm": depth_noise_mm}
+    Xtr, ytr, names = _feature_table(items, feature_fn, tr, seed, **views)
+    Xte, yte, _ = _feature_table(items, feature_fn, parse_range(test_azimuth), seed + 100, **views)
     Xtr = np.nan_to_num(Xtr)
     Xte = np.nan_to_num(Xte)
     clf = RandomForestClassifier(n_estimators=200, random_state=0, n_jobs=1).fit(Xtr, ytr)
@@ -455,3 +459,34 @@ def feature_baseline(
         "classes": classes,
         "feature_names": names,
     }
+
+
+def _feature_table(
+    items: list[tuple[str, object]],
+    feature_fn: Callable[[NDArray, NDArray, NDArray], dict[str, float]],
+    az: NDArray,
+    seed: int,
+    *,
+    elevation: str | Sequence[float],
+    size: int,
+    camouflage: bool,
+    depth_noise_mm: float,
+) -> tuple[NDArray[np.float64], list[str], list[str]]:
+    """Features of every target's depth views at azimuths ``az`` (``range`` framing, target
+    ``i`` seeded ``seed + i``): the table ``(N, F)``, its class labels and column names."""
+    rows, labs = [], []
+    for i, (c, mesh) in enumerate(items):
+        spec = ChipSpec(
+            size=size,
+            framing="range",
+            channels=("depth", "mask"),
+            camouflage=camouflage,
+            depth_noise_mm=depth_noise_mm,
+            seed=seed + i,
+        )
+        cs = render_chips(mesh, None, azimuth=az, elevation=elevation, chip_spec=spec)
+        for j, p in enumerate(cs.poses):
+            rows.append(feature_fn(cs["depth"][j], cs["mask"][j], p.K))
+            labs.append(c)
+    names = sorted(rows[0])
+    return np.array([[float(r.get(n, np.nan)) for n in names] for r in rows]), labs, names

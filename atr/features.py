@@ -128,7 +128,13 @@ def _build_info() -> dict[str, dict[str, Any]]:
         add(f"fpfh_{i:02d}", "1", MS, RIGS + ["any_rotation"],
             f"bin {i} of the mean FPFH (Open3D, radius 10% of the box diagonal) over the surface samples")
     add("n_points", "1", MS, RIG + ["any_rotation"], "vertices (model) or points (scan) in the input")
-    # view
+    _add_view_info(add)
+    return info
+
+
+def _add_view_info(add: Callable[[str, str, Sequence[str], list[str], str], None]) -> None:
+    """The view columns of :data:`FEATURE_INFO` (one depth view), in order, through
+    :func:`_build_info`'s ``add(name, unit, source, invariant_to, definition)``."""
     VS = ("view",)
     add("range_mm", "mm", VS, ["image_rotation"], "median depth of the target pixels")
     add("range_min_mm", "mm", VS, ["image_rotation"], "nearest target depth")
@@ -152,7 +158,6 @@ def _build_info() -> dict[str, dict[str, Any]]:
     for k in range(N_FOURIER):
         add(f"fourier_{k + 2:02d}", "1", VS, ["image_rotation", "scale_approx", "translation"],
             f"Fourier descriptor: (|C_{k + 2}| + |C_-{k + 2}|) / (|C_1| + |C_-1|) of the largest outline resampled to 64 points by arc length (start point invariant)")
-    return info
 
 
 #: Machine-readable description of every feature column (see :func:`_build_info`).
@@ -374,7 +379,6 @@ def surface_near_data(points: NDArray, normals: NDArray, *, spacing: float | Non
     """
     from scipy.spatial import cKDTree
 
-
     P = np.asarray(points, dtype=np.float64)
     N = np.asarray(normals, dtype=np.float64)
     tree = cKDTree(P)
@@ -462,28 +466,15 @@ def view_features(depth_mm: NDArray, mask: NDArray | None, K: NDArray | CameraMo
     if n == 0:
         raise InputError("depth_mm/mask: no target pixel with a finite depth (all NaN or empty mask)")
     z = d[m].astype(np.float64)
-    zmin, zmax = float(z.min()), float(z.max())
-    rng_mm = float(np.median(z))
-    ext = zmax - zmin
-    out: dict[str, float] = {
-        "range_mm": rng_mm, "range_min_mm": zmin, "range_max_mm": zmax, "range_extent_mm": ext,
-    }
-    rel = (z - zmin) / ext if ext > 0 else np.zeros_like(z)
-    hist = np.bincount(np.minimum((rel * N_RANGE_BINS).astype(np.int64), N_RANGE_BINS - 1),
-                       minlength=N_RANGE_BINS) / n
-    out.update({f"range_hist_{i:02d}": float(v) for i, v in enumerate(hist)})
+    out = _range_features(z)
+    rng_mm = out["range_mm"]
     vv, uu = np.nonzero(m)
     out["pixels_on_target_px"] = float(n)
     out["pixels_per_m"] = cam.fx * 1000.0 / rng_mm
     out["silhouette_area_mm2"] = float(np.sum(z * z) / (cam.fx * cam.fy))
     out["silhouette_width_mm"] = float((uu.max() - uu.min() + 1) * rng_mm / cam.fx)
     out["silhouette_height_mm"] = float((vv.max() - vv.min() + 1) * rng_mm / cam.fy)
-    if n >= 3:
-        A = np.column_stack([uu, vv, np.ones(n)]).astype(np.float64)
-        coef, *_ = np.linalg.lstsq(A, z, rcond=None)
-        out["relief_rms_mm"] = float(np.sqrt(np.mean((z - A @ coef) ** 2)))
-    else:
-        out["relief_rms_mm"] = 0.0
+    out["relief_rms_mm"] = _relief_rms(uu, vv, z)
     m8 = m.astype(np.uint8)
     mo = cv2.moments(m8, binaryImage=True)
     hu = cv2.HuMoments(mo).ravel()
@@ -505,6 +496,34 @@ def view_features(depth_mm: NDArray, mask: NDArray | None, K: NDArray | CameraMo
     out["solidity"] = float(area_c / hull_a) if hull_a > 0 else 1.0
     out.update(_fourier(c))
     return _order(out, "view")
+
+
+def _range_features(z: NDArray[np.float64]) -> dict[str, float]:
+    """Range columns of a view from its target pixels' depths ``z`` (mm): median, nearest,
+    farthest, extent and the histogram of depths over that extent."""
+    n = len(z)
+    zmin, zmax = float(z.min()), float(z.max())
+    rng_mm = float(np.median(z))
+    ext = zmax - zmin
+    out: dict[str, float] = {
+        "range_mm": rng_mm, "range_min_mm": zmin, "range_max_mm": zmax, "range_extent_mm": ext,
+    }
+    rel = (z - zmin) / ext if ext > 0 else np.zeros_like(z)
+    hist = np.bincount(np.minimum((rel * N_RANGE_BINS).astype(np.int64), N_RANGE_BINS - 1),
+                       minlength=N_RANGE_BINS) / n
+    out.update({f"range_hist_{i:02d}": float(v) for i, v in enumerate(hist)})
+    return out
+
+
+def _relief_rms(uu: NDArray, vv: NDArray, z: NDArray[np.float64]) -> float:
+    """RMS (mm) of the depths ``z`` at pixels ``(vv, uu)`` about their least-squares plane;
+    0 for fewer than 3 pixels."""
+    n = len(z)
+    if n >= 3:
+        A = np.column_stack([uu, vv, np.ones(n)]).astype(np.float64)
+        coef, *_ = np.linalg.lstsq(A, z, rcond=None)
+        return float(np.sqrt(np.mean((z - A @ coef) ** 2)))
+    return 0.0
 
 
 def _fourier(c: NDArray) -> dict[str, float]:
@@ -676,7 +695,6 @@ def features_to_parquet(
 
     import pyarrow as pa
     import pyarrow.parquet as pq
-
 
     if Path(out_path).suffix.lower() != ".parquet":
         raise InputError(f"{out_path}: the features are written as Parquet; name the file .parquet")

@@ -216,12 +216,8 @@ class HogSvm:
         hog = _check_hog(hog_params)
         spec = as_chip_spec(chip_spec, BANK_CHIP_SPEC)
         items = check_targets(targets)
-        classes = list(dict.fromkeys(c for c, _ in items))
-        if len(classes) < 2:
-            raise InputError(f"targets: a HOG + SVM model needs at least 2 classes, got {classes}")
         S = int(spec.size)
-        if min(_block_grid(S, hog)[:2]) < 1:
-            raise InputError(f"chip_spec.size: {S} px is too small for one HOG block ({hog})")
+        classes = _training_classes(items, S, hog)
         az_train = parse_range(azimuth)
         X, labels, _, _, rng_mm, fx = render_class_chips(
             items, channel=channel, azimuth=az_train, elevation=elevation, range_mm=range_mm,
@@ -232,33 +228,18 @@ class HogSvm:
         feats = _features(np.concatenate([pos, neg]), hog)
         lab = np.concatenate([[classes.index(c) for c in labels], np.full(len(neg), -1)])
         weights, bias = _fit_one_vs_rest(feats, lab, len(classes), C=C, seed=seed)
-
-        dec = feats @ weights.T + bias
-        npos = len(pos)
-        train_acc = float(np.mean(np.argmax(dec[:npos], axis=1) == lab[:npos]))
-        rejection = float(np.mean(np.max(dec[npos:], axis=1) < 0.0)) if len(neg) else float("nan")
-        counts = {c: int(np.sum(lab == i)) for i, c in enumerate(classes)}
         meta = {
             "channel": channel,
             "azimuth": [float(a) for a in az_train],
             "elevation": [float(e) for e in parse_range(elevation)],
             "range_mm": None if range_mm is None else [float(r) for r in parse_range(range_mm)],
             "targets": [[c, m.name] for c, m in items],
-            "chip_size": S,
-            "framing": spec.framing,
-            "camouflage": bool(spec.camouflage),
-            "noise_sigma": float(spec.noise_sigma),
-            "depth_noise_mm": float(spec.depth_noise_mm),
-            "chip_seed": int(spec.seed),
+            **_chip_facts(spec),
             "seed": seed,
             "C": C,
             "hog": hog,
             "augmentation": None,
-            "n_positives": counts,
-            "n_negatives": {c: int(len(lab) - n) for c, n in counts.items()},
-            "n_background": n_kind,
-            "training_accuracy": train_acc,
-            "training_background_rejection": rejection,
+            **_fit_facts(feats @ weights.T + bias, lab, len(pos), n_kind, classes),
             "train_seconds": round(time.perf_counter() - t0, 3),
             **class_scale_facts(items, labels, fx, rng_mm),
         }
@@ -394,6 +375,47 @@ class HogSvm:
 def _features(windows: NDArray[np.float64], hog: dict) -> NDArray[np.float64]:
     """HOG vectors ``(N, D)`` of windows ``(N, S, S)``."""
     return np.stack([_hog(w, hog, vector=True) for w in windows]).astype(np.float64)
+
+
+def _training_classes(items: list[tuple[str, SceneMesh]], S: int, hog: dict) -> list[str]:
+    """The classes of ``items`` in first-seen order; InputError unless there are at least 2
+    and an ``S``-px chip holds one HOG block."""
+    classes = list(dict.fromkeys(c for c, _ in items))
+    if len(classes) < 2:
+        raise InputError(f"targets: a HOG + SVM model needs at least 2 classes, got {classes}")
+    if min(_block_grid(S, hog)[:2]) < 1:
+        raise InputError(f"chip_spec.size: {S} px is too small for one HOG block ({hog})")
+    return classes
+
+
+def _chip_facts(spec: ChipSpec) -> dict:
+    """The training chips' settings, for the model's metadata."""
+    return {
+        "chip_size": int(spec.size),
+        "framing": spec.framing,
+        "camouflage": bool(spec.camouflage),
+        "noise_sigma": float(spec.noise_sigma),
+        "depth_noise_mm": float(spec.depth_noise_mm),
+        "chip_seed": int(spec.seed),
+    }
+
+
+def _fit_facts(
+    dec: NDArray[np.float64], lab: NDArray, npos: int, n_kind: dict[str, int], classes: list[str]
+) -> dict:
+    """Training-set counts, accuracy and background rejection for the model's metadata, from
+    the decision values ``dec`` ``(N, C)`` of the positives (first ``npos``) and negatives."""
+    train_acc = float(np.mean(np.argmax(dec[:npos], axis=1) == lab[:npos]))
+    neg = dec[npos:]
+    rejection = float(np.mean(np.max(neg, axis=1) < 0.0)) if len(neg) else float("nan")
+    counts = {c: int(np.sum(lab == i)) for i, c in enumerate(classes)}
+    return {
+        "n_positives": counts,
+        "n_negatives": {c: int(len(lab) - n) for c, n in counts.items()},
+        "n_background": n_kind,
+        "training_accuracy": train_acc,
+        "training_background_rejection": rejection,
+    }
 
 
 def _background_windows(

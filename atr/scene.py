@@ -161,6 +161,37 @@ def _ground_plane(P: NDArray, valid: NDArray, rng: np.random.Generator) -> tuple
     return n, d
 
 
+def _smooth_depth(d: NDArray[np.float32], size: int) -> NDArray[np.float32]:
+    """``d`` median-filtered over ``size`` px (made odd; 1: unchanged) among its valid pixels
+    (NaN stays NaN); where the median moves a depth by more than 5 %, the depth is kept."""
+    ds = d.copy()
+    k = int(size) | 1
+    if k > 1:  # median of the valid neighbours: a NaN-aware smoothing by filling then masking
+        fill = np.where(np.isfinite(d), d, 0).astype(np.float32)
+        ds = cv2.medianBlur(fill, min(k, 5)) if k <= 5 else ndimage.median_filter(fill, size=k)
+        ds = np.where(np.isfinite(d), ds, np.nan).astype(np.float32)
+        ds = np.where(np.abs(ds - d) > 0.05 * np.nan_to_num(d, nan=1.0), d, ds)
+    return ds
+
+
+def _cell_low(height: NDArray, flat: NDArray, valid: NDArray, n_cells: int) -> NDArray[np.float64]:
+    """The 10th-percentile height of each ground cell (``flat``: each pixel's cell index; inf
+    where no valid pixel of a cell is sampled), the raw input of the local ground."""
+    low = np.full(n_cells, np.inf)
+    # the 10th percentile per cell: the value at 10 % of each cell's heights sorted (every
+    # other pixel each way: a 2 m cell holds plenty, and the sort is 4x shorter)
+    sub = np.zeros_like(valid)
+    sub[::2, ::2] = True
+    sub &= valid
+    hv, fv = height[sub], flat[sub]
+    order = np.lexsort((hv, fv))  # by cell, then height
+    hv, fv = hv[order], fv[order]
+    first = np.flatnonzero(np.r_[True, fv[1:] != fv[:-1]])
+    counts = np.diff(np.r_[first, len(fv)])
+    low[fv[first]] = hv[first + counts // 10]
+    return low
+
+
 def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: DetectOptions | None = None,
                    *, seed: int = 0) -> SceneChannels:
     """Ground, figure objects, ranges and normals of an image + depth map (module docstring)."""
@@ -178,13 +209,7 @@ def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: Detect
     if fin.sum() >= 100:  # sky and points at near-zero disparity: no ground, no object there
         far = FAR_RATIO * float(np.median(d[fin]))
         d[fin & (d > far)] = np.nan
-    ds = d.copy()
-    k = int(o.depth_smooth_px) | 1
-    if k > 1:  # median of the valid neighbours: a NaN-aware smoothing by filling then masking
-        fill = np.where(np.isfinite(d), d, 0).astype(np.float32)
-        ds = cv2.medianBlur(fill, min(k, 5)) if k <= 5 else ndimage.median_filter(fill, size=k)
-        ds = np.where(np.isfinite(d), ds, np.nan).astype(np.float32)
-        ds = np.where(np.abs(ds - d) > 0.05 * np.nan_to_num(d, nan=1.0), d, ds)
+    ds = _smooth_depth(d, o.depth_smooth_px)
     valid = np.isfinite(ds)
     P = depth_to_points(ds, K)
     n, dd = _ground_plane(P, valid, np.random.default_rng(seed))
@@ -203,18 +228,7 @@ def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: Detect
         raise InputError(f"scene: spans {na * cell / 1000:.0f} x {nb * cell / 1000:.0f} m; "
                          "too large for a ground grid (is the depth in mm?)")
     flat = ia * nb + ib
-    low = np.full(na * nb, np.inf)
-    # the 10th percentile per cell: the value at 10 % of each cell's heights sorted (every
-    # other pixel each way: a 2 m cell holds plenty, and the sort is 4x shorter)
-    sub = np.zeros_like(valid)
-    sub[::2, ::2] = True
-    sub &= valid
-    hv, fv = height[sub], flat[sub]
-    order = np.lexsort((hv, fv))  # by cell, then height
-    hv, fv = hv[order], fv[order]
-    first = np.flatnonzero(np.r_[True, fv[1:] != fv[:-1]])
-    counts = np.diff(np.r_[first, len(fv)])
-    low[fv[first]] = hv[first + counts // 10]
+    low = _cell_low(height, flat, valid, na * nb)
     ground_grid = progressive_ground(low.reshape(na, nb), cell)
     ground = ground_grid.reshape(-1)[flat]
     hag = np.where(valid, height - ground, np.nan).astype(np.float32)

@@ -64,18 +64,7 @@ def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
                 events.append((d["score"], "hit", d["class"] == targets[j]["class"]))
     n_images = len(scenes)
     events.sort(key=lambda e: -e[0])
-    th, pd, fppi, ida = [], [], [], []
-    hits = fps = correct = 0
-    for i, (score, kind, ok) in enumerate(events):
-        hits += kind == "hit"
-        fps += kind != "hit"
-        correct += kind == "hit" and ok
-        if i + 1 < len(events) and events[i + 1][0] == score:
-            continue  # equal scores pass a threshold together
-        th.append(float(score))
-        pd.append(hits / n_targets if n_targets else float("nan"))
-        fppi.append(fps / n_images)
-        ida.append(correct / hits if hits else float("nan"))
+    th, pd, fppi, ida = _curve(events, n_targets, n_images)
     at = {}
     for x in FPPI_POINTS:
         ok = [i for i, f in enumerate(fppi) if f <= x]
@@ -95,6 +84,25 @@ def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
         "at_fppi": at,
         "pd_max": pd[-1] if pd else 0.0,
     }
+
+
+def _curve(events: list[tuple[float, str, bool]], n_targets: int, n_images: int
+           ) -> tuple[list[float], list[float], list[float], list[float]]:
+    """Threshold, Pd, FPPI and identification accuracy at each distinct score of ``events``
+    (``(score, kind, correct_id)``, in descending score)."""
+    th, pd, fppi, ida = [], [], [], []
+    hits = fps = correct = 0
+    for i, (score, kind, ok) in enumerate(events):
+        hits += kind == "hit"
+        fps += kind != "hit"
+        correct += kind == "hit" and ok
+        if i + 1 < len(events) and events[i + 1][0] == score:
+            continue  # equal scores pass a threshold together
+        th.append(float(score))
+        pd.append(hits / n_targets if n_targets else float("nan"))
+        fppi.append(fps / n_images)
+        ida.append(correct / hits if hits else float("nan"))
+    return th, pd, fppi, ida
 
 
 def _finite(v: object, what: str) -> float:
@@ -246,7 +254,6 @@ def write_scene_results(res: dict, path) -> None:
     from pathlib import Path
 
     import matplotlib.pyplot as plt
-
 
     fig = plot_fppi(res)
     try:

@@ -165,20 +165,7 @@ def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplat
                 if SIZE_TOLERANCE[0] * t.length <= L <= SIZE_TOLERANCE[1] * t.length
                 and SIZE_TOLERANCE[0] * t.width <= Wd <= SIZE_TOLERANCE[1] * max(t.width, 0.5 * t.length)
                 and SIZE_TOLERANCE[0] * t.height <= hgt <= SIZE_TOLERANCE[1] * t.height]
-        score, best = -1.0, None
-        if fits:
-            side = int(max(max(t.heights.shape) for t in fits) * 1.5) + 2 * play_cells + 4
-            M = cv2.getRotationMatrix2D((float(cx), float(cy)), float(theta), 1.0)
-            M[:, 2] += np.array([side / 2.0 - cx, side / 2.0 - cy])
-            own = np.where(lab == k, zf, np.minimum(zf, 0.3)).astype(np.float32)  # neighbours flattened
-            chip = cv2.warpAffine(own, M, (side, side), flags=cv2.INTER_LINEAR, borderValue=0.0)
-            for t in fits:
-                th, tw = t.heights.shape
-                r0 = side // 2 - th // 2 - play_cells
-                c0 = side // 2 - tw // 2 - play_cells
-                s = _best_match(chip[r0:r0 + th + 2 * play_cells, c0:c0 + tw + 2 * play_cells], t.heights, play_cells)
-                if s > score:
-                    score, best = s, t
+        score, best = _match_templates(zf, lab, k, cx, cy, theta, fits, play_cells)
         xm = west + (float(cx) + 0.5) * cell_m
         ym = north - (float(cy) + 0.5) * cell_m
         heading = (90.0 + theta) % 180.0  # image angle (x right, y down) -> compass, mod 180
@@ -188,6 +175,27 @@ def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplat
                     "score": round(score, 4)})
     out.sort(key=lambda d: -d["score"])
     return out
+
+
+def _match_templates(zf: NDArray, lab: NDArray, k: int, cx: float, cy: float, theta: float,
+                     fits: Sequence[NadirTemplate], play_cells: int) -> tuple[float, NadirTemplate | None]:
+    """Best correlation of object ``k``'s height chip (at ``cx, cy``, turned by ``theta`` onto its
+    long axis) with the templates that fit its size, and that template (-1, None: none fit)."""
+    score, best = -1.0, None
+    if fits:
+        side = int(max(max(t.heights.shape) for t in fits) * 1.5) + 2 * play_cells + 4
+        M = cv2.getRotationMatrix2D((float(cx), float(cy)), float(theta), 1.0)
+        M[:, 2] += np.array([side / 2.0 - cx, side / 2.0 - cy])
+        own = np.where(lab == k, zf, np.minimum(zf, 0.3)).astype(np.float32)  # neighbours flattened
+        chip = cv2.warpAffine(own, M, (side, side), flags=cv2.INTER_LINEAR, borderValue=0.0)
+        for t in fits:
+            th, tw = t.heights.shape
+            r0 = side // 2 - th // 2 - play_cells
+            c0 = side // 2 - tw // 2 - play_cells
+            s = _best_match(chip[r0:r0 + th + 2 * play_cells, c0:c0 + tw + 2 * play_cells], t.heights, play_cells)
+            if s > score:
+                score, best = s, t
+    return score, best
 
 
 def score_detections(dets: Sequence[dict], targets: Sequence[dict], n_frames: int, *, radius_m: float | None = None,
@@ -346,21 +354,7 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
                          f"pixels, more than {MAX_GRID_PIXELS:,}; survey a smaller area")
     X = (west + (np.arange(W) + 0.5) * gsd).astype(np.float64)
     Y = (north - (np.arange(H) + 0.5) * gsd).astype(np.float64)
-    # the orthophoto: area-averaged to about the grid first when finer, then sampled
-    f = float(mo["gsd"]) / gsd
-    src = o[..., :4] if o.shape[2] >= 4 else np.dstack([o, np.full(o.shape[:2], 255, np.uint8)])
-    s = 1.0
-    if f < 0.8:
-        src = cv2.resize(src, (max(1, int(round(o.shape[1] * f))), max(1, int(round(o.shape[0] * f)))),
-                         interpolation=cv2.INTER_AREA)
-        s = o.shape[1] / src.shape[1]
-    mx = ((X - mo["west"]) / (mo["gsd"] * s) - 0.5).astype(np.float32)
-    my = ((mo["north"] - Y) / (mo["gsd"] * s) - 0.5).astype(np.float32)
-    rgba = _remap_rows(src, mx, my, cv2.INTER_LINEAR)
-    covered = rgba[..., 3] >= 128
-    rgb = np.ascontiguousarray(rgba[..., :3])
-    grey = (rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)) / 255.0
-    grey[~covered] = np.nan
+    rgb, grey, covered = _ortho_on_grid(o, mo, X, Y, gsd)
     nx = ((X - west) / cell - 0.5).astype(np.float32)
     ny = ((north - Y) / cell - 0.5).astype(np.float32)
     z = _remap_rows(nd.astype(np.float32), nx, ny, cv2.INTER_NEAREST, nan=True)
@@ -379,6 +373,27 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
     lla = doc.get("origin_lla") if isinstance(doc, dict) else None
     return SurveyScene(grey.astype(np.float32), rgb, z, g, roi, west, north, gsd,
                        None if lla is None else tuple(float(v) for v in lla))
+
+
+def _ortho_on_grid(o: NDArray, mo: dict, X: NDArray, Y: NDArray, gsd: float
+                   ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.bool_]]:
+    """The orthophoto ``o`` (metadata ``mo``) at the grid's cell centres ``X``, ``Y``: area-averaged
+    to about the grid first when finer, then sampled. RGB, grey (NaN uncovered), covered cells."""
+    f = float(mo["gsd"]) / gsd
+    src = o[..., :4] if o.shape[2] >= 4 else np.dstack([o, np.full(o.shape[:2], 255, np.uint8)])
+    s = 1.0
+    if f < 0.8:
+        src = cv2.resize(src, (max(1, int(round(o.shape[1] * f))), max(1, int(round(o.shape[0] * f)))),
+                         interpolation=cv2.INTER_AREA)
+        s = o.shape[1] / src.shape[1]
+    mx = ((X - mo["west"]) / (mo["gsd"] * s) - 0.5).astype(np.float32)
+    my = ((mo["north"] - Y) / (mo["gsd"] * s) - 0.5).astype(np.float32)
+    rgba = _remap_rows(src, mx, my, cv2.INTER_LINEAR)
+    covered = rgba[..., 3] >= 128
+    rgb = np.ascontiguousarray(rgba[..., :3])
+    grey = (rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)) / 255.0
+    grey[~covered] = np.nan
+    return rgb, grey, covered
 
 
 def _remap_rows(img: NDArray, mx: NDArray, my: NDArray, interp: int, *, nan: bool = False) -> NDArray:

@@ -263,13 +263,7 @@ class RaycastRenderer:
         # accumulate: outputs sized for the worst case (every ray hits); pages never
         # written cost nothing, the result is a view [:m]. stream: one chunk's worth.
         size = n if consume is None else min(n, chunk)
-        index = np.empty(size, dtype=np.int64)
-        obj = np.empty(size, dtype=np.int32)
-        face = np.empty(size, dtype=np.int64)
-        t = np.empty(size)
-        uv = np.empty((size, 2))
-        pts = np.empty((size, 3))
-        nrm = np.empty((size, 3))
+        bufs = _hit_buffers(size)
         extra: NDArray[np.float64] | None = None
         m = 0
         for s in range(0, n, chunk):
@@ -294,8 +288,7 @@ class RaycastRenderer:
                 refine_compact(
                     oc, dc, rid, idx, gid, ans["primitive_ids"].numpy(), t32, ans["primitive_uvs"].numpy(),
                     self._gid_map, self._offsets, self._a, self._e1, self._e2, self._n, s,
-                    index[m : m + k], obj[m : m + k], face[m : m + k], t[m : m + k], uv[m : m + k],
-                    pts[m : m + k], nrm[m : m + k],
+                    *(b[m : m + k] for b in bufs),
                 )
                 if zc is not None:
                     if extra is None:
@@ -303,16 +296,10 @@ class RaycastRenderer:
                     extra[m : m + k] = zc[rid[idx]]
             m += k
             if consume is not None:
-                consume(s, e, _Hits(
-                    index[:m], obj[:m], face[:m], t[:m], uv[:m], pts[:m], nrm[:m],
-                    None if extra is None else extra[:m],
-                ))
+                consume(s, e, _first_hits(bufs, extra, m))
         if consume is not None:
             return None
-        return _Hits(
-            index[:m], obj[:m], face[:m], t[:m], uv[:m], pts[:m], nrm[:m],
-            None if extra is None else extra[:m],
-        )
+        return _first_hits(bufs, extra, m)
 
     def albedo(self, hits: RayHits | CameraHits, dtype: type = np.float64) -> NDArray:
         """Albedo ``(N, 3)`` (``dtype``) at the hits (0 for misses), via ``SceneMesh.albedo_at``."""
@@ -586,6 +573,20 @@ class _Hits(_CompactHits):
     """Compact hits and ``extra`` (M,), the traced rays' extra values at the hits."""
 
     extra: NDArray[np.float64] | None = None
+
+
+def _hit_buffers(size: int) -> tuple[NDArray, ...]:
+    """Uninitialised outputs for ``size`` hits, in :class:`_CompactHits` field order: ray
+    index, object id, face id, ``t``, barycentric uv, points, normals."""
+    return (
+        np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int32), np.empty(size, dtype=np.int64),
+        np.empty(size), np.empty((size, 2)), np.empty((size, 3)), np.empty((size, 3)),
+    )
+
+
+def _first_hits(bufs: tuple[NDArray, ...], extra: NDArray[np.float64] | None, m: int) -> _Hits:
+    """The first ``m`` hits of :func:`_hit_buffers` outputs and ``extra`` (views, no copies)."""
+    return _Hits(*(b[:m] for b in bufs), None if extra is None else extra[:m])
 
 
 @dataclass(eq=False)

@@ -540,6 +540,20 @@ def _has_own_albedo(mesh: SceneMesh) -> bool:
 _PlannedShot = tuple[str, str, list[tuple[SceneMesh, NDArray]], dict[str, NDArray]]
 
 
+def _check_rig_target(kind: str, rig: StereoRig | None, target: SceneMesh | None) -> StereoRig:
+    """The rig (None = :func:`paper_rig`), checked, and for ``scene`` the target mesh checked."""
+    if rig is None:
+        rig = paper_rig()
+    if not isinstance(rig, StereoRig):
+        raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
+    if kind == "scene":
+        if target is None:
+            raise InputError("simulate scene: a target mesh is required (target=SceneMesh)")
+        if not isinstance(target, SceneMesh):
+            raise InputError(f"target: expected a SceneMesh, got {type(target).__name__}")
+    return rig
+
+
 def simulate_to_folder(
     kind: str,
     out_dir: str | Path,
@@ -568,15 +582,7 @@ def simulate_to_folder(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
-    if rig is None:
-        rig = paper_rig()
-    if not isinstance(rig, StereoRig):
-        raise InputError(f"rig: expected a StereoRig, got {type(rig).__name__}")
-    if kind == "scene":
-        if target is None:
-            raise InputError("simulate scene: a target mesh is required (target=SceneMesh)")
-        if not isinstance(target, SceneMesh):
-            raise InputError(f"target: expected a SceneMesh, got {type(target).__name__}")
+    rig = _check_rig_target(kind, rig, target)
     use_pattern = (kind != "calib") if opts.pattern is None else bool(opts.pattern)
     projector = Projector.for_rig(rig, pattern=use_pattern, seed=opts.seed if opts.seed else None)
     files: list[str] = []

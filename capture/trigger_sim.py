@@ -191,6 +191,44 @@ def _point_link(link: Path, target: str) -> None:
     os.replace(tmp, link)
 
 
+def _send(master: int, data: bytes) -> None:
+    """Write ``data`` to the pty master: dropped (logged) when its buffer is full, ignored
+    once the pty is gone (EIO, EBADF)."""
+    try:
+        os.write(master, data)
+    except BlockingIOError:
+        log.debug("simulator output buffer full; dropped %r", data)
+    except OSError as exc:
+        if exc.errno not in (errno.EIO, errno.EBADF):
+            raise
+
+
+def _read_pty(master: int) -> bytes | None:
+    """Bytes the host wrote, or None when there is nothing to read after all (the caller
+    polls again)."""
+    try:
+        return os.read(master, 4096)
+    except BlockingIOError:
+        return None
+    except OSError as exc:  # EIO: no process has the slave open (we hold it, so rare)
+        if exc.errno == errno.EIO:
+            time.sleep(0.02)
+            return None
+        raise
+
+
+def _send_garbage(master: int, line: bytes, rng: random.Random) -> None:
+    """The ``garbage`` fault for one device line: random junk or, as often, the line with a
+    corrupted checksum."""
+    if rng.random() < 0.5:
+        junk = bytes(rng.randrange(256) for _ in range(rng.randint(4, 60)))
+        _send(master, junk + b"\n")
+    else:  # the real line with a corrupted checksum
+        body = line[:-3]
+        bad = (int(line[-3:-1], 16) ^ 0x5A) & 0xFF
+        _send(master, body + b"%02X\n" % bad)
+
+
 def _serve_connection(
     master: int,
     device: SimulatedDevice,
@@ -204,35 +242,19 @@ def _serve_connection(
     pending: list[tuple[float, bytes]] = []
     replies_seen = 0
     commands = 0
-
-    def send(data: bytes) -> None:
-        try:
-            os.write(master, data)
-        except BlockingIOError:
-            log.debug("simulator output buffer full; dropped %r", data)
-        except OSError as exc:
-            if exc.errno not in (errno.EIO, errno.EBADF):
-                raise
-
     while not stop.is_set():
         now = time.monotonic()
         due = [p for p in pending if p[0] <= now]
         pending = [p for p in pending if p[0] > now]
         for _, data in due:
-            send(data)
+            _send(master, data)
         wait = 0.05 if not pending else max(0.0, min(0.05, min(p[0] for p in pending) - now))
         r, _, _ = select.select([master], [], [], wait)
         if not r:
             continue
-        try:
-            data = os.read(master, 4096)
-        except BlockingIOError:
+        data = _read_pty(master)
+        if data is None:
             continue
-        except OSError as exc:  # EIO: no process has the slave open (we hold it, so rare)
-            if exc.errno == errno.EIO:
-                time.sleep(0.02)
-                continue
-            raise
         for item in parser.feed(data):
             out = device.handle(item)
             commands += 1
@@ -241,13 +263,7 @@ def _serve_connection(
                 if fault == "silence":
                     continue
                 if fault == "garbage":
-                    if rng.random() < 0.5:
-                        junk = bytes(rng.randrange(256) for _ in range(rng.randint(4, 60)))
-                        send(junk + b"\n")
-                    else:  # the real line with a corrupted checksum
-                        body = line[:-3]
-                        bad = (int(line[-3:-1], 16) ^ 0x5A) & 0xFF
-                        send(body + b"%02X\n" % bad)
+                    _send_garbage(master, line, rng)
                     continue
                 if fault == "drop" and is_reply:
                     replies_seen += 1
@@ -256,7 +272,7 @@ def _serve_connection(
                 if fault == "slow":
                     pending.append((time.monotonic() + slow_s, line))
                     continue
-                send(line)
+                _send(master, line)
             if fault == "disconnect" and commands >= 1:
                 # Let the host read the answer, then "reset" (close the pty).
                 stop.wait(_DISCONNECT_HOLDOFF_S)

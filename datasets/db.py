@@ -114,7 +114,6 @@ def write_table(
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-
     df = df.copy()
     df["schema_version"] = np.int64(TABLE_SCHEMA_VERSION)
     table = pa.Table.from_pandas(df, preserve_index=False)
@@ -445,7 +444,6 @@ def init_db(path: str | Path) -> TargetDB:
     """
     import yaml
 
-
     p = Path(path)
     if (p / "db.yaml").exists():
         raise DatasetError(f"{p}: already a prism3d database (db.yaml exists)")
@@ -525,52 +523,12 @@ def verify_db(db: TargetDB | str | Path, *, check_hashes: bool = True) -> list[s
         t = db.targets()
     except DatasetError as exc:
         return [str(exc)]
-    for r in t.itertuples(index=False):
-        try:
-            f = db.resolve(r.model_file, f"targets {r.target_id} model_file")
-        except DatasetError as exc:
-            problems.append(str(exc))
-            continue
-        if not f.is_file():
-            problems.append(f"target {r.target_id}: model file {r.model_file} missing")
-        elif check_hashes and sha256_file(f) != r.model_sha256:
-            problems.append(f"target {r.target_id}: model file {r.model_file} sha256 mismatch")
+    problems += _model_problems(db, t, check_hashes)
     for job in db.jobs():
         problems += _job_yaml_problems(db, job)
-        mdir = db.job_dir(job) / "manifest"
         referenced: set[Path] = set()
-        seen_chips: set[tuple[str, int]] = set()
-        for part in sorted(mdir.glob("part-*.parquet")):
-            try:
-                df = read_table(part)
-            except DatasetError as exc:
-                problems.append(str(exc))
-                continue
-            keys = set(zip(df["target_id"], df["chip_index"].astype(int)))
-            if len(keys) < len(df) or keys & seen_chips:
-                problems.append(f"job {job}: duplicate manifest rows (target_id, chip_index) in {part.name}")
-            seen_chips |= keys
-            for rel, sha in zip(df["chip_file"], df["sha256"]):
-                try:
-                    f = db.resolve(rel, f"{part.relative_to(db.path)} chip_file")
-                except DatasetError as exc:
-                    problems.append(str(exc))
-                    continue
-                referenced.add(f.resolve())
-                if not f.is_file():
-                    problems.append(f"job {job}: chip file {rel} missing ({part.name})")
-                elif check_hashes and sha256_file(f) != sha:
-                    problems.append(f"job {job}: chip file {rel} sha256 mismatch ({part.name})")
-        cdir = db.job_dir(job) / "chips"
-        if cdir.is_dir():
-            for f in sorted(cdir.rglob("*.npz")):
-                if f.name.startswith("."):
-                    continue
-                if f.resolve() not in referenced:
-                    problems.append(
-                        f"job {job}: orphan chip {f.relative_to(db.path)} (no manifest row; "
-                        "from an interrupted unit, rerun the job to complete it)"
-                    )
+        problems += _manifest_problems(db, job, check_hashes, referenced)
+        problems += _orphan_chip_problems(db, job, referenced)
         fdir = db.path / "features" / job
         for part in sorted(fdir.glob("part-*.parquet")) if fdir.is_dir() else []:
             try:
@@ -587,6 +545,69 @@ def verify_db(db: TargetDB | str | Path, *, check_hashes: bool = True) -> list[s
         problems.append(
             f"leftover temporary file {f.relative_to(db.path)} (interrupted write; safe to delete)"
         )
+    return problems
+
+
+def _model_problems(db: TargetDB, t: Any, check_hashes: bool) -> list[str]:
+    """Model files of the targets table ``t`` outside the DB, missing or (``check_hashes``)
+    not matching their recorded sha256."""
+    problems: list[str] = []
+    for r in t.itertuples(index=False):
+        try:
+            f = db.resolve(r.model_file, f"targets {r.target_id} model_file")
+        except DatasetError as exc:
+            problems.append(str(exc))
+            continue
+        if not f.is_file():
+            problems.append(f"target {r.target_id}: model file {r.model_file} missing")
+        elif check_hashes and sha256_file(f) != r.model_sha256:
+            problems.append(f"target {r.target_id}: model file {r.model_file} sha256 mismatch")
+    return problems
+
+
+def _manifest_problems(db: TargetDB, job: str, check_hashes: bool, referenced: set[Path]) -> list[str]:
+    """Unreadable manifest parts of ``job``, duplicate (target_id, chip_index) rows and chip
+    files outside the DB, missing or with a wrong sha256; adds the chips found to ``referenced``."""
+    problems: list[str] = []
+    mdir = db.job_dir(job) / "manifest"
+    seen_chips: set[tuple[str, int]] = set()
+    for part in sorted(mdir.glob("part-*.parquet")):
+        try:
+            df = read_table(part)
+        except DatasetError as exc:
+            problems.append(str(exc))
+            continue
+        keys = set(zip(df["target_id"], df["chip_index"].astype(int)))
+        if len(keys) < len(df) or keys & seen_chips:
+            problems.append(f"job {job}: duplicate manifest rows (target_id, chip_index) in {part.name}")
+        seen_chips |= keys
+        for rel, sha in zip(df["chip_file"], df["sha256"]):
+            try:
+                f = db.resolve(rel, f"{part.relative_to(db.path)} chip_file")
+            except DatasetError as exc:
+                problems.append(str(exc))
+                continue
+            referenced.add(f.resolve())
+            if not f.is_file():
+                problems.append(f"job {job}: chip file {rel} missing ({part.name})")
+            elif check_hashes and sha256_file(f) != sha:
+                problems.append(f"job {job}: chip file {rel} sha256 mismatch ({part.name})")
+    return problems
+
+
+def _orphan_chip_problems(db: TargetDB, job: str, referenced: set[Path]) -> list[str]:
+    """Chip files of ``job`` no manifest row references (left by an interrupted unit)."""
+    problems: list[str] = []
+    cdir = db.job_dir(job) / "chips"
+    if cdir.is_dir():
+        for f in sorted(cdir.rglob("*.npz")):
+            if f.name.startswith("."):
+                continue
+            if f.resolve() not in referenced:
+                problems.append(
+                    f"job {job}: orphan chip {f.relative_to(db.path)} (no manifest row; "
+                    "from an interrupted unit, rerun the job to complete it)"
+                )
     return problems
 
 

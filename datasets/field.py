@@ -290,63 +290,85 @@ def _in_view(rig: StereoRig, T_world_rig: NDArray, pts_world: NDArray, margin_px
     return True
 
 
-def plan_field(options: FieldOptions | None = None) -> FieldScene:
-    """Draw a field scene: layout, paints and sun from ``options.seed`` (no rendering)."""
-    o = FieldOptions() if options is None else options
-    rng = np.random.default_rng(o.seed)
-    rig, T_world_rig = _field_rig(o)
-    wy = 0.5 * (o.land_range_m[1] + o.water_range_m[0]) * 1000.0
-    waves = tuple((float(math.cos(t) * k), float(math.sin(t) * k), float(rng.uniform(0, 2 * math.pi)), float(a))
-                  for t, k, a in zip(rng.uniform(0, math.pi, 3),
-                                     2 * math.pi / (rng.uniform(35, 90, 3) * 1000.0), (600.0, 350.0, 200.0)))
-    terrain = Terrain(waves, wy)
-    half_fov = math.atan(rig.left.width / 2.0 / rig.left.fx) + 0.1
-    ground = terrain.mesh(lambda y: y * math.tan(half_fov) + 25_000.0, 4000.0, o.water_range_m[1] * 1600.0, o.seed)
-    objects: list[tuple[SceneMesh, NDArray]] = [(ground, np.eye(4))]
-    records: list[dict[str, Any]] = []
-    taken: list[tuple[float, float, float]] = []  # (x, y, radius) mm of placed footprints
+def _terrain_waves(rng: np.random.Generator) -> tuple[tuple[float, float, float, float], ...]:
+    """The rolling terrain's three ground swells ``(kx, ky, phase, amplitude mm)``, drawn
+    from ``rng``."""
+    return tuple((float(math.cos(t) * k), float(math.sin(t) * k), float(rng.uniform(0, 2 * math.pi)), float(a))
+                 for t, k, a in zip(rng.uniform(0, math.pi, 3),
+                                    2 * math.pi / (rng.uniform(35, 90, 3) * 1000.0), (600.0, 350.0, 200.0)))
 
-    def place(mesh: SceneMesh, zone: tuple[float, float], spacing: float = 1.5, tries: int = 200,
-              in_view: bool = True) -> NDArray | None:
-        lo, hi = mesh.bounds
-        rad = float(np.hypot(*(hi[:2] - lo[:2])) / 2.0)
-        for _ in range(tries):
-            rng_m = rng.uniform(*zone) * 1000.0
-            bearing = rng.uniform(-half_fov, half_fov)
-            x, y = rng_m * math.sin(bearing), rng_m * math.cos(bearing)
-            if any(math.hypot(x - a, y - b) < spacing * (rad + r) for a, b, r in taken):
+
+def _place(mesh: SceneMesh, zone: tuple[float, float], rng: np.random.Generator, terrain: Terrain,
+           view: tuple[StereoRig, NDArray[np.float64], float], taken: list[tuple[float, float, float]],
+           spacing: float = 1.5, tries: int = 200, in_view: bool = True) -> NDArray | None:
+    """``T_world_obj`` of a free spot for ``mesh`` (range in ``zone`` m, bearing within ``view``'s
+    half fov, sunk into the terrain, whole in both views if ``in_view``), added to ``taken``; or None."""
+    rig, T_world_rig, half_fov = view
+    lo, hi = mesh.bounds
+    rad = float(np.hypot(*(hi[:2] - lo[:2])) / 2.0)
+    for _ in range(tries):
+        rng_m = rng.uniform(*zone) * 1000.0
+        bearing = rng.uniform(-half_fov, half_fov)
+        x, y = rng_m * math.sin(bearing), rng_m * math.cos(bearing)
+        if any(math.hypot(x - a, y - b) < spacing * (rad + r) for a, b, r in taken):
+            continue
+        head = float(rng.uniform(0.0, 360.0))
+        T = _pose(x, y, 0.0, head)
+        fp = np.array([[lo[0], lo[1]], [lo[0], hi[1]], [hi[0], lo[1]], [hi[0], hi[1]], [0, 0]])
+        fw = fp @ T[:2, :2].T + T[:2, 3]
+        T[2, 3] = float(np.min(terrain.height(fw[:, 0], fw[:, 1]))) - 30.0
+        if in_view:
+            corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+            if not _in_view(rig, T_world_rig, corners @ T[:3, :3].T + T[:3, 3]):
                 continue
-            head = float(rng.uniform(0.0, 360.0))
-            T = _pose(x, y, 0.0, head)
-            fp = np.array([[lo[0], lo[1]], [lo[0], hi[1]], [hi[0], lo[1]], [hi[0], hi[1]], [0, 0]])
-            fw = fp @ T[:2, :2].T + T[:2, 3]
-            T[2, 3] = float(np.min(terrain.height(fw[:, 0], fw[:, 1]))) - 30.0
-            if in_view:
-                corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
-                if not _in_view(rig, T_world_rig, corners @ T[:3, :3].T + T[:3, 3]):
-                    continue
-            taken.append((x, y, rad))
-            return T
-        return None
+        taken.append((x, y, rad))
+        return T
+    return None
 
+
+def _pick_objects(o: FieldOptions, rng: np.random.Generator) -> list[tuple[str, bool]]:
+    """``(name, confuser)`` of the scene's targets (drawn from ``o.classes``), then of its
+    confusers (other military built-ins, not ships, and the shape confusers)."""
     n_t = int(rng.integers(3, 7)) if o.targets is None else int(o.targets)
     n_c = int(rng.integers(1, 4)) if o.confusers is None else int(o.confusers)
     picks = [(str(rng.choice(list(o.classes))), False) for _ in range(n_t)]
     others = [n for n in list_builtin_targets("military") if n not in o.classes and not n.startswith("ship")]
     pool = others + list(SHAPE_CONFUSERS)
     picks += [(str(rng.choice(pool)), True) for _ in range(n_c)]
-    for k, (name, confuser) in enumerate(picks):
+    return picks
+
+
+def _object_mesh(name: str, rng: np.random.Generator, seed_k: int) -> SceneMesh:
+    """Full-size mesh of a picked target or confuser: a shape confuser (drawn from ``rng``),
+    a user's mesh file spec or a built-in, painted with camouflage seed ``seed_k``."""
+    if name in SHAPE_CONFUSERS:
+        return prop_mesh(name, rng, seed_k)
+    if "=" in name:  # a user's mesh file, full size, its class in the spec
+        cls, mesh = resolve_model(name, scale="full")
+        return replace_metadata(mesh, cls)
+    return builtin_target(name, scale="full", seed=seed_k)
+
+
+def plan_field(options: FieldOptions | None = None) -> FieldScene:
+    """Draw a field scene: layout, paints and sun from ``options.seed`` (no rendering)."""
+    o = FieldOptions() if options is None else options
+    rng = np.random.default_rng(o.seed)
+    rig, T_world_rig = _field_rig(o)
+    wy = 0.5 * (o.land_range_m[1] + o.water_range_m[0]) * 1000.0
+    waves = _terrain_waves(rng)
+    terrain = Terrain(waves, wy)
+    half_fov = math.atan(rig.left.width / 2.0 / rig.left.fx) + 0.1
+    ground = terrain.mesh(lambda y: y * math.tan(half_fov) + 25_000.0, 4000.0, o.water_range_m[1] * 1600.0, o.seed)
+    objects: list[tuple[SceneMesh, NDArray]] = [(ground, np.eye(4))]
+    records: list[dict[str, Any]] = []
+    taken: list[tuple[float, float, float]] = []  # (x, y, radius) mm of placed footprints
+    view = (rig, T_world_rig, half_fov)
+    for k, (name, confuser) in enumerate(_pick_objects(o, rng)):
         seed_k = SCENE_CAMO_SEED_BASE + o.seed * 16 + k
-        if name in SHAPE_CONFUSERS:
-            mesh = prop_mesh(name, rng, seed_k)
-        elif "=" in name:  # a user's mesh file, full size, its class in the spec
-            cls, mesh = resolve_model(name, scale="full")
-            mesh = replace_metadata(mesh, cls)
-        else:
-            mesh = builtin_target(name, scale="full", seed=seed_k)
+        mesh = _object_mesh(name, rng, seed_k)
         lo, hi = mesh.bounds
         water = float(np.hypot(*(hi[:2] - lo[:2])) / 2.0) > LAND_MAX_RADIUS_MM
-        T = place(mesh, o.water_range_m if water else o.land_range_m, spacing=1.3)
+        T = _place(mesh, o.water_range_m if water else o.land_range_m, rng, terrain, view, taken, spacing=1.3)
         if T is None:
             continue
         if water:
@@ -358,7 +380,8 @@ def plan_field(options: FieldOptions | None = None) -> FieldScene:
     kinds = rng.choice(["rock", "bush", "tree", "building"], size=int(o.clutter), p=[0.35, 0.35, 0.2, 0.1])
     for j, kind in enumerate(kinds):
         mesh = prop_mesh(str(kind), rng, o.seed * 1000 + j)
-        T = place(mesh, (o.land_range_m[0] * 0.8, o.land_range_m[1] * 1.6), spacing=1.1, tries=30, in_view=False)
+        T = _place(mesh, (o.land_range_m[0] * 0.8, o.land_range_m[1] * 1.6), rng, terrain, view, taken,
+                   spacing=1.1, tries=30, in_view=False)
         if T is not None:
             objects.append((mesh, T))
     el = math.radians(rng.uniform(35.0, 65.0))
@@ -390,6 +413,33 @@ def distant_sun(sun_dir_world: NDArray, centre_world: NDArray, radius_mm: float,
     f = w * dist / (2.5 * radius_mm)
     K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
     return Projector(K, (w, h), None, T_rig_proj, dist)
+
+
+def _target_truth(scene: FieldScene, objs: list[tuple[SceneMesh, NDArray]],
+                  oid: NDArray) -> list[dict[str, Any]]:
+    """``truth.json`` ``targets`` records (see :func:`simulate_field`) of the scene's targets and
+    confusers, from the rendered left-view object ids ``oid`` and ``objs`` in the rig frame."""
+    rig = scene.rig
+    T_left_rig = np.linalg.inv(rig.T_rig_left)
+    targets = []
+    for k, rec in enumerate(scene.records):
+        mesh, T_rig_obj = objs[rec["object_index"]]
+        vis = oid == rec["object_index"]
+        alone = _silhouette(mesh, T_rig_obj, rig)
+        frac = float(vis.sum() / max(alone.sum(), 1))
+        T_left_obj = T_left_rig @ T_rig_obj
+        c_obj = mesh.bounds.mean(axis=0)
+        xyz = T_left_obj[:3, :3] @ c_obj + T_left_obj[:3, 3]
+        rr, cc = np.nonzero(vis if vis.any() else alone)
+        box_rc = [int(rr.min()), int(cc.min()), int(rr.max()), int(cc.max())] if len(rr) else [0, 0, -1, -1]
+        targets.append({
+            "instance": k, "class": rec["class"], "name": rec["name"], "confuser": rec["confuser"], "box_rc": box_rc,
+            "xyz_mm": [float(v) for v in xyz], "radius_mm": float(np.max(np.linalg.norm(mesh.vertices - c_obj, axis=1))),
+            "range_mm": float(np.linalg.norm(xyz)), "heading_deg": rec["heading_deg"], "zone": rec["zone"],
+            "visible_fraction": round(frac, 4), "difficult": bool(frac < DIFFICULT_VISIBLE_FRACTION),
+            "camouflage_seed": rec["camouflage_seed"], "object_index": rec["object_index"],
+        })
+    return targets
 
 
 def simulate_field(out_dir: str | Path, options: FieldOptions | None = None, *,
@@ -424,25 +474,7 @@ def simulate_field(out_dir: str | Path, options: FieldOptions | None = None, *,
         progress(1, 3, "rendered")
     rig = scene.rig
     oid = shot.truth["object_id_left"]
-    T_left_rig = np.linalg.inv(rig.T_rig_left)
-    targets = []
-    for k, rec in enumerate(scene.records):
-        mesh, T_rig_obj = objs[rec["object_index"]]
-        vis = oid == rec["object_index"]
-        alone = _silhouette(mesh, T_rig_obj, rig)
-        frac = float(vis.sum() / max(alone.sum(), 1))
-        T_left_obj = T_left_rig @ T_rig_obj
-        c_obj = mesh.bounds.mean(axis=0)
-        xyz = T_left_obj[:3, :3] @ c_obj + T_left_obj[:3, 3]
-        rr, cc = np.nonzero(vis if vis.any() else alone)
-        box_rc = [int(rr.min()), int(cc.min()), int(rr.max()), int(cc.max())] if len(rr) else [0, 0, -1, -1]
-        targets.append({
-            "instance": k, "class": rec["class"], "name": rec["name"], "confuser": rec["confuser"], "box_rc": box_rc,
-            "xyz_mm": [float(v) for v in xyz], "radius_mm": float(np.max(np.linalg.norm(mesh.vertices - c_obj, axis=1))),
-            "range_mm": float(np.linalg.norm(xyz)), "heading_deg": rec["heading_deg"], "zone": rec["zone"],
-            "visible_fraction": round(frac, 4), "difficult": bool(frac < DIFFICULT_VISIBLE_FRACTION),
-            "camouflage_seed": rec["camouflage_seed"], "object_index": rec["object_index"],
-        })
+    targets = _target_truth(scene, objs, oid)
     doc = {
         "schema_version": FIELD_SCHEMA_VERSION, "units": "mm",
         "camera": "left view of the prism rig, OpenCV frame; box_rc in left-view pixels",

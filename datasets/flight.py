@@ -689,7 +689,6 @@ def _fly(stage: Path, plan: FlightPlan, o: FlightOptions, names: list[str], lla:
     while the next renders, one frame behind, so at most two frames are in memory."""
     from concurrent.futures import Future, ThreadPoolExecutor
 
-
     effects = CameraEffects()
     shot = ShotOptions(ambient=_AMBIENT, flash=_SUN, supersample=o.supersample, noise=o.noise, seed=o.seed,
                        effects=effects)

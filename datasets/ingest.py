@@ -215,6 +215,30 @@ def _model_bytes(mesh: Any, comments: list[str]) -> bytes:
         return f.read_bytes()
 
 
+def _scaled_to_length(path: Path, mesh: SceneMesh, length_mm: float) -> tuple[SceneMesh, float]:
+    """``mesh`` scaled so its larger horizontal extent is ``length_mm``, and the factor."""
+    check_length_mm(length_mm)
+    ext = float(np.max(np.ptp(mesh.vertices[:, :2], axis=0)))
+    if not ext > 0:
+        raise DatasetError(f"{path}: degenerate mesh (zero horizontal extent)")
+    k = float(length_mm) / ext
+    mesh = SceneMesh(
+        mesh.vertices * k, mesh.faces, vertex_albedo=mesh.vertex_albedo, name=mesh.name
+    )
+    return mesh, k
+
+
+def _model_comments(path: Path, sha: str, scale: float) -> list[str]:
+    """PLY comments of a normalised model: its frame and units, source file and scale."""
+    return [
+        "units mm",
+        "up z",
+        "prism3d normalised target model (x forward, y left, z up)",
+        f"source {path.name} sha256 {sha}",
+        f"scale_to_mm {scale:.9g}",
+    ]
+
+
 def _load_file(
     path: Path,
     target_class: str,
@@ -236,14 +260,7 @@ def _load_file(
         raise DatasetError(f"{path}: cannot load mesh ({exc})") from None
     scale = UNITS_MM[u]
     if length_mm is not None:
-        check_length_mm(length_mm)
-        ext = float(np.max(np.ptp(mesh.vertices[:, :2], axis=0)))
-        if not ext > 0:
-            raise DatasetError(f"{path}: degenerate mesh (zero horizontal extent)")
-        k = float(length_mm) / ext
-        mesh = SceneMesh(
-            mesh.vertices * k, mesh.faces, vertex_albedo=mesh.vertex_albedo, name=mesh.name
-        )
+        mesh, k = _scaled_to_length(path, mesh, length_mm)
         scale *= k
     dims = tuple(float(x) for x in np.ptp(mesh.vertices, axis=0))
     if not all(math.isfinite(d) for d in dims) or max(dims) <= 0:
@@ -252,13 +269,7 @@ def _load_file(
     if warning:
         log.warning("%s", warning)
     sha = sha256_file(path)
-    comments = [
-        "units mm",
-        "up z",
-        "prism3d normalised target model (x forward, y left, z up)",
-        f"source {path.name} sha256 {sha}",
-        f"scale_to_mm {scale:.9g}",
-    ]
+    comments = _model_comments(path, sha, scale)
     kind, provenance, coverage = "file", f"file {path.name}", float("nan")
     if _is_scan(path):
         kind = "scan"

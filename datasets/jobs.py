@@ -379,7 +379,6 @@ def model_features_unit(db_path: str, target_id: str) -> dict[str, Any]:
     """Model features of one target's normalised model (worker entry point)."""
     import pandas as pd
 
-
     db = open_db(db_path)
     t = db.targets()
     r = t[t["target_id"] == target_id].iloc[0]
@@ -534,7 +533,6 @@ def _select_targets(
 def _store_spec(db: TargetDB, spec: RenderSpec) -> None:
     """Write ``job.yaml``, or check that the stored spec is the same."""
     import yaml
-
 
     jf = db.job_dir(spec.name) / "job.yaml"
     if jf.is_file():

@@ -104,7 +104,6 @@ def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames) -> 
     the estimated height there, and that estimated point back into the truth's frame."""
     import cv2
 
-
     gsd = float(truth["gsd_m"])
     tdsm, tid = tz["dsm"], tz["object_id"]
     west, north, cell = float(tz["west"]), float(tz["north"]), float(tz["cell_m"])

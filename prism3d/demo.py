@@ -109,7 +109,6 @@ def depth_figure(depth_mm: Any, title: str) -> bytes:
     import matplotlib.pyplot as plt
     import numpy as np
 
-
     fig, ax = plt.subplots(figsize=(5, 4.2))
     d = np.asarray(depth_mm, dtype=np.float32)
     finite = d[np.isfinite(d)]
@@ -124,7 +123,6 @@ def depth_figure(depth_mm: Any, title: str) -> bytes:
 def _stage_simulate(ctx: DemoContext) -> Section:
     """The virtual prism rig: one flash shot of a camouflaged target, with ground truth."""
     import numpy as np
-
 
     s = Section("Virtual prism rig: a simulated flash shot and its ground truth")
     out = ctx.path("simulate")
@@ -172,7 +170,6 @@ def demo_rig(ctx: DemoContext) -> Any:
 
 def _stage_calibration(ctx: DemoContext) -> Section:
     """Simulated chessboard shots -> calibration by bundle adjustment; recovered vs true."""
-
 
     s = Section(f"Calibration: 5 simulated chessboard shots ({DEMO_BOARD[0]}x{DEMO_BOARD[1]} corners, "
                 f"{DEMO_SQUARE_MM:g} mm squares), bundle adjustment")
@@ -272,7 +269,6 @@ def cloud_figure(points: Any, colors: Any, title: str, *, max_points: int = 3000
     import matplotlib.pyplot as plt
     import numpy as np
 
-
     p = np.asarray(points, dtype=np.float64)
     c = None if colors is None else np.asarray(colors, dtype=np.float64) / 255.0
     if len(p) > max_points:
@@ -291,7 +287,6 @@ def _scan_views(ctx: DemoContext, out: Path, rig: Any, n: int) -> list[tuple[Any
     """Reconstruct the ``n`` simulated turntable shots in ``out`` at the stitcher's
     confidence (what `prism3d stitch` keeps from scan files) and save them."""
     import numpy as np
-
 
     scans = []
     for k in range(n):
@@ -322,7 +317,6 @@ def _stage_model360(ctx: DemoContext) -> Section:
     import json
 
     import numpy as np
-
 
     s = Section("360-degree model: 8 shots on a turntable, reconstructed and stitched")
     true = ctx.results.get("true_rig") or demo_rig(ctx)
@@ -376,8 +370,6 @@ def _stage_decamo(ctx: DemoContext) -> Section:
     """Camouflage removal on one reconstructed view."""
     import numpy as np
 
-
-
     s = Section("Camouflage removal on one view (depth from the reconstruction)")
     rec = ctx.results.get("view0")
     if rec is None:
@@ -421,7 +413,6 @@ def _stage_decamo(ctx: DemoContext) -> Section:
 def _stage_features(ctx: DemoContext) -> Section:
     """Size/profile/surface features of the built-in targets -> Parquet."""
     import pandas as pd
-
 
     s = Section("ATR features of the built-in targets")
     rows = []
@@ -468,7 +459,6 @@ def _stage_bank(ctx: DemoContext) -> Section:
     """Correlation filter banks trained on renders, evaluated on unseen poses."""
     from dataclasses import replace
 
-
     s = Section("Recognition: OT-MACH correlation filter banks on rendered chips")
     names = ["tank_t1", "jet_j1", "ship_s1", "truck_k1"]
     train = resolve_targets(names, seed=ctx.seed)
@@ -504,7 +494,6 @@ def _stage_scanned_bank(ctx: DemoContext) -> Section:
     """4 built-in targets scanned on the turntable -> a database of scans -> a bank trained
     on the scans, evaluated on renders of the true meshes beside a bank trained on them."""
     import numpy as np
-
 
     s = Section("Scanned targets train the bank: 4 targets scanned on the turntable, banks from scans vs true meshes")
     true_rig = ctx.results.get("true_rig") or demo_rig(ctx)
@@ -570,7 +559,6 @@ def _stage_scene(ctx: DemoContext) -> Section:
     reconstructed, and the shape bank's detections drawn against the truth."""
     import json
 
-
     s = Section("Whole-scene ATR: camouflaged targets found in a field shot (shape channel)")
     folder = ctx.path("field")
     if not (folder / "truth.json").is_file():
@@ -621,7 +609,6 @@ def _stage_survey(ctx: DemoContext) -> Section:
     orthophoto and an nDSM, scored against its truth, and the vehicles found and named."""
     import glob
     import json
-
 
     s = Section("UAV mode: a drone survey of a car park from one moving camera (simulated flight)")
     flight = ctx.path("flight")

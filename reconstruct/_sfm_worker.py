@@ -114,6 +114,48 @@ def _verified_pairs(pycolmap, db: Path) -> dict[str, int]:
     return counts
 
 
+def _keypoint_counts(pycolmap, db: Path) -> dict[str, int]:
+    """Keypoints stored per image name: an image missing here could not be read."""
+    database = pycolmap.Database.open(db)
+    try:
+        return {im.name: database.num_keypoints_for_image(im.image_id) for im in database.read_all_images()}
+    finally:
+        database.close()
+
+
+def _match(pycolmap, req: dict, db: Path) -> None:
+    """Match the features on the CPU, sequentially or exhaustively as the request says."""
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = int(req["threads"])
+    mo.use_gpu = False
+    if req["matching"] == "sequential":
+        so = pycolmap.SequentialPairingOptions()
+        so.overlap = int(req["sequential_overlap"])
+        so.loop_detection = False
+        pycolmap.match_sequential(db, matching_options=mo, pairing_options=so, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_exhaustive(db, matching_options=mo, device=pycolmap.Device.cpu)
+
+
+def _map(pycolmap, req: dict, db: Path, image_dir: Path) -> dict:
+    """Incremental mapping: every model of two images or more, by pycolmap's model index."""
+    # pycolmap 4.2.1 writes some models (binary) there, only when it finds several: the
+    # chosen one is written by main in text format, the scratch folder is dropped.
+    scratch = Path(req["work_dir"]) / "sparse"
+    models = pycolmap.incremental_mapping(db, image_dir, scratch, options=_pipeline_options(pycolmap, req))
+    shutil.rmtree(scratch, ignore_errors=True)
+    return models
+
+
+def _write_model(pycolmap, np, req: dict, best) -> None:
+    """The chosen model in COLMAP's text format and its arrays in ``result.npz`` (atomic)."""
+    arrays = _export(pycolmap, best, np)
+    model_dir = Path(req["model_dir"])
+    model_dir.mkdir(parents=True, exist_ok=True)
+    best.write_text(model_dir)
+    _atomic(Path(req["result_npz"]), lambda p: np.savez(p, **arrays))
+
+
 def main(argv: list[str]) -> int:
     if len(argv) != 1:
         print("usage: python -m prism3d.reconstruct._sfm_worker REQUEST.json", file=sys.stderr)
@@ -145,38 +187,19 @@ def main(argv: list[str]) -> int:
                               reader_options=_reader_options(pycolmap, req),
                               extraction_options=_extraction_options(pycolmap, req), device=pycolmap.Device.cpu)
     seconds["features"] = time.perf_counter() - t0
-    database = pycolmap.Database.open(db)
-    try:
-        have = {im.name: database.num_keypoints_for_image(im.image_id) for im in database.read_all_images()}
-    finally:
-        database.close()
+    have = _keypoint_counts(pycolmap, db)
     unread = [n for n in names if n not in have]
 
     stage("matching")
     t0 = time.perf_counter()
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = int(req["threads"])
-    mo.use_gpu = False
     if not unread:
-        if req["matching"] == "sequential":
-            so = pycolmap.SequentialPairingOptions()
-            so.overlap = int(req["sequential_overlap"])
-            so.loop_detection = False
-            pycolmap.match_sequential(db, matching_options=mo, pairing_options=so, device=pycolmap.Device.cpu)
-        else:
-            pycolmap.match_exhaustive(db, matching_options=mo, device=pycolmap.Device.cpu)
+        _match(pycolmap, req, db)
     seconds["matching"] = time.perf_counter() - t0
     pairs = _verified_pairs(pycolmap, db) if not unread else {}
 
     stage("mapping")
     t0 = time.perf_counter()
-    models = {}
-    if not unread:
-        # pycolmap 4.2.1 writes some models (binary) there, only when it finds several: the
-        # chosen one is written below in text format, the scratch folder is dropped.
-        scratch = Path(req["work_dir"]) / "sparse"
-        models = pycolmap.incremental_mapping(db, image_dir, scratch, options=_pipeline_options(pycolmap, req))
-        shutil.rmtree(scratch, ignore_errors=True)
+    models = _map(pycolmap, req, db, image_dir) if not unread else {}
     seconds["mapping"] = time.perf_counter() - t0
     ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
     info = {
@@ -189,12 +212,7 @@ def main(argv: list[str]) -> int:
         "pycolmap_version": pycolmap.__version__,
     }
     if ranked:
-        best = ranked[0]
-        arrays = _export(pycolmap, best, np)
-        model_dir = Path(req["model_dir"])
-        model_dir.mkdir(parents=True, exist_ok=True)
-        best.write_text(model_dir)
-        _atomic(Path(req["result_npz"]), lambda p: np.savez(p, **arrays))
+        _write_model(pycolmap, np, req, ranked[0])
     stage("done")
     _atomic(Path(req["result_json"]), lambda p: p.write_text(json.dumps(info, indent=1)))
     return 0

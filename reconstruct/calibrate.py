@@ -464,6 +464,26 @@ def _calibrated_rig(p: NDArray, size: tuple[int, int], split: PrismSplit | None)
         raise CalibrationError(f"calibration produced an invalid rig ({exc})") from exc
 
 
+def _stereo_start(
+    obj: NDArray, board: tuple[int, int], L: list[NDArray | None], Rt: list[NDArray | None],
+    size: tuple[int, int], srcs: list[str], *, tangential: bool, k3: bool,
+) -> tuple[list[int], list[tuple[NDArray, NDArray, dict[int, NDArray]]], NDArray[np.float64]]:
+    """The shots with consistent boards in both views (right-view order fixed in ``Rt``), each
+    camera's initialisation and the mean ``T_right_left``; CalibrationError when too few."""
+    both = [i for i in range(len(L)) if L[i] is not None and Rt[i] is not None]
+    if len(both) < MIN_VIEWS:
+        raise CalibrationError(
+            f"calibration needs the board in both views of at least {MIN_VIEWS} shots, got {len(both)}"
+        )
+    init = _init_cameras(obj, (L, Rt), size, tangential=tangential, k3=k3)
+    both, rel = _fix_corner_order(obj, board, both, Rt, init[0][2], init[1], srcs)
+    if len(both) < MIN_VIEWS:
+        raise CalibrationError(
+            f"only {len(both)} shots have consistent boards in both views; need {MIN_VIEWS}"
+        )
+    return both, init, _mean_pose([rel[i] for i in both])
+
+
 @_one_opencv_thread
 def calibrate_stereo_points(
     left_points: Sequence[NDArray | None],
@@ -493,18 +513,7 @@ def calibrate_stereo_points(
     size = (int(image_size[0]), int(image_size[1]))
     V = len(L)
     srcs = list(sources) if sources is not None else [f"view {i}" for i in range(V)]
-    both = [i for i in range(V) if L[i] is not None and Rt[i] is not None]
-    if len(both) < MIN_VIEWS:
-        raise CalibrationError(
-            f"calibration needs the board in both views of at least {MIN_VIEWS} shots, got {len(both)}"
-        )
-    init = _init_cameras(obj, (L, Rt), size, tangential=tangential, k3=k3)
-    both, rel = _fix_corner_order(obj, board, both, Rt, init[0][2], init[1], srcs)
-    if len(both) < MIN_VIEWS:
-        raise CalibrationError(
-            f"only {len(both)} shots have consistent boards in both views; need {MIN_VIEWS}"
-        )
-    T_rl0 = _mean_pose([rel[i] for i in both])
+    both, init, T_rl0 = _stereo_start(obj, board, L, Rt, size, srcs, tangential=tangential, k3=k3)
     dets = _reported_detections(detections, Rt, V)
 
     used = [i for i in range(V) if L[i] is not None or Rt[i] is not None]

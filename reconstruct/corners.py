@@ -408,7 +408,6 @@ def load_image(path: str | Path) -> NDArray[np.uint8]:
     """Read an image file as RGB uint8 ``(H, W, 3)`` (grey files become 3 channels)."""
     import cv2
 
-
     p = check_file(path, "image")
     check_image_size(p)  # the pixel budget, from the header, before decoding
     data = np.fromfile(p, dtype=np.uint8)
@@ -572,6 +571,18 @@ def _detect_view(img: NDArray, name: str, view: str, board: tuple[int, int], met
     )
 
 
+def _shot_items(images: Sequence[str | Path | NDArray], pairs: bool) -> list[str | Path | NDArray]:
+    """The images as a list: at least one, and an even count in pairs mode."""
+    items = list(images)
+    if not items:
+        raise InputError("images: expected at least one image, got none")
+    if pairs and len(items) % 2:
+        raise InputError(
+            f"images: pairs mode expects left, right, left, right..., got an odd count ({len(items)})"
+        )
+    return items
+
+
 def detect_views(
     images: Sequence[str | Path | NDArray],
     *,
@@ -592,13 +603,7 @@ def detect_views(
     files, an odd count in pairs mode, or mixed view sizes.
     """
     _check_board(board)
-    items = list(images)
-    if not items:
-        raise InputError("images: expected at least one image, got none")
-    if pairs and len(items) % 2:
-        raise InputError(
-            f"images: pairs mode expects left, right, left, right..., got an odd count ({len(items)})"
-        )
+    items = _shot_items(images, pairs)
     names = [str(it) if isinstance(it, str | Path) else f"<array {i}>" for i, it in enumerate(items)]
 
     def get(i: int) -> NDArray:

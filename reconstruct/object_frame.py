@@ -144,6 +144,20 @@ def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None,
     centre = np.array([centre_xyz @ e1, centre_xyz @ e2])
     length, width = float(hi3[0] - lo3[0]), float(hi3[1] - lo3[1])
     origin = centre[0] * e1 + centre[1] * e2 + lo * up
+    x, ambiguous = _orient_front(x, up, origin, poses, front_view, uv, centre, x2, notes)
+    y = np.cross(up, x)
+    R = np.stack([x, y, up])
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ origin
+    return ObjectFrame(T, up_from, np.array([length, width, hi - lo]), ambiguous, notes,
+                       None if front_view is None else int(front_view))
+
+
+def _orient_front(x: NDArray, up: NDArray, origin: NDArray, poses: list[NDArray], front_view: int | None,
+                  uv: NDArray, centre: NDArray, x2: NDArray, notes: list[str]) -> tuple[NDArray, bool]:
+    """``x`` turned toward the ``front_view`` camera or, without one, toward the points'
+    heavier tail (a guess, added to ``notes``); and whether front and back are ambiguous."""
     if front_view is not None:
         look = poses[front_view][:3, 3] - origin  # from the object to that camera
         look -= (look @ up) * up
@@ -162,13 +176,7 @@ def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None,
         ambiguous = True
         notes.append("which end is the front was not given (front_view / --front-view): x points to the "
                      "end where the points tail off, a guess; front and back may be swapped")
-    y = np.cross(up, x)
-    R = np.stack([x, y, up])
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = -R @ origin
-    return ObjectFrame(T, up_from, np.array([length, width, hi - lo]), ambiguous, notes,
-                       None if front_view is None else int(front_view))
+    return x, ambiguous
 
 
 def _upright(poses: list[NDArray]) -> NDArray[np.float64]:
@@ -198,7 +206,6 @@ def _support_up(P: NDArray, upright: NDArray) -> tuple[NDArray[np.float64], floa
     """The normal (upright side) and height of the plane the object stands on, and the
     inlier distance (points within it of the plane belong to the support)."""
     import open3d as o3d
-
 
     spacing = point_spacing(P)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
@@ -295,7 +302,6 @@ def _surface_extents(P: NDArray, R: NDArray) -> tuple[NDArray, NDArray]:
     within EXTREME_BAND_SPACINGS of each extreme, projected on the plane of their
     neighbourhood (moving least squares), then their extremes."""
     from scipy.spatial import cKDTree
-
 
     Q = P @ R.T
     band = EXTREME_BAND_SPACINGS * point_spacing(P)

@@ -247,6 +247,48 @@ def _residual_and_variance(win: _Window, coef: NDArray, x0: int, Lf: NDArray, gl
     return ratio, np.where(np.isfinite(var) & (var >= 0), var, np.inf)
 
 
+def _work_box(tgt: NDArray[np.bool_], ry: int, rx: int) -> tuple[int, int, int, int]:
+    """Rows ``y0:y1`` and columns ``x0:x1`` holding every target pixel and its window."""
+    rows = np.flatnonzero(tgt.any(axis=1))
+    cols = np.flatnonzero(tgt.any(axis=0))
+    y0, y1 = max(rows[0] - ry, 0), min(rows[-1] + ry + 1, tgt.shape[0])
+    x0, x1 = max(cols[0] - rx, 0), min(cols[-1] + rx + 1, tgt.shape[1])
+    return y0, y1, x0, x1
+
+
+def _solve_crop(win: _Window, coef: NDArray, x0: int, Lf: NDArray, support: NDArray, mc: NDArray,
+                has_extra: bool, d0: NDArray, d_ref: float, iterations: int, orientation_weight: bool,
+                curvature: bool, offset: bool
+                ) -> tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float64]]:
+    """The crop's plane fits, less the curvature bias if asked: the disparity (minus
+    ``d_ref``) and, at the ``mc`` pixels, the residual ratio and variance."""
+    h, w, nc = Lf.shape
+    Rw, G = np.empty((h, w, nc), np.float32), np.empty((h, w, nc), np.float32)
+    gl, owt = _left_gradients(Lf, orientation_weight)
+    dd = np.where(mc, d0, np.float32(0.0)).astype(np.float64)
+    ne = _gauss_newton(win, coef, x0, Lf, support, mc, has_extra, owt, dd, d_ref, iterations, offset, Rw, G)
+    if curvature:
+        kappa = _curvature_bias_factor(win, ne, mc, offset)
+        dd -= np.where(mc, _row_curvature(win, mc, dd) * kappa, 0.0)
+    d = dd.astype(np.float32)
+    ratio, var = _residual_and_variance(win, coef, x0, Lf, gl, mc, dd, d_ref, ne.inv00, offset, Rw, G)
+    return d, ratio, var
+
+
+def _store(out: NDArray[np.float32], resid: NDArray[np.float32], std: NDArray[np.float32],
+           box: tuple[int, int, int, int], mc: NDArray, d: NDArray[np.float32], d0: NDArray, d_ref: float,
+           ratio: NDArray[np.float64], var: NDArray[np.float64], max_change: float) -> None:
+    """Write the crop's results into the full-size outputs; a pixel moved more than
+    ``max_change`` px keeps its input value, with an infinite residual and std."""
+    y0, y1, x0, x1 = box
+    idx = np.nonzero(mc)
+    moved = np.abs(d[idx] - d0[idx]) > float(max_change)
+    d[idx] = np.where(moved, d0[idx], d[idx])
+    out[y0:y1, x0:x1] = np.where(mc, d + np.float32(d_ref), out[y0:y1, x0:x1])
+    resid[y0:y1, x0:x1][idx] = np.where(moved, np.inf, ratio).astype(np.float32)
+    std[y0:y1, x0:x1][idx] = np.sqrt(np.where(moved, np.inf, var)).astype(np.float32)
+
+
 def refine_slanted(
     left: NDArray,
     right: NDArray,
@@ -295,31 +337,14 @@ def refine_slanted(
     # work on the rows/columns around the valid pixels only
     ry, rx = int(window[0]) // 2, int(window[1]) // 2
     tgt = m | ex
-    rows = np.flatnonzero(tgt.any(axis=1))
-    cols = np.flatnonzero(tgt.any(axis=0))
-    y0, y1 = max(rows[0] - ry, 0), min(rows[-1] + ry + 1, m.shape[0])
-    x0, x1 = max(cols[0] - rx, 0), min(cols[-1] + rx + 1, m.shape[1])
+    y0, y1, x0, x1 = _work_box(tgt, ry, rx)
     Lf = np.ascontiguousarray(L[y0:y1, x0:x1], dtype=np.float32)
     coef = _spline_coefficients(np.ascontiguousarray(R[y0:y1]))  # full width: matches may lie left of x0
     support = np.ascontiguousarray(m[y0:y1, x0:x1])
     mc = np.ascontiguousarray(tgt[y0:y1, x0:x1])
     d_ref = float(np.median(out[m])) if m.any() else float(np.median(out[tgt]))
     d0 = np.ascontiguousarray(out[y0:y1, x0:x1] - np.float32(d_ref))
-    h, w, nc = Lf.shape
-    Rw, G = np.empty((h, w, nc), np.float32), np.empty((h, w, nc), np.float32)
-    win = _Window(ry, rx)
-    gl, owt = _left_gradients(Lf, orientation_weight)
-    dd = np.where(mc, d0, np.float32(0.0)).astype(np.float64)
-    ne = _gauss_newton(win, coef, x0, Lf, support, mc, bool(ex.any()), owt, dd, d_ref, iterations, offset, Rw, G)
-    if curvature:
-        kappa = _curvature_bias_factor(win, ne, mc, offset)
-        dd -= np.where(mc, _row_curvature(win, mc, dd) * kappa, 0.0)
-    d = dd.astype(np.float32)
-    ratio, var = _residual_and_variance(win, coef, x0, Lf, gl, mc, dd, d_ref, ne.inv00, offset, Rw, G)
-    idx = np.nonzero(mc)
-    moved = np.abs(d[idx] - d0[idx]) > float(max_change)
-    d[idx] = np.where(moved, d0[idx], d[idx])
-    out[y0:y1, x0:x1] = np.where(mc, d + np.float32(d_ref), out[y0:y1, x0:x1])
-    resid[y0:y1, x0:x1][idx] = np.where(moved, np.inf, ratio).astype(np.float32)
-    std[y0:y1, x0:x1][idx] = np.sqrt(np.where(moved, np.inf, var)).astype(np.float32)
+    d, ratio, var = _solve_crop(_Window(ry, rx), coef, x0, Lf, support, mc, bool(ex.any()), d0, d_ref,
+                                iterations, orientation_weight, curvature, offset)
+    _store(out, resid, std, (y0, y1, x0, x1), mc, d, d0, d_ref, ratio, var, max_change)
     return out, resid, std

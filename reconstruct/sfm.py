@@ -253,13 +253,24 @@ def map_frames(images: Sequence[str | Path], work_dir: str | Path, *, camera: Ca
     params = _starting_params(camera, focal_px, size)
     wd = _prepare_work_dir(work_dir, paths)
     staged = _stage_images(paths, wd / "images")
+    request = _worker_request(opts, wd, images, paths, staged, params)
+    atomic_write_text(wd / "request.json", json.dumps(request, indent=1))
+    log_path = wd / "colmap.log"
+    _run_worker(wd, log_path, opts.timeout_s, progress)
+    return _read_result(wd, [str(p) for p in images], staged, size, log_path, time.perf_counter() - t_start)
+
+
+def _worker_request(opts: SfmOptions, wd: Path, images: Sequence[str | Path], paths: list[Path],
+                    staged: list[str], params: list[float]) -> dict:
+    """The child's JSON request: where things go, the starting calibration, and the
+    options with "auto" matching and 0 threads resolved."""
     threads = opts.threads
     if threads == 0:
         threads = configured_threads() or -1  # COLMAP: -1 = all cores
     matching = opts.matching
     if matching == "auto":
         matching = "exhaustive" if len(paths) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
-    request = {
+    return {
         "schema_version": _WORKER_SCHEMA,
         "work_dir": str(wd),
         "database": str(wd / "database.db"),
@@ -279,10 +290,6 @@ def map_frames(images: Sequence[str | Path], work_dir: str | Path, *, camera: Ca
         "result_npz": str(wd / "result.npz"),
         "result_json": str(wd / "result.json"),
     }
-    atomic_write_text(wd / "request.json", json.dumps(request, indent=1))
-    log_path = wd / "colmap.log"
-    _run_worker(wd, log_path, opts.timeout_s, progress)
-    return _read_result(wd, [str(p) for p in images], staged, size, log_path, time.perf_counter() - t_start)
 
 
 # --- checks ---------------------------------------------------------------------------------
@@ -310,7 +317,6 @@ def _frame_size(paths: list[Path]) -> tuple[int, int]:
     import warnings
 
     from PIL import Image, UnidentifiedImageError
-
 
     sizes = []
     for p in paths:

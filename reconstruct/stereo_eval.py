@@ -114,7 +114,6 @@ def load_benchmark_pair(data_root: str | Path, name: str) -> tuple[NDArray, NDAr
     """
     import cv2
 
-
     if name not in BENCHMARK_SCENES:
         raise InputError(f"unknown benchmark scene {name!r}; valid: {', '.join(BENCHMARK_SCENES)}")
     st = Path(data_root) / "stereo"

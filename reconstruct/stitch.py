@@ -683,25 +683,10 @@ def stitch_scans(
     return StitchResult(T_model, pts, col, nrm, mv, mf, mc, diag)
 
 
-def stitch_to_files(
-    scan_paths: Sequence[str | Path],
-    out_model_ply: str | Path,
-    options: StitchOptions | None = None,
-    *,
-    mesh_out: str | Path | None = None,
-    progress: ProgressFn | None = None,
-    frame: str = "scan",
-    front_view: int | None = None,
-) -> StitchResult:
-    """Stitch ``.ply`` / ``.pcd`` scan files (the ``prism3d stitch`` command) and write, all or
-    none: ``out_model_ply`` (fused cloud), ``mesh_out`` when given (``options.mesh`` follows it)
-    and ``poses.json`` beside the model (``schema_version``, ``model``, ``scans`` with ``path``
-    and ``T_model_scan``, ``pairs`` as in the diagnostics). ``frame`` ``"scan"``: the model in
-    the first scan's camera frame; ``"object"``: in the object frame
-    (:func:`~prism3d.reconstruct.object_frame.object_frame`: z up, x forward, origin on the
-    support; PLY header ``up z``), with ``object_frame`` (``T_object_model`` ...) in
-    poses.json; ``T_model_scan`` stays in the first scan's frame. ``front_view``: the scan
-    (index) that faced the object's front, which sets x's sign (else a stated guess)."""
+def _checked_file_args(scan_paths: Sequence[str | Path], out_model_ply: str | Path,
+                       mesh_out: str | Path | None, frame: str, front_view: int | None) -> list[str]:
+    """The scan paths as strings, once the files, output names, frame and front view are
+    checked: a bad argument fails before any stitching."""
     if isinstance(scan_paths, (str, Path)):
         raise InputError("scan_paths: expected a list of scan files")
     paths = [str(p) for p in scan_paths]
@@ -721,6 +706,29 @@ def stitch_to_files(
         raise InputError("front_view: only with the object frame (--frame object)")
     if front_view is not None and not (isinstance(front_view, int) and 0 <= front_view < len(paths)):
         raise InputError(f"front_view: expected a scan index in [0, {len(paths) - 1}], got {front_view!r}")
+    return paths
+
+
+def stitch_to_files(
+    scan_paths: Sequence[str | Path],
+    out_model_ply: str | Path,
+    options: StitchOptions | None = None,
+    *,
+    mesh_out: str | Path | None = None,
+    progress: ProgressFn | None = None,
+    frame: str = "scan",
+    front_view: int | None = None,
+) -> StitchResult:
+    """Stitch ``.ply`` / ``.pcd`` scan files (the ``prism3d stitch`` command) and write, all or
+    none: ``out_model_ply`` (fused cloud), ``mesh_out`` when given (``options.mesh`` follows it)
+    and ``poses.json`` beside the model (``schema_version``, ``model``, ``scans`` with ``path``
+    and ``T_model_scan``, ``pairs`` as in the diagnostics). ``frame`` ``"scan"``: the model in
+    the first scan's camera frame; ``"object"``: in the object frame
+    (:func:`~prism3d.reconstruct.object_frame.object_frame`: z up, x forward, origin on the
+    support; PLY header ``up z``), with ``object_frame`` (``T_object_model`` ...) in
+    poses.json; ``T_model_scan`` stays in the first scan's frame. ``front_view``: the scan
+    (index) that faced the object's front, which sets x's sign (else a stated guess)."""
+    paths = _checked_file_args(scan_paths, out_model_ply, mesh_out, frame, front_view)
     opts = dataclasses.replace(StitchOptions() if options is None else options, mesh=mesh_out is not None)
     res = stitch_scans(paths, opts, progress=progress)
     out = Path(out_model_ply)

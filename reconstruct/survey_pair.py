@@ -123,7 +123,6 @@ def pair_cloud(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose, *, b
     rotated back into camera 1's frame and scaled so the cameras are ``baseline`` apart."""
     import cv2
 
-
     if not (np.isfinite(baseline) and baseline > 0):
         raise InputError(f"baseline: expected a length > 0, got {baseline}")
     rp = rectify_from_pose(img1, img2, K, pose)

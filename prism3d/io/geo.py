@@ -38,7 +38,6 @@ def write_las(path: str | Path, xyz: NDArray, rgb: NDArray | None = None, *, crs
     most 32 characters) says how the points were made (e.g. that their scale is unknown)."""
     import laspy
 
-
     p = check_array(xyz, "points", ndim=2).astype(np.float64)
     if p.shape[1] != 3 or not np.isfinite(p).all():
         raise InputError(f"points: expected finite (n, 3) coordinates, got shape {p.shape}")
@@ -75,7 +74,6 @@ def write_geotiff(path: str | Path, raster: NDArray, *, west: float, north: floa
     ``tags`` are written as GDAL metadata (e.g. ``SCALE=unknown``)."""
     import rasterio
     from rasterio.transform import from_origin
-
 
     a = np.asarray(raster)
     if a.ndim == 2:

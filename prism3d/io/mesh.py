@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -75,23 +76,7 @@ def read_mesh(path: str | Path) -> MeshData:
     off = 0
     gltf = _gltf_base_colours(p) if p.suffix.lower() in (".glb", ".gltf") else {}
     for g in geoms:
-        vc = None
-        try:
-            vis = g.visual
-            material = getattr(vis, "material", None)
-            if vis.kind == "texture" and getattr(vis, "uv", None) is None and material is not None:
-                # a material colour without a texture (OBJ Kd, glTF baseColorFactor; trimesh
-                # loses the latter when a material also has the specular-glossiness extension)
-                rgb = gltf.get(getattr(material, "name", None))
-                if rgb is None:
-                    rgb = np.asarray(material.main_color, dtype=np.float64)[:3] / 255.0
-                vc = np.broadcast_to(rgb, (len(g.vertices), 3)).copy()
-            elif vis.kind in ("vertex", "face"):  # colours per vertex (PLY, OFF) or per face
-                vc = np.asarray(vis.vertex_colors, dtype=np.float64)[:, :3] / 255.0
-            elif vis.kind is not None:  # a texture: its colours sampled at the vertices
-                vc = np.asarray(vis.to_color().vertex_colors, dtype=np.float64)[:, :3] / 255.0
-        except Exception:  # textures trimesh cannot convert: no colour
-            vc = None
+        vc = _vertex_colours(g, gltf)
         if vc is None or vc.shape != (len(g.vertices), 3):
             vc = np.full((len(g.vertices), 3), 0.7)
         else:
@@ -101,16 +86,44 @@ def read_mesh(path: str | Path) -> MeshData:
         cols.append(vc)
         off += len(g.vertices)
     v = np.concatenate(verts)
-    if not np.all(np.isfinite(v)):
-        raise InputError(f"{p}: vertices contain NaN or inf")
-    if np.abs(v).max() > MAX_COORDINATE:
-        raise InputError(f"{p}: vertex coordinates up to {np.abs(v).max():.3g} are beyond any model "
-                         f"(at most {MAX_COORDINATE:g} in the file's units); the file is corrupt")
+    _check_vertices(p, v)
     f = np.concatenate(faces)
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     if not np.any(np.linalg.norm(np.cross(b - a, c - a), axis=1) > 0):
         raise InputError(f"{p}: every triangle has zero area (the vertices coincide or lie on a line)")
     return MeshData(v, f, np.clip(np.concatenate(cols), 0, 1) if any_colour else None)
+
+
+def _vertex_colours(g: Any, gltf: dict[str, NDArray[np.float64]]) -> NDArray[np.float64] | None:
+    """Per-vertex RGB in [0, 1] of one trimesh geometry ``g`` (material, vertex, face or
+    sampled texture colours; ``gltf`` from :func:`_gltf_base_colours`); None without them."""
+    vc = None
+    try:
+        vis = g.visual
+        material = getattr(vis, "material", None)
+        if vis.kind == "texture" and getattr(vis, "uv", None) is None and material is not None:
+            # a material colour without a texture (OBJ Kd, glTF baseColorFactor; trimesh
+            # loses the latter when a material also has the specular-glossiness extension)
+            rgb = gltf.get(getattr(material, "name", None))
+            if rgb is None:
+                rgb = np.asarray(material.main_color, dtype=np.float64)[:3] / 255.0
+            vc = np.broadcast_to(rgb, (len(g.vertices), 3)).copy()
+        elif vis.kind in ("vertex", "face"):  # colours per vertex (PLY, OFF) or per face
+            vc = np.asarray(vis.vertex_colors, dtype=np.float64)[:, :3] / 255.0
+        elif vis.kind is not None:  # a texture: its colours sampled at the vertices
+            vc = np.asarray(vis.to_color().vertex_colors, dtype=np.float64)[:, :3] / 255.0
+    except Exception:  # textures trimesh cannot convert: no colour
+        vc = None
+    return vc
+
+
+def _check_vertices(p: Path, v: NDArray[np.float64]) -> None:
+    """Reject NaN/inf and coordinates beyond :data:`MAX_COORDINATE` (a corrupt file)."""
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"{p}: vertices contain NaN or inf")
+    if np.abs(v).max() > MAX_COORDINATE:
+        raise InputError(f"{p}: vertex coordinates up to {np.abs(v).max():.3g} are beyond any model "
+                         f"(at most {MAX_COORDINATE:g} in the file's units); the file is corrupt")
 
 
 def _gltf_base_colours(path: Path) -> dict[str, NDArray[np.float64]]:

@@ -212,6 +212,41 @@ def _decode_body(p: Path, header: dict[str, list[str]], body: bytes, dtype: np.d
     raise InputError(f"{p}: unknown PCD DATA mode {mode!r} (expected ascii, binary or binary_compressed)")
 
 
+def _packed_colors(rec: np.ndarray, names: tuple[str, ...]) -> NDArray[np.uint8] | None:
+    """(N, 3) RGB from the first packed ``rgb`` (float bits) or ``rgba`` (uint) field,
+    ``0x00RRGGBB`` / ``0xAARRGGBB``; None without one."""
+    for cname in ("rgb", "rgba"):
+        if cname in names:
+            v = np.ascontiguousarray(rec[cname])
+            bits = v.view(np.uint32) if v.dtype.itemsize == 4 else v.astype(np.uint32)
+            return np.stack(
+                [(bits >> 16) & 255, (bits >> 8) & 255, bits & 255], axis=1
+            ).astype(np.uint8)
+    return None
+
+
+def _extra_fields(rec: np.ndarray, names: tuple[str, ...]) -> dict[str, NDArray]:
+    """The scalar fields other than coordinates, colour, normals and padding (copies)."""
+    used = {"x", "y", "z", "rgb", "rgba", "normal_x", "normal_y", "normal_z"}
+    return {
+        k: np.array(rec[k])
+        for k in names
+        if k not in used and not k.startswith("_pad") and rec[k].ndim == 1
+    }
+
+
+def _viewpoint(p: Path, header: dict[str, list[str]]) -> NDArray[np.float64]:
+    """The header's 7-number ``VIEWPOINT`` (translation, quaternion w x y z); identity when
+    absent or not 7 values."""
+    vp = np.array([0, 0, 0, 1, 0, 0, 0], dtype=np.float64)
+    if "VIEWPOINT" in header and len(header["VIEWPOINT"]) == 7:
+        try:
+            vp = np.array([float(v) for v in header["VIEWPOINT"]])
+        except ValueError as exc:
+            raise InputError(f"{p}: PCD VIEWPOINT must be 7 numbers, got {header['VIEWPOINT']!r}") from exc
+    return vp
+
+
 def read_pcd(path: str | Path) -> PcdData:
     """Read a PCD file (``DATA ascii``, ``binary`` or ``binary_compressed``).
 
@@ -248,39 +283,19 @@ def read_pcd(path: str | Path) -> PcdData:
     keep = np.isfinite(pts).all(axis=1)
     pts = pts[keep]
     rec = rec[keep]
-    colors = None
-    for cname in ("rgb", "rgba"):
-        if cname in names:
-            v = np.ascontiguousarray(rec[cname])
-            bits = v.view(np.uint32) if v.dtype.itemsize == 4 else v.astype(np.uint32)
-            colors = np.stack(
-                [(bits >> 16) & 255, (bits >> 8) & 255, bits & 255], axis=1
-            ).astype(np.uint8)
-            break
+    colors = _packed_colors(rec, names)
     normals = None
     if all(k in names for k in ("normal_x", "normal_y", "normal_z")):
         normals = np.stack(
             [rec["normal_x"], rec["normal_y"], rec["normal_z"]], axis=1
         ).astype(np.float32)
-    used = {"x", "y", "z", "rgb", "rgba", "normal_x", "normal_y", "normal_z"}
-    extra = {
-        k: np.array(rec[k])
-        for k in names
-        if k not in used and not k.startswith("_pad") and rec[k].ndim == 1
-    }
-    vp = np.array([0, 0, 0, 1, 0, 0, 0], dtype=np.float64)
-    if "VIEWPOINT" in header and len(header["VIEWPOINT"]) == 7:
-        try:
-            vp = np.array([float(v) for v in header["VIEWPOINT"]])
-        except ValueError as exc:
-            raise InputError(f"{p}: PCD VIEWPOINT must be 7 numbers, got {header['VIEWPOINT']!r}") from exc
     return PcdData(
         points=pts,
         colors=colors,
         normals=normals,
-        extra=extra,
+        extra=_extra_fields(rec, names),
         width=width,
         height=height,
-        viewpoint=vp,
+        viewpoint=_viewpoint(p, header),
         n_dropped=int((~keep).sum()),
     )

@@ -61,6 +61,55 @@ def _header_text(text: object) -> str:
     return one.encode("ascii", "backslashreplace").decode("ascii")
 
 
+def _vertex_columns(
+    pts: NDArray,
+    normals: NDArray | None,
+    colors: NDArray | None,
+    extra: dict[str, NDArray] | None,
+    double: bool,
+) -> tuple[list[tuple[str, str]], dict[str, NDArray]]:
+    """Checked per-vertex properties ``(name, dtype code)`` in file order and their columns,
+    for :func:`write_ply` (colours in [0, 1] scaled to uchar)."""
+    n = len(pts)
+    props: list[tuple[str, str]] = [(c, "f8" if double else "f4") for c in "xyz"]
+    cols: dict[str, NDArray] = {c: pts[:, i] for i, c in enumerate("xyz")}
+    if normals is not None:
+        nrm = check_array(normals, "normals", shape=(n, 3), dtype_kind="f")
+        for i, c in enumerate(("nx", "ny", "nz")):
+            props.append((c, "f4"))
+            cols[c] = nrm[:, i]
+    if colors is not None:
+        col = check_array(colors, "colors", shape=(n, 3), dtype_kind="fiu")
+        if col.dtype.kind == "f":
+            col = np.clip(np.round(col * 255.0), 0, 255)
+        for i, c in enumerate(("red", "green", "blue")):
+            props.append((c, "u1"))
+            cols[c] = col[:, i]
+    for name, arr in (extra or {}).items():
+        if not name.isidentifier() or name in cols:
+            raise InputError(f"extra: invalid or duplicate property name {name!r}")
+        a = check_array(arr, f"extra[{name!r}]", shape=(n,), dtype_kind="fiub")
+        props.append((name, "f4"))
+        cols[name] = a
+    return props, cols
+
+
+def _face_block(faces: NDArray | None, n: int) -> tuple[bytes, int]:
+    """The binary face element (uchar count 3, three int32 indices each) and its face
+    count; empty when ``faces`` is None. Indices are checked against ``n`` vertices."""
+    if faces is None:
+        return b"", 0
+    f = check_array(faces, "faces", shape=(None, 3), dtype_kind="iu")
+    if len(f) and (f.min() < 0 or f.max() >= n):
+        raise InputError(f"faces: indices must lie in [0, {n})")
+    n_faces = len(f)
+    fdtype = np.dtype([("n", "u1"), ("idx", "<i4", (3,))])
+    fb = np.empty(n_faces, dtype=fdtype)
+    fb["n"] = 3
+    fb["idx"] = f
+    return fb.tobytes(), n_faces
+
+
 def write_ply(
     path: str | Path,
     points: NDArray,
@@ -85,42 +134,12 @@ def write_ply(
     """
     pts = check_array(points, "points", shape=(None, 3), dtype_kind="fiu")
     n = len(pts)
-    props: list[tuple[str, str]] = [(c, "f8" if double else "f4") for c in "xyz"]
-    cols: dict[str, NDArray] = {c: pts[:, i] for i, c in enumerate("xyz")}
-    if normals is not None:
-        nrm = check_array(normals, "normals", shape=(n, 3), dtype_kind="f")
-        for i, c in enumerate(("nx", "ny", "nz")):
-            props.append((c, "f4"))
-            cols[c] = nrm[:, i]
-    if colors is not None:
-        col = check_array(colors, "colors", shape=(n, 3), dtype_kind="fiu")
-        if col.dtype.kind == "f":
-            col = np.clip(np.round(col * 255.0), 0, 255)
-        for i, c in enumerate(("red", "green", "blue")):
-            props.append((c, "u1"))
-            cols[c] = col[:, i]
-    for name, arr in (extra or {}).items():
-        if not name.isidentifier() or name in cols:
-            raise InputError(f"extra: invalid or duplicate property name {name!r}")
-        a = check_array(arr, f"extra[{name!r}]", shape=(n,), dtype_kind="fiub")
-        props.append((name, "f4"))
-        cols[name] = a
+    props, cols = _vertex_columns(pts, normals, colors, extra, double)
     vdtype = np.dtype([(p, "<" + t) for p, t in props])
     vert = np.empty(n, dtype=vdtype)
     for p, _ in props:
         vert[p] = cols[p]
-    face_block = b""
-    n_faces = 0
-    if faces is not None:
-        f = check_array(faces, "faces", shape=(None, 3), dtype_kind="iu")
-        if len(f) and (f.min() < 0 or f.max() >= n):
-            raise InputError(f"faces: indices must lie in [0, {n})")
-        n_faces = len(f)
-        fdtype = np.dtype([("n", "u1"), ("idx", "<i4", (3,))])
-        fb = np.empty(n_faces, dtype=fdtype)
-        fb["n"] = 3
-        fb["idx"] = f
-        face_block = fb.tobytes()
+    face_block, n_faces = _face_block(faces, n)
     rev = {"f4": "float", "f8": "double", "u1": "uchar"}
     header = ["ply", "format binary_little_endian 1.0"]
     header += [f"comment {_header_text(c)}" for c in (comments or [])]

@@ -1,4 +1,5 @@
-"""The library's shape stays readable: no function over 100 lines, no public function
+"""The library's shape stays readable: no function over 60 lines (the CLI's argument
+tables and the numba kernels' loop nests aside), no public function
 with more than 8 keyword arguments outside an options object, docstrings at most 15 %
 of the library's non-blank lines (the history lives in docs/), and imports of our own
 modules at the top of modules (the graph drawn from imports is the real one), except in
@@ -16,7 +17,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 LIBRARY = ("prism3d", "capture", "reconstruct", "atr", "datasets")
-MAX_FUNCTION_LINES = 100
+MAX_FUNCTION_LINES = 60
+#: Files whose functions may be longer, and why: the CLI declares each command's flags in
+#: one table; a numba kernel is one loop nest compiled whole (a call out of it costs).
+LONG_FUNCTIONS_ALLOWED = ("prism3d/cli.py", "_kernels.py")
 MAX_KEYWORDS = 8
 MAX_DOC_SHARE = 0.15
 #: Where imports of our own modules may sit inside functions, and why: ``prism3d --help``
@@ -66,7 +70,7 @@ def measure(paths: list[Path], shape: Shape | None = None) -> Shape:
                     s.doc_lines += sum(1 for line in lines[d.lineno - 1:d.end_lineno] if line.strip())
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 n = node.end_lineno - node.lineno + 1
-                if n > 80:
+                if n > MAX_FUNCTION_LINES and not str(rel).endswith(LONG_FUNCTIONS_ALLOWED):
                     s.long.append((n, f"{rel}:{node.lineno} {node.name}"))
                 nk = len(node.args.kwonlyargs) + len(node.args.defaults)
                 if not node.name.startswith("_") and nk > MAX_KEYWORDS:
@@ -78,7 +82,7 @@ def library_files() -> list[Path]:
     return sorted(p for d in LIBRARY for p in (ROOT / d).rglob("*.py") if "__pycache__" not in p.parts)
 
 
-def test_no_function_over_100_lines() -> None:
+def test_no_function_over_60_lines() -> None:
     s = measure(library_files())
     over = sorted(x for x in s.long if x[0] > MAX_FUNCTION_LINES)
     assert not over, f"functions over {MAX_FUNCTION_LINES} lines: {over}"
@@ -119,7 +123,7 @@ def test_own_imports_at_the_top_of_modules() -> None:
 
 def test_measure_counts_what_it_says(tmp_path: Path) -> None:
     """The gauge itself: a known file gives known figures."""
-    body = "\n".join(f"    x{i} = {i}" for i in range(101))
+    body = "\n".join(f"    x{i} = {i}" for i in range(101))  # a 103-line function
     src = (f'"""Module."""\n\n\ndef f(*, {", ".join(f"a{i}=0" for i in range(9))}):\n'
            f'    """One line."""\n{body}\n')
     p = tmp_path / "m.py"
@@ -139,8 +143,7 @@ if __name__ == "__main__":
     files = [Path(a).resolve() for a in args] or library_files()
     s = measure(files)
     print(f"docstrings {s.doc_lines}/{s.lines} = {s.doc_lines / max(s.lines, 1):.3f}")
-    print(f"functions > {MAX_FUNCTION_LINES} lines: {sum(n > MAX_FUNCTION_LINES for n, _ in s.long)}; "
-          f"81-{MAX_FUNCTION_LINES}: {sum(n <= MAX_FUNCTION_LINES for n, _ in s.long)}; "
+    print(f"functions > {MAX_FUNCTION_LINES} lines: {len(s.long)}; "
           f"public with > {MAX_KEYWORDS} keywords: {len(s.keywords)}")
     if "-v" in sys.argv:
         for n, where in sorted(s.long, reverse=True):
