@@ -14,7 +14,6 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
-from prism3d.reconstruct.flatness import ransac_plane
 from prism3d.reconstruct.match import match_stereo_full
 from prism3d.reconstruct.two_view import TwoViewPose
 
@@ -158,36 +157,3 @@ def pair_cloud(img1: NDArray, img2: NDArray, K: NDArray, pose: TwoViewPose, *, b
     img = rp.left if rp.left.ndim == 3 else np.repeat(rp.left[..., None], 3, axis=2)
     return PairCloud(P, img[rows, cols, :3].astype(np.uint8), rp, (lo, hi),
                      float(valid.sum() / max(int(both.sum()), 1)))
-
-
-def enu_from_pair(points_cam1: NDArray, baseline_cam1: NDArray, c1_enu: NDArray, c2_enu: NDArray
-                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Camera 1's orientation in a local east-north-up frame from a pair alone: up is the
-    normal of the dominant plane of the points (the ground, robustly fitted; a nadir
-    survey's assumption), and the turn about up puts the pair's baseline along the GPS
-    track ``c1_enu`` -> ``c2_enu``. Returns ``R_enu_cam1`` and the points in ENU (metres,
-    camera 1 at ``c1_enu``). Two frames cannot do better: with three or more, a
-    similarity fitted to all the GPS positions replaces the plane assumption."""
-    P = check_array(points_cam1, "points", ndim=2).astype(np.float64)
-    if len(P) < 100:
-        raise InputError("pair: fewer than 100 points; no ground to level on")
-    c1 = np.asarray(c1_enu, dtype=np.float64)
-    c2 = np.asarray(c2_enu, dtype=np.float64)
-    track = c2 - c1
-    if np.hypot(track[0], track[1]) < 1e-3:
-        raise InputError("pair: the GPS positions do not move horizontally; no heading to align to")
-    rng = np.random.default_rng(0)
-    sample = P[rng.choice(len(P), size=min(len(P), 20000), replace=False)]
-    up, _, _ = ransac_plane(sample, 0.01 * float(np.median(sample[:, 2])), rng)  # 1 % of the range
-    if up @ np.median(P, axis=0) > 0:  # up points from the ground towards the camera
-        up = -up
-    b = np.asarray(baseline_cam1, dtype=np.float64)
-    bh = b - (b @ up) * up
-    th = np.array([track[0], track[1], 0.0])
-    bh /= np.linalg.norm(bh)
-    th /= np.linalg.norm(th)
-    # R maps camera-1 axes to ENU: up -> z, the baseline's horizontal part -> the track's
-    src = np.stack([bh, np.cross(up, bh), up], axis=1)
-    dst = np.stack([th, np.cross([0.0, 0.0, 1.0], th), [0.0, 0.0, 1.0]], axis=1)
-    R = dst @ src.T
-    return R, P @ R.T + c1

@@ -8,8 +8,11 @@ import math
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
+from prism3d.checks import check_array
 from prism3d.errors import InputError
+from prism3d.reconstruct.flatness import ransac_plane
 from prism3d.reconstruct.survey_pair import pair_cloud, rectify_from_pose
 from prism3d.reconstruct.two_view import TwoViewPose
 
@@ -117,8 +120,6 @@ def test_real_drone_pair_rectifies_and_covers_its_overlap(shared_data):
     assert 80.0 < np.median(pc.points[:, 2]) < 140.0  # a survey flight's height (GPS-scaled), m
     # levelled on the ground, turned onto the GPS track: a DSM over the pair's footprint
     from prism3d.reconstruct.dsm import grid_points
-    from prism3d.reconstruct.survey_pair import enu_from_pair
-
     c2 = wgs84_to_enu([[B.lat_deg, B.lon_deg, B.alt_m]], [A.lat_deg, A.lon_deg, A.alt_m])[0]
     _, pts = enu_from_pair(pc.points, pose.baseline_cam1, np.zeros(3), c2)
     g = grid_points(pts, pc.colours, 0.2)
@@ -133,8 +134,6 @@ def test_enu_from_a_pair_levels_the_ground_and_follows_the_track():
     the ground comes out level (heights within 0.1 % of the range), at the right height
     below camera 1, and camera 2 lands on its GPS position (horizontally exact; the
     vertical as good as the levelling)."""
-    from prism3d.reconstruct.survey_pair import enu_from_pair
-
     depth, c2, R = 100.0, np.array([0.0, -30.0, 0.0]), _rz(5.0)
     v1, v2 = _ground_views(depth, c2, R)
     pc = pair_cloud(v1, v2, K, _pose(R, c2, depth), baseline=30.0)
@@ -147,3 +146,37 @@ def test_enu_from_a_pair_levels_the_ground_and_follows_the_track():
     assert abs(c2e[2] - c1e[2]) < 0.05  # up is estimated from the ground: 0.1 deg over 30 m
     with pytest.raises(InputError, match="horizontally"):
         enu_from_pair(pc.points, np.array([0.0, -1.0, 0.0]), c1e, c1e + [0, 0, 5.0])
+
+
+def enu_from_pair(points_cam1: NDArray, baseline_cam1: NDArray, c1_enu: NDArray, c2_enu: NDArray
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Camera 1's orientation in a local east-north-up frame from a pair alone (the
+    survey levels and georeferences all its frames at once; this is the two-frame case): up is the
+    normal of the dominant plane of the points (the ground, robustly fitted; a nadir
+    survey's assumption), and the turn about up puts the pair's baseline along the GPS
+    track ``c1_enu`` -> ``c2_enu``. Returns ``R_enu_cam1`` and the points in ENU (metres,
+    camera 1 at ``c1_enu``). Two frames cannot do better: with three or more, a
+    similarity fitted to all the GPS positions replaces the plane assumption."""
+    P = check_array(points_cam1, "points", ndim=2).astype(np.float64)
+    if len(P) < 100:
+        raise InputError("pair: fewer than 100 points; no ground to level on")
+    c1 = np.asarray(c1_enu, dtype=np.float64)
+    c2 = np.asarray(c2_enu, dtype=np.float64)
+    track = c2 - c1
+    if np.hypot(track[0], track[1]) < 1e-3:
+        raise InputError("pair: the GPS positions do not move horizontally; no heading to align to")
+    rng = np.random.default_rng(0)
+    sample = P[rng.choice(len(P), size=min(len(P), 20000), replace=False)]
+    up, _, _ = ransac_plane(sample, 0.01 * float(np.median(sample[:, 2])), rng)  # 1 % of the range
+    if up @ np.median(P, axis=0) > 0:  # up points from the ground towards the camera
+        up = -up
+    b = np.asarray(baseline_cam1, dtype=np.float64)
+    bh = b - (b @ up) * up
+    th = np.array([track[0], track[1], 0.0])
+    bh /= np.linalg.norm(bh)
+    th /= np.linalg.norm(th)
+    # R maps camera-1 axes to ENU: up -> z, the baseline's horizontal part -> the track's
+    src = np.stack([bh, np.cross(up, bh), up], axis=1)
+    dst = np.stack([th, np.cross([0.0, 0.0, 1.0], th), [0.0, 0.0, 1.0]], axis=1)
+    R = dst @ src.T
+    return R, P @ R.T + c1
