@@ -224,8 +224,9 @@ def _add_views(p: AerialPatch, vis: Sequence[dict], names: list[set], cells: lis
 
 def _more_views(p: AerialPatch, v: dict, wcells: tuple[int, int], n: int, o: AerialTrainOptions,
                 rng: np.random.Generator) -> list[NDArray]:
-    """``n`` more positive windows of vehicle ``v``: the patch around it turned to its
-    heading plus a jitter within half a heading step (so its cells fall differently too)."""
+    """``n`` more windows of vehicle ``v`` (a positive, or a non-target's negative): the
+    patch around it turned to its heading plus a jitter within half a heading step (so
+    its cells fall differently too)."""
     step = math.radians(o.angle_step_deg)
     cell_m = o.gsd_m * o.cell_px
     # the window's half diagonal and the 3 cells the features look around, px
