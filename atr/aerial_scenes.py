@@ -3,11 +3,13 @@ normalised DSM show of vehicles, with exact truth.
 
 A patch is a square of ground seen from straight above at the detector's working ground
 sample distance: a paved car park (rows of bays, painted lines, vehicles side by side,
-trees overhanging the edge rows, people, poles) or open ground (grass, soil, gravel, a
-road; vehicles and clutter scattered). Every object is a sprite of its mesh
+trees overhanging the edge rows, people, poles), a street (lanes and their markings,
+crossings, vehicles queued or spread along the lanes, pavements beside) or open ground
+(grass, soil, gravel; vehicles and clutter scattered). Every object is a sprite of its mesh
 (:func:`prism3d.capture.nadir.render_nadir`) turned to its heading, composited by height,
 lit by a sun of random elevation and azimuth with the shadows the height field casts,
-then seen through a camera (blur, gain, colour cast, noise). The normalised DSM a survey
+then seen through a camera (blur, gain, colour cast, noise; half the patches metered and
+sRGB-encoded as a JPEG is, the rest linear as our flights render). The normalised DSM a survey
 would give is emulated from the exact heights: gridded at a DSM cell, smoothed, noisy,
 with holes where the image has no texture to match (shadows, dark paint, uniform asphalt)
 and a few at random. Why these choices and what they bought: docs/atr.md "Vehicles from
@@ -41,7 +43,10 @@ class PatchSpec:
     size_m: float = 36.0
     """Side of a patch, m."""
     carpark_share: float = 0.65
-    """Share of patches that are car parks (the rest open ground)."""
+    """Share of patches that are car parks."""
+    road_share: float = 0.2
+    """Share of patches that are streets: lanes, their markings and crossings, vehicles
+    queued or spread along them, pavements beside (the rest open ground)."""
     dsm_cell_m: tuple[float, float] = (0.10, 0.24)
     """Range of the emulated DSM's cell, m."""
     dsm_noise_m: tuple[float, float] = (0.03, 0.15)
@@ -61,6 +66,10 @@ class PatchSpec:
     repaint_open: float = 0.3
     """The same share on open ground, where vehicles are more often seen in their own
     paint (a camouflaged truck on grass is still a truck)."""
+    tone_share: float = 0.5
+    """Share of patches seen as a real camera's JPEG shows them: metered so the scene's
+    median lands at 10-25 % of full scale, then sRGB-encoded (dark asphalt comes out mid
+    grey). The rest stay linear, as the simulator's own flights render."""
 
 
 @dataclass(frozen=True)
@@ -308,6 +317,78 @@ def _carpark_layout(rng: np.random.Generator, n: int, gsd: float, targets: Seque
     return placed, lines, ang
 
 
+def _road_layout(rng: np.random.Generator, albedo: NDArray, gsd: float, targets: Sequence, vehicles_neg: Sequence
+                 ) -> list[tuple]:
+    """A street across the patch at a random angle, drawn into ``albedo`` in place: 2-5
+    lanes of 3.0-3.7 m with their markings (dashed lanes, a solid or double yellow
+    divider, edge lines, now and then a zebra crossing and its stop lines), kerbs and
+    pavements beside. Vehicles drive or queue along the lanes, each lane one way.
+    Returns ``(sprite, row, col, heading, kind, cls)`` per vehicle."""
+    n = albedo.shape[0]
+    ang = rng.uniform(0, math.pi)
+    ua = np.array([math.cos(ang), -math.sin(ang)])  # along the street, (col, row)
+    ub = np.array([math.sin(ang), math.cos(ang)])  # across
+    ctr = np.array([n / 2.0, n / 2.0]) + ub * rng.uniform(-0.2, 0.2) * n
+    lanes, lane_w = int(rng.integers(2, 6)), rng.uniform(3.0, 3.7) / gsd
+    half = lanes * lane_w / 2.0
+    rows, cols = np.mgrid[0:n, 0:n].astype(np.float32)
+    across = (cols - ctr[0]) * ub[0] + (rows - ctr[1]) * ub[1]
+    walk = rng.uniform(2.0, 4.5) / gsd
+    pave = _surface(rng, str(rng.choice(["concrete", "asphalt_light"])), (n, n), gsd)
+    _joints(rng, pave, gsd)
+    side = (np.abs(across) > half) & (np.abs(across) <= half + walk)
+    albedo[side] = pave[side]
+    verge = np.abs(across) > half + walk
+    albedo[verge] = _surface(rng, str(rng.choice(["grass", "dry_grass", "concrete", "soil"])), (n, n), gsd)[verge]
+    kerb = np.abs(np.abs(across) - half) < max(1.0, 0.15 / gsd)
+    albedo[kerb] *= rng.uniform(0.6, 1.4)
+
+    def seg(a0: float, a1: float, t: float) -> tuple[float, float, float, float]:
+        p0, p1 = ctr + ua * a0 + ub * t, ctr + ua * a1 + ub * t
+        return (p0[1], p0[0], p1[1], p1[0])
+
+    white = np.array([0.8, 0.8, 0.76], np.float32) * rng.uniform(0.7, 1.05)
+    yellow = np.array([0.75, 0.62, 0.12], np.float32) * rng.uniform(0.7, 1.05)
+    two_way = rng.uniform() < 0.7
+    mid = lanes // 2 if two_way else -1
+    dash, gap, phase = rng.uniform(2.0, 3.5) / gsd, rng.uniform(4.0, 9.0) / gsd, rng.uniform(0, 10.0) / gsd
+    for i in range(1, lanes):
+        t = -half + i * lane_w
+        if i == mid:
+            div = [seg(-n, n, t + d) for d in ((-0.12 / gsd, 0.12 / gsd) if rng.uniform() < 0.5 else (0.0,))]
+            _paint_lines(albedo, div, 0.12 / gsd, yellow if rng.uniform() < 0.6 else white)
+        else:
+            a = np.arange(-n - phase, n, dash + gap)
+            _paint_lines(albedo, [seg(a0, a0 + dash, t) for a0 in a], 0.12 / gsd, white)
+    if rng.uniform() < 0.6:
+        _paint_lines(albedo, [seg(-n, n, -half + 0.3 / gsd), seg(-n, n, half - 0.3 / gsd)], 0.12 / gsd, white)
+    if rng.uniform() < 0.4:  # a zebra crossing: stripes along the street, across its width
+        at, w = rng.uniform(-0.3, 0.3) * n, rng.uniform(2.5, 4.0) / gsd
+        step = rng.uniform(1.0, 1.4) / gsd
+        _paint_lines(albedo, [seg(at - w / 2, at + w / 2, t) for t in np.arange(-half + step / 2, half, step)],
+                     step / 2, white)
+        _paint_lines(albedo, [(p0, q0, p1, q1) for p0, q0, p1, q1 in
+                              [(*(ctr + ua * (at + sgn * (w / 2 + 1.0 / gsd)) + ub * -half)[::-1],
+                                *(ctr + ua * (at + sgn * (w / 2 + 1.0 / gsd)) + ub * half)[::-1]) for sgn in (-1, 1)]],
+                     0.3 / gsd, white)
+    pool = [(s, "target", c) for c, s in targets] + [(s, "negative", c) for c, s in vehicles_neg]
+    pool = [q for q in pool if q[0].width_m <= 0.95 * lane_w * gsd] or pool[:1]  # no aircraft in a lane
+    weights = np.array([3.0 if k == "target" else 1.0 for _, k, _ in pool])
+    placed = []
+    for i in range(lanes):
+        forward = (i >= mid) if two_way else True
+        queue = rng.uniform() < 0.4
+        a = -0.8 * n + rng.uniform(0, 10.0) / gsd
+        while a < 0.8 * n:
+            sp, kind, cls = pool[int(rng.choice(len(pool), p=weights / weights.sum()))]
+            a += sp.length_m / 2.0 / gsd
+            p = ctr + ua * a + ub * (-half + (i + 0.5) * lane_w + rng.normal(0, 0.25 / gsd))
+            hd = ang + (0.0 if forward else math.pi) + rng.normal(0, math.radians(2.0))
+            placed.append((sp, p[1], p[0], hd, kind, cls))
+            a += sp.length_m / 2.0 / gsd + (rng.uniform(0.8, 2.5) if queue else rng.exponential(12.0) + 2.0) / gsd
+    return placed
+
+
 def _scatter_layout(rng: np.random.Generator, n: int, gsd: float, targets: Sequence, vehicles_neg: Sequence,
                     count: int) -> list[tuple]:
     pool = [(s, "target", c) for c, s in targets] + [(s, "negative", c) for c, s in vehicles_neg]
@@ -337,25 +418,31 @@ def compose_patch(rng: np.random.Generator, targets: Sequence[tuple[str, NadirSp
     n = int(round(o.size_m / g))
     neg_veh = [(k.split(":", 1)[1], s) for k, s in negatives if k.startswith("vehicle:")]
     props = [(k, s) for k, s in negatives if not k.startswith("vehicle:")]
-    carpark = rng.uniform() < o.carpark_share
-    albedo, decoy = _ground(rng, carpark, n, g)
+    u = rng.uniform()
+    carpark, road = u < o.carpark_share, o.carpark_share <= u < o.carpark_share + o.road_share
+    albedo, decoy = _ground(rng, carpark or road, n, g)
     if carpark:
         objs, lines, _ = _carpark_layout(rng, n, g, targets, neg_veh)
         colour = np.array([0.8, 0.8, 0.76]) if rng.uniform() < 0.8 else np.array([0.75, 0.62, 0.12])
         _paint_lines(albedo, lines, rng.uniform(0.1, 0.15) / g, colour.astype(np.float32))
+    elif road:
+        objs = _road_layout(rng, albedo, g, targets, neg_veh)
     else:
         objs = _scatter_layout(rng, n, g, targets, neg_veh, int(rng.integers(3, 9)))
     clutter = _clutter(rng, n, g, objs, props)
     canvas = _Canvas(albedo, np.dstack([np.zeros((n, n, 2), np.float32), np.ones((n, n, 1), np.float32)]),
                      np.zeros((n, n), np.float32), np.full((n, n), -1, np.int32))
-    share = o.repaint if carpark else o.repaint_open
+    share = o.repaint if carpark or road else o.repaint_open
     objs = [(_repaint(sp, rng) if rng.uniform() < share * (1.0 if kind == "target" else 0.5) else sp, r, c, hd,
              kind, cls) for sp, r, c, hd, kind, cls in objs]
     everything = objs + clutter
     for i, (sp, r, c, hd, _, _) in enumerate(everything):
         _place(canvas, sp, r, c, hd, 0.0, i)
-    rgb = _camera(rng, _sunlit(rng, canvas, g), g)
-    ndsm = _emulate_ndsm(rng, canvas.height, rgb, g, o, keep=decoy & (canvas.owner < 0))
+    tone = bool(rng.uniform() < o.tone_share)
+    rgb = _camera(rng, _sunlit(rng, canvas, g), g, tone=tone)
+    # stereo's holes follow the light the sensor got, not the JPEG's curve
+    linear = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4) if tone else rgb
+    ndsm = _emulate_ndsm(rng, canvas.height, linear, g, o, keep=decoy & (canvas.owner < 0))
     vehicles = []
     for i, (sp, r, c, hd, kind, cls) in enumerate(objs):
         if kind != "target" or not (0 <= r < n and 0 <= c < n):
@@ -414,13 +501,19 @@ def _sunlit(rng: np.random.Generator, canvas: _Canvas, g: float) -> NDArray[np.f
     return canvas.albedo * shade[..., None]
 
 
-def _camera(rng: np.random.Generator, rgb: NDArray, gsd: float) -> NDArray[np.float32]:
-    """Exposure, colour cast, a lens blur of 0.4-1.2 px, sensor noise and 8-bit steps."""
+def _camera(rng: np.random.Generator, rgb: NDArray, gsd: float, *, tone: bool = False) -> NDArray[np.float32]:
+    """Exposure, colour cast, a lens blur of 0.4-1.2 px, sensor noise and 8-bit steps;
+    with ``tone``, metering and the sRGB curve a camera's JPEG applies (IEC 61966-2-1)."""
     out = rgb * rng.uniform(0.75, 1.35) * rng.uniform(0.92, 1.08, 3)[None, None, :]
+    if tone:
+        out = out * (rng.uniform(0.10, 0.25) / max(float(np.median(out.mean(axis=2))), 1e-3))
     out = cv2.GaussianBlur(out.astype(np.float32), (0, 0), rng.uniform(0.4, 1.2))
     out = out + rng.normal(0.0, rng.uniform(0.003, 0.015), out.shape).astype(np.float32)
-    gamma = rng.uniform(0.85, 1.15)
-    out = np.clip(out, 0.0, 1.0) ** gamma
+    out = np.clip(out, 0.0, 1.0)
+    if tone:
+        out = np.where(out <= 0.0031308, 12.92 * out, 1.055 * out ** (1.0 / 2.4) - 0.055)
+    else:
+        out = out ** rng.uniform(0.85, 1.15)
     return (np.round(out * 255.0) / 255.0).astype(np.float32)
 
 

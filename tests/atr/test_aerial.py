@@ -69,6 +69,45 @@ def test_patches_hold_their_truth() -> None:
     assert {v["cls"] for v in p.vehicles} <= {"car", "bus"}
 
 
+def test_a_street_patch_holds_vehicles_in_its_lanes() -> None:
+    """Streets: every vehicle lies along the one street direction (either way), none of
+    them is an aircraft, the lanes' markings are painted, and each vehicle's footprint
+    overlaps no other's."""
+    targets, negatives = _items()
+    negatives = negatives + [("vehicle:jet", builtin_target("jet_j1", scale="full"))]
+    tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
+    nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
+    spec = PatchSpec(gsd_m=GSD, size_m=32.0, carpark_share=0.0, road_share=1.0, missing_dsm_share=0.0)
+    for seed in range(4):
+        p = compose_patch(np.random.default_rng(seed), tsp, nsp, spec)
+        others = [o for o in p.clutter if o["kind"].startswith("vehicle:")]
+        assert all(o["kind"] == "vehicle:tank" for o in others)  # a jet's wings span more than a lane
+        along = [v["heading_rad"] % math.pi for v in p.vehicles] + [o["heading_rad"] % math.pi for o in others]
+        assert len(along) >= 2
+        ref = along[0]
+        assert all(min(abs(a - ref), math.pi - abs(a - ref)) < math.radians(10.0) for a in along)
+        cars = p.vehicles + others
+        for i, a in enumerate(cars):  # queued, never stacked: centres at least a width apart
+            for b in cars[i + 1:]:
+                assert math.hypot(a["row"] - b["row"], a["col"] - b["col"]) * GSD > 1.4
+
+
+def test_a_camera_curve_lifts_dark_ground_to_mid_grey() -> None:
+    """A patch seen as a JPEG shows it is metered and sRGB-encoded: its median grey sits
+    near the middle of the scale, where the linear patch's dark asphalt sits near black."""
+    targets, negatives = _items()
+    tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
+    nsp = [(c, render_nadir(m, GSD)) for c, m in negatives]
+    med = {}
+    for tone in (0.0, 1.0):
+        spec = PatchSpec(gsd_m=GSD, size_m=32.0, carpark_share=1.0, tone_share=tone, missing_dsm_share=0.0)
+        med[tone] = [float(np.median(compose_patch(np.random.default_rng(s), tsp, nsp, spec).rgb.mean(axis=2)))
+                     for s in range(6)]
+    # metering puts the median at 10-25 % of full scale before the curve: 0.35-0.54 after it
+    assert all(0.3 < m < 0.6 for m in med[1.0]), med
+    assert np.median(med[0.0]) < 0.3, med
+
+
 def test_features_turn_with_the_scene() -> None:
     rng = np.random.default_rng(1)
     grey = np.zeros((240, 240), np.float32)
