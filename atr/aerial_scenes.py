@@ -8,8 +8,8 @@ crossings, vehicles queued or spread along the lanes, pavements beside) or open 
 (grass, soil, gravel; vehicles and clutter scattered). Every object is a sprite of its mesh
 (:func:`prism3d.capture.nadir.render_nadir`) turned to its heading, composited by height,
 lit by a sun of random elevation and azimuth with the shadows the height field casts,
-then seen through a camera (blur, gain, colour cast, noise; half the patches metered and
-sRGB-encoded as a JPEG is, the rest linear as our flights render). The normalised DSM a survey
+then seen through a camera (blur, gain, colour cast, noise; optionally metered and
+sRGB-encoded as a JPEG is, else linear as our flights render). The normalised DSM a survey
 would give is emulated from the exact heights: gridded at a DSM cell, smoothed, noisy,
 with holes where the image has no texture to match (shadows, dark paint, uniform asphalt)
 and a few at random. Why these choices and what they bought: docs/atr.md "Vehicles from
@@ -19,7 +19,7 @@ the air".
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -44,9 +44,11 @@ class PatchSpec:
     """Side of a patch, m."""
     carpark_share: float = 0.65
     """Share of patches that are car parks."""
-    road_share: float = 0.2
+    road_share: float = 0.0
     """Share of patches that are streets: lanes, their markings and crossings, vehicles
-    queued or spread along them, pavements beside (the rest open ground)."""
+    queued or spread along them, pavements beside (the rest open ground). Off by default:
+    streets raise recall on real street photographs but cost the simulated car parks and
+    the field flight's tanks (docs/atr.md "Streets and the camera curve")."""
     dsm_cell_m: tuple[float, float] = (0.10, 0.24)
     """Range of the emulated DSM's cell, m."""
     dsm_noise_m: tuple[float, float] = (0.03, 0.15)
@@ -66,10 +68,11 @@ class PatchSpec:
     repaint_open: float = 0.3
     """The same share on open ground, where vehicles are more often seen in their own
     paint (a camouflaged truck on grass is still a truck)."""
-    tone_share: float = 0.5
+    tone_share: float = 0.0
     """Share of patches seen as a real camera's JPEG shows them: metered so the scene's
     median lands at 10-25 % of full scale, then sRGB-encoded (dark asphalt comes out mid
-    grey). The rest stay linear, as the simulator's own flights render."""
+    grey). The rest stay linear, as the simulator's own flights render. Off by default
+    (same measurements as ``road_share``)."""
 
 
 @dataclass(frozen=True)
@@ -332,7 +335,35 @@ def _road_layout(rng: np.random.Generator, albedo: NDArray, gsd: float, targets:
     lanes, lane_w = int(rng.integers(2, 6)), rng.uniform(3.0, 3.7) / gsd
     half = lanes * lane_w / 2.0
     rows, cols = np.mgrid[0:n, 0:n].astype(np.float32)
-    across = (cols - ctr[0]) * ub[0] + (rows - ctr[1]) * ub[1]
+    _street_sides(rng, albedo, (cols - ctr[0]) * ub[0] + (rows - ctr[1]) * ub[1], half, gsd)
+
+    def seg(a0: float, a1: float, t: float) -> tuple[float, float, float, float]:
+        p0, p1 = ctr + ua * a0 + ub * t, ctr + ua * a1 + ub * t
+        return (p0[1], p0[0], p1[1], p1[0])
+
+    mid = _street_markings(rng, albedo, seg, lanes, lane_w, gsd)
+    pool = [(s, "target", c) for c, s in targets] + [(s, "negative", c) for c, s in vehicles_neg]
+    pool = [q for q in pool if q[0].width_m <= 0.95 * lane_w * gsd] or pool[:1]  # no aircraft in a lane
+    weights = np.array([3.0 if k == "target" else 1.0 for _, k, _ in pool])
+    placed = []
+    for i in range(lanes):
+        forward = i >= mid  # mid < 0 on a one-way street
+        queue = rng.uniform() < 0.4
+        a = -0.8 * n + rng.uniform(0, 10.0) / gsd
+        while a < 0.8 * n:
+            sp, kind, cls = pool[int(rng.choice(len(pool), p=weights / weights.sum()))]
+            a += sp.length_m / 2.0 / gsd
+            p = ctr + ua * a + ub * (-half + (i + 0.5) * lane_w + rng.normal(0, 0.25 / gsd))
+            hd = ang + (0.0 if forward else math.pi) + rng.normal(0, math.radians(2.0))
+            placed.append((sp, p[1], p[0], hd, kind, cls))
+            a += sp.length_m / 2.0 / gsd + (rng.uniform(0.8, 2.5) if queue else rng.exponential(12.0) + 2.0) / gsd
+    return placed
+
+
+def _street_sides(rng: np.random.Generator, albedo: NDArray, across: NDArray, half: float, gsd: float) -> None:
+    """Pavements of 2-4.5 m (paving with joints) beyond the carriageway's ``half`` width
+    (px; ``across`` is each pixel's signed distance from its axis), verges beyond, kerbs."""
+    n = albedo.shape[0]
     walk = rng.uniform(2.0, 4.5) / gsd
     pave = _surface(rng, str(rng.choice(["concrete", "asphalt_light"])), (n, n), gsd)
     _joints(rng, pave, gsd)
@@ -343,14 +374,17 @@ def _road_layout(rng: np.random.Generator, albedo: NDArray, gsd: float, targets:
     kerb = np.abs(np.abs(across) - half) < max(1.0, 0.15 / gsd)
     albedo[kerb] *= rng.uniform(0.6, 1.4)
 
-    def seg(a0: float, a1: float, t: float) -> tuple[float, float, float, float]:
-        p0, p1 = ctr + ua * a0 + ub * t, ctr + ua * a1 + ub * t
-        return (p0[1], p0[0], p1[1], p1[0])
 
+def _street_markings(rng: np.random.Generator, albedo: NDArray, seg: Callable, lanes: int, lane_w: float,
+                     gsd: float) -> int:
+    """The carriageway's paint (``seg(a0, a1, t)``: a segment along the street from ``a0``
+    to ``a1`` at ``t`` across, px). Returns the index of the lane the divider stands
+    before (-1: one way)."""
+    n = albedo.shape[0]
+    half = lanes * lane_w / 2.0
     white = np.array([0.8, 0.8, 0.76], np.float32) * rng.uniform(0.7, 1.05)
     yellow = np.array([0.75, 0.62, 0.12], np.float32) * rng.uniform(0.7, 1.05)
-    two_way = rng.uniform() < 0.7
-    mid = lanes // 2 if two_way else -1
+    mid = lanes // 2 if rng.uniform() < 0.7 else -1
     dash, gap, phase = rng.uniform(2.0, 3.5) / gsd, rng.uniform(4.0, 9.0) / gsd, rng.uniform(0, 10.0) / gsd
     for i in range(1, lanes):
         t = -half + i * lane_w
@@ -362,31 +396,19 @@ def _road_layout(rng: np.random.Generator, albedo: NDArray, gsd: float, targets:
             _paint_lines(albedo, [seg(a0, a0 + dash, t) for a0 in a], 0.12 / gsd, white)
     if rng.uniform() < 0.6:
         _paint_lines(albedo, [seg(-n, n, -half + 0.3 / gsd), seg(-n, n, half - 0.3 / gsd)], 0.12 / gsd, white)
-    if rng.uniform() < 0.4:  # a zebra crossing: stripes along the street, across its width
+    if rng.uniform() < 0.4:  # a zebra crossing: stripes along the street, across its width, stop lines
         at, w = rng.uniform(-0.3, 0.3) * n, rng.uniform(2.5, 4.0) / gsd
         step = rng.uniform(1.0, 1.4) / gsd
         _paint_lines(albedo, [seg(at - w / 2, at + w / 2, t) for t in np.arange(-half + step / 2, half, step)],
                      step / 2, white)
-        _paint_lines(albedo, [(p0, q0, p1, q1) for p0, q0, p1, q1 in
-                              [(*(ctr + ua * (at + sgn * (w / 2 + 1.0 / gsd)) + ub * -half)[::-1],
-                                *(ctr + ua * (at + sgn * (w / 2 + 1.0 / gsd)) + ub * half)[::-1]) for sgn in (-1, 1)]],
-                     0.3 / gsd, white)
-    pool = [(s, "target", c) for c, s in targets] + [(s, "negative", c) for c, s in vehicles_neg]
-    pool = [q for q in pool if q[0].width_m <= 0.95 * lane_w * gsd] or pool[:1]  # no aircraft in a lane
-    weights = np.array([3.0 if k == "target" else 1.0 for _, k, _ in pool])
-    placed = []
-    for i in range(lanes):
-        forward = (i >= mid) if two_way else True
-        queue = rng.uniform() < 0.4
-        a = -0.8 * n + rng.uniform(0, 10.0) / gsd
-        while a < 0.8 * n:
-            sp, kind, cls = pool[int(rng.choice(len(pool), p=weights / weights.sum()))]
-            a += sp.length_m / 2.0 / gsd
-            p = ctr + ua * a + ub * (-half + (i + 0.5) * lane_w + rng.normal(0, 0.25 / gsd))
-            hd = ang + (0.0 if forward else math.pi) + rng.normal(0, math.radians(2.0))
-            placed.append((sp, p[1], p[0], hd, kind, cls))
-            a += sp.length_m / 2.0 / gsd + (rng.uniform(0.8, 2.5) if queue else rng.exponential(12.0) + 2.0) / gsd
-    return placed
+        stops = []
+        for sgn in (-1, 1):
+            a0 = at + sgn * (w / 2 + 1.0 / gsd)
+            r0, c0, _, _ = seg(a0, a0, -half)
+            r1, c1, _, _ = seg(a0, a0, half)
+            stops.append((r0, c0, r1, c1))
+        _paint_lines(albedo, stops, 0.3 / gsd, white)
+    return mid
 
 
 def _scatter_layout(rng: np.random.Generator, n: int, gsd: float, targets: Sequence, vehicles_neg: Sequence,
@@ -438,7 +460,7 @@ def compose_patch(rng: np.random.Generator, targets: Sequence[tuple[str, NadirSp
     everything = objs + clutter
     for i, (sp, r, c, hd, _, _) in enumerate(everything):
         _place(canvas, sp, r, c, hd, 0.0, i)
-    tone = bool(rng.uniform() < o.tone_share)
+    tone = bool(o.tone_share > 0 and rng.uniform() < o.tone_share)
     rgb = _camera(rng, _sunlit(rng, canvas, g), g, tone=tone)
     # stereo's holes follow the light the sensor got, not the JPEG's curve
     linear = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4) if tone else rgb

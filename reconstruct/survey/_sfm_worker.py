@@ -1,0 +1,222 @@
+"""The child process of :func:`prism3d.reconstruct.survey.sfm.map_frames`: COLMAP's feature
+extraction, matching and incremental mapping through pycolmap, driven by a JSON request.
+
+It runs apart from the caller because COLMAP logs to stderr at the file-descriptor level
+(the parent sends it to ``colmap.log``) and because a crash or a runaway mapper must not
+take the caller down. It imports only json, numpy and pycolmap so it starts fast.
+
+Usage: ``python -m prism3d.reconstruct.survey._sfm_worker REQUEST.json``. Stage names go, one a
+line, to the stdout it was started with (the parent's progress channel); everything else
+that writes to stdout is sent to stderr, the log. Results: ``result.npz`` (arrays, no
+pickles) and ``result.json`` (timings, model sizes), both written atomically, and the
+chosen model in COLMAP's text format.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+SCHEMA_VERSION = 1
+
+
+def _atomic(path: Path, write) -> None:
+    tmp = path.with_name(path.name + ".tmp" + path.suffix)
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def _reader_options(pycolmap, req: dict):
+    ro = pycolmap.ImageReaderOptions()
+    ro.camera_model = "RADIAL"
+    ro.camera_params = ",".join(repr(float(v)) for v in req["camera_params"])
+    return ro
+
+
+def _extraction_options(pycolmap, req: dict):
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.max_image_size = int(req["max_image_size"])
+    eo.num_threads = int(req["threads"])
+    eo.use_gpu = False
+    eo.sift.max_num_features = int(req["max_features"])
+    return eo
+
+
+def _pipeline_options(pycolmap, req: dict):
+    po = pycolmap.IncrementalPipelineOptions()
+    po.num_threads = int(req["threads"])
+    po.random_seed = 0
+    po.min_model_size = 2  # keep every model of two images or more, so the log and result can name them
+    po.triangulation.ignore_two_view_tracks = False  # else two frames triangulate nothing
+    po.ba_refine_focal_length = bool(req["refine_focal"])
+    po.ba_refine_principal_point = bool(req["refine_principal_point"])
+    po.ba_refine_extra_params = bool(req["refine_distortion"])
+    po.mapper.abs_pose_refine_focal_length = bool(req["refine_focal"])
+    po.mapper.abs_pose_refine_extra_params = bool(req["refine_distortion"])
+    return po
+
+
+def _export(pycolmap, rec, np) -> dict:
+    """Poses, camera, points and every observation of ``rec`` as arrays (COLMAP's pixel
+    convention: (0, 0) is the top-left corner of the image)."""
+    reg_ids = sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name)
+    names, poses, index = [], [], {}
+    for k, iid in enumerate(reg_ids):
+        im = rec.images[iid]
+        names.append(im.name)
+        poses.append(np.asarray(im.cam_from_world().matrix(), dtype=np.float64))
+        index[iid] = k
+    pid_index, xyz, rgb, tlen = {}, [], [], []
+    for pid, p in rec.points3D.items():
+        pid_index[pid] = len(xyz)
+        xyz.append(p.xyz)
+        rgb.append(p.color)
+        tlen.append(p.track.length())
+    obs_img, obs_pt, obs_xy = [], [], []
+    for iid in reg_ids:
+        for p2 in rec.images[iid].points2D:
+            if p2.has_point3D():
+                obs_img.append(index[iid])
+                obs_pt.append(pid_index[p2.point3D_id])
+                obs_xy.append(p2.xy)
+    cams = list(rec.cameras.values())
+    return {
+        "reg_names": np.array(names, dtype=str),
+        "cam_from_world": np.array(poses, dtype=np.float64).reshape(-1, 3, 4),
+        "camera_params": np.asarray(cams[0].params, dtype=np.float64),
+        "camera_size": np.array([cams[0].width, cams[0].height], dtype=np.int64),
+        "points": np.array(xyz, dtype=np.float64).reshape(-1, 3),
+        "colors": np.array(rgb, dtype=np.uint8).reshape(-1, 3),
+        "track_length": np.array(tlen, dtype=np.int64),
+        "obs_image": np.array(obs_img, dtype=np.int64),
+        "obs_point": np.array(obs_pt, dtype=np.int64),
+        "obs_xy": np.array(obs_xy, dtype=np.float64).reshape(-1, 2),
+    }
+
+
+def _verified_pairs(pycolmap, db: Path) -> dict[str, int]:
+    """Image pairs that passed geometric verification, counted by COLMAP's configuration
+    (CALIBRATED, PLANAR_OR_PANORAMIC, ...): tells "no overlap" from "no parallax"."""
+    database = pycolmap.Database.open(db)
+    try:
+        _, geometries = database.read_two_view_geometries()
+    finally:
+        database.close()
+    counts: dict[str, int] = {}
+    for g in geometries:
+        if len(g.inlier_matches) > 0:
+            name = pycolmap.TwoViewGeometryConfiguration(int(g.config)).name  # an int when read back
+            counts[name] = counts.get(name, 0) + 1
+    return counts
+
+
+def _keypoint_counts(pycolmap, db: Path) -> dict[str, int]:
+    """Keypoints stored per image name: an image missing here could not be read."""
+    database = pycolmap.Database.open(db)
+    try:
+        return {im.name: database.num_keypoints_for_image(im.image_id) for im in database.read_all_images()}
+    finally:
+        database.close()
+
+
+def _match(pycolmap, req: dict, db: Path) -> None:
+    """Match the features on the CPU, sequentially or exhaustively as the request says."""
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = int(req["threads"])
+    mo.use_gpu = False
+    if req["matching"] == "sequential":
+        so = pycolmap.SequentialPairingOptions()
+        so.overlap = int(req["sequential_overlap"])
+        so.loop_detection = False
+        pycolmap.match_sequential(db, matching_options=mo, pairing_options=so, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_exhaustive(db, matching_options=mo, device=pycolmap.Device.cpu)
+
+
+def _map(pycolmap, req: dict, db: Path, image_dir: Path) -> dict:
+    """Incremental mapping: every model of two images or more, by pycolmap's model index."""
+    # pycolmap 4.2.1 writes some models (binary) there, only when it finds several: the
+    # chosen one is written by main in text format, the scratch folder is dropped.
+    scratch = Path(req["work_dir"]) / "sparse"
+    models = pycolmap.incremental_mapping(db, image_dir, scratch, options=_pipeline_options(pycolmap, req))
+    shutil.rmtree(scratch, ignore_errors=True)
+    return models
+
+
+def _write_model(pycolmap, np, req: dict, best) -> None:
+    """The chosen model in COLMAP's text format and its arrays in ``result.npz`` (atomic)."""
+    arrays = _export(pycolmap, best, np)
+    model_dir = Path(req["model_dir"])
+    model_dir.mkdir(parents=True, exist_ok=True)
+    best.write_text(model_dir)
+    _atomic(Path(req["result_npz"]), lambda p: np.savez(p, **arrays))
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1:
+        print("usage: python -m prism3d.reconstruct.survey._sfm_worker REQUEST.json", file=sys.stderr)
+        return 2
+    # The stage channel is the stdout we were given; from here on fd 1 is the log.
+    chan = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)
+
+    def stage(name: str) -> None:
+        chan.write(f"stage {name}\n")
+        chan.flush()
+
+    import numpy as np
+    import pycolmap
+
+    req = json.loads(Path(argv[0]).read_text())
+    if req.get("schema_version") != SCHEMA_VERSION:
+        print(f"request schema_version {req.get('schema_version')!r} is not {SCHEMA_VERSION}", file=sys.stderr)
+        return 2
+    db = Path(req["database"])
+    image_dir = Path(req["image_dir"])
+    names = list(req["image_names"])
+    pycolmap.set_random_seed(0)
+    seconds: dict[str, float] = {}
+
+    stage("features")
+    t0 = time.perf_counter()
+    pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=_reader_options(pycolmap, req),
+                              extraction_options=_extraction_options(pycolmap, req), device=pycolmap.Device.cpu)
+    seconds["features"] = time.perf_counter() - t0
+    have = _keypoint_counts(pycolmap, db)
+    unread = [n for n in names if n not in have]
+
+    stage("matching")
+    t0 = time.perf_counter()
+    if not unread:
+        _match(pycolmap, req, db)
+    seconds["matching"] = time.perf_counter() - t0
+    pairs = _verified_pairs(pycolmap, db) if not unread else {}
+
+    stage("mapping")
+    t0 = time.perf_counter()
+    models = _map(pycolmap, req, db, image_dir) if not unread else {}
+    seconds["mapping"] = time.perf_counter() - t0
+    ranked = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
+    info = {
+        "schema_version": SCHEMA_VERSION,
+        "seconds": seconds,
+        "unreadable": unread,
+        "keypoints": have,
+        "model_sizes": [int(r.num_reg_images()) for r in ranked],
+        "verified_pairs": pairs,
+        "pycolmap_version": pycolmap.__version__,
+    }
+    if ranked:
+        _write_model(pycolmap, np, req, ranked[0])
+    stage("done")
+    _atomic(Path(req["result_json"]), lambda p: p.write_text(json.dumps(info, indent=1)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,230 @@
+"""The drone survey's options and the values its stages hand on: the georeference, the fused
+surface, the folder's file list and schema.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.errors import InputError
+
+__all__ = ["DISPARITY_SIGMA_PX", "FusedSurface", "Georef", "PairRequest", "PairResult", "PairTile", "SURVEY_FILES",
+           "SURVEY_SCHEMA_VERSION", "SurveyOptions", "SurveyState"]
+
+
+SURVEY_SCHEMA_VERSION = 1
+
+
+#: Files every survey writes (``survey -o OUT``), besides ``colmap/`` and ``depth/``.
+SURVEY_FILES = ("poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", "ground.tif", "ortho.tif",
+                "ortho_quality.tif", "survey.png")
+
+
+#: Disparity noise assumed for a pair's height tolerance, px at the matched scale.
+DISPARITY_SIGMA_PX = 0.25
+
+
+@dataclass(frozen=True)
+class SurveyOptions:
+    """How a survey is computed (``prism3d survey`` options)."""
+
+    max_image_size: int = 2000
+    """Features for the poses on frames downscaled to this side (keypoints stay full-res)."""
+    dense_max_pixels: float = 3.2e6
+    """Frames are matched at the largest scale (1, 1/2, 1/3...) keeping them under this
+    many pixels: dense matching dominates the time and its memory grows with the area."""
+    pair_steps: tuple[int, ...] = (1, 2)
+    """Pairs: each frame with the next (1) and the next-but-one (2, twice the baseline)."""
+    cross_pairs: bool = True
+    """Also pair each frame with the frame further along the sequence that shares most of
+    its view (the neighbouring flight line): the strips' ends and edges are seen only so."""
+    cell_m: float | None = None
+    """DSM cell, m (model units without GPS); None: twice the matched frames' ground sample distance."""
+    ortho_gsd_m: float | None = None
+    """Orthophoto cell, m; None: the photographs' own ground sample distance (the median
+    camera height above the ground over the focal length), finer than the DSM's cell."""
+    min_shared_points: int = 30
+    """A pair needs this many sparse points seen by both frames, else it is skipped (no overlap)."""
+    min_base_to_height: float = 0.03
+    """A pair whose baseline is below this fraction of its depth is skipped (too short)."""
+    refine_intrinsics: str = "auto"
+    """What the bundle adjustment refines: "focal+distortion" (f, k1, k2), "none", or
+    "auto": none when the start is a calibration file, f, k1 and k2 from EXIF. Nadir
+    frames over gentle relief hardly tell the focal length from the flying height (the
+    image scale gives only their ratio), so a calibrated camera is best left as it is."""
+    refine_principal_point: bool = False
+    """Free the principal point in the bundle adjustment (poorly fixed by few nadir frames)."""
+    matcher: str = "ours"
+    """The dense matcher: ours, or "sgbm" (OpenCV's, the benchmarks' anchor)."""
+    lk_window: int = 9
+    """Our matcher's sub-pixel (Lucas-Kanade) window, px, with 3 iterations: nadir pairs
+    see ground that is flat at the window's scale, and a wider window than the stereo
+    default (5) averages more noise (docs/uav.md: on the simulator the DSM's median error
+    0.26 -> 0.19 GSD; the real pair's open ground 7.3 -> 5.3 cm rough)."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.max_image_size, bool) or not 320 <= int(self.max_image_size) <= 20000:
+            raise InputError(f"max_image_size: expected 320-20000 px, got {self.max_image_size!r}")
+        if not (math.isfinite(self.dense_max_pixels) and self.dense_max_pixels >= 1e4):
+            raise InputError(f"dense_max_pixels: expected >= 10000, got {self.dense_max_pixels!r}")
+        steps = tuple(int(s) for s in self.pair_steps)
+        if not steps or any(s < 1 or s > 10 for s in steps) or len(set(steps)) != len(steps):
+            raise InputError(f"pair_steps: expected distinct steps in 1-10, got {self.pair_steps!r}")
+        object.__setattr__(self, "pair_steps", steps)
+        if self.cell_m is not None and not (math.isfinite(self.cell_m) and self.cell_m > 0):
+            raise InputError(f"cell: expected a DSM cell size > 0, got {self.cell_m!r}")
+        if self.ortho_gsd_m is not None and not (math.isfinite(self.ortho_gsd_m) and self.ortho_gsd_m > 0):
+            raise InputError(f"ortho-gsd: expected an orthophoto cell > 0, got {self.ortho_gsd_m!r}")
+        if isinstance(self.lk_window, bool) or int(self.lk_window) != self.lk_window or self.lk_window < 3 \
+                or self.lk_window % 2 == 0:
+            raise InputError(f"lk_window: expected an odd integer >= 3, got {self.lk_window!r}")
+        if self.matcher not in ("ours", "sgbm"):
+            raise InputError(f"matcher: expected ours or sgbm, got {self.matcher!r}")
+        if self.refine_intrinsics not in ("auto", "focal+distortion", "none"):
+            raise InputError(f"refine_intrinsics: expected auto, focal+distortion or none, got {self.refine_intrinsics!r}")
+
+
+@dataclass(frozen=True)
+class Georef:
+    """``x_enu = s R x_model + t``; ``method`` says how it was found, ``residual_rms_m``
+    the camera centres' RMS distance to their GPS positions after it (None without GPS)."""
+
+    s: float
+    R: NDArray[np.float64]
+    t: NDArray[np.float64]
+    method: str
+    residual_rms_m: float | None
+
+    def apply(self, P: NDArray) -> NDArray[np.float64]:
+        return self.s * np.asarray(P, dtype=np.float64) @ self.R.T + self.t
+
+    def pose(self, cam_from_model: NDArray) -> NDArray[np.float64]:
+        """``T_enu_cam`` (4, 4) of a camera given ``cam_from_model`` (4, 4)."""
+        T = np.linalg.inv(np.asarray(cam_from_model, dtype=np.float64))  # model <- cam
+        out = np.eye(4)
+        out[:3, :3] = self.R @ T[:3, :3]
+        out[:3, 3] = self.apply(T[:3, 3])
+        return out
+
+
+@dataclass(frozen=True)
+class FusedSurface:
+    """The fused DSM (H, W) float32 (NaN: no consistent height), its colour (H, W, 3)
+    uint8, per-cell number of agreeing pairs and of pairs seen, north-west corner, cell."""
+
+    dsm: NDArray[np.float32]
+    rgb: NDArray[np.uint8]
+    agree: NDArray[np.uint8]
+    seen: NDArray[np.uint8]
+    west: float
+    north: float
+    cell: float
+
+
+@dataclass(frozen=True)
+class PairRequest:
+    """One dense pair to match (:func:`~prism3d.reconstruct.survey.run.dense_pair`): frames
+    ``i`` and ``j`` (their paths and ``T_enu_cam`` poses, 4 x 4), the camera ``K`` and
+    ``dist`` shared by the flight, the matching ``factor`` (1, 2, 3...: frames downscaled
+    by it), the sparse ENU points both see (``shared``, N x 3), the survey's lattice
+    ``cell`` and the options that decide whether the pair is skipped and how it is matched.
+    Picklable: the jobs' runner ships it to worker processes or a Dask cluster."""
+
+    i: int
+    j: int
+    path_i: str
+    path_j: str
+    K: NDArray[np.float64]
+    dist: NDArray[np.float64]
+    factor: int
+    T_enu_cam_i: NDArray[np.float64]
+    T_enu_cam_j: NDArray[np.float64]
+    shared: NDArray[np.float64]
+    cell: float
+    min_shared: int = 30
+    min_base_to_height: float = 0.03
+    matcher: str = "ours"
+    lk_window: int = 5
+
+
+@dataclass(frozen=True)
+class PairTile:
+    """A pair's heights on the survey's lattice: north-west corner and ``cell`` (m), the
+    per-cell median height ``dsm`` (NaN: none), point ``count`` and mean colour ``rgb``."""
+
+    west: float
+    north: float
+    cell: float
+    dsm: NDArray[np.float32]
+    count: NDArray[np.int32]
+    rgb: NDArray
+
+
+@dataclass
+class PairResult:
+    """What one dense pair gave: ``status`` "ok" or "skipped" with a ``reason``; the
+    figures measured on the way (None until measured); when ok, its ``tile``, camera i's
+    ``depth`` map (m, NaN: none) and that map's intrinsics ``K_depth``."""
+
+    i: int
+    j: int
+    status: str = "skipped"
+    reason: str | None = None
+    baseline: float | None = None
+    depth_median: float | None = None
+    n_points: int | None = None
+    valid_fraction: float | None = None
+    disparity_range: list[float] | None = None
+    sigma_z: float | None = None
+    seconds: float | None = None
+    tile: PairTile | None = None
+    depth: NDArray[np.float32] | None = None
+    K_depth: NDArray[np.float64] | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def record(self) -> dict[str, Any]:
+        """The pair's entry in poses.json: the figures measured (tile and depth map aside)."""
+        out: dict[str, Any] = {"i": self.i, "j": self.j, "status": self.status, "reason": self.reason}
+        for k in ("baseline", "depth_median", "n_points", "valid_fraction", "disparity_range", "sigma_z", "seconds"):
+            v = getattr(self, k)
+            if v is not None:
+                out[k] = v
+        return out
+
+
+@dataclass(frozen=True)
+class SurveyState:
+    """What a survey knows when it writes its products: the frames (``paths``, and how the
+    products name them, ``shown``), the SfM model ``sfm``, its georeference ``geo`` and
+    ``T_enu_cam`` per placed frame, the dense ``pairs``, the ENU ``origin`` (lat, lon, 0;
+    None without GPS) and the frames' GPS positions in ENU, where the GPS and the starting
+    camera came from, the intrinsics the adjustment ``refined``, the matching ``factor``
+    and the ``options``."""
+
+    paths: list[Path]
+    shown: list[str]
+    sfm: Any
+    geo: Georef
+    T_enu: dict[int, NDArray[np.float64]]
+    pairs: list[PairResult]
+    origin: NDArray[np.float64] | None
+    gps_enu: NDArray[np.float64] | None
+    gps_source: str
+    calib_source: str
+    refined: list[str] = field(default_factory=list)
+    factor: int = 1
+    options: SurveyOptions = field(default_factory=SurveyOptions)
+
+    @property
+    def scaled(self) -> bool:
+        """Metres in a local ENU frame (GPS), or model units."""
+        return self.origin is not None

@@ -1,0 +1,501 @@
+"""The UAV survey mode: photographs from one moving camera become a georeferenced point
+cloud, DSM, orthophoto and normalised DSM (the paper's closing proposal: "the
+neighboring images in the sequence form stereo pairs").
+
+Stages (docs/uav.md): poses and refined intrinsics from pycolmap's incremental mapping
+(:mod:`prism3d.reconstruct.survey.sfm`); a similarity onto the GPS positions in a local
+east-north-up frame (:func:`georeference`); each pair of neighbouring frames, and the
+next-but-one, rectified from its poses and matched by our matcher (:func:`dense_pair`,
+one independent unit per pair, run in this process or on Dask); the pairs' heights fused
+cell by cell with a consistency check (:func:`fuse_tiles`); then the products.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from prism3d.capture.geotag import wgs84_to_enu
+from prism3d.errors import InputError
+from prism3d.io.atomic import atomic_write_text, staged_folder
+from prism3d.io.images import read_image
+from prism3d.reconstruct.survey.dsm import MAX_CELLS, grid_points
+from prism3d.reconstruct.stereo.flatness import ransac_plane
+from prism3d.reconstruct.stereo.match_options import MatchOptions
+from prism3d.reconstruct.survey.sfm import SfmOptions, map_frames, similarity_align
+from prism3d.reconstruct.survey.inputs import (
+    VIDEO_SUFFIXES,
+    check_frames,
+    gps_positions,
+    starting_camera,
+    video_frames,
+)
+from prism3d.reconstruct.survey.model import (
+    DISPARITY_SIGMA_PX,
+    SURVEY_FILES,
+    SURVEY_SCHEMA_VERSION,
+    FusedSurface,
+    Georef,
+    PairRequest,
+    PairResult,
+    PairTile,
+    SurveyOptions,
+    SurveyState,
+)
+from prism3d.reconstruct.survey.pair import pair_cloud
+from prism3d.reconstruct.survey.products import (
+    write_products,
+)
+from prism3d.reconstruct.survey.two_view import TwoViewPose
+
+__all__ = [
+    "SURVEY_SCHEMA_VERSION", "SURVEY_FILES", "Georef", "PairRequest", "PairResult", "PairTile", "SurveyOptions",
+    "dense_pair", "fuse_tiles", "georeference", "run_survey",
+]
+
+
+# -- georeferencing ----------------------------------------------------------------------
+
+
+def _ground_up(points: NDArray, centres: NDArray) -> NDArray[np.float64]:
+    """The dominant plane's normal of sparse ``points`` (a nadir survey's ground),
+    pointing towards the cameras."""
+    rng = np.random.default_rng(0)
+    P = np.asarray(points, dtype=np.float64)
+    if len(P) < 20:
+        raise InputError("survey: fewer than 20 sparse points; the ground cannot be levelled")
+    sample = P[rng.choice(len(P), size=min(len(P), 20000), replace=False)]
+    spread = float(np.median(np.linalg.norm(sample - np.median(sample, axis=0), axis=1)))
+    n, _, _ = ransac_plane(sample, 0.02 * max(spread, 1e-9), rng)
+    if n @ (centres.mean(axis=0) - np.median(P, axis=0)) < 0:
+        n = -n
+    return n / np.linalg.norm(n)
+
+
+def georeference(centres: NDArray, gps_enu: NDArray | None, points: NDArray) -> Georef:
+    """The similarity from the model frame to local ENU. With GPS at three or more
+    camera centres not on one line: the least-squares similarity onto them (frames more
+    than 3x the median residual away dropped once). On one line (two frames, or one
+    straight strip), positions leave the roll about the line free: scale and the track
+    come from the positions and "up" from the ground's dominant plane. Without GPS: the
+    model levelled on its ground (at height 0), camera 1 above the origin, its scale
+    unknown."""
+    C = np.asarray(centres, dtype=np.float64)
+    up_model = _ground_up(points, C)
+    if gps_enu is None:
+        x = np.array([1.0, 0.0, 0.0]) - up_model[0] * up_model
+        if np.linalg.norm(x) < 1e-6:
+            x = np.array([0.0, 1.0, 0.0]) - up_model[1] * up_model
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(up_model, x), up_model])
+        t = -R @ C[0]
+        t[2] = -float(np.median(np.asarray(points, dtype=np.float64) @ up_model))  # the ground at 0
+        return Georef(1.0, R, t, "levelled on the ground (no GPS: scale unknown)", None)
+    G = np.asarray(gps_enu, dtype=np.float64)
+    if G.shape != C.shape:
+        raise InputError(f"GPS: {len(G)} positions for {len(C)} cameras")
+    sv = np.linalg.svd(G - G.mean(axis=0), compute_uv=False)
+    if len(C) >= 3 and sv[1] > 0.05 * sv[0]:
+        keep = np.ones(len(C), bool)
+        for _ in range(2):
+            s, R, t = similarity_align(C[keep], G[keep])
+            res = np.linalg.norm(s * C @ R.T + t - G, axis=1)
+            med = float(np.median(res[keep]))
+            new = res <= max(3.0 * med, 1e-9)
+            if new.sum() < 3 or np.array_equal(new, keep):
+                break
+            keep = new
+        return Georef(s, R, t, "similarity to the GPS positions",
+                      float(np.sqrt(np.mean(res[keep] ** 2))))
+    # one line: scale from the spreads, heading from the track, up from the ground
+    a, b = C - C.mean(axis=0), G - G.mean(axis=0)
+    s = float(np.sqrt((b**2).sum() / max((a**2).sum(), 1e-300)))
+    if s == 0:
+        raise InputError("GPS: every frame has the same position; no scale or heading")
+    dm = a[np.argmax(np.linalg.norm(a, axis=1))]
+    dm = dm if dm @ a[-1] >= 0 else -dm
+    dg = G[-1] - G[0]
+    dm_h = dm - (dm @ up_model) * up_model
+    dg_h = np.array([dg[0], dg[1], 0.0])
+    if np.linalg.norm(dm_h) < 1e-12 or np.linalg.norm(dg_h) < 1e-6:
+        raise InputError("GPS: the frames do not move horizontally; no heading to align to")
+    dm_h /= np.linalg.norm(dm_h)
+    dg_h /= np.linalg.norm(dg_h)
+    z = np.array([0.0, 0.0, 1.0])
+    src = np.stack([dm_h, np.cross(up_model, dm_h), up_model], axis=1)
+    dst = np.stack([dg_h, np.cross(z, dg_h), z], axis=1)
+    R = dst @ src.T
+    t = G.mean(axis=0) - s * R @ C.mean(axis=0)
+    res = np.linalg.norm(s * C @ R.T + t - G, axis=1)
+    return Georef(s, R, t, "GPS track and scale, levelled on the ground (frames on one line)",
+                  float(np.sqrt(np.mean(res**2))))
+
+
+# -- one pair ---------------------------------------------------------------------------
+def _dense_scale(size: tuple[int, int], max_pixels: float) -> int:
+    """The integer downscale factor keeping a ``(w, h)`` frame under ``max_pixels``."""
+    w, h = size
+    return max(1, math.ceil(math.sqrt(w * h / max_pixels) - 1e-9))
+
+
+def _load_frame(path: str, K: NDArray, dist: NDArray, factor: int) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
+    """A frame undistorted onto ``K`` and area-downscaled by ``factor``: the image and its K."""
+
+    img = read_image(path)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    img = np.ascontiguousarray(img[..., :3])
+    if np.any(np.asarray(dist) != 0):
+        img = cv2.undistort(img, K, np.asarray(dist, dtype=np.float64))
+    Ks = np.asarray(K, dtype=np.float64).copy()
+    if factor > 1:
+        h, w = img.shape[:2]
+        img = cv2.resize(img, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+        Ks[:2] /= factor
+        Ks[0, 2] = (K[0, 2] + 0.5) / factor - 0.5
+        Ks[1, 2] = (K[1, 2] + 0.5) / factor - 0.5
+    return img, Ks
+
+
+def _project(T_cam_enu: NDArray, K: NDArray, P: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Pixels (n, 2) and depths (n,) of ENU points in a camera (no distortion)."""
+    pc = P @ T_cam_enu[:3, :3].T + T_cam_enu[:3, 3]
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (pc[:, :2] / z[:, None]) * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
+    return uv, z
+
+
+def _tile_bounds(P: NDArray, cell: float) -> tuple[float, float, float, float]:
+    """Bounds (west, south, east, north) of points snapped to the survey's cell lattice."""
+    w = math.floor(P[:, 0].min() / cell) * cell
+    n = (math.floor(P[:, 1].max() / cell) + 1) * cell
+    e = math.floor(P[:, 0].max() / cell) * cell + 0.5 * cell
+    s = n - (math.floor((n - P[:, 1].min()) / cell) + 0.5) * cell
+    return w, s, e, n - 1e-9 * cell
+
+
+def dense_pair(req: PairRequest) -> PairResult:
+    """One pair's dense heights: frames ``i`` and ``j`` undistorted and downscaled by
+    ``factor``, rectified from their poses, matched over the disparity range of the sparse
+    points both see, triangulated in ENU and gridded on the survey's lattice. Returns the
+    pair's result (status "ok" or "skipped" with a reason) and, when ok, its tile and
+    camera i's depth map. A pair that cannot be a stereo pair is skipped, never raised:
+    other pairs carry on."""
+    t0 = time.perf_counter()
+    Ti, Tj = np.asarray(req.T_enu_cam_i, dtype=np.float64), np.asarray(req.T_enu_cam_j, dtype=np.float64)
+    ci, cj = Ti[:3, 3], Tj[:3, 3]
+    base = float(np.linalg.norm(cj - ci))
+    res = PairResult(int(req.i), int(req.j), baseline=base)
+    P = np.asarray(req.shared, dtype=np.float64)
+    if len(P) < int(req.min_shared):
+        res.reason = f"no overlap ({len(P)} shared sparse points)"
+        return res
+    Tci, Tcj = np.linalg.inv(Ti), np.linalg.inv(Tj)
+    K, dist, factor = np.asarray(req.K, dtype=np.float64), np.asarray(req.dist, dtype=np.float64), int(req.factor)
+    img_i, Ks = _load_frame(req.path_i, K, dist, factor)
+    img_j, _ = _load_frame(req.path_j, K, dist, factor)
+    q1, zi = _project(Tci, Ks, P)
+    q2, _ = _project(Tcj, Ks, P)
+    zmed = float(np.median(zi))
+    res.depth_median = zmed
+    if base < float(req.min_base_to_height) * zmed:
+        res.reason = f"baseline {base:.3g} is under {req.min_base_to_height:g} of the depth {zmed:.3g}"
+        return res
+    t = Tcj[:3, :3] @ ci + Tcj[:3, 3]
+    pose = TwoViewPose(Tcj[:3, :3] @ Ti[:3, :3], t / np.linalg.norm(t), q1, q2, len(P), 0.0)
+    lk = int(req.lk_window)
+    try:
+        pc = pair_cloud(img_i, img_j, Ks, pose, baseline=base, matcher=req.matcher,
+                        options=MatchOptions(lk_window=lk, lk_iters=3 if lk > 5 else 1))
+    except InputError as exc:
+        res.reason = str(exc).removeprefix("pair: ")
+        return res
+    except Exception as exc:  # noqa: BLE001 - the matcher finding nothing is a skipped pair
+        res.reason = f"matching failed ({type(exc).__name__}: {exc})"
+        return res
+    Pe = pc.points @ Ti[:3, :3].T + ci
+    if len(Pe) < 100:
+        res.reason = f"matching kept {len(Pe)} points"
+        return res
+    g = grid_points(Pe, pc.colours, float(req.cell), bounds=_tile_bounds(Pe, float(req.cell)))
+    res.status, res.n_points, res.valid_fraction = "ok", int(len(Pe)), round(pc.valid_fraction, 4)
+    res.disparity_range = list(pc.disparity_range)
+    res.sigma_z = float(zmed**2 / (Ks[0, 0] * base) * DISPARITY_SIGMA_PX)
+    res.seconds = round(time.perf_counter() - t0, 3)
+    res.tile = PairTile(g.west, g.north, g.gsd, g.dsm, g.count, g.ortho[..., :3])
+    res.depth, res.K_depth = _depth_map(pc.points, Ks, img_i.shape[:2]), Ks
+    return res
+
+
+def _depth_map(points: NDArray, Ks: NDArray, shape: tuple[int, int]) -> NDArray[np.float32]:
+    """Camera i's depth map at the matched scale from its points (camera frame): the
+    nearest surface per pixel (NaN: none)."""
+    h, w = shape
+    Z = points[:, 2]
+    u = np.round(points[:, 0] / Z * Ks[0, 0] + Ks[0, 2]).astype(np.int64)
+    v = np.round(points[:, 1] / Z * Ks[1, 1] + Ks[1, 2]).astype(np.int64)
+    ok = (Z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    depth = np.full((h, w), np.nan, dtype=np.float32)
+    order = np.argsort(-Z[ok])
+    depth[v[ok][order], u[ok][order]] = Z[ok][order]
+    return depth
+
+
+# -- fusion ------------------------------------------------------------------------------
+
+
+def fuse_tiles(tiles: Sequence[PairTile], sigmas: Sequence[float], *, band_rows: int = 512) -> FusedSurface:
+    """Fuse pairs' height tiles on one lattice: per cell the median of the pairs'
+    heights; a pair agrees when within ``3 sigma + cell/2`` of it (``sigma`` its
+    expected height noise); cells seen by two or more pairs keep the mean of those that
+    agree when at least two do (else no height: the pairs contradict each other); cells
+    only one pair saw keep its height. Processed in bands of rows (memory ~ one band)."""
+    if not tiles:
+        raise InputError("fusion: no pair produced heights")
+    cell = float(tiles[0].cell)
+    west = min(float(t.west) for t in tiles)
+    north = max(float(t.north) for t in tiles)
+    offs = []
+    H = W = 0
+    for t in tiles:
+        c0 = int(round((float(t.west) - west) / cell))
+        r0 = int(round((north - float(t.north)) / cell))
+        h, w = t.dsm.shape
+        offs.append((r0, c0, h, w))
+        H, W = max(H, r0 + h), max(W, c0 + w)
+    if H * W > MAX_CELLS:
+        raise InputError(f"fusion: {W} x {H} cells is over the {MAX_CELLS:,} budget; give a larger cell")
+    dsm = np.full((H, W), np.nan, dtype=np.float32)
+    rgb = np.zeros((H, W, 3), dtype=np.uint8)
+    agree = np.zeros((H, W), dtype=np.uint8)
+    seen = np.zeros((H, W), dtype=np.uint8)
+    for b0 in range(0, H, band_rows):
+        b1 = min(H, b0 + band_rows)
+        idx = [k for k, (r0, _, h, _) in enumerate(offs) if r0 < b1 and r0 + h > b0]
+        if not idx:
+            continue
+        Z = np.full((len(idx), b1 - b0, W), np.nan, dtype=np.float32)
+        C = np.zeros((len(idx), b1 - b0, W, 3), dtype=np.float32)
+        tol = np.empty((len(idx), 1, 1), dtype=np.float32)
+        for n, k in enumerate(idx):
+            r0, c0, h, w = offs[k]
+            s0, s1 = max(b0, r0), min(b1, r0 + h)
+            Z[n, s0 - b0:s1 - b0, c0:c0 + w] = tiles[k].dsm[s0 - r0:s1 - r0]
+            C[n, s0 - b0:s1 - b0, c0:c0 + w] = tiles[k].rgb[s0 - r0:s1 - r0]
+            tol[n] = 3.0 * float(sigmas[k]) + 0.5 * cell
+        dsm[b0:b1], rgb[b0:b1], agree[b0:b1], seen[b0:b1] = _fuse_band(Z, C, tol)
+    rgb[~np.isfinite(dsm)] = 0
+    return FusedSurface(dsm, rgb, agree, seen, west, north, cell)
+
+
+def _fuse_band(Z: NDArray, C: NDArray, tol: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """One band's fusion (:func:`fuse_tiles`) from the pairs' heights ``Z`` (n, h, w),
+    colours ``C`` (n, h, w, 3) and tolerances ``tol`` (n, 1, 1): height, colour, agreeing
+    and seeing pairs per cell."""
+    fin = np.isfinite(Z)
+    nseen = fin.sum(axis=0)
+    if len(Z) == 1:
+        med = Z[0]
+    else:  # median of the finite values: NaN sorts last, so take the middle of the first n
+        Zs = np.sort(Z, axis=0)
+        lo_i = np.maximum(nseen - 1, 0) // 2
+        hi_i = np.maximum(nseen, 1) // 2
+        med = 0.5 * (np.take_along_axis(Zs, lo_i[None], 0)[0] + np.take_along_axis(Zs, hi_i[None], 0)[0])
+    ok = fin & (np.abs(Z - med[None]) <= tol)
+    nok = ok.sum(axis=0)
+    keep = (nseen == 1) | (nok >= 2)
+    wsum = np.where(ok, 1.0, 0.0).astype(np.float32)
+    zf = np.where(ok, Z, 0.0).sum(axis=0) / np.maximum(nok, 1)
+    cf = (C * wsum[..., None]).sum(axis=0) / np.maximum(nok, 1)[..., None]
+    return (np.where(keep & (nok > 0), zf, np.nan), np.clip(np.round(cf), 0, 255).astype(np.uint8),
+            np.minimum(nok, 255), np.minimum(nseen, 255))
+
+
+# -- the survey ---------------------------------------------------------------------------
+
+
+def _shared_points(P: NDArray, Ti: NDArray, Tj: NDArray, K: NDArray, size: tuple[int, int],
+                   margin: float = 0.02) -> NDArray[np.float64]:
+    """Sparse points projecting inside both frames (a small margin in), in front of both."""
+    w, h = size
+    keep = np.ones(len(P), bool)
+    for T in (Ti, Tj):
+        uv, z = _project(np.linalg.inv(T), K, P)
+        keep &= (z > 0) & (uv[:, 0] > margin * w) & (uv[:, 0] < (1 - margin) * w) \
+            & (uv[:, 1] > margin * h) & (uv[:, 1] < (1 - margin) * h)
+    return P[keep]
+
+
+#: Runs the dense pairs: ``run_pairs(requests, progress) -> records`` (any order); the
+#: CLI passes one on the database jobs' runner (local processes or Dask).
+PairRunner = Callable[[list[PairRequest], Callable[[int, int, str], None] | None], list[PairResult]]
+
+
+def run_pairs_here(reqs: list[PairRequest], progress: Callable[[int, int, str], None] | None = None
+                   ) -> list[PairResult]:
+    """The dense pairs one after the other in this process."""
+    out = []
+    for k, r in enumerate(reqs):
+        if progress:
+            progress(k, len(reqs), f"pair {r.i}-{r.j}")
+        out.append(dense_pair(r))
+    if progress:
+        progress(len(reqs), len(reqs), "pairs")
+    return out
+
+
+def _georeference_model(sfm: Any, tags: list[Any] | None) -> tuple[Georef, dict[int, NDArray], NDArray, Any, Any]:
+    """The model in ENU (or levelled, without GPS): the similarity, ``T_enu_cam`` per
+    placed frame, the sparse points, the ENU origin (lat, lon, 0) and the GPS positions."""
+    reg = [k for k, r in enumerate(sfm.registered) if r]
+    C_model = np.array([np.linalg.inv(sfm.cam_from_world[k])[:3, 3] for k in reg])
+    origin = gps_enu = None
+    if tags is not None:
+        origin = np.array([tags[0].lat_deg, tags[0].lon_deg, 0.0])
+        gps_enu = wgs84_to_enu(np.array([[t.lat_deg, t.lon_deg, t.alt_m] for t in tags]), origin)
+    geo = georeference(C_model, None if gps_enu is None else gps_enu[reg], sfm.points)
+    T_enu = {k: geo.pose(sfm.cam_from_world[k]) for k in reg}
+    return geo, T_enu, geo.apply(sfm.points), origin, gps_enu
+
+
+def plan_pairs(T_enu: dict[int, NDArray], points_enu: NDArray, K: NDArray, size: tuple[int, int],
+               o: SurveyOptions) -> dict[tuple[int, int], NDArray[np.float64]]:
+    """The pairs to match, each with the sparse points both frames see: each placed frame
+    with the ones ``pair_steps`` later, and (``cross_pairs``) with the later frame beyond
+    those sharing most of its view, when it shares a quarter of a typical pair's points."""
+    reg = sorted(T_enu)
+    shared: dict[tuple[int, int], NDArray[np.float64]] = {}
+    for step in o.pair_steps:
+        for a in range(len(reg) - step):
+            i, j = reg[a], reg[a + step]
+            shared[(i, j)] = _shared_points(points_enu, T_enu[i], T_enu[j], K, size)
+    if o.cross_pairs and shared:
+        floor = 0.25 * float(np.median([len(v) for v in shared.values()]))
+        far = max(o.pair_steps)
+        for a in range(len(reg)):
+            best, best_n = None, floor
+            for b in range(a + far + 1, len(reg)):
+                sp = _shared_points(points_enu, T_enu[reg[a]], T_enu[reg[b]], K, size)
+                if len(sp) > best_n:
+                    best, best_n = (reg[b], sp), len(sp)
+            if best is not None:
+                shared[(reg[a], best[0])] = best[1]
+    return shared
+
+
+def _default_cell(T_enu: dict[int, NDArray], K: NDArray, points_enu: NDArray, factor: int) -> float:
+    """Twice the matched frames' ground sample distance at the median depth (at one cell
+    per matched pixel, perspective and rotation leave every few cells empty)."""
+    depths = [np.median(_project(np.linalg.inv(T), K, points_enu)[1]) for T in T_enu.values()]
+    return float(f"{2.0 * float(np.median(depths)) / float(K[0, 0]) * factor:.2g}")
+
+
+def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str | Path | None = None,
+               gps_table: str | Path | None = None, options: SurveyOptions | None = None,
+               progress: Callable[[int, int, str], None] | None = None,
+               run_pairs: PairRunner | None = None, video_step_s: float = 1.0) -> dict[str, Any]:
+    """Survey ``images`` (frames of one camera, in flight order; or one video, sampled
+    every ``video_step_s`` into ``OUT/frames/``) into ``out_dir``: poses, a COLMAP model,
+    per-pair depth maps, cloud (PLY, LAS), DSM, ground, nDSM and orthophoto (GeoTIFF),
+    poses.json and a drawing; all written together or nothing. ``run_pairs`` runs the
+    dense pairs (default: here, one after the other)."""
+    o = SurveyOptions() if options is None else options
+    t_all = time.perf_counter()
+    out = Path(out_dir)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"{out}: exists and is not an empty folder; give a new folder for the survey")
+    videos = [p for p in images if Path(p).suffix.lower() in VIDEO_SUFFIXES]
+    if videos and len(images) > 1:
+        raise InputError("survey: give one video, or image frames, not both")
+    if not videos:  # checked before anything is written
+        frames = _Frames.of(images, gps_table, calib)
+    refine = o.refine_intrinsics if o.refine_intrinsics != "auto" else ("none" if calib else "focal+distortion")
+    free = refine != "none"
+    seconds: dict[str, float] = {}
+    with staged_folder(out) as stage:
+        if videos:  # frames into the survey's own folder, then the same checks
+            images = [str(p) for p in video_frames(videos[0], stage / "frames", step_s=video_step_s)]
+            frames = _Frames.of(images, gps_table, calib)
+        t0 = time.perf_counter()
+        sfm = map_frames([str(p) for p in images], stage / "sfm_work", camera=frames.camera,
+                         options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
+                                            refine_principal_point=o.refine_principal_point),
+                         progress=progress)
+        seconds["poses"] = time.perf_counter() - t0
+        geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
+        factor = _dense_scale(frames.size, o.dense_max_pixels)
+        t0 = time.perf_counter()
+        reqs = _pair_requests(frames, sfm, T_enu, points_enu, factor, o)
+        recs = sorted((run_pairs or run_pairs_here)(reqs, progress), key=lambda r: (r.i, r.j))
+        seconds["dense"] = time.perf_counter() - t0
+        ok = [r for r in recs if r.ok]
+        if not ok:
+            reasons = "; ".join(f"{frames.paths[r.i].name}+{frames.paths[r.j].name}: {r.reason}" for r in recs[:3])
+            raise InputError(f"survey: no pair of frames gave depth ({reasons})")
+        t0 = time.perf_counter()
+        fused = fuse_tiles([r.tile for r in ok], [r.sigma_z for r in ok])
+        seconds["fusion"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        refined = (["f", "k1", "k2"] if free else []) + (["cx", "cy"] if o.refine_principal_point else [])
+        shown = [str(out / "frames" / p.name) for p in frames.paths] if videos else [str(p) for p in images]
+        summary = write_products(stage, fused, SurveyState(
+            frames.paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, frames.gps_source, frames.calib_source,
+            refined, factor, o))
+        shutil.copytree(sfm.model_dir, stage / "colmap", dirs_exist_ok=True)
+        shutil.rmtree(stage / "sfm_work", ignore_errors=True)
+        seconds["products"] = time.perf_counter() - t0
+        seconds["total"] = time.perf_counter() - t_all
+        summary["seconds"] = _record_seconds(stage / "poses.json", seconds)
+    summary["out_dir"] = str(out)
+    return summary
+
+
+def _record_seconds(poses: Path, seconds: dict[str, float]) -> dict[str, float]:
+    """The stages' times, rounded, added to poses.json (written before the last stage ended)."""
+    out = {k: round(v, 2) for k, v in seconds.items()}
+    doc = json.loads(poses.read_text())
+    doc["seconds"] = out
+    atomic_write_text(poses, json.dumps(doc, indent=1))
+    return out
+
+
+@dataclass(frozen=True)
+class _Frames:
+    """A survey's checked frames: paths, size (w, h), GPS tags and their source, the
+    starting camera and its source."""
+
+    paths: list[Path]
+    size: tuple[int, int]
+    tags: list[Any] | None
+    gps_source: str
+    camera: Any
+    calib_source: str
+
+    @classmethod
+    def of(cls, images: Sequence[str | Path], gps_table: str | Path | None, calib: str | Path | None) -> _Frames:
+        paths, size = check_frames(images)
+        tags, gps_source = gps_positions(paths, gps_table)
+        camera, calib_source = starting_camera(paths, size, calib)
+        return cls(list(paths), size, tags, gps_source, camera, calib_source)
+
+
+def _pair_requests(frames: _Frames, sfm: Any, T_enu: dict[int, NDArray], points_enu: NDArray, factor: int,
+                   o: SurveyOptions) -> list[PairRequest]:
+    """The dense pairs to match (:func:`plan_pairs`) as requests on the survey's lattice."""
+    K, dist = np.asarray(sfm.K, dtype=np.float64), np.asarray(sfm.dist, dtype=np.float64)
+    cell = o.cell_m if o.cell_m is not None else _default_cell(T_enu, K, points_enu, factor)
+    return [PairRequest(i, j, str(frames.paths[i]), str(frames.paths[j]), K, dist, factor, T_enu[i], T_enu[j], sp,
+                        cell, min_shared=o.min_shared_points, min_base_to_height=o.min_base_to_height,
+                        matcher=o.matcher, lk_window=o.lk_window)
+            for (i, j), sp in plan_pairs(T_enu, points_enu, K, frames.size, o).items()]
