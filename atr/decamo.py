@@ -33,7 +33,7 @@ from prism3d.checks import (
 from prism3d.errors import InputError
 from prism3d.io.atomic import staged_folder
 from prism3d.io.images import read_depth, read_image, split_npz_spec, write_depth, write_image
-from prism3d.reconstruct.pipeline import reconstruct_shot
+from prism3d.reconstruct.stereo.pipeline import reconstruct_shot
 
 __all__ = [
     "CANONICAL_LIGHT_CAM",

@@ -62,7 +62,7 @@ from prism3d.capture.rig import StereoRig
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
 from prism3d.io.images import read_depth, read_image
-from prism3d.reconstruct.pipeline import (
+from prism3d.reconstruct.stereo.pipeline import (
     ReconstructOptions,
     convergence_distance_mm,
     reconstruct_shot,

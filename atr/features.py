@@ -44,7 +44,7 @@ from prism3d.io.mesh import UNITS_MM, read_mesh
 from prism3d.io.pcd import read_pcd
 from prism3d.io.ply import read_ply
 from prism3d.io.units import FORWARD_AXES, declared_units
-from prism3d.reconstruct.fusion import poisson_mesh
+from prism3d.reconstruct.scan.fusion import poisson_mesh
 
 __all__ = [
     "FEATURES_SCHEMA_VERSION",

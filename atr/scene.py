@@ -21,8 +21,8 @@ from prism3d.atr.bank import depth_relief, prepare_chips
 from prism3d.atr.geometry import depth_to_points, normals_from_depth
 from prism3d.checks import check_array
 from prism3d.errors import InputError
-from prism3d.reconstruct.dsm import progressive_ground
-from prism3d.reconstruct.flatness import ransac_plane
+from prism3d.reconstruct.survey.dsm import progressive_ground
+from prism3d.reconstruct.stereo.flatness import ransac_plane
 
 __all__ = ["DetectOptions", "SceneChannels", "bank_scale", "chip_channel", "class_size", "object_xyz", "project",
            "scene_channels"]

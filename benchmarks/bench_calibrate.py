@@ -18,9 +18,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import prism3d.reconstruct.corners as corners_mod
-from prism3d.reconstruct.calibrate import CalibrationOptions, calibrate_camera, calibrate_stereo
-from prism3d.reconstruct.corners import board_object_points, detect_views, grid_symmetries
+import prism3d.reconstruct.stereo.corners as corners_mod
+from prism3d.reconstruct.stereo.calibrate import CalibrationOptions, calibrate_camera, calibrate_stereo
+from prism3d.reconstruct.stereo.corners import board_object_points, detect_views, grid_symmetries
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "calibration"
 VARIANTS = [

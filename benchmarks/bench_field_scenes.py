@@ -37,7 +37,7 @@ from prism3d.datasets.jobs import RunOptions
 from prism3d.datasets.mining import MiningOptions, train_scene_recogniser
 from prism3d.datasets.resolve import resolve_targets
 from prism3d.io.images import read_image
-from prism3d.reconstruct.pipeline import (
+from prism3d.reconstruct.stereo.pipeline import (
     ReconstructOptions,
     convergence_distance_mm,
     reconstruct_shot,

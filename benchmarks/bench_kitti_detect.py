@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from prism3d.io.images import write_image
-from prism3d.reconstruct.match import match_stereo
-from prism3d.reconstruct.stereo_eval import load_benchmark_pair
+from prism3d.reconstruct.stereo.match import match_stereo
+from prism3d.reconstruct.stereo.stereo_eval import load_benchmark_pair
 
 #: KITTI's rectified colour cameras (devkit calibration of the 2011_09_26 drives).
 KITTI_F, KITTI_B_MM = 721.5377, 537.2

@@ -35,9 +35,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from prism3d.reconstruct.stereo_eval import load_benchmark_pair
-from prism3d.reconstruct.match import match_stereo, match_stereo_full
-from prism3d.reconstruct.stereo_eval import score_disparity
+from prism3d.reconstruct.stereo.stereo_eval import load_benchmark_pair
+from prism3d.reconstruct.stereo.match import match_stereo, match_stereo_full
+from prism3d.reconstruct.stereo.stereo_eval import score_disparity
 
 from prism3d.io.atomic import atomic_write_text
 
@@ -155,7 +155,7 @@ _COMPILE = r"""
 import time
 t0 = time.perf_counter()
 import numpy as np
-from prism3d.reconstruct.match import MatchOptions, match_stereo
+from prism3d.reconstruct.stereo.match import MatchOptions, match_stereo
 rng = np.random.default_rng(0)
 L = (rng.random((40, 80)) * 255).astype(np.uint8)
 R = np.roll(L, -4, axis=1)

@@ -45,7 +45,7 @@ import numpy as np
 
 from prism3d.io.atomic import atomic_write_text
 from prism3d.io.ply import read_ply
-from prism3d.reconstruct.stereo_eval import BENCHMARK_SCENES, load_benchmark_pair, score_disparity
+from prism3d.reconstruct.stereo.stereo_eval import BENCHMARK_SCENES, load_benchmark_pair, score_disparity
 
 HERE = Path(__file__).resolve().parent
 PRISM3D = Path(sys.executable).parent / "prism3d"
@@ -206,7 +206,7 @@ def prism_table(cache: Path) -> list[str]:
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
     from prism3d.datasets.targets import builtin_target
     from prism3d.io.images import read_image
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.stereo.pipeline import reconstruct_shot
 
     lines = ["| shot | case | density | bad-2 dense | bad-1 dense | density / untouched | bad-2 / untouched |",
              "|---|---|---:|---:|---:|---:|---:|"]

@@ -53,7 +53,7 @@ def _opencv(shot: np.ndarray, rig, min_disp: int, num_disp: int) -> tuple[float,
     """OpenCV on the same geometry: remap with prism3d's rectification tables, StereoSGBM
     3-way on the same disparity range, reprojectImageTo3D with the same Q."""
     from prism3d.capture.rig import compute_rectification
-    from prism3d.reconstruct.rectify import rectify_maps
+    from prism3d.reconstruct.stereo.rectify import rectify_maps
 
     rect = compute_rectification(rig)
     maps = rectify_maps(rig, rect, fixed_point=True)
@@ -73,7 +73,7 @@ def _opencv(shot: np.ndarray, rig, min_disp: int, num_disp: int) -> tuple[float,
 def main() -> None:
     from prism3d.capture.rig import StereoRig
     from prism3d.io.images import read_image
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.stereo.pipeline import reconstruct_shot
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=3)

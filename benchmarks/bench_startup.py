@@ -49,7 +49,7 @@ np.save(sys.argv[3], m.compute(left, right).astype(np.float32) / 16.0)
 
 CACHED_KERNEL = """
 import numpy as np
-from prism3d.reconstruct import _match_kernels as k
+from prism3d.reconstruct.stereo import _match_kernels as k
 k.channels_equal(np.zeros((2, 2, 3), np.uint8))
 """
 

@@ -131,8 +131,8 @@ def main() -> None:
         from prism3d.datasets.targets import builtin_target
 
         simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=1, supersample=1), target=builtin_target("tank_t1"))
-    from prism3d.reconstruct.fusion import mesh_is_closed
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
+    from prism3d.reconstruct.scan.fusion import mesh_is_closed
+    from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_scans
 
     from prism3d.io.ply import read_ply
 

@@ -56,7 +56,7 @@ def frame_errors(res, poses, V) -> dict:
     up, the target's x forward): up and forward angles (forward modulo front/back), the
     origin's offset from the true footprint centre on the support, relative sizes; and
     whether x points forward when the view that faced the front is named."""
-    from prism3d.reconstruct.object_frame import object_frame
+    from prism3d.reconstruct.scan.object_frame import object_frame
 
     fr = object_frame(res.points, res.T_model_scan)
     front = int(np.argmax([T[0, 3] / max(np.hypot(T[0, 3], T[1, 3]), 1e-300) for T in poses]))
@@ -77,8 +77,8 @@ def run(name: str, folder: Path, options: dict, frame_check: bool = False) -> di
     from prism3d.capture.rig import StereoRig
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
-    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_shot
+    from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_scans
 
     rig = StereoRig.load(folder / "rig.yaml")
     views = json.loads((folder / "poses.json").read_text())["views"]

@@ -4,7 +4,7 @@ Run::
 
     .venv/bin/python benchmarks/bench_survey.py [--flight DIR] [--work /tmp/bench_survey] [--quick]
 
-Every survey runs through :func:`prism3d.reconstruct.survey.run_survey` in this process
+Every survey runs through :func:`prism3d.reconstruct.survey.run.run_survey` in this process
 (the dense pairs here or on a local Dask cluster); its output folders stay under
 ``--work``. Prints progress lines and tables; writes ``benchmarks/results/bench_survey.json``
 (after each section, so a late failure keeps what was measured).
@@ -69,7 +69,7 @@ from prism3d.datasets.survey_eval import evaluate_survey, ground_roughness
 from prism3d.datasets.targets import builtin_target
 from prism3d.errors import InputError
 from prism3d.geometry import rotation_angle_deg
-from prism3d.reconstruct.survey import SurveyOptions, run_survey
+from prism3d.reconstruct.survey.run import SurveyOptions, run_survey
 
 HERE = Path(__file__).resolve().parent
 REAL_DIR = HERE.parents[1] / "shared" / "data" / "aerial" / "snowpeak_internal_only"
@@ -213,7 +213,7 @@ def poses(flight: Path, ours: dict[str, Any], ev: dict[str, Any]) -> dict[str, A
 
     from prism3d.capture.calib_formats import load_camera_calibration
     from prism3d.io.images import read_image
-    from prism3d.reconstruct.two_view import relative_pose
+    from prism3d.reconstruct.survey.two_view import relative_pose
 
     truth = json.loads((flight / "truth.json").read_text())
     T_true = [np.asarray(f["T_enu_cam"], dtype=np.float64) for f in truth["frames"]]

@@ -45,7 +45,7 @@ from prism3d.datasets.runner import RunOptions, run_tasks
 from prism3d.datasets.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 from prism3d.io.images import read_image
-from prism3d.reconstruct.pipeline import (
+from prism3d.reconstruct.stereo.pipeline import (
     ReconstructOptions,
     convergence_distance_mm,
     reconstruct_shot,

@@ -17,8 +17,8 @@ from typing import Any
 
 from prism3d.errors import DatasetError
 from prism3d.progress import ProgressFn
-from prism3d.reconstruct.survey import dense_pair
-from prism3d.reconstruct.survey_model import PairRequest, PairResult
+from prism3d.reconstruct.survey.run import dense_pair
+from prism3d.reconstruct.survey.model import PairRequest, PairResult
 
 __all__ = [
     "SCHEDULER_TIMEOUT_S", "JobReport", "RunOptions", "Task", "check_scheduler", "execute_tasks", "run_survey_pairs",
@@ -146,7 +146,7 @@ def run_tasks(job: str, tasks: Sequence[Task], run: RunOptions | None = None) ->
 
 def run_survey_pairs(reqs: Sequence[PairRequest], run: RunOptions,
                      progress: ProgressFn | None = None) -> list[PairResult]:
-    """A survey's dense pairs (:func:`prism3d.reconstruct.survey.dense_pair`), one unit
+    """A survey's dense pairs (:func:`prism3d.reconstruct.survey.run.dense_pair`), one unit
     each, where ``run`` says; a pair that fails (not one skipped with a reason) stops the
     survey with its error."""
     report = run_tasks("survey dense", [(f"pair {r.i}-{r.j}", f"{Path(r.path_i).name}+{Path(r.path_j).name}",

@@ -21,8 +21,8 @@ from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
 from prism3d.datasets.targets import builtin_target
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.progress import ProgressFn, null_progress
-from prism3d.reconstruct.pipeline import reconstruct_to_files
-from prism3d.reconstruct.stitch import StitchOptions, stitch_to_files
+from prism3d.reconstruct.stereo.pipeline import reconstruct_to_files
+from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_to_files
 
 __all__ = ["ScannedTarget", "compare_scan_banks", "scan_builtin_target", "SCAN_RETRY_CONFIDENCE"]
 

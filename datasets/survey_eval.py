@@ -23,7 +23,7 @@ from prism3d.capture.geotag import enu_to_wgs84, wgs84_to_enu
 from prism3d.errors import InputError
 from prism3d.geometry import rotation_angle_deg
 from prism3d.io.geo import read_geotiff
-from prism3d.reconstruct.sfm import similarity_align
+from prism3d.reconstruct.survey.sfm import similarity_align
 
 __all__ = ["evaluate_survey", "ground_roughness"]
 

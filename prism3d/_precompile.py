@@ -67,7 +67,7 @@ def _group_match() -> None:
     64-bit census codes."""
     import numpy as np
 
-    from prism3d.reconstruct.match import MatchOptions, match_stereo_full
+    from prism3d.reconstruct.stereo.match import MatchOptions, match_stereo_full
 
     left, right = _textured_pair(40, 64, 4)
     grey_l, grey_r = left[..., 0].copy(), right[..., 0].copy()
@@ -114,7 +114,7 @@ def _group_reconstruct() -> None:
     slanted-plane refinement, smoothing, triangulation and normals."""
     from prism3d.capture.scenes import flat_plate, place_at
     from prism3d.capture.simulate import Projector, ShotOptions, simulate_shot
-    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_shot
 
     rig = _tiny_rig()
     plate = flat_plate()
@@ -220,7 +220,7 @@ def source_digest() -> str:
     import numba
 
     h = hashlib.sha256(f"{numba.__version__} {sys.version}".encode())
-    for mod_name in [*kernel_modules(), "prism3d.reconstruct._simd"]:
+    for mod_name in [*kernel_modules(), "prism3d.reconstruct.stereo._simd"]:
         spec = importlib.util.find_spec(mod_name)
         if spec is None or spec.origin is None:
             continue
@@ -231,9 +231,9 @@ def source_digest() -> str:
 
 def marker_path() -> Path:
     """Where a complete warm-up records what it covered: beside numba's cache of the
-    matcher's kernels (``reconstruct/__pycache__``, or under ``NUMBA_CACHE_DIR``, or
+    matcher's kernels (``reconstruct/stereo/__pycache__``, or under ``NUMBA_CACHE_DIR``, or
     numba's per-user cache when the source tree is read-only)."""
-    from prism3d.reconstruct import _match_kernels
+    from prism3d.reconstruct.stereo import _match_kernels
 
     return Path(_match_kernels.census_hwc.stats.cache_path) / _MARKER
 

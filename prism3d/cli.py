@@ -208,7 +208,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         from prism3d.datasets.targets import builtin_target
 
         target = builtin_target(args.target, camouflage=args.camouflage, seed=args.seed)
-    from prism3d.reconstruct.calibrate import parse_board
+    from prism3d.reconstruct.stereo.calibrate import parse_board
 
     import dataclasses
 
@@ -340,14 +340,14 @@ def _add_capture(sub: Any) -> None:
 
 # --- calibrate / rectify -------------------------------------------------------------------
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.calibrate import calibrate_to_file
+    from prism3d.reconstruct.stereo.calibrate import calibrate_to_file
 
     # The calibration's warnings are printed below, even with --quiet (they say the file may
     # be unfit for use, which a script must hear too); logging must not print them twice.
     def not_printed_below(record: logging.LogRecord) -> bool:
         return not getattr(record, "prism3d_calibration_warning", False)
 
-    lib_log = logging.getLogger("prism3d.reconstruct.calibrate")
+    lib_log = logging.getLogger("prism3d.reconstruct.stereo.calibrate")
     lib_log.addFilter(not_printed_below)
     try:
         cal = calibrate_to_file(args.images, args.output, board=args.board, square_mm=args.square,
@@ -380,7 +380,7 @@ def _add_calibrate(sub: Any) -> None:
 
 
 def _cmd_rectify(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.rectify import rectify_to_folder
+    from prism3d.reconstruct.stereo.rectify import rectify_to_folder
 
     _check_views(args)
     files = rectify_to_folder(args.shot, list(args.calib), args.output, left_path=args.left,
@@ -415,7 +415,7 @@ def _parse_range(text: str | None, what: str) -> tuple[float, float] | None:
 
 
 def _cmd_match(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.match import match_files
+    from prism3d.reconstruct.stereo.match import match_files
 
     if args.output.suffix.lower() != ".pfm":
         raise InputError(f"{args.output}: disparity is written as PFM (.pfm)")
@@ -477,7 +477,7 @@ def _check_views(args: argparse.Namespace) -> None:
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_to_files
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_to_files
 
     _check_views(args)
     if args.smooth < 0:
@@ -503,7 +503,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _add_reconstruct(sub: Any) -> None:
-    from prism3d.reconstruct.defaults import DEFAULT_MIN_CONFIDENCE
+    from prism3d.reconstruct.stereo.defaults import DEFAULT_MIN_CONFIDENCE
 
     p = _command(sub, "reconstruct", _cmd_reconstruct,
                  help="one prism shot (or a stereo pair) -> metric scan PLY",
@@ -533,7 +533,7 @@ def _add_reconstruct(sub: Any) -> None:
 
 
 def _cmd_triangulate(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.triangulate import triangulate_to_file
+    from prism3d.reconstruct.stereo.triangulate import triangulate_to_file
 
     scan = triangulate_to_file(args.disparity, list(args.calib), args.left, args.output,
                                image_size=_parse_size(args.image_size), max_depth_mm=args.max_depth)
@@ -580,7 +580,7 @@ def _add_convert_calib(sub: Any) -> None:
 
 
 def _cmd_flatness(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.flatness import flatness_of_ply
+    from prism3d.reconstruct.stereo.flatness import flatness_of_ply
 
     kw = {}
     if args.focal is not None:
@@ -610,7 +610,7 @@ def _add_flatness(sub: Any) -> None:
 
 # --- stitch --------------------------------------------------------------------------------
 def _cmd_stitch(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_to_files
+    from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_to_files
 
     if len(args.scans) < 2:
         raise InputError("stitch needs at least 2 scans")
@@ -982,7 +982,7 @@ def _add_detect(sub: Any) -> None:
 
 # --- the survey mode ------------------------------------------------------------------------
 def _cmd_survey(args: argparse.Namespace) -> int:
-    from prism3d.reconstruct.survey import SurveyOptions, run_survey
+    from prism3d.reconstruct.survey.run import SurveyOptions, run_survey
 
     opts = SurveyOptions(max_image_size=args.max_image_size, dense_max_pixels=args.dense_max_pixels,
                          pair_steps=tuple(args.pair_steps), cross_pairs=args.cross_pairs, cell_m=args.cell,

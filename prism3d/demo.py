@@ -50,14 +50,14 @@ from prism3d.io.atomic import atomic_path, atomic_write_text
 from prism3d.io.images import read_image
 from prism3d.io.ply import write_ply
 from prism3d.progress import ProgressFn, null_progress
-from prism3d.reconstruct.calibrate import CalibrationOptions, calibrate_stereo
-from prism3d.reconstruct.flatness import REGIONS, flatness_test
-from prism3d.reconstruct.meshing import smooth_depth, smoothing_resolution_mm
-from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
-from prism3d.reconstruct.rectify import rectify_shot
-from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
-from prism3d.reconstruct.stitch_options import STITCH_MIN_CONFIDENCE
-from prism3d.reconstruct.survey import run_survey
+from prism3d.reconstruct.stereo.calibrate import CalibrationOptions, calibrate_stereo
+from prism3d.reconstruct.stereo.flatness import REGIONS, flatness_test
+from prism3d.reconstruct.stereo.meshing import smooth_depth, smoothing_resolution_mm
+from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_shot
+from prism3d.reconstruct.stereo.rectify import rectify_shot
+from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_scans
+from prism3d.reconstruct.scan.stitch_options import STITCH_MIN_CONFIDENCE
+from prism3d.reconstruct.survey.run import run_survey
 from prism3d.report import Report, Section, figure_png, image_png, point_cloud_viewer
 
 __all__ = ["DemoContext", "run_demo", "STAGES"]

@@ -19,7 +19,7 @@ from prism3d.cli import main
 @pytest.fixture(scope="module")
 def surveyed(tmp_path_factory) -> tuple[Path, Path, Path]:
     from prism3d.datasets.flight import FlightOptions, simulate_flight
-    from prism3d.reconstruct.survey import run_survey
+    from prism3d.reconstruct.survey.run import run_survey
 
     root = tmp_path_factory.mktemp("carpark")
     flight, survey = root / "flight", root / "survey"

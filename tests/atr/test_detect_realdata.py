@@ -39,7 +39,7 @@ def _car(sc) -> tuple[int, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def kitti(shared_data: Path):
-    from prism3d.reconstruct.stereo_eval import load_benchmark_pair
+    from prism3d.reconstruct.stereo.stereo_eval import load_benchmark_pair
 
     return load_benchmark_pair(shared_data, "kitti")
 
@@ -62,7 +62,7 @@ def test_a_real_car_stands_out_with_a_cars_size(kitti):
 def test_our_stereo_gives_the_same_car(kitti):
     """Our matcher's depth of the same pair: the car's length and height within 10 % of
     those measured on the benchmark's depth, the road still ground."""
-    from prism3d.reconstruct.match import match_stereo
+    from prism3d.reconstruct.stereo.match import match_stereo
 
     left, right, gt, _ = kitti
     ref = _car(_scene(gt, left)[0])[1]

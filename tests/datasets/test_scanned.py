@@ -15,7 +15,7 @@ def _scanned_mesh(name, folder):
     within 2 spacings of the data: the mesh as a SceneMesh (mm, z up, scanned colours)."""
     from prism3d.atr.chips import load_mesh_file
     from prism3d.io.ply import write_ply
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_to_files
+    from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_to_files
 
     scans, _, _, _ = _raycast_views(target=name, W=480, H=360, f=2000.0)
     paths = []

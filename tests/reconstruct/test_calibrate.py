@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from prism3d.capture.rig import StereoRig, paper_rig
 from prism3d.geometry import matrix_from_rotvec, rotation_angle_deg
-from prism3d.reconstruct.calibrate import (
+from prism3d.reconstruct.stereo.calibrate import (
     Calibration,
     CalibrationOptions,
     calibrate_camera,
@@ -20,7 +20,7 @@ from prism3d.reconstruct.calibrate import (
     parse_board,
     rectification_residual,
 )
-from prism3d.reconstruct.corners import (
+from prism3d.reconstruct.stereo.corners import (
     board_object_points,
     detect_square_grid,
     grid_symmetries,
@@ -456,7 +456,7 @@ def test_five_shots_do_not_pin_the_rig(caplog) -> None:
     import logging
 
     rig, L, R = _board_corners(_seed7_poses(), SEED7_RESIDUAL_NOISE, 0)
-    with caplog.at_level(logging.WARNING, logger="prism3d.reconstruct.calibrate"):
+    with caplog.at_level(logging.WARNING, logger="prism3d.reconstruct.stereo.calibrate"):
         cal = calibrate_stereo_points(L, R, rig.left.size, board=(19, 13), square_mm=12.0)
     pr = cal.precision
     assert 1250 < pr["working_distance_mm"] < 1300  # measured 1273
@@ -491,8 +491,8 @@ def test_pinning_precision_is_honest() -> None:
     0.127 / 0.125). Putting the true principal point into each calibration, the rest
     unchanged, makes them 8-10x worse (1.2 px): its error is compensated by the others,
     which is why it is not named."""
-    from prism3d.reconstruct.calibrate import _cam_vector, _pose_vec
-    from prism3d.reconstruct.calibration_pinning import _check_pixels, _stereo_errors
+    from prism3d.reconstruct.stereo.calibrate import _cam_vector, _pose_vec
+    from prism3d.reconstruct.stereo.calibration_pinning import _check_pixels, _stereo_errors
 
     def vec(r):
         return np.concatenate([_cam_vector(r.left.K, r.left.dist), _cam_vector(r.right.K, r.right.dist),
@@ -547,11 +547,11 @@ def test_pinning_not_checked_without_common_pixels(monkeypatch, caplog) -> None:
     check: no figures, no warnings, a note in the log."""
     import logging
 
-    import prism3d.reconstruct.calibration_pinning as pinning
+    import prism3d.reconstruct.stereo.calibration_pinning as pinning
 
     monkeypatch.setattr(pinning, "_check_pixels", lambda rig, depth: (np.zeros((2, 2)), np.zeros((2, 2))))
     rig, L, R = _board_corners(_seed7_poses(), SEED7_RESIDUAL_NOISE, 0)
-    with caplog.at_level(logging.INFO, logger="prism3d.reconstruct.calibrate"):
+    with caplog.at_level(logging.INFO, logger="prism3d.reconstruct.stereo.calibrate"):
         cal = calibrate_stereo_points(L, R, rig.left.size, board=(19, 13), square_mm=12.0)
     assert cal.precision == {} and cal.needs == {} and cal.warnings == ()
     assert any("precision not checked: the views share too few pixels" in m for m in caplog.messages)
@@ -563,13 +563,13 @@ def test_cli_prints_calibration_warnings_once(monkeypatch, capsys, caplog, tmp_p
     --quiet; logging does not repeat them, and other log records still pass."""
     import logging
 
-    import prism3d.reconstruct.calibrate as calibrate
+    import prism3d.reconstruct.stereo.calibrate as calibrate
     from prism3d.cli import main
 
     msg = "focal length: fx left ±0.53 px (needs <= 0.31 px): add shots"
 
     def fake_calibrate_to_file(images, out, **kwargs):
-        lib = logging.getLogger("prism3d.reconstruct.calibrate")
+        lib = logging.getLogger("prism3d.reconstruct.stereo.calibrate")
         lib.warning("%s", msg, extra={"prism3d_calibration_warning": True})
         lib.warning("view 3: right view dropped")
         return Calibration(rig=paper_rig(), warnings=(msg,))
@@ -583,7 +583,7 @@ def test_cli_prints_calibration_warnings_once(monkeypatch, capsys, caplog, tmp_p
         assert err == f"warning: {msg}\n"
         assert ("wrote" in out) != bool(quiet)
         assert caplog.messages == ["view 3: right view dropped"]
-    assert not logging.getLogger("prism3d.reconstruct.calibrate").filters
+    assert not logging.getLogger("prism3d.reconstruct.stereo.calibrate").filters
 
 
 def test_errors(tmp_path: Path) -> None:

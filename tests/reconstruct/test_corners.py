@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from prism3d.capture.rig import CameraModel, PrismSplit
-from prism3d.reconstruct.corners import (
+from prism3d.reconstruct.stereo.corners import (
     board_object_points,
     canonical_order,
     detect_corners,
@@ -100,7 +100,7 @@ def test_a_large_view_is_searched_small_and_refined_at_full_size(monkeypatch, me
     """Above DETECT_MAX_PIXELS the board is found in a reduced copy (here 0.1 MP, a
     scale of 0.57) and the corners refined at full resolution: the same accuracy as the
     direct search; the x-junction fit on the board's crop equals the whole-view fit."""
-    import prism3d.reconstruct.corners as C
+    import prism3d.reconstruct.stereo.corners as C
 
     cam = small_camera()
     img, truth = render_board(cam, board_pose())

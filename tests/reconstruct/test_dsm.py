@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from prism3d.errors import InputError
-from prism3d.reconstruct.dsm import grid_points, normalised_dsm
+from prism3d.reconstruct.survey.dsm import grid_points, normalised_dsm
 
 VEHICLE = (10.0, 5.0, 4.5, 2.0, 1.8)  # centre x, y, length, width, height (m)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from prism3d.reconstruct.fusion import fuse_clouds, mesh_is_closed, poisson_mesh
+from prism3d.reconstruct.scan.fusion import fuse_clouds, mesh_is_closed, poisson_mesh
 
 from prism3d.errors import InputError, ReconstructionError
 

@@ -1,4 +1,4 @@
-"""Tests of prism3d.reconstruct.match (census + SGM stereo matcher)."""
+"""Tests of prism3d.reconstruct.stereo.match (census + SGM stereo matcher)."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from prism3d.reconstruct.stereo_eval import load_benchmark_pair
+from prism3d.reconstruct.stereo.stereo_eval import load_benchmark_pair
 import pytest
-from prism3d.reconstruct.match import (MatchOptions, StereoResult, match_files, match_stereo,
+from prism3d.reconstruct.stereo.match import (MatchOptions, StereoResult, match_files, match_stereo,
                                        match_stereo_full)
-from prism3d.reconstruct.stereo_eval import score_disparity
+from prism3d.reconstruct.stereo.stereo_eval import score_disparity
 
 from prism3d.errors import InputError, ReconstructionError
 
@@ -283,7 +283,7 @@ def test_nothing_matchable_raises() -> None:
     with pytest.raises(InputError, match=r"range 100..107 lies outside what a 40 px wide image"):
         match_stereo(left, right, min_disp=100, num_disp=8)
     # no pixel left after the checks (the assembly of an all-invalid raw disparity)
-    from prism3d.reconstruct import match as m
+    from prism3d.reconstruct.stereo import match as m
 
     nan = np.full((20, 40), np.nan, np.float32)
     with pytest.raises(ReconstructionError, match="no pixel passed the consistency checks"):
@@ -345,8 +345,8 @@ def test_matching_cost_kernel_matches_brute_force(kl: int, radius: int, nc: int,
     """Mirrored-row cost kernel == direct census Hamming + truncated AD, including
     per-pixel windows (coarse-to-fine layout) and out-of-image candidates; whole
     16-candidate vectors and the scalar remainder, 32- and 64-bit census codes."""
-    from prism3d.reconstruct import _match_kernels as k
-    from prism3d.reconstruct.match import _census
+    from prism3d.reconstruct.stereo import _match_kernels as k
+    from prism3d.reconstruct.stereo.match import _census
 
     rng = np.random.default_rng(11 + kl)
     h, w = 9, 61
@@ -409,7 +409,7 @@ def _speckles_reference(disp: np.ndarray, max_size: int, max_diff: float) -> np.
 def test_speckle_removal_matches_flood_fill(seed: int) -> None:
     """Union-find over row runs == a plain flood fill (tall thin regions, regions of
     exactly max_size, NaN gaps, plateaus joined only through one pixel pair)."""
-    from prism3d.reconstruct import _match_kernels as K
+    from prism3d.reconstruct.stereo import _match_kernels as K
 
     rng = np.random.default_rng(seed)
     h, w = 61, 47
@@ -437,7 +437,7 @@ def test_median_network_and_window_median() -> None:
     (slow path) and at the border matches numpy."""
     import itertools
 
-    from prism3d.reconstruct import _match_kernels as K
+    from prism3d.reconstruct.stereo import _match_kernels as K
 
     for bits in itertools.product([0.0, 1.0], repeat=9):
         assert K._median9(*bits) == sorted(bits)[4], bits

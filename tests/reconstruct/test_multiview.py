@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from prism3d.reconstruct.multiview import (
+from prism3d.reconstruct.scan.multiview import (
     fit_turntable,
     overlapping_pairs,
     refine_multiview,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from prism3d.errors import ReconstructionError
-from prism3d.reconstruct.object_frame import object_frame
+from prism3d.reconstruct.scan.object_frame import object_frame
 from tests.reconstruct.test_stitch import _raycast_views
 
 
@@ -28,7 +28,7 @@ def _truth_errors(fr, T_world_model, V):
 
 @pytest.fixture(scope="module")
 def stitched_tank():
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
+    from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_scans
 
     scans, poses, V, _ = _raycast_views()
     res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False))
@@ -49,7 +49,7 @@ def test_turntable_scans_give_the_true_frame(stitched_tank):
 def test_a_swept_wing_footprint_is_aligned_by_its_mirror_axis():
     """jet_j2's footprint (swept wings): its principal axis turned 6 deg on the stereo
     scans; the mirror axis is the fuselage."""
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
+    from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_scans
 
     scans, poses, V, _ = _raycast_views(target="jet_j2")
     res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False))
@@ -117,7 +117,7 @@ def test_a_mesh_kept_near_the_data_does_not_balloon():
     within 2 %, and no vertex far from a scanned point."""
     from scipy.spatial import cKDTree
 
-    from prism3d.reconstruct.stitch import StitchOptions, stitch_scans
+    from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_scans
 
     scans, _, V, _ = _raycast_views()
     res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh_max_spacings=2.0))

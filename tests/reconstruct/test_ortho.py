@@ -11,7 +11,7 @@ import pytest
 
 from prism3d.capture.rig import CameraModel
 from prism3d.errors import InputError
-from prism3d.reconstruct.ortho import fill_dsm, photo_gsd, true_orthophoto
+from prism3d.reconstruct.survey.ortho import fill_dsm, photo_gsd, true_orthophoto
 
 
 def _ground_colour(x: np.ndarray, y: np.ndarray) -> np.ndarray:

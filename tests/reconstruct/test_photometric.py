@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from prism3d.errors import InputError
-from prism3d.reconstruct.photometric import GainField, fit_gain_field
+from prism3d.reconstruct.stereo.photometric import GainField, fit_gain_field
 
 
 def _scene(h: int, w: int, seed: int = 0) -> np.ndarray:
@@ -84,7 +84,7 @@ def test_matcher_equalizes_a_vignetted_darker_right_view() -> None:
     vignetted 40 % at the corners (a heavy colour-difference weight, so the views'
     values matter): with ``equalize`` the error rate stays that of the untouched
     pair; without it, it grows."""
-    from prism3d.reconstruct.match import MatchOptions, match_stereo_full
+    from prism3d.reconstruct.stereo.match import MatchOptions, match_stereo_full
 
     h, w, d = 180, 240, 9
     scene = _scene(h, w + 40, 5)

@@ -32,7 +32,7 @@ def test_no_points_on_background_pixels(tank_scene, view: int) -> None:
     must remove them while the object keeps its surface."""
     o3d = pytest.importorskip("open3d")
     from prism3d.io.images import read_image
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.stereo.pipeline import reconstruct_shot
 
     out, rig, target = tank_scene
     mesh = o3d.t.geometry.TriangleMesh()
@@ -69,7 +69,7 @@ def test_refinement_local_bias_under_the_real_camera(tank_scene, view: int) -> N
     import cv2
 
     from prism3d.io.images import read_image
-    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_shot
 
     out, rig, _ = tank_scene
     truth = np.load(out / f"truth_{view:02d}.npz")["disparity_rect"]
@@ -93,7 +93,7 @@ def test_refinement_local_bias_under_the_real_camera(tank_scene, view: int) -> N
 
 def test_refine_interpolation_is_checked() -> None:
     from prism3d.errors import InputError
-    from prism3d.reconstruct.pipeline import ReconstructOptions
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions
 
     with pytest.raises(InputError, match="refine_interpolation: expected one of bspline, linear"):
         ReconstructOptions(refine_interpolation="cubic")
@@ -107,7 +107,7 @@ def test_refine_interpolation_is_checked() -> None:
 ])
 def test_reconstruct_options_are_checked(kwargs: dict, match: str) -> None:
     from prism3d.errors import InputError
-    from prism3d.reconstruct.pipeline import ReconstructOptions
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions
 
     with pytest.raises(InputError, match=match):
         ReconstructOptions(**kwargs)
@@ -117,8 +117,8 @@ def test_reconstruct_options_default_lk_window() -> None:
     """The pipeline's matcher options differ from the matcher's own in lk_window only."""
     import dataclasses
 
-    from prism3d.reconstruct.match import MatchOptions
-    from prism3d.reconstruct.pipeline import ReconstructOptions
+    from prism3d.reconstruct.stereo.match import MatchOptions
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions
 
     m = ReconstructOptions().match
     assert m == dataclasses.replace(MatchOptions(), lk_window=9)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from prism3d.capture.rig import CameraModel, PrismSplit, StereoRig, compute_rectification, paper_rig
-from prism3d.reconstruct.rectify import (
+from prism3d.reconstruct.stereo.rectify import (
     rectify_maps,
     rectify_pair,
     rectify_shot,

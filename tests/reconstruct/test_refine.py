@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from prism3d.reconstruct.refine import refine_slanted
+from prism3d.reconstruct.stereo.refine import refine_slanted
 
 from prism3d.errors import InputError
 

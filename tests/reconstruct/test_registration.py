@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from prism3d.reconstruct.registration import (
+from prism3d.reconstruct.scan.registration import (
     global_register,
     point_spacing,
     refine_icp,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from prism3d.errors import InputError
-from prism3d.reconstruct.selection import (
+from prism3d.reconstruct.stereo.selection import (
     Coverage,
     confidence_from_std,
     enclosed,

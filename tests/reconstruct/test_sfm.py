@@ -1,4 +1,4 @@
-"""Survey poses by COLMAP (prism3d.reconstruct.sfm): known poses recovered from a rendered
+"""Survey poses by COLMAP (prism3d.reconstruct.survey.sfm): known poses recovered from a rendered
 nadir strip over uneven ground, every refused input, and the real drone pair against the
 OpenCV two-view anchor."""
 
@@ -13,7 +13,7 @@ import pytest
 from prism3d.capture.rig import CameraModel
 from prism3d.errors import InputError
 from prism3d.geometry import rotation_angle_deg
-from prism3d.reconstruct.sfm import SfmOptions, map_frames, similarity_align
+from prism3d.reconstruct.survey.sfm import SfmOptions, map_frames, similarity_align
 
 W, H, F = 800, 600, 600.0
 K_TRUE = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1.0]])
@@ -231,7 +231,7 @@ def test_frame_colmap_cannot_decode(tmp_path):
 def test_child_process_failures(tmp_path, monkeypatch):
     """A child that fails or outlives timeout_s: ReconstructionError naming the log."""
     from prism3d.errors import ReconstructionError
-    from prism3d.reconstruct import sfm
+    from prism3d.reconstruct.survey.run import sfm
 
     a = _noise_png(tmp_path / "a.png", 1)
     b = _noise_png(tmp_path / "b.png", 2)
@@ -256,7 +256,7 @@ def test_real_drone_pair(shared_data, tmp_path):
     import pycolmap
 
     from prism3d.capture.geotag import exif_focal_px
-    from prism3d.reconstruct.two_view import relative_pose
+    from prism3d.reconstruct.survey.two_view import relative_pose
 
     d = shared_data / "aerial/snowpeak_internal_only"
     if not d.is_dir():

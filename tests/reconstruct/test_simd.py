@@ -1,4 +1,4 @@
-"""Tests of the 16-lane vector intrinsics (prism3d.reconstruct._simd) against numpy,
+"""Tests of the 16-lane vector intrinsics (prism3d.reconstruct.stereo._simd) against numpy,
 and of the SGM kernels' vector paths against a plain-Python SGM."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numba import njit
-from prism3d.reconstruct import _match_kernels as K
-from prism3d.reconstruct._simd import (
+from prism3d.reconstruct.stereo import _match_kernels as K
+from prism3d.reconstruct.stereo._simd import (
     v8f_acc64,
     v8f_broadcast,
     v8f_fma,
@@ -438,9 +438,9 @@ def test_kernels_record_the_intrinsics_they_were_compiled_with() -> None:
     import hashlib
     from pathlib import Path
 
-    from prism3d.reconstruct import _simd
+    from prism3d.reconstruct.stereo import _simd
 
     digest = hashlib.sha256(Path(_simd.__file__).read_bytes()).hexdigest()
     assert digest == K._SIMD_SHA256, (
-        "reconstruct/_simd.py changed: set _SIMD_SHA256 in reconstruct/_match_kernels.py "
+        "reconstruct/stereo/_simd.py changed: set _SIMD_SHA256 in reconstruct/stereo/_match_kernels.py "
         f"to {digest!r} (so that numba recompiles the kernels)")

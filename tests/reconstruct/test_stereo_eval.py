@@ -1,11 +1,11 @@
-"""Tests of prism3d.reconstruct.stereo_eval (disparity scoring)."""
+"""Tests of prism3d.reconstruct.stereo.stereo_eval (disparity scoring)."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
-from prism3d.reconstruct.stereo_eval import DisparityScore, score_disparity
+from prism3d.reconstruct.stereo.stereo_eval import DisparityScore, score_disparity
 
 from prism3d.errors import InputError
 

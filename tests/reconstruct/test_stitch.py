@@ -12,8 +12,8 @@ import pytest
 
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import rotation_angle_deg
-from prism3d.reconstruct.stitch import StitchOptions, stitch_scans, stitch_to_files
-from prism3d.reconstruct.stitch_options import STITCH_MIN_CONFIDENCE
+from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_scans, stitch_to_files
+from prism3d.reconstruct.scan.stitch_options import STITCH_MIN_CONFIDENCE
 
 
 def _rz(deg):
@@ -112,8 +112,8 @@ def _check_pairs(res, scans, poses, max_points):
     """Every registered pair is reported; at the recovered poses each fits as well as at
     the true poses (the known answer, measured the same way on the same registration
     copies); its residual off the surface is the scans' own noise."""
-    from prism3d.reconstruct.registration import ScanPyramid, evaluate_pyramids
-    from prism3d.reconstruct.stitch import _PAIR_SAMPLE, _registration_copy
+    from prism3d.reconstruct.scan.registration import ScanPyramid, evaluate_pyramids
+    from prism3d.reconstruct.scan.stitch import _PAIR_SAMPLE, _registration_copy
 
     pairs = res.diagnostics["pairs"]
     n = len(scans)
@@ -135,7 +135,7 @@ def _check_pairs(res, scans, poses, max_points):
 
 
 def test_eight_views_with_turntable_hint(tank_views):
-    from prism3d.reconstruct.fusion import mesh_is_closed
+    from prism3d.reconstruct.scan.fusion import mesh_is_closed
 
     scans, poses, V, F = tank_views
     calls = []
@@ -248,7 +248,7 @@ def test_ship_stereo_coverage_with_true_depth(tmp_path, hint):
     from prism3d.datasets.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
-    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_shot
 
     folder = tmp_path / "ship"
     # the ideal camera, as when the gap was measured: with the real-camera effects the
@@ -289,7 +289,7 @@ def test_ship_stereo_scans_stitch_within_the_targets(tmp_path):
     from prism3d.datasets.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
-    from prism3d.reconstruct.pipeline import ReconstructOptions, reconstruct_shot
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_shot
 
     folder = tmp_path / "ship"
     simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=0, supersample=1), target=builtin_target("ship_s2", seed=0))
@@ -429,7 +429,7 @@ def test_evaluate_pyramids_reproduces_icp_and_checks_input(tank_views):
     """At the ICP's own result, evaluate_pyramids gives the ICP's fitness and inlier RMSE
     (the known answer: the same correspondences); a seeded subset is reproducible; the
     two scans' residual off the surface matches their noise; bad input is refused."""
-    from prism3d.reconstruct.registration import (
+    from prism3d.reconstruct.scan.registration import (
         ScanPyramid,
         evaluate_pyramids,
         icp_pyramids,
@@ -468,9 +468,9 @@ def test_evaluate_pyramids_reproduces_icp_and_checks_input(tank_views):
 def test_cli_prints_each_pair(monkeypatch, capsys, tmp_path):
     """`prism3d stitch` prints one line per registered pair, pairwise -> in the model,
     with the reasons to check it; --quiet prints nothing."""
-    import prism3d.reconstruct.stitch as st
+    import prism3d.reconstruct.scan.stitch as st
     from prism3d.cli import main
-    from prism3d.reconstruct.stitch import StitchResult
+    from prism3d.reconstruct.scan.stitch import StitchResult
 
     def pair(i, j, check, kept=True):
         return {"i": i, "j": j, "kind": "odometry" if j == i + 1 else "loop", "kept": kept,
@@ -662,8 +662,8 @@ def test_rotation_lever_check(tank_views):
 def test_rotation_lever_warning_for_an_unheld_view(tank_views, monkeypatch):
     """A view whose correspondences do not hold its turn at all (lever 0) is named,
     and the warning gives a bounded factor, not a division by zero."""
-    import prism3d.reconstruct.multiview as mv
-    import prism3d.reconstruct.stitch as st
+    import prism3d.reconstruct.scan.multiview as mv
+    import prism3d.reconstruct.scan.stitch as st
 
     scans, _, _, _ = tank_views
     real = mv.refine_turntable
@@ -691,7 +691,7 @@ def test_match_against_both_agreeing_neighbours_yields_to_their_motion(tank_view
     import dataclasses
     import logging
 
-    import prism3d.reconstruct.stitch as st
+    import prism3d.reconstruct.scan.stitch as st
 
     scans, poses, V, F = tank_views
     T_true = np.linalg.inv(poses[2]) @ poses[3]  # T_target_source of views 2 <- 3
@@ -728,7 +728,7 @@ def test_match_against_both_agreeing_neighbours_yields_to_their_motion(tank_view
     monkeypatch.setattr(st, "ScanPyramid", Tagged)
     monkeypatch.setattr(st, "match_features_candidates", candidates)
     monkeypatch.setattr(st, "icp_pyramids", icp)
-    with caplog.at_level(logging.INFO, logger="prism3d.reconstruct.stitch"):
+    with caplog.at_level(logging.INFO, logger="prism3d.reconstruct.scan.stitch"):
         res = stitch_scans(scans, StitchOptions(mesh=False, max_registration_points=20000))
     assert any("disagrees with both neighbours" in m for m in caplog.messages)  # the case was made
     _check(res, poses, V, F)

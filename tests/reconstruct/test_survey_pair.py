@@ -12,9 +12,9 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
-from prism3d.reconstruct.flatness import ransac_plane
-from prism3d.reconstruct.survey_pair import pair_cloud, rectify_from_pose
-from prism3d.reconstruct.two_view import TwoViewPose
+from prism3d.reconstruct.stereo.flatness import ransac_plane
+from prism3d.reconstruct.survey.pair import pair_cloud, rectify_from_pose
+from prism3d.reconstruct.survey.two_view import TwoViewPose
 
 F, W, H = 700.0, 640, 480
 K = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1.0]])
@@ -99,7 +99,7 @@ def test_real_drone_pair_rectifies_and_covers_its_overlap(shared_data):
     import cv2
 
     from prism3d.capture.geotag import exif_focal_px, read_position_table, wgs84_to_enu
-    from prism3d.reconstruct.two_view import relative_pose
+    from prism3d.reconstruct.survey.two_view import relative_pose
 
     d = shared_data / "aerial/snowpeak_internal_only"
     s = 1600 / 4608
@@ -119,7 +119,7 @@ def test_real_drone_pair_rectifies_and_covers_its_overlap(shared_data):
     assert pc.valid_fraction > 0.8
     assert 80.0 < np.median(pc.points[:, 2]) < 140.0  # a survey flight's height (GPS-scaled), m
     # levelled on the ground, turned onto the GPS track: a DSM over the pair's footprint
-    from prism3d.reconstruct.dsm import grid_points
+    from prism3d.reconstruct.survey.dsm import grid_points
     c2 = wgs84_to_enu([[B.lat_deg, B.lon_deg, B.alt_m]], [A.lat_deg, A.lon_deg, A.alt_m])[0]
     _, pts = enu_from_pair(pc.points, pose.baseline_cam1, np.zeros(3), c2)
     g = grid_points(pts, pc.colours, 0.2)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from prism3d.errors import InputError
-from prism3d.reconstruct.survey import SurveyOptions, _dense_scale, _tile_bounds, fuse_tiles, georeference
-from prism3d.reconstruct.survey_model import PairTile
+from prism3d.reconstruct.survey.run import SurveyOptions, _dense_scale, _tile_bounds, fuse_tiles, georeference
+from prism3d.reconstruct.survey.model import PairTile
 
 
 def _rot(axis: np.ndarray, deg: float) -> np.ndarray:
@@ -105,7 +105,7 @@ def test_fusion_needs_a_tile() -> None:
 def test_tile_bounds_sit_on_the_lattice_and_hold_the_points() -> None:
     rng = np.random.default_rng(4)
     P = np.c_[rng.uniform(3.3, 9.7, 500), rng.uniform(-4.2, 2.9, 500), np.zeros(500)]
-    from prism3d.reconstruct.dsm import grid_points
+    from prism3d.reconstruct.survey.dsm import grid_points
 
     w, s, e, n = _tile_bounds(P, 0.25)
     assert w / 0.25 == pytest.approx(round(w / 0.25)) and n / 0.25 == pytest.approx(round(n / 0.25), abs=1e-6)

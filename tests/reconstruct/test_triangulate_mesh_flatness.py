@@ -5,9 +5,9 @@ import pytest
 
 from prism3d.capture.rig import compute_rectification, paper_rig
 from prism3d.errors import InputError, ReconstructionError
-from prism3d.reconstruct.flatness import fit_plane, flatness_of_ply, flatness_test
-from prism3d.reconstruct.meshing import mesh_from_grid, smooth_depth, smoothing_resolution_mm
-from prism3d.reconstruct.triangulate import (
+from prism3d.reconstruct.stereo.flatness import fit_plane, flatness_of_ply, flatness_test
+from prism3d.reconstruct.stereo.meshing import mesh_from_grid, smooth_depth, smoothing_resolution_mm
+from prism3d.reconstruct.stereo.triangulate import (
     depth_resolution_mm,
     depth_to_points,
     grid_normals,

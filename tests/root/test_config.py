@@ -69,10 +69,10 @@ def _options_classes():
     from prism3d.capture.scenes import BoardPoseOptions
     from prism3d.capture.simulate import ShotOptions, SimulateOptions
     from prism3d.datasets.jobs import RunOptions
-    from prism3d.reconstruct.calibrate import CalibrationOptions
-    from prism3d.reconstruct.match_options import MatchOptions
-    from prism3d.reconstruct.pipeline import ReconstructOptions
-    from prism3d.reconstruct.stitch import StitchOptions
+    from prism3d.reconstruct.stereo.calibrate import CalibrationOptions
+    from prism3d.reconstruct.stereo.match_options import MatchOptions
+    from prism3d.reconstruct.stereo.pipeline import ReconstructOptions
+    from prism3d.reconstruct.scan.stitch import StitchOptions
 
     return [ChipSpec, CaptureOptions, BoardPoseOptions, ShotOptions, SimulateOptions, CalibrationOptions,
             MatchOptions, ReconstructOptions, StitchOptions, RunOptions]

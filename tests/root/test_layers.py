@@ -2,6 +2,8 @@
 level or inside functions: capture <- reconstruct <- atr <- datasets (a layer imports
 only the layers to its left); the root package's shared modules import no layer; only
 the entry points (cli, demo, _precompile) wire layers together, and nothing imports them.
+Inside a layer, its sub-packages keep their own order (:data:`SUBPACKAGES`), and every
+library module is tied to the import graph.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ ROOT = Path(__file__).resolve().parents[2]
 LAYERS = ("capture", "reconstruct", "atr", "datasets")
 #: root modules that wire the layers together (nothing in the library imports them)
 ENTRY_POINTS = ("prism3d.cli", "prism3d.demo", "prism3d._precompile")
+#: a layer's sub-packages -> the sibling sub-packages each may import (its own always)
+SUBPACKAGES = {"prism3d.reconstruct": {"stereo": set(), "scan": {"stereo"}, "survey": {"stereo"}}}
 #: folder on disk -> import prefix
 FOLDERS = {"prism3d": "prism3d", **{layer: f"prism3d.{layer}" for layer in LAYERS}}
 
@@ -79,6 +83,40 @@ def violations(files: dict[str, Path]) -> list[str]:
     return bad
 
 
+def _subpackage(module: str) -> tuple[str, str] | None:
+    for pkg, subs in SUBPACKAGES.items():
+        rest = module[len(pkg) + 1:].split(".")[0] if module.startswith(pkg + ".") else ""
+        if rest in subs:
+            return pkg, rest
+    return None
+
+
+def subpackage_violations(files: dict[str, Path]) -> list[str]:
+    """Imports between a layer's sub-packages against :data:`SUBPACKAGES`."""
+    bad = []
+    for module, path in files.items():
+        src = _subpackage(module)
+        if src is None:
+            continue
+        seen = set()  # one report per import statement
+        for line, target in _imports(module, path):
+            dst = _subpackage(target)
+            if line not in seen and dst and dst[0] == src[0] and dst[1] != src[1] \
+                    and dst[1] not in SUBPACKAGES[src[0]][src[1]]:
+                seen.add(line)
+                bad.append(f"{path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}:{line} "
+                           f"{module} -> {target} ({src[1]} imports {dst[1]})")
+    return sorted(set(bad))
+
+
+def untied(files: dict[str, Path]) -> list[str]:
+    """Library modules (packages' ``__init__`` aside) that import none of ours and that none of
+    ours import: rooms without a door in the drawn graph."""
+    edges = {m: {t for _, t in _imports(m, p) if t in files and t != m} for m, p in files.items()}
+    imported = set().union(*edges.values())
+    return sorted(m for m, p in files.items() if p.name != "__init__.py" and not edges[m] and m not in imported)
+
+
 def cycles(files: dict[str, Path]) -> list[list[str]]:
     """Groups of library modules that import each other, directly or around a loop
     (Tarjan's strongly connected components over every import, function level included)."""
@@ -117,8 +155,23 @@ def library_modules(root: Path = ROOT) -> dict[str, Path]:
 
 def test_library_follows_the_layer_order() -> None:
     files = library_modules()
-    assert len(files) > 60 and "prism3d.reconstruct.match" in files  # the whole library was read
+    assert len(files) > 60 and "prism3d.reconstruct.stereo.match" in files  # the whole library was read
     assert violations(files) == []
+
+
+def test_sub_packages_keep_their_order(tmp_path: Path) -> None:
+    """reconstruct's scan and survey build on stereo; neither imports the other (and the
+    check catches a planted stereo -> survey import, relative or absolute)."""
+    assert subpackage_violations(library_modules()) == []
+    bad, ok = tmp_path / "bad.py", tmp_path / "ok.py"
+    bad.write_text("from prism3d.reconstruct.survey import run\nfrom ..scan import stitch\n")
+    ok.write_text("from prism3d.reconstruct.stereo import match\nfrom . import pair\n")
+    found = subpackage_violations({"prism3d.reconstruct.stereo.bad": bad, "prism3d.reconstruct.survey.ok": ok})
+    assert len(found) == 2 and "(stereo imports survey)" in found[0] and "(stereo imports scan)" in found[1], found
+
+
+def test_every_library_module_is_tied_to_the_graph() -> None:
+    assert untied(library_modules()) == []
 
 
 def test_no_import_cycles_between_modules() -> None:
@@ -158,7 +211,7 @@ def test_a_planted_violation_is_caught(tmp_path: Path) -> None:
     cap = tmp_path / "capture_bad.py"
     cap.write_text("def f():\n    from ..atr import chips\n    return chips\n")
     root_mod = tmp_path / "root_bad.py"
-    root_mod.write_text("import prism3d.reconstruct.match\n")
+    root_mod.write_text("import prism3d.reconstruct.stereo.match\n")
     cli_user = tmp_path / "cli_user.py"
     cli_user.write_text("from prism3d.cli import main\n")
     ok = tmp_path / "ok.py"

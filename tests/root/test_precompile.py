@@ -37,14 +37,14 @@ def test_kernel_modules_are_found() -> None:
     """The warm-up's record lists the kernels of every module it finds by reading the
     sources; each module found does define kernels."""
     mods = _precompile.kernel_modules()
-    assert {"prism3d.reconstruct._match_kernels", "prism3d.capture._render_kernels",
+    assert {"prism3d.reconstruct.stereo._match_kernels", "prism3d.capture._render_kernels",
             "prism3d.io._pcd_kernels"} <= set(mods)
     names = _precompile.kernel_dispatchers()
     for mod in mods:
         assert any(k.startswith(mod + ".") for k in names), mod
     public = _precompile.kernel_dispatchers(public=True)
-    assert "prism3d.reconstruct._match_kernels.census_hwc" in public
-    assert "prism3d.reconstruct._match_kernels._speckle_runs" not in public  # kernel-only callee
+    assert "prism3d.reconstruct.stereo._match_kernels.census_hwc" in public
+    assert "prism3d.reconstruct.stereo._match_kernels._speckle_runs" not in public  # kernel-only callee
 
 
 def test_warmup_covers_every_kernel() -> None:
@@ -78,8 +78,8 @@ _FRESH = textwrap.dedent(
     from prism3d.capture.rig import paper_rig
     from prism3d.capture.scenes import flat_plate, place_at
     from prism3d.capture.simulate import Projector, ShotOptions, simulate_shot
-    from prism3d.reconstruct.match import MatchOptions, match_stereo_full
-    from prism3d.reconstruct.pipeline import reconstruct_shot
+    from prism3d.reconstruct.stereo.match import MatchOptions, match_stereo_full
+    from prism3d.reconstruct.stereo.pipeline import reconstruct_shot
     from prism3d._precompile import kernel_dispatchers
 
     rng = np.random.default_rng(3)
