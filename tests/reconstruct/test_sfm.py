@@ -231,7 +231,7 @@ def test_frame_colmap_cannot_decode(tmp_path):
 def test_child_process_failures(tmp_path, monkeypatch):
     """A child that fails or outlives timeout_s: ReconstructionError naming the log."""
     from prism3d.errors import ReconstructionError
-    from prism3d.reconstruct.survey.run import sfm
+    from prism3d.reconstruct.survey import sfm
 
     a = _noise_png(tmp_path / "a.png", 1)
     b = _noise_png(tmp_path / "b.png", 2)
