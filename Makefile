@@ -51,7 +51,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m compileall -q prism3d capture reconstruct atr datasets
 	$(PY) -m prism3d._precompile
 	@# survey-detect's default recogniser (car, van, truck, bus), trained once into .venv's cache
-	$(PY) -m prism3d.datasets.pretrain
+	$(PY) -m prism3d.datasets.jobs.pretrain
 	@touch $(STAMP)
 
 setup: $(STAMP)

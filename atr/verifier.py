@@ -10,7 +10,7 @@ standing on the ground: each class's best peak-to-correlation energy in each ban
 much better the best target class does than the best refused class, the object's length,
 width and height and their log-ratio to each target class's, its pixel area against the
 area the class would cover at its range, and the range. It is trained on objects found
-in simulated scenes with exact truth (:mod:`prism3d.datasets.mining`): the targets' own
+in simulated scenes with exact truth (:mod:`prism3d.datasets.jobs.mining`): the targets' own
 pieces are positives, everything else (clutter, ground noise, siblings, crates) negative.
 Method and figures: docs/atr.md "Learning what is not a target".
 """

@@ -28,10 +28,10 @@ import numpy as np
 from prism3d.atr.aerial import DEFAULT_THRESHOLD
 from prism3d.atr.aerial_train import AerialTrainOptions
 from prism3d.atr.survey_detect import detect_in_survey, find_vehicles, nadir_templates, write_geojson
-from prism3d.datasets.flight import FlightOptions, simulate_flight
-from prism3d.datasets.recognisers import aerial_recogniser
-from prism3d.datasets.resolve import resolve_targets
-from prism3d.datasets.survey_eval import evaluate_survey
+from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
+from prism3d.datasets.jobs.recognisers import aerial_recogniser
+from prism3d.datasets.database.resolve import resolve_targets
+from prism3d.datasets.evaluation.survey_eval import evaluate_survey
 from prism3d.io.geo import read_geotiff
 
 CLASSES = ["car", "van", "truck", "bus"]
@@ -140,7 +140,7 @@ def main() -> None:
                 th = DEFAULT_THRESHOLD
             r = evaluate_survey(sd, fd, detections=out, radius_m=RADIUS_M, threshold=th)
             d = r["detection"]
-            from prism3d.datasets.survey_eval import _pose_scores  # noqa: PLC0415 - the benchmark's own alignment
+            from prism3d.datasets.evaluation.survey_eval import _pose_scores  # noqa: PLC0415 - the benchmark's own alignment
 
             _, fr = _pose_scores(json.loads((sd / "poses.json").read_text()), json.loads((fd / "truth.json").read_text()))
             gj = json.loads(out.read_text())
@@ -186,7 +186,7 @@ def main() -> None:
 
 def _curve_of(out: Path, sd: Path, fd: Path) -> list[dict]:
     from prism3d.atr.survey_detect import score_detections
-    from prism3d.datasets.survey_eval import _pose_scores
+    from prism3d.datasets.evaluation.survey_eval import _pose_scores
 
     truth = json.loads((fd / "truth.json").read_text())
     _, fr = _pose_scores(json.loads((sd / "poses.json").read_text()), truth)

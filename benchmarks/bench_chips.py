@@ -23,7 +23,7 @@ def _rate(fn, n: int) -> float:
 def main() -> str:
     import numpy as np
     from prism3d.atr.chips import CHANNELS, ChipSpec, chip_poses, render_chips
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     mesh = builtin_target("tank_t1")
     poses = chip_poses(mesh, list(np.arange(0, 360, 2.5)), [20.0], 1000.0, size=128)  # 144 poses

@@ -34,7 +34,7 @@ def _load() -> str:
 
 
 def _rss_table(db, job: str) -> tuple[str, float]:
-    from prism3d.datasets.jobs import unit_stats
+    from prism3d.datasets.jobs.database_jobs import unit_stats
 
     st = unit_stats(db, job)
     lines = []
@@ -55,10 +55,10 @@ def _rss_table(db, job: str) -> tuple[str, float]:
 def main(work: Path) -> str:
     import duckdb
     import pandas as pd
-    from prism3d.datasets.db import init_db, verify_db
-    from prism3d.datasets.ingest import add_builtin, add_quaternius_vehicles
+    from prism3d.datasets.database.db import init_db, verify_db
+    from prism3d.datasets.database.ingest import add_builtin, add_quaternius_vehicles
     from prism3d.atr.chips import ChipSpec
-    from prism3d.datasets.jobs import RunOptions, run_features_job, run_render_job
+    from prism3d.datasets.jobs.database_jobs import RunOptions, run_features_job, run_render_job
 
     out: list[str] = ["## Target database and jobs (benchmarks/bench_db.py)", ""]
     out.append(

@@ -32,10 +32,10 @@ from prism3d.atr.hog_svm import HogSvm
 from prism3d.atr.scene_eval import score_scenes
 from prism3d.atr.verifier import SceneRecogniser
 from prism3d.capture.rig import StereoRig
-from prism3d.datasets.field import FieldOptions, simulate_field, simulate_field_batch
-from prism3d.datasets.jobs import RunOptions
-from prism3d.datasets.mining import MiningOptions, train_scene_recogniser
-from prism3d.datasets.resolve import resolve_targets
+from prism3d.datasets.simulation.field import FieldOptions, simulate_field, simulate_field_batch
+from prism3d.datasets.jobs.database_jobs import RunOptions
+from prism3d.datasets.jobs.mining import MiningOptions, train_scene_recogniser
+from prism3d.datasets.database.resolve import resolve_targets
 from prism3d.io.images import read_image
 from prism3d.reconstruct.stereo.pipeline import (
     ReconstructOptions,

@@ -204,7 +204,7 @@ def prism_table(cache: Path) -> list[str]:
     from prism3d.capture.camera_effects import CameraEffects
     from prism3d.capture.rig import StereoRig
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.reconstruct.stereo.pipeline import reconstruct_shot
 

@@ -35,7 +35,7 @@ PRISM3D = Path(sys.executable).parent / "prism3d"
 
 def _shots(cache: Path) -> dict[str, Path]:
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     out = {}
     for name, kw in (("plate", dict(kind="plate", pattern=True, camouflage=False)),

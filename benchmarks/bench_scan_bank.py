@@ -5,7 +5,7 @@ Run::
     .venv/bin/python benchmarks/bench_scan_bank.py [--targets tank_t1 jet_j1 ship_s1 truck_k1 | all]
         [--cache DIR] [--json OUT.json]
 
-Each target is scanned as a user scans it (``prism3d.datasets.scanned.scan_builtin_target``):
+Each target is scanned as a user scans it (``prism3d.datasets.models.scanned.scan_builtin_target``):
 8 turntable shots through the simulated prism rig with the real camera effects, each
 reconstructed (``reconstruct``), stitched with the turntable step into a mesh in the
 object frame kept within 2 point spacings of the data, coloured by the shots. Per channel
@@ -43,8 +43,8 @@ def mask_iou(a, b) -> float:
 
 def main() -> None:
     from prism3d.atr.chips import load_mesh_file
-    from prism3d.datasets.scanned import compare_scan_banks, scan_builtin_target
-    from prism3d.datasets.targets import builtin_target, list_builtin_targets
+    from prism3d.datasets.models.scanned import compare_scan_banks, scan_builtin_target
+    from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--targets", nargs="+", default=["tank_t1", "jet_j1", "ship_s1", "truck_k1"])

@@ -128,7 +128,7 @@ def main() -> None:
     folder = Path(sys.argv[1] if len(sys.argv) > 1 else "/tmp/stitch_sets/tank8")
     if not (folder / "poses.json").exists():
         from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-        from prism3d.datasets.targets import builtin_target
+        from prism3d.datasets.models.targets import builtin_target
 
         simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=1, supersample=1), target=builtin_target("tank_t1"))
     from prism3d.reconstruct.scan.fusion import mesh_is_closed

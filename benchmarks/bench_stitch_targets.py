@@ -42,7 +42,7 @@ def pose_errors(T_model_scan, poses, V):
 def render(name: str, folder: Path, *, ideal: bool, supersample: int) -> None:
     from prism3d.capture.camera_effects import CameraEffects
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     if (folder / "poses.json").exists():
         return
@@ -109,7 +109,7 @@ def run(name: str, folder: Path, options: dict, frame_check: bool = False) -> di
 
 
 def main() -> None:
-    from prism3d.datasets.targets import list_builtin_targets
+    from prism3d.datasets.models.targets import list_builtin_targets
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--targets", nargs="+", default=list_builtin_targets())

@@ -63,10 +63,10 @@ from typing import Any
 import numpy as np
 
 from prism3d.atr.survey_detect import DEFAULT_VEHICLES, detect_in_survey
-from prism3d.datasets.flight import FlightOptions, simulate_flight
+from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 from prism3d.datasets.runner import RunOptions, run_survey_pairs
-from prism3d.datasets.survey_eval import evaluate_survey, ground_roughness
-from prism3d.datasets.targets import builtin_target
+from prism3d.datasets.evaluation.survey_eval import evaluate_survey, ground_roughness
+from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import InputError
 from prism3d.geometry import rotation_angle_deg
 from prism3d.reconstruct.survey.run import SurveyOptions, run_survey
@@ -367,7 +367,7 @@ def _matched(survey_dir: Path, flight: Path, geojson: Path) -> tuple[list[dict],
     came without a ground height (``z_local``) and were put on ``_ground_z``. A candidate is
     a point on the ground: put at height 0 (the ellipsoid, ~150 m below), the alignment's
     rotation (0.4-1.6 deg from the GPS noise) would move it metres sideways."""
-    from prism3d.datasets.survey_eval import _pose_scores  # the scorer's own alignment
+    from prism3d.datasets.evaluation.survey_eval import _pose_scores  # the scorer's own alignment
     from prism3d.io.geo import read_geotiff
 
     poses_doc = json.loads((survey_dir / "poses.json").read_text())

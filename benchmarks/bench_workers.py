@@ -18,10 +18,10 @@ import prism3d  # noqa: F401  (environment first)
 
 
 def main() -> None:
-    from prism3d.datasets import db as dbm
-    from prism3d.datasets.ingest import add_builtin
+    from prism3d.datasets.database import db as dbm
+    from prism3d.datasets.database.ingest import add_builtin
     from prism3d.atr.chips import ChipSpec
-    from prism3d.datasets.jobs import RunOptions, run_render_job
+    from prism3d.datasets.jobs.database_jobs import RunOptions, run_render_job
 
     d = tempfile.mkdtemp(prefix="prism3d-bench-workers-")
     dbm.init_db(d)

@@ -1,7 +1,7 @@
 """prism3d.datasets: built-in targets, the target database and its jobs."""
 
 from prism3d.capture.camouflage import CamouflageField, camouflage_field, plain_paint
-from prism3d.datasets.targets import (
+from prism3d.datasets.models.targets import (
     builtin_classes,
     builtin_target,
     export_builtin_target,

@@ -1,6 +1,6 @@
 """Running units of work: in this process, on a local Dask cluster or on an existing
 scheduler (:class:`RunOptions`), retried, counted and reported (:class:`JobReport`).
-The target database's render and feature jobs (:mod:`prism3d.datasets.jobs`), the
+The target database's render and feature jobs (:mod:`prism3d.datasets.jobs.database_jobs`), the
 simulated field batches and the survey's dense pairs all run through :func:`run_tasks`.
 """
 

@@ -94,7 +94,7 @@ def _group_simulate() -> None:
     """The virtual rig (``prism3d simulate plate|calib|scene``): ray casting, shading,
     shadows, supersampling, sensor noise, camouflage and value-noise textures."""
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     rig = _tiny_rig()
     with tempfile.TemporaryDirectory(prefix="prism3d-precompile-") as tmp:
@@ -127,7 +127,7 @@ def _group_reconstruct() -> None:
 def _group_chips() -> None:
     """ATR chips (``prism3d render``, ``bank``, ``db render``): ray-cast chips."""
     from prism3d.atr.chips import ChipSpec, render_chips
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     tank = builtin_target("tank_t1", seed=0)
     render_chips(tank, azimuth="0:360:180", chip_spec=ChipSpec(size=16, clutter="ground"))

@@ -138,7 +138,7 @@ def _add_trigger(sub: Any) -> None:
 
 
 def _virtual_resolver(name: str) -> Any:
-    from prism3d.datasets.virtual_camera import resolve_virtual_target
+    from prism3d.datasets.simulation.virtual_camera import resolve_virtual_target
 
     return resolve_virtual_target(name)
 
@@ -147,7 +147,7 @@ def _virtual_resolver(name: str) -> Any:
 def _cmd_simulate_flight(args: argparse.Namespace) -> int:
     import re
 
-    from prism3d.datasets.flight import FlightOptions, simulate_flight
+    from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 
     if args.count is not None or args.classes or args.workers or args.scheduler:
         raise InputError("simulate flight: --count, --classes, --workers and --scheduler are for field scenes")
@@ -173,13 +173,13 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if args.scene is not None:
         raise InputError(f"simulate {args.kind}: --scene is for flights (field or carpark)")
     if args.kind == "field":
-        from prism3d.datasets.field import FieldOptions, simulate_field
+        from prism3d.datasets.simulation.field import FieldOptions, simulate_field
 
         fo = FieldOptions(targets=args.targets, confusers=args.confusers, seed=args.seed, noise=args.noise,
                           supersample=1 if args.supersample is None else args.supersample,
                           **({"classes": tuple(args.classes)} if args.classes else {}))
         if args.count is not None:
-            from prism3d.datasets.field import simulate_field_batch
+            from prism3d.datasets.simulation.field import simulate_field_batch
             from prism3d.datasets.runner import RunOptions
 
             report = simulate_field_batch(args.out_dir, args.count, fo, RunOptions(
@@ -205,7 +205,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         args.camouflage = args.kind == "scene"
     target = None
     if args.kind == "scene":
-        from prism3d.datasets.targets import builtin_target
+        from prism3d.datasets.models.targets import builtin_target
 
         target = builtin_target(args.target, camouflage=args.camouflage, seed=args.seed)
     from prism3d.reconstruct.stereo.calibrate import parse_board
@@ -734,7 +734,7 @@ def _add_features(sub: Any) -> None:
 # --- ATR: render / bank ---------------------------------------------------------------------
 def _cmd_render(args: argparse.Namespace) -> int:
     from prism3d.atr.chips import ChipSpec, render_to_folder
-    from prism3d.datasets.resolve import resolve_model
+    from prism3d.datasets.database.resolve import resolve_model
 
     if Path(args.model).is_file():
         model: Any = resolve_model(args.model, units=args.units, up=args.up, forward=args.forward, seed=args.seed,
@@ -792,7 +792,7 @@ def _cmd_bank(args: argparse.Namespace) -> int:
                        results=args.json)
     _finish_targets(args)
     if args.action == "eval-scenes":
-        from prism3d.datasets.field import eval_scene_folders
+        from prism3d.datasets.simulation.field import eval_scene_folders
         from prism3d.datasets.runner import RunOptions
 
         res = eval_scene_folders(args.bank, args.scenes, out_json=args.json, run=RunOptions(
@@ -838,8 +838,8 @@ def _bank_train(args: argparse.Namespace) -> int:
 
     from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
     from prism3d.datasets.runner import RunOptions
-    from prism3d.datasets.mining import DEFAULT_SCENES
-    from prism3d.datasets.recognisers import aerial_recogniser, scene_recogniser
+    from prism3d.datasets.jobs.mining import DEFAULT_SCENES
+    from prism3d.datasets.jobs.recognisers import aerial_recogniser, scene_recogniser
 
     grid = {k: v for k, v in (("azimuth", args.azimuth), ("elevation", args.elevation), ("bin_deg", args.bin_deg))
             if v is not None}
@@ -941,8 +941,8 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         model, how = load_scene_model(args.targets[0]), args.targets[0]
     else:
         from prism3d.atr.bank import BANK_CHIP_SPEC
-        from prism3d.datasets.mining import DEFAULT_SCENES
-        from prism3d.datasets.recognisers import scene_recogniser
+        from prism3d.datasets.jobs.mining import DEFAULT_SCENES
+        from prism3d.datasets.jobs.recognisers import scene_recogniser
 
         model, info = scene_recogniser(_targets_for(args), scenes=DEFAULT_SCENES, channels=("shape", "depth"),
                                        chip_spec=BANK_CHIP_SPEC, cache=not args.no_cache,
@@ -1048,8 +1048,8 @@ def _add_survey(sub: Any) -> None:
 
 
 def _targets_for(args: argparse.Namespace, *, scale: str = "model") -> list:
-    """The command's target list: ``--db`` or ``--targets`` specs (the datasets.resolve rules)."""
-    from prism3d.datasets.resolve import resolve_db_targets, resolve_targets
+    """The command's target list: ``--db`` or ``--targets`` specs (the datasets.database.resolve rules)."""
+    from prism3d.datasets.database.resolve import resolve_db_targets, resolve_targets
 
     if getattr(args, "db", None) is not None:
         if args.targets_given:
@@ -1060,7 +1060,7 @@ def _targets_for(args: argparse.Namespace, *, scale: str = "model") -> list:
 
 
 def _add_target_options(p: argparse.ArgumentParser, default: list[str], *, db: bool = True) -> None:
-    """The one target list of bank, detect and survey-detect (datasets/resolve.py)."""
+    """The one target list of bank, detect and survey-detect (datasets/database/resolve.py)."""
     p.add_argument("--targets", nargs="+", default=None, metavar="SPEC",
                    help="built-in names (tank_t1, car_kei), classes (car van truck bus tank jet ship), 'builtin' "
                    "(the military set), 'civilian', or mesh files FILE[=CLASS[:UNITS[:UP[:FORWARD]]]] "
@@ -1085,7 +1085,7 @@ def _finish_targets(args: argparse.Namespace) -> None:
 def _cmd_survey_detect(args: argparse.Namespace) -> int:
     from prism3d.atr.aerial import AerialModel
     from prism3d.atr.survey_detect import detect_in_survey
-    from prism3d.datasets.recognisers import aerial_recogniser
+    from prism3d.datasets.jobs.recognisers import aerial_recogniser
     from prism3d.atr.models import model_kind
 
     _finish_targets(args)
@@ -1134,7 +1134,7 @@ def _add_survey_detect(sub: Any) -> None:
 
 # --- datasets: the target database ---------------------------------------------------------
 def _cmd_db(args: argparse.Namespace) -> int:
-    from prism3d.datasets import db as dbm
+    from prism3d.datasets.database import db as dbm
 
     a = args.db_action
     if a == "init":
@@ -1142,13 +1142,13 @@ def _cmd_db(args: argparse.Namespace) -> int:
         _say(args, f"created target database {args.db}")
         return 0
     if a == "add":
-        from prism3d.datasets import ingest
+        from prism3d.datasets.database import ingest
 
         if dbm.check_add_request(args.meshes, args.builtin, args.target_class) == "builtin":
             rep = ingest.add_builtin(args.db, args.builtin or None, strict=args.strict)
         else:
             yaw = args.yaw
-            if args.forward is not None:  # the nose's axis, turned onto +x (datasets/resolve.py's rule)
+            if args.forward is not None:  # the nose's axis, turned onto +x (datasets/database/resolve.py's rule)
                 from prism3d.io.units import forward_yaw_deg
 
                 try:
@@ -1161,7 +1161,7 @@ def _cmd_db(args: argparse.Namespace) -> int:
         return 0
     if a == "render":
         from prism3d.atr.chips import ChipSpec
-        from prism3d.datasets.jobs import RunOptions, run_render_job
+        from prism3d.datasets.jobs.database_jobs import RunOptions, run_render_job
 
         spec = ChipSpec(size=args.size, channels=args.channels, framing=args.framing, camouflage=args.camouflage,
                         seed=args.seed)
@@ -1170,13 +1170,13 @@ def _cmd_db(args: argparse.Namespace) -> int:
                              chip_spec=spec, targets=args.targets, classes=args.classes, run=run)
         return _job_result(args, rep)
     if a == "features":
-        from prism3d.datasets.jobs import RunOptions, run_features_job
+        from prism3d.datasets.jobs.database_jobs import RunOptions, run_features_job
 
         run = RunOptions(workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "features"))
         rep = run_features_job(args.db, args.job, run=run)
         return _job_result(args, rep)
     if a == "info":
-        from prism3d.datasets.jobs import database_info
+        from prism3d.datasets.jobs.database_jobs import database_info
 
         info = database_info(dbm.open_db(args.db))
         print(dbm.info_json(info) if args.json else dbm.format_info(info))

@@ -34,16 +34,16 @@ from prism3d.atr.survey_detect import DEFAULT_CLASSES, detect_in_survey
 from prism3d.browser import check_page, find_chromium
 from prism3d.capture.rig import StereoRig, paper_rig
 from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-from prism3d.datasets import db as dbm
-from prism3d.datasets.field import FieldOptions, simulate_field
-from prism3d.datasets.flight import FlightOptions, simulate_flight
-from prism3d.datasets.ingest import add_builtin, add_meshes
-from prism3d.datasets.jobs import run_features_job, run_render_job
-from prism3d.datasets.recognisers import aerial_recogniser
-from prism3d.datasets.resolve import resolve_targets
-from prism3d.datasets.scanned import compare_scan_banks, scan_builtin_target
-from prism3d.datasets.survey_eval import evaluate_survey
-from prism3d.datasets.targets import builtin_target, list_builtin_targets
+from prism3d.datasets.database import db as dbm
+from prism3d.datasets.simulation.field import FieldOptions, simulate_field
+from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
+from prism3d.datasets.database.ingest import add_builtin, add_meshes
+from prism3d.datasets.jobs.database_jobs import run_features_job, run_render_job
+from prism3d.datasets.jobs.recognisers import aerial_recogniser
+from prism3d.datasets.database.resolve import resolve_targets
+from prism3d.datasets.models.scanned import compare_scan_banks, scan_builtin_target
+from prism3d.datasets.evaluation.survey_eval import evaluate_survey
+from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 from prism3d.geometry import rotation_angle_deg
 from prism3d.io.atomic import atomic_path, atomic_write_text

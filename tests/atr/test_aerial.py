@@ -21,9 +21,9 @@ from prism3d.atr.aerial_train import (
     window_groups,
 )
 from prism3d.capture.nadir import render_nadir
-from prism3d.datasets.carpark import person_mesh
-from prism3d.datasets.field import prop_mesh
-from prism3d.datasets.targets import builtin_target
+from prism3d.datasets.simulation.carpark import person_mesh
+from prism3d.datasets.simulation.field import prop_mesh
+from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import InputError
 
 GSD = 0.08
@@ -325,7 +325,7 @@ def test_survey_detect_bad_input_writes_nothing(model: AerialModel, tmp_path, ca
 def test_cli_refuses_unknown_classes_and_models_of_the_other_view(model: AerialModel, tmp_path, capsys) -> None:
     from prism3d.atr.bank import train_bank
     from prism3d.cli import main
-    from prism3d.datasets.resolve import resolve_targets
+    from prism3d.datasets.database.resolve import resolve_targets
 
     d, _ = _survey(tmp_path)
     aerial = model.save(tmp_path / "aerial.npz")

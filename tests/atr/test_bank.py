@@ -19,7 +19,7 @@ from prism3d.errors import InputError
 
 
 def _targets(variants: str = "1", seed: int = 0):
-    from prism3d.datasets.targets import builtin_target, list_builtin_targets
+    from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 
     names = [n for n in list_builtin_targets() if n[-1] in variants]
     return [(n.split("_")[0], builtin_target(n, seed=seed)) for n in names]

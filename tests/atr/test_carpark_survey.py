@@ -18,7 +18,7 @@ from prism3d.cli import main
 
 @pytest.fixture(scope="module")
 def surveyed(tmp_path_factory) -> tuple[Path, Path, Path]:
-    from prism3d.datasets.flight import FlightOptions, simulate_flight
+    from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
     from prism3d.reconstruct.survey.run import run_survey
 
     root = tmp_path_factory.mktemp("carpark")
@@ -38,7 +38,7 @@ def surveyed(tmp_path_factory) -> tuple[Path, Path, Path]:
 
 
 def test_vehicles_found_one_each_and_named(surveyed) -> None:
-    from prism3d.datasets.survey_eval import evaluate_survey
+    from prism3d.datasets.evaluation.survey_eval import evaluate_survey
 
     flight, survey, out = surveyed
     r = evaluate_survey(survey, flight, detections=out, radius_m=1.6, threshold=0.5)

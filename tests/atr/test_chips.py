@@ -15,7 +15,7 @@ from prism3d.errors import InputError
 
 @pytest.fixture(scope="module")
 def builtin_tank() -> SceneMesh:
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     return builtin_target("tank_t1")
 
@@ -199,7 +199,7 @@ def test_camouflage_off_is_applied_once(tmp_path):
     """
     from prism3d.atr.chips import _LUMA
     from prism3d.cli import main
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     camo = builtin_target("tank_t1", seed=0)
     plain = builtin_target("tank_t1", camouflage=False)

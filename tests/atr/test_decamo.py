@@ -10,7 +10,7 @@ import tifffile
 from prism3d.atr.decamo import decamo_to_folder, decamouflage, lmse, sh_basis
 from prism3d.capture.rig import paper_rig
 from prism3d.capture.simulate import ShotOptions, simulate_shot
-from prism3d.datasets.targets import builtin_target
+from prism3d.datasets.models.targets import builtin_target
 
 from prism3d.errors import InputError
 from prism3d.io.images import read_image, write_depth, write_image

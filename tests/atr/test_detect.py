@@ -16,7 +16,7 @@ SMALL = dict(sensor_size=(720, 540), focal_px=600.0, clutter=10, supersample=1)
 
 @pytest.fixture(scope="module")
 def field(tmp_path_factory):
-    from prism3d.datasets.field import FieldOptions, simulate_field
+    from prism3d.datasets.simulation.field import FieldOptions, simulate_field
 
     out = tmp_path_factory.mktemp("field") / "scene"
     simulate_field(out, FieldOptions(seed=3, targets=3, confusers=1, **SMALL))
@@ -32,7 +32,7 @@ def field(tmp_path_factory):
 @pytest.fixture(scope="module")
 def small_bank():
     from prism3d.atr.bank import train_bank
-    from prism3d.datasets.resolve import resolve_targets
+    from prism3d.datasets.database.resolve import resolve_targets
 
     return train_bank(resolve_targets(["tank_t1", "truck_k1"]), channel="depth", azimuth="0:360:30",
                       bin_deg=30.0, params=(1.0, 0.0, 0.0))
@@ -60,7 +60,7 @@ def test_objects_stand_out_of_the_ground_as_in_the_truth(field):
 def test_object_sizes_match_the_true_targets(field):
     """Length (footprint) and height of the object under each visible target, against the
     target's true size: what the 3D size gate relies on."""
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     _, truth, _, oid, _, _ = field
     sc = _scene(field)

@@ -26,7 +26,7 @@ from prism3d.errors import InputError
 
 
 def _targets():
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     return [
         ("tank", builtin_target("tank_t1")),
@@ -101,7 +101,7 @@ def test_heldout_seed_rule():
 
 
 def test_evaluate_unknown_class(bank):
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     with pytest.raises(InputError, match="unknown class 'truck'"):
         evaluate_bank(bank, [("truck", builtin_target("truck_k1"))])
@@ -151,7 +151,7 @@ def test_intensity_bank_separates_targets_from_unseen_background():
     """Trained over the black training background, shown over a brighter noise background
     (the silhouette's contrast flipped) with a new camouflage: the intensity bank's target
     scores stay above the clutter-only chips' (AUC 0.81; 0.40 on raw intensity)."""
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     b = train_bank(_targets(), channel="intensity", azimuth="0:360:30", elevation="20", bin_deg=30)
     assert b.intensity_prep == "gradient"

@@ -22,7 +22,7 @@ from prism3d.atr.features import (
 from prism3d.atr.geometry import depth_to_points, gravity_box, normals_from_depth, up_rotation
 from prism3d.capture.render import RaycastRenderer
 from prism3d.capture.rig import CameraModel, look_at
-from prism3d.datasets.targets import builtin_target, list_builtin_targets
+from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 
 from prism3d.errors import InputError
 from prism3d.io.ply import write_ply
@@ -263,7 +263,7 @@ def test_features_table_units_up_and_parquet(tmp_path) -> None:
 
 def test_features_reads_the_units_of_an_exported_builtin(tmp_path) -> None:
     """``units mm; frame ...`` (export_builtin_target) declares mm, as for ``prism3d db add``."""
-    from prism3d.datasets.targets import export_builtin_target
+    from prism3d.datasets.models.targets import export_builtin_target
 
     p = export_builtin_target("truck_k2", tmp_path / "k2.ply", camouflage=False)
     with pytest.raises(InputError, match="declares units 'mm'"):

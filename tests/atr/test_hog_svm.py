@@ -18,7 +18,7 @@ TRAIN_AZ, HELD_AZ = "0:360:30", "15:360:30"
 
 
 def _targets(seed: int = 0):
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     return [(n.split("_")[0], builtin_target(n, seed=seed)) for n in NAMES]
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from prism3d.atr.survey_detect import find_vehicles, nadir_templates, score_detections, write_geojson
-from prism3d.datasets.targets import builtin_target
+from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import InputError
 
 CELL = 0.1

@@ -8,8 +8,8 @@ import collections
 import numpy as np
 import pytest
 
-from prism3d.datasets.targets import builtin_classes, builtin_target, builtin_targets_of_class, list_builtin_targets
-from prism3d.datasets.resolve import resolve_targets
+from prism3d.datasets.models.targets import builtin_classes, builtin_target, builtin_targets_of_class, list_builtin_targets
+from prism3d.datasets.database.resolve import resolve_targets
 from prism3d.errors import InputError, Prism3dError
 
 #: Catalogue sizes (length, width, height m) the civilian built-ins are built to.
@@ -89,7 +89,7 @@ def test_unknown_class_or_name_is_refused() -> None:
 
 
 def test_carpark_plan_rows_of_vehicles() -> None:
-    from prism3d.datasets.flight import FlightOptions, plan_flight
+    from prism3d.datasets.simulation.flight import FlightOptions, plan_flight
 
     for seed in (0, 1):
         plan = plan_flight(FlightOptions(scene="carpark", frames=3, lines=1, altitude_m=60.0, size=(2304, 1728),

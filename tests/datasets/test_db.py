@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from prism3d.datasets.db import (
+from prism3d.datasets.database.db import (
     TABLE_SCHEMA_VERSION,
     check_add_request,
     init_db,
@@ -16,7 +16,7 @@ from prism3d.datasets.db import (
     read_table,
     verify_db,
 )
-from prism3d.datasets.ingest import add_builtin, add_meshes
+from prism3d.datasets.database.ingest import add_builtin, add_meshes
 
 from prism3d.errors import DatasetError, InputError
 
@@ -265,7 +265,7 @@ def test_unknown_schema_versions_rejected(tmp_path: Path) -> None:
 
 
 def _add_worker(db_path: str, files: list[str]) -> None:
-    from prism3d.datasets.ingest import add_meshes as add
+    from prism3d.datasets.database.ingest import add_meshes as add
 
     import prism3d  # noqa: F401
 
@@ -293,7 +293,7 @@ def test_concurrent_add_two_processes(tmp_path: Path) -> None:
 
 @pytest.mark.realdata
 def test_quaternius_vehicles_policy(shared_data: Path, tmp_path: Path) -> None:
-    from prism3d.datasets.ingest import KIT_SCALE, QUATERNIUS_VEHICLES, add_quaternius_vehicles
+    from prism3d.datasets.database.ingest import KIT_SCALE, QUATERNIUS_VEHICLES, add_quaternius_vehicles
 
     folder = shared_data / "meshes" / "quaternius_vehicles_cc0"
     if not folder.is_dir():
@@ -322,8 +322,8 @@ def test_verify_finds_a_bad_job_yaml_and_duplicate_rows(tmp_path) -> None:
     import shutil
 
     from prism3d.atr.chips import ChipSpec
-    from prism3d.datasets.ingest import add_builtin
-    from prism3d.datasets.jobs import run_render_job
+    from prism3d.datasets.database.ingest import add_builtin
+    from prism3d.datasets.jobs.database_jobs import run_render_job
 
     db = init_db(tmp_path / "db")
     add_builtin(db, ["tank_t1"])

@@ -14,7 +14,7 @@ SMALL = dict(sensor_size=(720, 540), focal_px=600.0, clutter=4, supersample=1, t
 
 @pytest.fixture(scope="module")
 def batch(tmp_path_factory):
-    from prism3d.datasets.field import FieldOptions, simulate_field_batch
+    from prism3d.datasets.simulation.field import FieldOptions, simulate_field_batch
 
     out = tmp_path_factory.mktemp("batch") / "scenes"
     report = simulate_field_batch(out, 2, FieldOptions(seed=7, **SMALL))
@@ -39,7 +39,7 @@ def test_a_batch_writes_one_folder_per_seed_and_its_figures(batch):
 def test_a_rerun_resumes_and_extends(batch, tmp_path):
     import shutil
 
-    from prism3d.datasets.field import FieldOptions, simulate_field_batch
+    from prism3d.datasets.simulation.field import FieldOptions, simulate_field_batch
 
     out = tmp_path / "scenes"
     shutil.copytree(batch[0], out)
@@ -53,7 +53,7 @@ def test_a_rerun_resumes_and_extends(batch, tmp_path):
 
 
 def test_batch_bad_input_is_refused_before_any_work(tmp_path):
-    from prism3d.datasets.field import FieldOptions, simulate_field_batch
+    from prism3d.datasets.simulation.field import FieldOptions, simulate_field_batch
 
     with pytest.raises(InputError, match="count"):
         simulate_field_batch(tmp_path / "a", 0, FieldOptions(**SMALL))
@@ -67,8 +67,8 @@ def test_batch_bad_input_is_refused_before_any_work(tmp_path):
 
 def test_eval_scenes_scores_every_scene_and_plots(batch, tmp_path):
     from prism3d.atr.bank import train_bank
-    from prism3d.datasets.field import eval_scene_folders
-    from prism3d.datasets.resolve import resolve_targets
+    from prism3d.datasets.simulation.field import eval_scene_folders
+    from prism3d.datasets.database.resolve import resolve_targets
 
     out, _ = batch
     bank = train_bank(resolve_targets(["tank_t1", "jet_j1"]), channel="depth", azimuth="0:360:30",

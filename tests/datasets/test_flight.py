@@ -16,7 +16,7 @@ SMALL = dict(frames=6, lines=2, size=(640, 480), targets=4, confusers=1, seed=5)
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
-    from prism3d.datasets.flight import FlightOptions, simulate_flight
+    from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 
     out = tmp_path_factory.mktemp("flight") / "survey"
     opts = FlightOptions(**SMALL)
@@ -152,7 +152,7 @@ def test_neighbouring_frames_overlap_as_asked(flight):
 
 
 def test_depth_lands_on_the_terrain_and_the_dsm(flight):
-    from prism3d.datasets.flight import plan_flight
+    from prism3d.datasets.simulation.flight import plan_flight
 
     out, opts, _, truth, grid = flight
     land = plan_flight(opts).land  # the same seed plans the same terrain
@@ -228,7 +228,7 @@ def test_targets_stand_on_the_ground_inside_the_dsm_with_their_heights(flight):
 
 
 def test_bad_options_are_refused_and_nothing_is_written(tmp_path):
-    from prism3d.datasets.flight import FlightOptions, simulate_flight
+    from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 
     for kw, msg in (({"frames": 1}, "frames"), ({"lines": 0}, "lines"), ({"frames": 7, "lines": 2}, "multiple"),
                     ({"frames": 4, "lines": 4}, "at least 2"), ({"overlap": 0.95}, "overlap"),

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from prism3d.datasets.db import init_db, open_db, verify_db
-from prism3d.datasets.ingest import add_builtin
+from prism3d.datasets.database.db import init_db, open_db, verify_db
+from prism3d.datasets.database.ingest import add_builtin
 from prism3d.atr.chips import ChipSpec
-from prism3d.datasets.jobs import (
+from prism3d.datasets.jobs.database_jobs import (
     RenderSpec,
     RunOptions,
     database_info,
@@ -279,7 +279,7 @@ def test_verify_flags_problems(small_db, tmp_path: Path) -> None:
 def test_failing_unit_is_reported_others_finish(tmp_path: Path) -> None:
     db = init_db(tmp_path / "db")
     add_builtin(db, ["truck_k1"])
-    from prism3d.datasets.ingest import add_meshes
+    from prism3d.datasets.database.ingest import add_meshes
 
     box = tmp_path / "box.obj"
     box.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
@@ -305,7 +305,7 @@ _KILL_SCRIPT = """
 import sys
 import prism3d
 from prism3d.atr.chips import ChipSpec
-from prism3d.datasets.jobs import run_render_job
+from prism3d.datasets.jobs.database_jobs import run_render_job
 run_render_job(sys.argv[1], "k", azimuth="0:360:5", elevation="10,30", chip_spec=ChipSpec(size=48),
                chips_per_unit=8)
 """
@@ -416,7 +416,7 @@ def test_cli_db_render_and_features_quiet(tmp_path: Path, capsys: pytest.Capture
 def test_tampered_target_id_writes_nothing_outside(tmp_path: Path) -> None:
     """A target id is a folder name: one that climbs out of the database (a hand-edited
     targets.parquet) is refused when read, and the job writes nothing anywhere."""
-    from prism3d.datasets.db import read_table, write_table
+    from prism3d.datasets.database.db import read_table, write_table
 
     db = init_db(tmp_path / "db")
     add_builtin(db, ["tank_t1"])

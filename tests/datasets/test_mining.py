@@ -11,9 +11,9 @@ import pytest
 
 from prism3d.atr.detect import detect_scene, scene_channels
 from prism3d.atr.verifier import NONE, SceneRecogniser, train_verifier
-from prism3d.datasets.field import FieldOptions, simulate_field
-from prism3d.datasets.mining import MiningOptions, default_rejects, train_scene_recogniser
-from prism3d.datasets.resolve import resolve_targets
+from prism3d.datasets.simulation.field import FieldOptions, simulate_field
+from prism3d.datasets.jobs.mining import MiningOptions, default_rejects, train_scene_recogniser
+from prism3d.datasets.database.resolve import resolve_targets
 from prism3d.errors import InputError
 
 SMALL = dict(sensor_size=(720, 540), focal_px=600.0, clutter=10, supersample=1)

@@ -34,7 +34,7 @@ def scanned(tmp_path_factory):
 
 def test_scanned_chips_match_the_true_mesh(scanned):
     from prism3d.atr.chips import ChipSpec, render_chips, spec_poses
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     spec = ChipSpec(size=64, channels=("mask", "depth"), camouflage=False)
     for name, scan in scanned.items():
@@ -54,8 +54,8 @@ def test_scanned_chips_match_the_true_mesh(scanned):
 def test_bank_from_scans_classifies_the_true_meshes(scanned):
     """Depth banks (2 classes, 30-deg bins): from scans vs from the true meshes, tested on
     the true meshes in a new paint with noise and clutter at unseen azimuths."""
-    from prism3d.datasets.scanned import compare_scan_banks
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.scanned import compare_scan_banks
+    from prism3d.datasets.models.targets import builtin_target
 
     true = [("tank", builtin_target("tank_t1")), ("truck", builtin_target("truck_k1"))]
     test = [("tank", builtin_target("tank_t1", seed=17)), ("truck", builtin_target("truck_k1", seed=17))]

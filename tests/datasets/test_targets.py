@@ -1,4 +1,4 @@
-"""Known-answer tests for the built-in procedural targets (prism3d.datasets.targets)."""
+"""Known-answer tests for the built-in procedural targets (prism3d.datasets.models.targets)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import trimesh
 
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
 from prism3d.capture.camouflage import CLASS_PALETTES, PALETTES, CamouflageField
-from prism3d.datasets.targets import builtin_classes, builtin_target, list_builtin_targets
+from prism3d.datasets.models.targets import builtin_classes, builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 
 NAMES = list_builtin_targets("military")
@@ -197,7 +197,7 @@ def test_builtin_target_errors(kwargs: dict, match: str) -> None:
 
 
 def test_export_builtin_target_ply(tmp_path) -> None:
-    from prism3d.datasets.targets import export_builtin_target
+    from prism3d.datasets.models.targets import export_builtin_target
     from prism3d.io.ply import read_ply
 
     out = export_builtin_target("truck_k2", tmp_path / "k2.ply", seed=1)
@@ -214,7 +214,7 @@ def test_export_builtin_target_ply(tmp_path) -> None:
 
 
 def test_export_errors(tmp_path) -> None:
-    from prism3d.datasets.targets import export_builtin_target
+    from prism3d.datasets.models.targets import export_builtin_target
 
     with pytest.raises(InputError, match=r"expected a \.ply output file, got suffix '\.obj'"):
         export_builtin_target("tank_t1", tmp_path / "t.obj")
@@ -232,7 +232,7 @@ def test_mixed_up_axes_in_one_bank_command(shared_data, tmp_path):
     """Quaternius' tanks are y up, its cars z up: per-target FILE=CLASS:UNITS:UP specs
     stand each upright (height the smallest extent) and one `bank train` takes both."""
     from prism3d.cli import main
-    from prism3d.datasets.resolve import resolve_targets
+    from prism3d.datasets.database.resolve import resolve_targets
 
     glb = shared_data / "meshes" / "quaternius_vehicles_cc0" / "glb"
     specs = [f"{glb / 'tank_1.glb'}=tank:m:y:z", f"{glb / 'car_normal_1.glb'}=vehicle:m:z:y"]
@@ -248,7 +248,7 @@ def test_mixed_up_axes_in_one_bank_command(shared_data, tmp_path):
 
 def test_size_warning_by_class():
     """A length implausible for the class in its stated units is named; kits to full size pass."""
-    from prism3d.datasets.ingest import size_warning
+    from prism3d.datasets.database.ingest import size_warning
 
     assert size_warning("a.off", "aircraft", 357_000.0, "m") is not None  # a 357 m biplane
     assert "357 m long with units 'm'" in size_warning("a.off", "aircraft", 357_000.0, "m")
@@ -260,7 +260,7 @@ def test_size_warning_by_class():
 
 @pytest.mark.realdata
 def test_modelnet_airplane_in_metres_is_flagged(shared_data, caplog):
-    from prism3d.datasets.resolve import resolve_targets
+    from prism3d.datasets.database.resolve import resolve_targets
 
     f = shared_data / "meshes" / "modelnet_airplane" / "airplane_0001.off"
     with caplog.at_level("WARNING"):
@@ -273,7 +273,7 @@ def test_length_mm_rescales_mesh_files_whatever_their_units(tmp_path, capsys):
     a target of the stated length without --units; built-in targets refuse it; without
     it the undeclared units are an error (never guessed)."""
     from prism3d.cli import main
-    from prism3d.datasets.resolve import resolve_targets
+    from prism3d.datasets.database.resolve import resolve_targets
 
     box = trimesh.creation.box([3.0, 1.0, 0.8])
     box.apply_translation([0, 0, 0.4])

@@ -14,7 +14,7 @@ import pytest
 def tank_scene(tmp_path_factory):
     from prism3d.capture.rig import paper_rig
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     out = tmp_path_factory.mktemp("tank")
     rig = paper_rig(sensor_size=(1296, 972), focal_px=5107.0 / 2)

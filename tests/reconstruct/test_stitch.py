@@ -30,7 +30,7 @@ def _raycast_views(W=720, H=540, f=3000.0, views=8, step_deg=45.0, noise_mm=0.15
     scans in each camera frame + true T_world_cam."""
     o3d = pytest.importorskip("open3d")
     from prism3d.capture.rig import look_at
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
 
     tank = builtin_target(target)
     scene = o3d.t.geometry.RaycastingScene()
@@ -194,7 +194,7 @@ def _rig_set():
     folder = Path(os.environ.get("PRISM3D_STITCH_SET", "/tmp/prism3d_stitch_tank8"))
     if not (folder / "poses.json").exists():
         from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-        from prism3d.datasets.targets import builtin_target
+        from prism3d.datasets.models.targets import builtin_target
 
         simulate_to_folder("scene", folder, SimulateOptions(views=8, seed=1, supersample=1), target=builtin_target("tank_t1"))
     return folder
@@ -245,7 +245,7 @@ def test_ship_stereo_coverage_with_true_depth(tmp_path, hint):
     stereo depth."""
     from prism3d.capture.rig import StereoRig
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
     from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_shot
@@ -286,7 +286,7 @@ def test_ship_stereo_scans_stitch_within_the_targets(tmp_path):
     motion, 0.161 mm fused (on bilinear views 0.109 deg, 0.170 mm)."""
     from prism3d.capture.rig import StereoRig
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-    from prism3d.datasets.targets import builtin_target
+    from prism3d.datasets.models.targets import builtin_target
     from prism3d.io.images import read_image
     from prism3d.io.ply import read_ply
     from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_shot

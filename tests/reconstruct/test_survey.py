@@ -21,7 +21,7 @@ SIZE = (800, 600)
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory) -> Path:
-    from prism3d.datasets.flight import FlightOptions, simulate_flight
+    from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 
     d = tmp_path_factory.mktemp("flight") / "f"
     simulate_flight(d, FlightOptions(size=SIZE, altitude_m=40.0, seed=5, targets=6))
@@ -86,7 +86,7 @@ def test_survey_against_the_flight_truth(survey: Path, flight: Path) -> None:
     (a pixel is 0.067 deg at 800 px; 12 MP: 0.003 deg against the issue's 0.02); the
     DSM within the issue's bounds (median <= 0.5 GSD, RMS <= 1 GSD), >= 95 % of the
     overlap filled; vehicles' heights in the nDSM within 10 % (12 MP: 7 of 8 within 5 %)."""
-    from prism3d.datasets.survey_eval import evaluate_survey
+    from prism3d.datasets.evaluation.survey_eval import evaluate_survey
 
     r = evaluate_survey(survey, flight)
     assert r["frames_placed"] == 12
@@ -108,7 +108,7 @@ def test_survey_detect_on_the_survey(survey: Path, flight: Path, tmp_path: Path)
     trucks, called a truck, and nothing else is (its tanks are no class of the defaults).
     How many of its camouflaged trucks at 7 cm GSD are found is no claim of the car-park
     recogniser; Pd is scored on car parks in tests/atr/test_carpark_survey.py."""
-    from prism3d.datasets.survey_eval import evaluate_survey
+    from prism3d.datasets.evaluation.survey_eval import evaluate_survey
 
     out = tmp_path / "d.geojson"
     assert main(["-q", "survey-detect", str(survey), "-o", str(out)]) == 0
@@ -227,7 +227,7 @@ def test_real_drone_pair(shared_data: Path, tmp_path: Path) -> None:
     reprojection RMS <= 0.5 px over >= 1000 tracks; a DSM over >= 80 % of the pair's
     overlap; open ground flat to a few GSD; the poses' baseline equal to the GPS one."""
     from prism3d.capture.geotag import read_position_table, wgs84_to_enu
-    from prism3d.datasets.survey_eval import ground_roughness
+    from prism3d.datasets.evaluation.survey_eval import ground_roughness
     from prism3d.io.geo import read_geotiff
 
     d = shared_data / "aerial/snowpeak_internal_only"

@@ -419,7 +419,7 @@ def test_detect_on_an_image_and_depth_map(tmp_path):
     import numpy as np
 
     from prism3d.capture.rig import StereoRig
-    from prism3d.datasets.field import FieldOptions, simulate_field
+    from prism3d.datasets.simulation.field import FieldOptions, simulate_field
     from prism3d.io.images import read_image, write_image
 
     scene = tmp_path / "field"

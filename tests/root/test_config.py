@@ -68,7 +68,7 @@ def _options_classes():
     from prism3d.capture.acquire import CaptureOptions
     from prism3d.capture.scenes import BoardPoseOptions
     from prism3d.capture.simulate import ShotOptions, SimulateOptions
-    from prism3d.datasets.jobs import RunOptions
+    from prism3d.datasets.jobs.database_jobs import RunOptions
     from prism3d.reconstruct.stereo.calibrate import CalibrationOptions
     from prism3d.reconstruct.stereo.match_options import MatchOptions
     from prism3d.reconstruct.stereo.pipeline import ReconstructOptions

@@ -164,7 +164,7 @@ def test_disk_full(mnt, inputs, trigger, name, earlier, free, capsys):
     assert rc == 2, err
     assert len(err) == 1 and err[0].startswith("prism3d "), err
     if name in ("db-render", "db-features"):  # resumable jobs keep their whole finished parts
-        from prism3d.datasets.db import verify_db
+        from prism3d.datasets.database.db import verify_db
 
         assert set(before) <= set(after)
         assert verify_db(out, check_hashes=True) == []

@@ -93,7 +93,7 @@ def test_vertex_colours_of_ply_and_off_files_are_read(tmp_path):
     visuals have no texture conversion)."""
     import trimesh
 
-    from prism3d.datasets.targets import builtin_target, export_builtin_target
+    from prism3d.datasets.models.targets import builtin_target, export_builtin_target
 
     export_builtin_target("tank_t1", tmp_path / "t.ply")
     d = read_mesh(tmp_path / "t.ply")

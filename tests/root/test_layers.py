@@ -17,7 +17,11 @@ LAYERS = ("capture", "reconstruct", "atr", "datasets")
 #: root modules that wire the layers together (nothing in the library imports them)
 ENTRY_POINTS = ("prism3d.cli", "prism3d.demo", "prism3d._precompile")
 #: a layer's sub-packages -> the sibling sub-packages each may import (its own always)
-SUBPACKAGES = {"prism3d.reconstruct": {"stereo": set(), "scan": {"stereo"}, "survey": {"stereo"}}}
+SUBPACKAGES = {
+    "prism3d.reconstruct": {"stereo": set(), "scan": {"stereo"}, "survey": {"stereo"}},
+    "prism3d.datasets": {"models": set(), "database": {"models"}, "simulation": {"models", "database"},
+                         "jobs": {"models", "database", "simulation"}, "evaluation": {"models"}},
+}
 #: folder on disk -> import prefix
 FOLDERS = {"prism3d": "prism3d", **{layer: f"prism3d.{layer}" for layer in LAYERS}}
 

@@ -40,9 +40,9 @@ from prism3d.atr.verifier import (
 )
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.rig import StereoRig
-from prism3d.datasets.field import SHAPE_CONFUSERS, FieldOptions, prop_mesh, simulate_field
+from prism3d.datasets.simulation.field import SHAPE_CONFUSERS, FieldOptions, prop_mesh, simulate_field
 from prism3d.datasets.runner import RunOptions, run_tasks
-from prism3d.datasets.targets import builtin_target, list_builtin_targets
+from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 from prism3d.io.images import read_image
 from prism3d.reconstruct.stereo.pipeline import (
@@ -173,7 +173,7 @@ class MiningOptions:
     bank_options: dict[str, Any] = field(default_factory=dict)
     """Other :func:`~prism3d.atr.bank.train_bank` arguments (azimuth, elevation, bin_deg)."""
     field_options: dict[str, Any] = field(default_factory=dict)
-    """Overrides of the mining scenes' :class:`~prism3d.datasets.field.FieldOptions` (a smaller
+    """Overrides of the mining scenes' :class:`~prism3d.datasets.simulation.field.FieldOptions` (a smaller
     sensor in tests)."""
     C: float = 0.1
     """Inverse L2 strength of the verifier's logistic regression."""

@@ -34,7 +34,7 @@ from prism3d.atr.chips import (
 )
 from prism3d.atr.features import model_features, view_features
 from prism3d.atr.poses import parse_range
-from prism3d.datasets.db import (
+from prism3d.datasets.database.db import (
     TargetDB,
     as_db,
     check_name,

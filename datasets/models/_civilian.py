@@ -1,12 +1,12 @@
 """Civilian built-in vehicles (private): cars, vans, buses and trucks at true size.
 
-Each variant is a recipe of closed parts (:mod:`prism3d.datasets._primitives`) built
+Each variant is a recipe of closed parts (:mod:`prism3d.datasets.models._primitives`) built
 already in the normalised object frame (x forward, y left, z up, metres in, mm out;
 footprint centred on the origin, wheels on z = 0) plus the zones of its paint: the body
 colour, dark glass over the cabin between the belt line and the roof, black tyres.
 Sizes are those of common production vehicles of each kind (a kei car is 3.4 x 1.48 m
 by Japanese law; the rest are typical catalogue figures), so a vehicle seen by a real
-camera has the size its class predicts. :mod:`prism3d.datasets.targets` registers them.
+camera has the size its class predicts. :mod:`prism3d.datasets.models.targets` registers them.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.capture.paints import draw_body_paint
-from prism3d.datasets._primitives import Part, box, both_sides, loft, wheel
+from prism3d.datasets.models._primitives import Part, box, both_sides, loft, wheel
 
 __all__ = ["CIVILIAN_VARIANTS", "CivilianSpec", "VehiclePaint", "body_colour", "paint_for"]
 

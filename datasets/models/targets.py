@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh
 from prism3d.checks import check_positive
-from prism3d.datasets._primitives import (
+from prism3d.datasets.models._primitives import (
     Part,
     both_sides,
     box,
@@ -32,7 +32,7 @@ from prism3d.datasets._primitives import (
     wheel,
 )
 from prism3d.capture.camouflage import CLASS_PALETTES, camouflage_field, plain_paint
-from prism3d.datasets._civilian import CIVILIAN_VARIANTS, body_colour, paint_for
+from prism3d.datasets.models._civilian import CIVILIAN_VARIANTS, body_colour, paint_for
 from prism3d.errors import InputError
 from prism3d.io.ply import write_ply
 
@@ -475,7 +475,7 @@ def _build_truck_k3() -> list[Part]:
 
 
 # ---------------------------------------------------------------------------------
-# Civilian vehicles (datasets/_civilian.py), registered after the military set
+# Civilian vehicles (datasets/models/_civilian.py), registered after the military set
 # ---------------------------------------------------------------------------------
 
 

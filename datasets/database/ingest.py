@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from prism3d.atr.chips import load_mesh_file
 from prism3d.atr.features import read_units_sidecar
 from prism3d.capture.mesh import SceneMesh
-from prism3d.datasets.db import (
+from prism3d.datasets.database.db import (
     TABLE_SCHEMA_VERSION,
     TargetDB,
     as_db,
@@ -34,7 +34,7 @@ from prism3d.datasets.db import (
     utc_timestamp,
     write_table,
 )
-from prism3d.datasets.targets import builtin_target, export_builtin_target, list_builtin_targets
+from prism3d.datasets.models.targets import builtin_target, export_builtin_target, list_builtin_targets
 from prism3d.errors import DatasetError, Prism3dError
 from prism3d.io.atomic import atomic_write_bytes
 from prism3d.io.mesh import UNITS_MM
@@ -523,9 +523,9 @@ def add_builtin(
 ) -> AddReport:
     """Add built-in targets (``prism3d db add DB --builtin [NAMES...]``).
 
-    The model file is the exported PLY (:func:`~prism3d.datasets.targets.export_builtin_target`,
+    The model file is the exported PLY (:func:`~prism3d.datasets.models.targets.export_builtin_target`,
     paint sampled at vertices); render jobs use the exact procedural paint of
-    :func:`~prism3d.datasets.targets.builtin_target` at the same ``scale``. The
+    :func:`~prism3d.datasets.models.targets.builtin_target` at the same ``scale``. The
     duplicate key is the sha256 of the generated model.
     """
     db = as_db(db)

@@ -18,7 +18,7 @@ from pathlib import Path
 from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
 from prism3d.atr.evaluate import EVAL_CHIP_SPEC, evaluate_bank, heldout_seed
 from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
-from prism3d.datasets.targets import builtin_target
+from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.progress import ProgressFn, null_progress
 from prism3d.reconstruct.stereo.pipeline import reconstruct_to_files

@@ -11,7 +11,7 @@ a camouflage seed no bank trains on.
 
 Batches of scenes (``simulate field OUT --count N``) and their evaluation with a bank
 (``bank eval-scenes``) run as independent units in this process or on Dask, through the
-database jobs' runner (:func:`prism3d.datasets.jobs.run_tasks`).
+database jobs' runner (:func:`prism3d.datasets.jobs.database_jobs.run_tasks`).
 """
 
 from __future__ import annotations
@@ -38,10 +38,10 @@ from prism3d.capture.rig import StereoRig, look_at, paper_rig
 from prism3d.capture.scenes import value_noise
 from prism3d.capture.simulate import Projector, ShotOptions, effects_entries, simulate_shot
 from prism3d.checks import check_seed
-from prism3d.datasets._primitives import Part, box, cylinder, ellipse, loft, prism
-from prism3d.datasets.resolve import resolve_model
+from prism3d.datasets.models._primitives import Part, box, cylinder, ellipse, loft, prism
+from prism3d.datasets.database.resolve import resolve_model
 from prism3d.datasets.runner import RunOptions, run_tasks
-from prism3d.datasets.targets import builtin_target, list_builtin_targets
+from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_write_text, staged_folder
 from prism3d.io.images import read_image, write_image
@@ -528,10 +528,10 @@ def simulate_field_batch(out_dir: str | Path, count: int, options: FieldOptions 
                          run: Any = None) -> Any:
     """``count`` field scenes with seeds ``options.seed``, ``+1``... into
     ``out_dir/scene_<seed>`` as independent units, in this process or on Dask
-    (``run``: :class:`~prism3d.datasets.jobs.RunOptions`). Each scene appears whole or not
+    (``run``: :class:`~prism3d.datasets.jobs.database_jobs.RunOptions`). Each scene appears whole or not
     at all, so a rerun resumes: complete scene folders are kept and counted as skipped;
     ``batch.json`` (seeds, options, seconds, scenes per minute) is rewritten at the end.
-    Returns the :class:`~prism3d.datasets.jobs.JobReport`."""
+    Returns the :class:`~prism3d.datasets.jobs.database_jobs.JobReport`."""
     o = FieldOptions() if options is None else options
     if isinstance(count, bool) or int(count) != count or not 1 <= int(count) <= 100_000:
         raise InputError(f"count: expected an integer in [1, 100000], got {count!r}")
@@ -588,7 +588,7 @@ def detect_scene_folder(bank_path: str, scene: str) -> dict:
 def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progress=None, run=None) -> dict:
     """``prism3d bank eval-scenes``: detect with the bank in every scene folder and score
     (:func:`~prism3d.atr.scene_eval.score_scenes`); scenes are independent units run in
-    this process or on Dask (``run``: :class:`~prism3d.datasets.jobs.RunOptions`; its
+    this process or on Dask (``run``: :class:`~prism3d.datasets.jobs.database_jobs.RunOptions`; its
     progress wins over ``progress``); results (with each scene's detections and timings) go to ``out_json``
     atomically when given. A scene that fails stops the evaluation (a score over fewer
     scenes would not be the score asked for)."""

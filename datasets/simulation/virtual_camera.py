@@ -10,7 +10,7 @@ from prism3d.capture.rig import StereoRig, paper_rig
 from prism3d.capture.scenes import flat_plate, translation, turntable_poses
 from prism3d.capture.simulate import Projector, ShotOptions, simulate_shot, working_distance_mm
 from prism3d.capture.sources import RenderFn
-from prism3d.datasets.targets import builtin_target, list_builtin_targets
+from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 
 __all__ = ["resolve_virtual_target", "VIRTUAL_TARGETS"]

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh
-from prism3d.datasets.targets import builtin_target
+from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import DatasetError, InputError
 from prism3d.io.atomic import atomic_path, staged_folder
 from prism3d.io.hashes import sha256_file  # noqa: F401 - re-exported: callers import it from here
@@ -384,7 +384,7 @@ class TargetDB:
     # -- summary / checks ------------------------------------------------------------
     def info(self) -> dict[str, Any]:
         """Counts per table and class, and the render jobs by name (a JSON-able dict;
-        :func:`prism3d.datasets.jobs.database_info` adds each job's completion)."""
+        :func:`prism3d.datasets.jobs.database_jobs.database_info` adds each job's completion)."""
         t = self.targets()
         out: dict[str, Any] = {
             "path": str(self.path),
@@ -625,7 +625,7 @@ def _job_yaml_problems(db: TargetDB, job: str) -> list[str]:
 
 def format_info(info: dict[str, Any]) -> str:
     """Human-readable text of :meth:`TargetDB.info` or of
-    :func:`~prism3d.datasets.jobs.database_info` (for ``prism3d db info``)."""
+    :func:`~prism3d.datasets.jobs.database_jobs.database_info` (for ``prism3d db info``)."""
     lines = [
         f"database {info['path']} (schema {info['schema_version']})",
         f"targets: {info['targets']}",

@@ -51,15 +51,15 @@ from prism3d.capture.simulate import (
     write_npz,
 )
 from prism3d.checks import check_seed
-from prism3d.datasets.carpark import Lot, lot_clutter, park_vehicles, plan_lot
-from prism3d.datasets.field import (
+from prism3d.datasets.simulation.carpark import Lot, lot_clutter, park_vehicles, plan_lot
+from prism3d.datasets.simulation.field import (
     SCENE_CAMO_SEED_BASE,
     SHAPE_CONFUSERS,
     Terrain,
     distant_sun,
     prop_mesh,
 )
-from prism3d.datasets.flight_ground import (
+from prism3d.datasets.simulation.flight_ground import (
     ROAD_WIDTH_M,
     HeightField,
     Land,
@@ -67,8 +67,8 @@ from prism3d.datasets.flight_ground import (
     SurveyGroundAlbedo,
     on_road,
 )
-from prism3d.datasets.flight_placing import Placer, corners_enu
-from prism3d.datasets.targets import builtin_target, list_builtin_targets
+from prism3d.datasets.simulation.flight_placing import Placer, corners_enu
+from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_write_text, staged_folder
 from prism3d.io.opencv_yaml import write_filestorage
@@ -144,7 +144,7 @@ class FlightOptions:
     """``field``: camouflaged military vehicles on open ground among rocks, bushes, trees and
     buildings; ``carpark``: a paved car park of parked civilian vehicles in rows (cars of
     every body colour, vans, pickups, kei trucks, buses and box trucks in long bays), trees
-    overhanging the edge rows, people and light poles (datasets/carpark.py)."""
+    overhanging the edge rows, people and light poles (datasets/simulation/carpark.py)."""
     targets: int | None = None
     """Ground vehicles (None: field 5-10, drawn; carpark 70-95 % of the car bays)."""
     confusers: int | None = None

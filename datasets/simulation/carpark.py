@@ -5,7 +5,7 @@ overhang the first row, people in the aisles and light poles.
 
 Lot frame: ``a`` along the rows (bays side by side), ``b`` across them; a row is 5 m deep,
 an aisle 6.5 m, a car bay 2.5 m wide, a long bay 3.5 x 12 m. World: ENU metres (meshes in
-mm). Used by :mod:`prism3d.datasets.flight`.
+mm). Used by :mod:`prism3d.datasets.simulation.flight`.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
 from prism3d.capture.scenes import value_noise
-from prism3d.datasets._primitives import box, cylinder, ellipse, loft
-from prism3d.datasets.field import prop_mesh
-from prism3d.datasets.targets import builtin_target
+from prism3d.datasets.models._primitives import box, cylinder, ellipse, loft
+from prism3d.datasets.simulation.field import prop_mesh
+from prism3d.datasets.models.targets import builtin_target
 
 __all__ = ["BAY_WIDTH_M", "Lot", "lot_albedo", "lot_clutter", "park_vehicles", "person_mesh", "plan_lot", "pole_mesh"]
 

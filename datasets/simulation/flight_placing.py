@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh
-from prism3d.datasets.flight_ground import Land, Road
+from prism3d.datasets.simulation.flight_ground import Land, Road
 
 __all__ = ["Placer", "corners_enu"]
 

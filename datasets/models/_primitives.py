@@ -2,7 +2,7 @@
 
 All parts are closed, consistently outward-oriented triangle meshes in millimetres:
 lofted cross-sections, extruded polygons, tapers, boxes, cylinders and wheels, plus
-mirror/rotate helpers. See :mod:`prism3d.datasets.targets` for the frame.
+mirror/rotate helpers. See :mod:`prism3d.datasets.models.targets` for the frame.
 """
 
 from __future__ import annotations

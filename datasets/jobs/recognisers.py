@@ -29,15 +29,15 @@ import prism3d.atr.bank as bank_module
 import prism3d.atr.scene as scene_module
 import prism3d.atr.verifier as verifier_module
 import prism3d.capture.nadir as nadir_module
-import prism3d.datasets.mining as mining_module
+import prism3d.datasets.jobs.mining as mining_module
 from prism3d.atr.aerial import AERIAL_SCHEMA_VERSION, AerialModel
 from prism3d.atr.aerial_train import AerialTrainOptions, train_aerial
 from prism3d.atr.verifier import SceneRecogniser
 from prism3d.capture.mesh import SceneMesh
-from prism3d.datasets.carpark import person_mesh, pole_mesh
-from prism3d.datasets.field import prop_mesh
-from prism3d.datasets.mining import MiningOptions, default_rejects, train_scene_recogniser
-from prism3d.datasets.targets import builtin_classes, builtin_target, builtin_targets_of_class
+from prism3d.datasets.simulation.carpark import person_mesh, pole_mesh
+from prism3d.datasets.simulation.field import prop_mesh
+from prism3d.datasets.jobs.mining import MiningOptions, default_rejects, train_scene_recogniser
+from prism3d.datasets.models.targets import builtin_classes, builtin_target, builtin_targets_of_class
 from prism3d.errors import InputError
 
 __all__ = ["aerial_negatives", "aerial_recogniser", "cache_dir", "field_specs", "scene_recogniser"]
@@ -151,7 +151,7 @@ def field_specs(targets: Sequence[tuple[str, SceneMesh]]) -> list[str]:
 def scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], *, scenes: int, channels: Sequence[str],
                      chip_spec: Any = None, bank_options: dict | None = None, run: Any = None, cache: bool = True,
                      progress: Callable[[int, int, str], None] | None = None) -> tuple[Any, dict]:
-    """The scene recogniser of ``targets`` (:func:`prism3d.datasets.mining.train_scene_recogniser`),
+    """The scene recogniser of ``targets`` (:func:`prism3d.datasets.jobs.mining.train_scene_recogniser`),
     from the cache when this exact training was done before. Returns it and
     ``{"cached": bool, "path": str | None}``."""
 

@@ -13,8 +13,8 @@ from numpy.typing import NDArray
 
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.scenes import value_noise
-from prism3d.datasets.carpark import Lot, lot_albedo
-from prism3d.datasets.field import (
+from prism3d.datasets.simulation.carpark import Lot, lot_albedo
+from prism3d.datasets.simulation.field import (
     GroundAlbedo,
     Terrain,
 )

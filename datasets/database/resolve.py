@@ -11,8 +11,8 @@ A spec is one of:
 * a mesh file with its class, units, up and forward axes after ``=``:
   ``FILE[=CLASS[:UNITS[:UP[:FORWARD]]]]`` (``car_suv.glb=car:m:y:-z``); without a class it
   is the file name up to the first ``_`` or digit (``tank_1.glb`` -> ``tank``). Units, up
-  and forward follow one rule (:func:`~prism3d.datasets.ingest.mesh_units`,
-  :func:`~prism3d.datasets.ingest.mesh_forward`): this spec, else the command's flags, else
+  and forward follow one rule (:func:`~prism3d.datasets.database.ingest.mesh_units`,
+  :func:`~prism3d.datasets.database.ingest.mesh_forward`): this spec, else the command's flags, else
   the file's sidecar or PLY header; never guessed.
 
 A database (``--db``) gives its own targets (:func:`resolve_db_targets`); a trained model
@@ -30,9 +30,9 @@ import numpy as np
 from prism3d.atr.chips import load_mesh_file
 from prism3d.atr.models import model_kind
 from prism3d.capture.mesh import SceneMesh
-from prism3d.datasets.db import as_db, target_mesh
-from prism3d.datasets.ingest import check_length_mm, mesh_forward, mesh_units, size_warning
-from prism3d.datasets.targets import (
+from prism3d.datasets.database.db import as_db, target_mesh
+from prism3d.datasets.database.ingest import check_length_mm, mesh_forward, mesh_units, size_warning
+from prism3d.datasets.models.targets import (
     builtin_classes,
     builtin_target,
     builtin_targets_of_class,

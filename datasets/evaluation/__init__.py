@@ -1,0 +1,2 @@
+"""Scoring simulated runs against their truth (surveys: poses, DSM, vehicle heights and
+detections)."""
