@@ -32,9 +32,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.atr.aerial import DEFAULT_THRESHOLD
-from prism3d.capture.geotag import enu_to_wgs84
 from prism3d.capture.render import RaycastRenderer
 from prism3d.errors import InputError
+from prism3d.geo import enu_to_wgs84
 from prism3d.io.atomic import atomic_paths, atomic_write_text
 from prism3d.io.geo import read_geotiff
 

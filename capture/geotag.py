@@ -1,12 +1,11 @@
 """Where and with what a photograph was taken: GPS from a position table (senseFly's
 ``geoinfo.txt`` and any tab/comma table with the same columns) or from the JPEG's EXIF,
-the focal length in pixels from EXIF, and WGS84 positions in a local east-north-up
-frame in metres. The survey mode (docs/uav.md) builds on these.
+and the focal length in pixels from EXIF. The survey mode (docs/uav.md) builds on these;
+positions go to a local frame through :mod:`prism3d.geo`.
 
-ENU is exact: geodetic -> Earth-centred (ECEF) on the WGS84 ellipsoid, then rotated into
-the tangent frame at the origin (east, north, up); heights are ellipsoidal, as GPS
-gives them (EXIF GPSAltitude of drone cameras is ellipsoidal too; a table's
-``altitude_wgs84`` column is preferred over ``altitude_amsl`` for the same reason).
+Heights are ellipsoidal, as GPS gives them (EXIF GPSAltitude of drone cameras is
+ellipsoidal too; a table's ``altitude_wgs84`` column is preferred over ``altitude_amsl``
+for the same reason).
 """
 
 from __future__ import annotations
@@ -20,14 +19,7 @@ from numpy.typing import NDArray
 
 from prism3d.errors import InputError
 
-__all__ = ["GeoTag", "WGS84_A", "WGS84_F", "enu_to_wgs84", "exif_focal_px", "exif_geotag", "read_position_table",
-           "wgs84_to_enu"]
-
-#: WGS84 semi-major axis (m) and flattening.
-WGS84_A = 6378137.0
-WGS84_F = 1.0 / 298.257223563
-_E2 = WGS84_F * (2.0 - WGS84_F)
-
+__all__ = ["GeoTag", "exif_focal_px", "exif_geotag", "read_position_table"]
 
 @dataclass(frozen=True)
 class GeoTag:
@@ -42,62 +34,6 @@ class GeoTag:
     heading_deg: float | None = None
     pitch_deg: float | None = None
     roll_deg: float | None = None
-
-
-def _ecef(lla: NDArray[np.float64]) -> NDArray[np.float64]:
-    lat, lon, h = np.radians(lla[:, 0]), np.radians(lla[:, 1]), lla[:, 2]
-    n = WGS84_A / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
-    return np.stack([(n + h) * np.cos(lat) * np.cos(lon), (n + h) * np.cos(lat) * np.sin(lon),
-                     (n * (1.0 - _E2) + h) * np.sin(lat)], axis=1)
-
-
-def _enu_rotation(lat0: float, lon0: float) -> NDArray[np.float64]:
-    """Rows: east, north, up at (lat0, lon0) in ECEF."""
-    la, lo = math.radians(lat0), math.radians(lon0)
-    return np.array([[-math.sin(lo), math.cos(lo), 0.0],
-                     [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
-                     [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)]])
-
-
-def _check_lla(lla: NDArray, what: str) -> NDArray[np.float64]:
-    a = np.asarray(lla, dtype=np.float64)
-    if a.ndim == 1:
-        a = a[None]
-    if a.ndim != 2 or a.shape[1] != 3 or not np.isfinite(a).all():
-        raise InputError(f"{what}: expected finite (latitude, longitude, height) rows, got shape {np.shape(lla)}")
-    if (np.abs(a[:, 0]) > 90).any() or (np.abs(a[:, 1]) > 360).any():
-        raise InputError(f"{what}: latitude must be within +-90 deg and longitude within +-360 deg")
-    return a
-
-
-def wgs84_to_enu(lla: NDArray, origin: NDArray) -> NDArray[np.float64]:
-    """``(n, 3)`` east, north, up (m) of WGS84 ``(lat, lon, h)`` rows (degrees, metres
-    above the ellipsoid) in the tangent frame at ``origin`` (lat, lon, h)."""
-    a = _check_lla(lla, "positions")
-    o = _check_lla(origin, "origin")[0]
-    return (_ecef(a) - _ecef(o[None])[0]) @ _enu_rotation(o[0], o[1]).T
-
-
-def enu_to_wgs84(enu: NDArray, origin: NDArray) -> NDArray[np.float64]:
-    """The inverse of :func:`wgs84_to_enu` (Bowring's latitude, iterated to < 1e-12 rad)."""
-    o = _check_lla(origin, "origin")[0]
-    e = np.atleast_2d(np.asarray(enu, dtype=np.float64))
-    xyz = _ecef(o[None])[0] + e @ _enu_rotation(o[0], o[1])
-    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    lon = np.arctan2(y, x)
-    p = np.hypot(x, y)
-    lat = np.arctan2(z, p * (1.0 - _E2))
-    for _ in range(10):
-        n = WGS84_A / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
-        h = p / np.cos(lat) - n
-        new = np.arctan2(z, p * (1.0 - _E2 * n / (n + h)))
-        if np.max(np.abs(new - lat)) < 1e-12:
-            lat = new
-            break
-        lat = new
-    n = WGS84_A / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
-    h = p / np.cos(lat) - n
-    return np.stack([np.degrees(lat), np.degrees(lon), h], axis=1)
 
 
 #: Column names a position table may use, first match wins.

@@ -19,8 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.atr.survey_detect import score_detections
-from prism3d.capture.geotag import enu_to_wgs84, wgs84_to_enu
 from prism3d.errors import InputError
+from prism3d.geo import enu_to_wgs84, wgs84_to_enu
 from prism3d.geometry import rotation_angle_deg
 from prism3d.io.geo import read_geotiff
 from prism3d.reconstruct.survey.sfm import similarity_align

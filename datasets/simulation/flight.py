@@ -33,7 +33,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.capture.camera_effects import CameraEffects
-from prism3d.capture.geotag import enu_to_wgs84
 from prism3d.capture.mesh import SceneMesh
 from prism3d.capture.render import (
     RaycastRenderer,
@@ -51,6 +50,7 @@ from prism3d.capture.simulate import (
     write_npz,
 )
 from prism3d.checks import check_seed
+from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 from prism3d.datasets.simulation.carpark import Lot, lot_clutter, park_vehicles, plan_lot
 from prism3d.datasets.simulation.field import (
     SCENE_CAMO_SEED_BASE,
@@ -68,8 +68,8 @@ from prism3d.datasets.simulation.flight_ground import (
     on_road,
 )
 from prism3d.datasets.simulation.flight_placing import Placer, corners_enu
-from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
+from prism3d.geo import enu_to_wgs84
 from prism3d.io.atomic import atomic_write_text, staged_folder
 from prism3d.io.opencv_yaml import write_filestorage
 

@@ -1,9 +1,7 @@
 """Formats GIS tools open: LAS 1.4 point clouds with colour (laspy) and GeoTIFF rasters
 (rasterio, GDAL), both with their coordinate system, written atomically.
 
-A survey's local east-north-up frame is described to GIS as an orthographic projection
-centred on the site on WGS84 (:func:`local_enu_crs_wkt`): within 2 cm of true ENU at
-500 m from the origin, far below GPS noise (docs/uav.md).
+The coordinate systems they carry come from :mod:`prism3d.geo`.
 """
 
 from __future__ import annotations
@@ -17,18 +15,7 @@ from prism3d.checks import check_array
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 
-__all__ = ["local_enu_crs_wkt", "read_geotiff", "write_geotiff", "write_las"]
-
-
-def local_enu_crs_wkt(lat0_deg: float, lon0_deg: float) -> str:
-    """OGC WKT of the orthographic projection at (lat0, lon0) on WGS84, metres: the GIS
-    stand-in for a local east-north-up frame there."""
-    from rasterio.crs import CRS
-
-    if not (-90 <= lat0_deg <= 90 and -180 <= lon0_deg <= 360):
-        raise InputError(f"origin: latitude {lat0_deg} / longitude {lon0_deg} out of range")
-    return CRS.from_proj4(f"+proj=ortho +lat_0={lat0_deg:.10f} +lon_0={lon0_deg:.10f} +x_0=0 +y_0=0 "
-                          "+ellps=WGS84 +units=m +no_defs").to_wkt()
+__all__ = ["read_geotiff", "write_geotiff", "write_las"]
 
 
 def write_las(path: str | Path, xyz: NDArray, rgb: NDArray | None = None, *, crs_wkt: str | None = None,

@@ -16,16 +16,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.errors import InputError
+from prism3d.geo import local_enu_crs_wkt
 from prism3d.io.atomic import atomic_path, atomic_write_text
-from prism3d.io.geo import local_enu_crs_wkt, write_geotiff, write_las
+from prism3d.io.geo import write_geotiff, write_las
 from prism3d.io.ply import write_ply
 from prism3d.reconstruct.survey.dsm import normalised_dsm
-from prism3d.reconstruct.survey.ortho import true_orthophoto
 from prism3d.reconstruct.survey.model import (
     SURVEY_SCHEMA_VERSION,
     FusedSurface,
     SurveyState,
 )
+from prism3d.reconstruct.survey.ortho import true_orthophoto
 
 __all__ = ["draw_survey", "footprint", "overlap_coverage", "overlap_mask", "write_products"]
 

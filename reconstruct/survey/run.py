@@ -25,14 +25,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.capture.geotag import wgs84_to_enu
 from prism3d.errors import InputError
+from prism3d.geo import wgs84_to_enu
 from prism3d.io.atomic import atomic_write_text, staged_folder
 from prism3d.io.images import read_image
-from prism3d.reconstruct.survey.dsm import MAX_CELLS, grid_points
 from prism3d.reconstruct.stereo.flatness import ransac_plane
 from prism3d.reconstruct.stereo.match_options import MatchOptions
-from prism3d.reconstruct.survey.sfm import SfmOptions, map_frames, similarity_align
+from prism3d.reconstruct.survey.dsm import MAX_CELLS, grid_points
 from prism3d.reconstruct.survey.inputs import (
     VIDEO_SUFFIXES,
     check_frames,
@@ -56,6 +55,7 @@ from prism3d.reconstruct.survey.pair import pair_cloud
 from prism3d.reconstruct.survey.products import (
     write_products,
 )
+from prism3d.reconstruct.survey.sfm import SfmOptions, map_frames, similarity_align
 from prism3d.reconstruct.survey.two_view import TwoViewPose
 
 __all__ = [

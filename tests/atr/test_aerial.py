@@ -21,9 +21,9 @@ from prism3d.atr.aerial_train import (
     window_groups,
 )
 from prism3d.capture.nadir import render_nadir
+from prism3d.datasets.models.targets import builtin_target
 from prism3d.datasets.simulation.carpark import person_mesh
 from prism3d.datasets.simulation.field import prop_mesh
-from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import InputError
 
 GSD = 0.08
@@ -245,7 +245,8 @@ def _survey(tmp_path, *, crs: str | None = "local", ortho_shift: float = 0.0):
 
     import cv2
 
-    from prism3d.io.geo import local_enu_crs_wkt, write_geotiff
+    from prism3d.geo import local_enu_crs_wkt
+    from prism3d.io.geo import write_geotiff
 
     targets, negatives = _items()
     tsp = [(c, render_nadir(m, GSD)) for c, m in targets]
@@ -275,7 +276,7 @@ def test_survey_detect_writes_vehicles_in_wgs84(model: AerialModel, tmp_path) ->
     import json
 
     from prism3d.atr.survey_detect import detect_in_survey
-    from prism3d.capture.geotag import wgs84_to_enu
+    from prism3d.geo import wgs84_to_enu
 
     d, truth = _survey(tmp_path)
     out, png = tmp_path / "v.geojson", tmp_path / "v.png"

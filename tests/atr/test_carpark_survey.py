@@ -51,7 +51,7 @@ def test_vehicles_found_one_each_and_named(surveyed) -> None:
 
 
 def test_each_feature_is_a_vehicle_with_its_footprint(surveyed) -> None:
-    from prism3d.capture.geotag import wgs84_to_enu
+    from prism3d.geo import wgs84_to_enu
 
     flight, survey, out = surveyed
     gj = json.loads(out.read_text())

@@ -11,7 +11,12 @@ import cv2
 import numpy as np
 import pytest
 
-from prism3d.atr.survey_detect import find_vehicles, nadir_templates, score_detections, write_geojson
+from prism3d.atr.survey_detect import (
+    find_vehicles,
+    nadir_templates,
+    score_detections,
+    write_geojson,
+)
 from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import InputError
 
@@ -73,7 +78,7 @@ def test_vehicles_found_at_their_place_and_told_from_clutter(templates) -> None:
 
 
 def test_geojson_in_wgs84(tmp_path) -> None:
-    from prism3d.capture.geotag import wgs84_to_enu
+    from prism3d.geo import wgs84_to_enu
 
     origin = (37.5, 139.0, 0.0)
     p = tmp_path / "d.geojson"

@@ -1,49 +1,16 @@
-"""GPS positions and focal lengths of photographs: ENU against known geodesy and an
-independent implementation, position tables and EXIF on the real drone frames."""
+"""GPS positions and focal lengths of photographs: position tables and EXIF on the real
+drone frames."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from prism3d.capture.geotag import (enu_to_wgs84, exif_focal_px, exif_geotag, read_position_table,
-                                    wgs84_to_enu)
+from prism3d.capture.geotag import exif_focal_px, exif_geotag, read_position_table
 from prism3d.errors import InputError
+from prism3d.geo import wgs84_to_enu
 
 AERIAL = "aerial/snowpeak_internal_only"
-
-
-def test_enu_against_known_geodesy():
-    o = np.array([37.5, 139.0, 100.0])
-    # a point straight up is pure "up"; north and east steps by the ellipsoid's radii
-    up = wgs84_to_enu([37.5, 139.0, 350.0], o)[0]
-    assert np.allclose(up, [0, 0, 250.0], atol=1e-6)
-    lat = np.radians(37.5)
-    e2 = 6.69437999014e-3
-    m = 6378137.0 * (1 - e2) / (1 - e2 * np.sin(lat) ** 2) ** 1.5  # meridian radius
-    n = 6378137.0 / np.sqrt(1 - e2 * np.sin(lat) ** 2)  # prime vertical radius
-    d = 1e-4  # degrees: curvature over ~10 m is far below a millimetre
-    north = wgs84_to_enu([37.5 + d, 139.0, 100.0], o)[0]
-    east = wgs84_to_enu([37.5, 139.0 + d, 100.0], o)[0]
-    assert abs(north[1] - np.radians(d) * (m + 100.0)) < 1e-3 and abs(north[0]) < 1e-6
-    assert abs(east[0] - np.radians(d) * (n + 100.0) * np.cos(lat)) < 1e-3
-    # a parallel curves poleward in the tangent plane by x^2 tan(lat) / 2N (4.7 um here)
-    assert east[1] == pytest.approx(east[0] ** 2 * np.tan(lat) / (2 * n), rel=0.01)
-
-
-def test_enu_round_trip():
-    rng = np.random.default_rng(0)
-    o = np.array([-33.9, 151.2, 40.0])
-    enu = rng.uniform(-5000, 5000, (50, 3))
-    back = wgs84_to_enu(enu_to_wgs84(enu, o), o)
-    assert np.abs(back - enu).max() < 1e-6
-
-
-def test_bad_positions_are_refused():
-    with pytest.raises(InputError, match="latitude"):
-        wgs84_to_enu([[95.0, 0.0, 0.0]], [0.0, 0.0, 0.0])
-    with pytest.raises(InputError, match="finite"):
-        wgs84_to_enu([[np.nan, 0.0, 0.0]], [0.0, 0.0, 0.0])
 
 
 def test_position_table_formats_and_bad_tables(tmp_path):

@@ -76,7 +76,8 @@ def _bilinear(img, uv):
 def test_the_folder_holds_what_the_survey_mode_reads(flight):
     import cv2
 
-    from prism3d.capture.geotag import exif_focal_px, exif_geotag, read_position_table, wgs84_to_enu
+    from prism3d.capture.geotag import exif_focal_px, exif_geotag, read_position_table
+    from prism3d.geo import wgs84_to_enu
 
     out, opts, summary, truth, _ = flight
     names = [f"IMG_{k:04d}.JPG" for k in range(6)]

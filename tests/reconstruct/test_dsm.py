@@ -66,7 +66,8 @@ def test_bad_input():
 def test_las_and_geotiff_round_trip_with_their_crs(tmp_path):
     import laspy
 
-    from prism3d.io.geo import local_enu_crs_wkt, read_geotiff, write_geotiff, write_las
+    from prism3d.geo import local_enu_crs_wkt
+    from prism3d.io.geo import read_geotiff, write_geotiff, write_las
 
     rng = np.random.default_rng(1)
     xyz, rgb, _ = _scene(rng, 20_000)

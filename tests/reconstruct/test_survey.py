@@ -226,8 +226,9 @@ def test_real_drone_pair(shared_data: Path, tmp_path: Path) -> None:
     """IMG_2188 -> IMG_2189 (real nadir frames, EXIF focal, geoinfo.txt GPS):
     reprojection RMS <= 0.5 px over >= 1000 tracks; a DSM over >= 80 % of the pair's
     overlap; open ground flat to a few GSD; the poses' baseline equal to the GPS one."""
-    from prism3d.capture.geotag import read_position_table, wgs84_to_enu
+    from prism3d.capture.geotag import read_position_table
     from prism3d.datasets.evaluation.survey_eval import ground_roughness
+    from prism3d.geo import wgs84_to_enu
     from prism3d.io.geo import read_geotiff
 
     d = shared_data / "aerial/snowpeak_internal_only"

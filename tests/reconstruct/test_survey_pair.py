@@ -98,7 +98,8 @@ def test_real_drone_pair_rectifies_and_covers_its_overlap(shared_data):
     (measured 91 %), and the DSM at 0.2 m fills 80 % of the pair's footprint (93 %)."""
     import cv2
 
-    from prism3d.capture.geotag import exif_focal_px, read_position_table, wgs84_to_enu
+    from prism3d.capture.geotag import exif_focal_px, read_position_table
+    from prism3d.geo import wgs84_to_enu
     from prism3d.reconstruct.survey.two_view import relative_pose
 
     d = shared_data / "aerial/snowpeak_internal_only"

@@ -1,0 +1,73 @@
+"""The geo module: ENU against known geodesy, round trips, UTM zones against PROJ's own
+projection, and refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyproj
+import pytest
+
+from prism3d.errors import InputError
+from prism3d.geo import enu_to_wgs84, local_enu_crs_wkt, utm_epsg, wgs84_to_enu
+
+
+def test_enu_against_known_geodesy():
+    o = np.array([37.5, 139.0, 100.0])
+    # a point straight up is pure "up"; north and east steps by the ellipsoid's radii
+    up = wgs84_to_enu([37.5, 139.0, 350.0], o)[0]
+    assert np.allclose(up, [0, 0, 250.0], atol=1e-6)
+    lat = np.radians(37.5)
+    e2 = 6.69437999014e-3
+    m = 6378137.0 * (1 - e2) / (1 - e2 * np.sin(lat) ** 2) ** 1.5  # meridian radius
+    n = 6378137.0 / np.sqrt(1 - e2 * np.sin(lat) ** 2)  # prime vertical radius
+    d = 1e-4  # degrees: curvature over ~10 m is far below a millimetre
+    north = wgs84_to_enu([37.5 + d, 139.0, 100.0], o)[0]
+    east = wgs84_to_enu([37.5, 139.0 + d, 100.0], o)[0]
+    assert abs(north[1] - np.radians(d) * (m + 100.0)) < 1e-3 and abs(north[0]) < 1e-6
+    assert abs(east[0] - np.radians(d) * (n + 100.0) * np.cos(lat)) < 1e-3
+    # a parallel curves poleward in the tangent plane by x^2 tan(lat) / 2N (4.7 um here)
+    assert east[1] == pytest.approx(east[0] ** 2 * np.tan(lat) / (2 * n), rel=0.01)
+
+
+def test_enu_round_trip():
+    rng = np.random.default_rng(0)
+    o = np.array([-33.9, 151.2, 40.0])
+    enu = rng.uniform(-5000, 5000, (50, 3))
+    back = wgs84_to_enu(enu_to_wgs84(enu, o), o)
+    assert np.abs(back - enu).max() < 1e-6
+
+
+def test_bad_positions_are_refused():
+    with pytest.raises(InputError, match="latitude"):
+        wgs84_to_enu([[95.0, 0.0, 0.0]], [0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match="finite"):
+        wgs84_to_enu([[np.nan, 0.0, 0.0]], [0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("lat, lon, code", [
+    (37.5434, 139.0428, 32654),  # the shared aerial site
+    (-33.9, 18.4, 32734),  # southern hemisphere
+    (0.0, -0.1, 32630),  # the equator belongs to the north
+    (51.5, 359.9, 32630),  # longitudes past 180 wrap
+    (60.5, 5.3, 32632),  # south-west Norway: zone 32 widened west
+    (78.0, 8.0, 32631), (78.0, 15.0, 32633), (78.0, 25.0, 32635), (78.0, 40.0, 32637),  # Svalbard
+    (10.0, 179.99, 32660),
+])
+def test_utm_zone_of_a_site(lat, lon, code):
+    assert utm_epsg(lat, lon) == code
+    # the site is near its zone's central meridian band: PROJ's UTM keeps the scale near 1
+    crs = pyproj.CRS.from_epsg(code)
+    assert crs.name.startswith("WGS 84 / UTM zone")
+    x, _ = pyproj.Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(((lon + 180) % 360) - 180, lat)
+    assert 100_000 < x < 900_000
+
+
+def test_beyond_utm_and_bad_sites_are_refused():
+    with pytest.raises(InputError, match="beyond UTM"):
+        utm_epsg(85.0, 10.0)
+    with pytest.raises(InputError, match="latitude"):
+        utm_epsg(91.0, 10.0)
+    with pytest.raises(InputError, match="out of range"):
+        local_enu_crs_wkt(95.0, 0.0)
+    with pytest.raises(InputError, match="finite"):
+        enu_to_wgs84([[np.inf, 0.0, 0.0]], [0.0, 0.0, 0.0])
