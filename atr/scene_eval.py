@@ -1,6 +1,12 @@
-"""Whole-scene detection scores: probability of detection against false positives per
-image (FPPI), as JPL's OT-MACH work reports detection, with identification among the hits
-(MSTAR-style). Inputs follow the scene contract (docs/atr.md "Scene scoring"): a truth
+"""Detection scores, one scorer for images and maps: probability of detection against
+false positives per image or frame (FPPI), as JPL's OT-MACH work reports detection, with
+identification among the hits (MSTAR-style). Both walk the detections best first through
+:func:`match_best_first`, each target taken at most once; they differ only in how a
+detection finds its target (a box or 3D radius in an image; a radius on the map for a
+survey, :func:`score_detections`) and in what a confuser is (a false positive in an image
+scene; neither hit nor miss on a map, where it is only an uncounted target).
+
+Image scenes follow the scene contract (docs/atr.md "Scene scoring"): a truth
 ``{"targets": [{"class", "confuser", "box_rc": [r0, c0, r1, c1], "xyz_mm"?, ...}]}`` and
 detections ``{"detections": [{"row", "col", "class", "score", "xyz_mm"?, ...}]}``.
 
@@ -16,7 +22,8 @@ of that order, so one matching serves the whole Pd-FPPI curve.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,10 +31,54 @@ import numpy as np
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
 
-__all__ = ["FPPI_POINTS", "check_scene_folders", "plot_fppi", "plot_scene", "score_scenes", "write_scene_results"]
+__all__ = ["FPPI_POINTS", "Match", "check_scene_folders", "match_best_first", "match_map_detections", "plot_fppi", "plot_scene", "score_detections",
+           "score_scenes", "write_scene_results"]
 
 #: FPPI operating points reported (Pd and identification accuracy at each).
 FPPI_POINTS = (0.1, 1.0)
+
+
+@dataclass(frozen=True)
+class Match:
+    """What one detection (``index`` into the list given) turned out to be: ``hit`` (a
+    counted target, ``target``), ``confuser`` (an uncounted target, scored as a false
+    positive), ``fp``, or ``ignored`` (on a difficult target, or an uncounted one where
+    confusers are not false positives); ``class_right`` for a hit."""
+
+    index: int
+    score: float
+    kind: str
+    target: int | None
+    class_right: bool
+
+
+def match_best_first(dets: Sequence[dict], targets: Sequence[dict],
+                     find: Callable[[dict, list[bool]], tuple[int | None, bool]], *,
+                     confusers_are_fp: bool) -> list[Match]:
+    """Walk ``dets`` (each with ``score`` and ``class``) in descending score; ``find(det,
+    taken)`` gives the free target it falls on (or None) and whether it lies near an
+    uncounted target. Targets carry ``counted`` (default True) and ``difficult`` (default
+    False): a difficult target is never taken and its detections are ignored (PASCAL VOC's
+    rule); an uncounted one is taken once, as a confuser or ignored."""
+    out = []
+    taken = [False] * len(targets)
+    for i in sorted(range(len(dets)), key=lambda i: -dets[i]["score"]):
+        d = dets[i]
+        j, near_uncounted = find(d, taken)
+        if j is None:
+            kind = "ignored" if near_uncounted else "fp"
+            out.append(Match(i, float(d["score"]), kind, None, False))
+            continue
+        t = targets[j]
+        if t.get("difficult", False):
+            out.append(Match(i, float(d["score"]), "ignored", j, False))
+            continue
+        taken[j] = True
+        if not t.get("counted", True):
+            out.append(Match(i, float(d["score"]), "confuser" if confusers_are_fp else "ignored", j, False))
+        else:
+            out.append(Match(i, float(d["score"]), "hit", j, d.get("class") is not None and d.get("class") == t.get("class")))
+    return out
 
 
 def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
@@ -49,19 +100,10 @@ def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
         dets, targets = _detections(pair[0], k), _targets(pair[1], k)
         n_targets += sum(not t["confuser"] and not t["difficult"] for t in targets)
         n_confusers += sum(t["confuser"] and not t["difficult"] for t in targets)
-        taken = [False] * len(targets)
-        for d in sorted(dets, key=lambda d: -d["score"]):
-            j = _match(d, targets, taken)
-            if j is not None and targets[j]["difficult"]:
-                continue  # mostly hidden: neither found nor missed, nor a false alarm
-            if j is None:
-                events.append((d["score"], "fp", False))
-            elif targets[j]["confuser"]:
-                taken[j] = True
-                events.append((d["score"], "confuser", False))
-            else:
-                taken[j] = True
-                events.append((d["score"], "hit", d["class"] == targets[j]["class"]))
+        for m in match_best_first(dets, targets, lambda d, taken: (_match(d, targets, taken), False),
+                                  confusers_are_fp=True):
+            if m.kind != "ignored":  # a difficult target: neither found nor missed, nor a false alarm
+                events.append((m.score, m.kind, m.class_right))
     n_images = len(scenes)
     events.sort(key=lambda e: -e[0])
     th, pd, fppi, ida = _curve(events, n_targets, n_images)
@@ -84,6 +126,66 @@ def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
         "at_fppi": at,
         "pd_max": pd[-1] if pd else 0.0,
     }
+
+
+def match_map_detections(dets: Sequence[dict], targets: Sequence[dict], *, radius_m: float | None = None
+                         ) -> list[Match]:
+    """The map rules of :func:`score_detections`, one :class:`Match` per detection scoring
+    above -1 (``index`` into ``dets``), best first."""
+    tx = np.array([[t["x"], t["y"]] for t in targets]) if targets else np.zeros((0, 2))
+    counted = np.array([bool(t.get("counted", True)) for t in targets], bool)
+    radius = np.array([radius_m if radius_m is not None else max(0.5 * t["length_m"], 2.0) for t in targets])
+
+    def find(d: dict, taken: list[bool]) -> tuple[int | None, bool]:
+        dist = np.hypot(tx[:, 0] - d["x"], tx[:, 1] - d["y"]) if len(tx) else np.zeros(0)
+        hit = np.flatnonzero((dist <= radius) & ~np.asarray(taken, bool))
+        if len(hit):
+            return int(hit[np.argmin(dist[hit])]), False
+        return None, bool(len(dist) and np.any((dist <= radius) & ~counted))
+
+    live = [i for i, d in enumerate(dets) if d["score"] > -1]
+    ms = match_best_first([dets[i] for i in live], targets, find, confusers_are_fp=False)
+    return [Match(live[m.index], m.score, m.kind, m.target, m.class_right) for m in ms]
+
+
+def score_detections(dets: Sequence[dict], targets: Sequence[dict], n_frames: int, *, radius_m: float | None = None,
+                     threshold: float | None = None) -> dict[str, Any]:
+    """Map detections (``x``, ``y`` in metres, ``score``, ``class``) against map targets
+    (``x``, ``y``, ``length_m``, ``counted``, ``class``): Pd against false positives per
+    frame over the score threshold. A detection is a hit when within ``radius_m`` (default:
+    half the target's length, at least 2 m) of a target's centre not yet found, the nearest
+    first; uncounted targets (confusers) are neither hits nor misses, and a detection near
+    one is not a false positive; scores <= -1 (no class fits) are not detections. With
+    ``threshold``: Pd, false positives and the share of hits whose ``class`` is the
+    target's at that score too. ``curve``: one entry per detection, best first."""
+    counted = np.array([bool(t.get("counted", True)) for t in targets], bool)
+    curve = []
+    tp = fp = right = 0
+    for m in match_map_detections(dets, targets, radius_m=radius_m):
+        tp += m.kind == "hit"
+        fp += m.kind == "fp"
+        right += m.class_right
+        curve.append((m.score, tp, fp, right))
+    n_t = int(counted.sum())
+
+    def pd_at(fppf: float) -> tuple[float, float | None]:
+        best = (0, 0)
+        for _, t, f, rgt in curve:
+            if f / max(n_frames, 1) <= fppf and t > best[0]:
+                best = (t, rgt)
+        return best[0] / max(n_t, 1), (best[1] / best[0] if best[0] else None)
+
+    out: dict[str, Any] = {"n_targets": n_t, "n_frames": n_frames}
+    for x in FPPI_POINTS:
+        pd, acc = pd_at(x)
+        out[f"pd_at_{x:g}_fppf"], out[f"class_accuracy_at_{x:g}_fppf"] = pd, acc
+    if threshold is not None:
+        at = [c for c in curve if c[0] >= threshold]
+        t, f, rgt = (at[-1][1], at[-1][2], at[-1][3]) if at else (0, 0, 0)
+        out["at_threshold"] = {"threshold": threshold, "pd": t / max(n_t, 1), "false_positives": f,
+                               "fp_per_frame": f / max(n_frames, 1), "class_accuracy": rgt / t if t else None}
+    out["curve"] = [{"score": sc, "tp": t, "fp": f, "class_right": rgt} for sc, t, f, rgt in curve]
+    return out
 
 
 def _curve(events: list[tuple[float, str, bool]], n_targets: int, n_images: int
@@ -150,7 +252,8 @@ def _targets(doc: object, k: int) -> list[dict]:
         if r1 < r0 or c1 < c0:
             raise InputError(f"{w}.box_rc: expected r0 <= r1 and c0 <= c1, got {box!r}")
         radius = t.get("radius_mm")
-        out.append({"class": t["class"], "confuser": bool(t.get("confuser", False)), "box": (r0, c0, r1, c1),
+        conf = bool(t.get("confuser", False))
+        out.append({"class": t["class"], "confuser": conf, "counted": not conf, "box": (r0, c0, r1, c1),
                     "difficult": bool(t.get("difficult", False)),
                     "xyz": _xyz(t.get("xyz_mm"), f"{w}.xyz_mm"),
                     "radius": None if radius is None else _finite(radius, f"{w}.radius_mm")})

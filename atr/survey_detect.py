@@ -39,7 +39,7 @@ from prism3d.io.atomic import atomic_paths, atomic_write_text
 from prism3d.io.geo import read_geotiff
 
 __all__ = ["NadirTemplate", "SurveyScene", "detect_in_survey", "draw_survey_detections", "find_vehicles",
-           "load_survey_scene", "nadir_templates", "score_detections", "write_geojson"]
+           "load_survey_scene", "nadir_templates", "write_geojson"]
 
 #: A class fits a candidate when the candidate's length, width and height are within
 #: these factors of the class's (occlusion, trees and the DSM's smoothing shrink or grow them).
@@ -196,58 +196,6 @@ def _match_templates(zf: NDArray, lab: NDArray, k: int, cx: float, cy: float, th
             if s > score:
                 score, best = s, t
     return score, best
-
-
-def score_detections(dets: Sequence[dict], targets: Sequence[dict], n_frames: int, *, radius_m: float | None = None,
-                     threshold: float | None = None) -> dict[str, Any]:
-    """Pd against false positives per frame over the score threshold. A detection is a hit
-    when within ``radius_m`` (default: half the target's length, at least 2 m) of a target's
-    centre not yet found (``targets``: ``x``, ``y``, ``length_m``, ``counted``, ``class``;
-    uncounted targets, e.g. confusers, are neither hits nor misses), else a false positive;
-    detections are taken best first. With ``threshold``: Pd, false positives and the share
-    of hits whose ``class`` is the target's at that score too."""
-    tx = np.array([[t["x"], t["y"]] for t in targets]) if targets else np.zeros((0, 2))
-    counted = np.array([bool(t.get("counted", True)) for t in targets], bool)
-    radius = np.array([radius_m if radius_m is not None else max(0.5 * t["length_m"], 2.0) for t in targets])
-    found = np.zeros(len(targets), bool)
-    curve = []
-    tp = fp = right = 0
-    for d in sorted(dets, key=lambda d: -d["score"]):
-        if d["score"] <= -1:
-            break
-        dist = np.hypot(tx[:, 0] - d["x"], tx[:, 1] - d["y"]) if len(tx) else np.zeros(0)
-        hit = np.flatnonzero((dist <= radius) & ~found)
-        ok = False
-        if len(hit):
-            k = hit[np.argmin(dist[hit])]
-            found[k] = True
-            if counted[k]:
-                tp += 1
-                ok = d.get("class") is not None and d.get("class") == targets[k].get("class")
-                right += ok
-        elif not (len(dist) and np.any((dist <= radius) & ~counted)):
-            fp += 1
-        curve.append((d["score"], tp, fp, right))
-    n_t = int(counted.sum())
-
-    def pd_at(fppf: float) -> tuple[float, float | None]:
-        best = (0, 0)
-        for _, t, f, rgt in curve:
-            if f / max(n_frames, 1) <= fppf and t > best[0]:
-                best = (t, rgt)
-        return best[0] / max(n_t, 1), (best[1] / best[0] if best[0] else None)
-
-    out: dict[str, Any] = {"n_targets": n_t, "n_frames": n_frames}
-    for x in (0.1, 1.0):
-        pd, acc = pd_at(x)
-        out[f"pd_at_{x:g}_fppf"], out[f"class_accuracy_at_{x:g}_fppf"] = pd, acc
-    if threshold is not None:
-        at = [c for c in curve if c[0] >= threshold]
-        t, f, rgt = (at[-1][1], at[-1][2], at[-1][3]) if at else (0, 0, 0)
-        out["at_threshold"] = {"threshold": threshold, "pd": t / max(n_t, 1), "false_positives": f,
-                               "fp_per_frame": f / max(n_frames, 1), "class_accuracy": rgt / t if t else None}
-    out["curve"] = [{"score": sc, "tp": t, "fp": f, "class_right": rgt} for sc, t, f, rgt in curve]
-    return out
 
 
 def write_geojson(path: str | Path, dets: Sequence[dict], *, origin_lla: Sequence[float] | None) -> None:

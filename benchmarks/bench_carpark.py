@@ -185,7 +185,7 @@ def main() -> None:
 
 
 def _curve_of(out: Path, sd: Path, fd: Path) -> list[dict]:
-    from prism3d.atr.survey_detect import score_detections
+    from prism3d.atr.scene_eval import score_detections
     from prism3d.datasets.evaluation.survey_eval import _pose_scores
 
     truth = json.loads((fd / "truth.json").read_text())

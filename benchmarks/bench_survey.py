@@ -31,8 +31,8 @@ Every survey runs through :func:`prism3d.reconstruct.survey.run.run_survey` in t
    ``prism3d survey-detect`` runs). Pd at 0.1 and 1 false positives per frame per flight
    and pooled over the flights (all candidates ranked by score together; frames summed),
    each target missed at the pooled 0.1 FPPF threshold with the nearest candidate to it
-   (why it was missed), and the confusers called. The candidates are walked here by the
-   rules of ``score_detections`` (to know which target each hit), beside the library's
+   (why it was missed), and the confusers called. The candidates are walked by the
+   library's ``match_map_detections`` (to know which target each hit), beside the library's
    own ``evaluate_survey`` figures (or the error it refuses with); a candidate without a
    ground height (``z_local``) is put on the survey's ground near it, and counted. The
    two 12 MP surveys (ours, SGBM) are searched too, as rows outside the pool.
@@ -62,6 +62,7 @@ from typing import Any
 
 import numpy as np
 
+from prism3d.atr.scene_eval import match_map_detections
 from prism3d.atr.survey_detect import DEFAULT_VEHICLES, detect_in_survey
 from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 from prism3d.datasets.runner import RunOptions, run_survey_pairs
@@ -362,7 +363,7 @@ def _ground_z(ground: np.ndarray, meta: dict, x: float, y: float) -> float:
 
 def _matched(survey_dir: Path, flight: Path, geojson: Path) -> tuple[list[dict], list[dict], int, int]:
     """The candidates in the truth's frame, each marked tp / fp / ignored (near a confuser)
-    and the target it hit, walked best first by the rules of ``score_detections``; the
+    and the target it hit, walked best first by the rules of ``match_map_detections``; the
     targets with the candidate nearest to each; the number of frames; how many candidates
     came without a ground height (``z_local``) and were put on ``_ground_z``. A candidate is
     a point on the ground: put at height 0 (the ellipsoid, ~150 m below), the alignment's
@@ -386,24 +387,15 @@ def _matched(survey_dir: Path, flight: Path, geojson: Path) -> tuple[list[dict],
         dets.append({**{k: p.get(k) for k in ("score", "class", "template", "length_m", "width_m", "height_m")},
                      "x": float(q[0]), "y": float(q[1]), "z_local_given": p.get("z_local") is not None})
     tg = truth["targets"]
-    tx = np.array([[t["xyz_enu"][0], t["xyz_enu"][1]] for t in tg]) if tg else np.zeros((0, 2))
     counted = np.array([not t["confuser"] for t in tg], bool)
     radius = np.array([max(0.5 * t["length_m"], 2.0) for t in tg])
-    found = np.zeros(len(tg), bool)
-    for d in sorted(dets, key=lambda d: -d["score"]):
+    # walked by the library's own scorer, so the kinds are the figures' kinds
+    pts = [{"x": t["xyz_enu"][0], "y": t["xyz_enu"][1], "length_m": t["length_m"], "counted": not t["confuser"],
+            "class": t["class"]} for t in tg]
+    for d in dets:
         d["kind"], d["target"] = None, None
-        if d["score"] <= -1:
-            continue
-        dist = np.hypot(tx[:, 0] - d["x"], tx[:, 1] - d["y"]) if len(tx) else np.zeros(0)
-        hit = np.flatnonzero((dist <= radius) & ~found)
-        if len(hit):
-            k = int(hit[np.argmin(dist[hit])])
-            found[k] = True
-            d["kind"], d["target"] = ("tp" if counted[k] else "ignored"), k
-        elif len(dist) and np.any((dist <= radius) & ~counted):
-            d["kind"] = "ignored"
-        else:
-            d["kind"] = "fp"
+    for m in match_map_detections(dets, pts):
+        dets[m.index]["kind"], dets[m.index]["target"] = ("tp" if m.kind == "hit" else m.kind), m.target
     targets = []
     for k, t in enumerate(tg):
         dist = np.array([math.hypot(d["x"] - t["xyz_enu"][0], d["y"] - t["xyz_enu"][1]) for d in dets])

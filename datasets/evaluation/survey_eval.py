@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.atr.survey_detect import score_detections
+from prism3d.atr.scene_eval import score_detections
 from prism3d.errors import InputError
 from prism3d.geo import enu_to_wgs84, wgs84_to_enu
 from prism3d.geometry import rotation_angle_deg

@@ -86,3 +86,28 @@ def test_difficult_targets_are_neither_found_nor_missed():
     r = score_scenes([(dets, truth)])
     assert r["n_targets"] == 1
     assert r["at_fppi"]["0.1"]["pd"] == 1.0  # the two detections on the hidden target cost nothing
+
+
+def test_map_detections_known_counts():
+    """The map rules on a hand-counted case: a confuser is neither hit nor miss and a
+    detection near it is no false alarm; a second detection on a found vehicle is one."""
+    from prism3d.atr.scene_eval import match_map_detections, score_detections
+
+    targets = [{"x": 0.0, "y": 0.0, "length_m": 4.0, "class": "car"},
+               {"x": 20.0, "y": 0.0, "length_m": 10.0, "class": "bus"},
+               {"x": 40.0, "y": 0.0, "length_m": 6.0, "class": "truck", "counted": False}]
+    dets = [{"x": 0.5, "y": 0.0, "score": 0.9, "class": "car"},  # hit, class right
+            {"x": 41.0, "y": 0.0, "score": 0.8, "class": "car"},  # on the confuser: ignored
+            {"x": 19.0, "y": 1.0, "score": 0.7, "class": "truck"},  # hit, class wrong
+            {"x": 0.0, "y": 1.0, "score": 0.6, "class": "car"},  # the car again: a false positive
+            {"x": 40.5, "y": 0.5, "score": 0.5, "class": "car"},  # near the confuser: ignored
+            {"x": 80.0, "y": 0.0, "score": 0.4, "class": "car"},  # nothing there
+            {"x": 80.0, "y": 9.0, "score": -1.0, "class": None}]  # no class fits: not a detection
+    kinds = [(m.index, m.kind, m.target) for m in match_map_detections(dets, targets)]
+    assert kinds == [(0, "hit", 0), (1, "ignored", 2), (2, "hit", 1), (3, "fp", None), (4, "ignored", None),
+                     (5, "fp", None)]
+    s = score_detections(dets, targets, n_frames=10, threshold=0.65)
+    assert s["n_targets"] == 2 and s["pd_at_0.1_fppf"] == 1.0 and s["class_accuracy_at_0.1_fppf"] == 0.5
+    assert s["at_threshold"] == {"threshold": 0.65, "pd": 1.0, "false_positives": 0, "fp_per_frame": 0.0,
+                                 "class_accuracy": 0.5}
+    assert [c["fp"] for c in s["curve"]] == [0, 0, 0, 1, 1, 2]

@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
+from prism3d.atr.scene_eval import score_detections
 from prism3d.atr.survey_detect import (
     find_vehicles,
     nadir_templates,
-    score_detections,
     write_geojson,
 )
 from prism3d.datasets.models.targets import builtin_target
