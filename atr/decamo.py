@@ -31,6 +31,7 @@ from prism3d.checks import (
     check_same_shape,
 )
 from prism3d.errors import InputError
+from prism3d.grids import nearest_valid
 from prism3d.io.atomic import staged_folder
 from prism3d.io.images import read_depth, read_image, split_npz_spec, write_depth, write_image
 from prism3d.reconstruct.stereo.pipeline import reconstruct_shot
@@ -177,13 +178,11 @@ def _to_float_image(image: NDArray) -> NDArray[np.float64]:
 
 def _fill_nearest(normals: NDArray, region: NDArray) -> NDArray:
     """Fill NaN normals inside ``region`` with the nearest finite normal."""
-    from scipy.ndimage import distance_transform_edt
-
     ok = np.all(np.isfinite(normals), axis=-1)
     need = region & ~ok
     if not need.any() or not ok.any():
         return normals
-    _, (ii, jj) = distance_transform_edt(~ok, return_indices=True)
+    _, (ii, jj) = nearest_valid(~ok)
     out = normals.copy()
     out[need] = normals[ii[need], jj[need]]
     return out

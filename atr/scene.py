@@ -21,8 +21,9 @@ from prism3d.atr.bank import depth_relief, prepare_chips
 from prism3d.atr.geometry import depth_to_points, normals_from_depth
 from prism3d.checks import check_array
 from prism3d.errors import InputError
-from prism3d.reconstruct.survey.dsm import progressive_ground
+from prism3d.grids import cell_quantile, nearest_valid
 from prism3d.reconstruct.stereo.flatness import ransac_plane
+from prism3d.reconstruct.survey.dsm import progressive_ground
 
 __all__ = ["DetectOptions", "SceneChannels", "bank_scale", "chip_channel", "class_size", "object_xyz", "project",
            "scene_channels"]
@@ -177,19 +178,12 @@ def _smooth_depth(d: NDArray[np.float32], size: int) -> NDArray[np.float32]:
 def _cell_low(height: NDArray, flat: NDArray, valid: NDArray, n_cells: int) -> NDArray[np.float64]:
     """The 10th-percentile height of each ground cell (``flat``: each pixel's cell index; inf
     where no valid pixel of a cell is sampled), the raw input of the local ground."""
-    low = np.full(n_cells, np.inf)
     # the 10th percentile per cell: the value at 10 % of each cell's heights sorted (every
     # other pixel each way: a 2 m cell holds plenty, and the sort is 4x shorter)
     sub = np.zeros_like(valid)
     sub[::2, ::2] = True
     sub &= valid
-    hv, fv = height[sub], flat[sub]
-    order = np.lexsort((hv, fv))  # by cell, then height
-    hv, fv = hv[order], fv[order]
-    first = np.flatnonzero(np.r_[True, fv[1:] != fv[:-1]])
-    counts = np.diff(np.r_[first, len(fv)])
-    low[fv[first]] = hv[first + counts // 10]
-    return low
+    return cell_quantile(height[sub], flat[sub], n_cells, 0.1, empty=np.inf, of_count=True)
 
 
 def scene_channels(grey: NDArray, depth_mm: NDArray, K: NDArray, options: DetectOptions | None = None,
@@ -320,7 +314,7 @@ def _fill_nearest(d: NDArray, step: int = 4) -> NDArray[np.float32]:
         return d.astype(np.float32)
     small = d[::step, ::step]
     sbad = ~np.isfinite(small)
-    dist, (ri, ci) = ndimage.distance_transform_edt(sbad, return_indices=True)
+    dist, (ri, ci) = nearest_valid(sbad)
     filled = small[ri, ci]
     filled[dist * step > 64] = np.nan
     up = np.repeat(np.repeat(filled, step, axis=0), step, axis=1)[: d.shape[0], : d.shape[1]]

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
+from prism3d.grids import cell_quantile, nearest_valid
 
 __all__ = ["DsmGrid", "grid_points", "normalised_dsm", "progressive_ground"]
 
@@ -62,12 +63,7 @@ def grid_points(xyz: NDArray, rgb: NDArray | None, gsd: float, *, bounds: tuple[
     ok = (col >= 0) & (col < W) & (row >= 0) & (row < H)
     col, row, z = col[ok], row[ok], p[ok, 2]
     cell = row * W + col
-    order = np.lexsort((z, cell))
-    cell_s, z_s = cell[order], z[order]
-    first = np.flatnonzero(np.r_[True, cell_s[1:] != cell_s[:-1]]) if len(cell_s) else np.zeros(0, np.int64)
-    counts = np.diff(np.r_[first, len(cell_s)])
-    dsm = np.full(H * W, np.nan, dtype=np.float32)
-    dsm[cell_s[first]] = z_s[first + np.minimum((counts - 1) * percentile / 100.0 + 0.5, counts - 1).astype(np.int64)]
+    dsm = cell_quantile(z, cell, H * W, percentile / 100.0).astype(np.float32)
     cnt = np.bincount(cell, minlength=H * W).astype(np.int32)
     ortho = np.zeros((H * W, 4), dtype=np.uint8)
     if rgb is not None:
@@ -115,7 +111,7 @@ def progressive_ground(grid: NDArray, cell_mm: float, *, fill: str = "opened") -
     if bad.all():
         return np.zeros_like(g)
     if bad.any():
-        _, (ri, ci) = ndimage.distance_transform_edt(bad, return_indices=True)
+        _, (ri, ci) = nearest_valid(bad)
         g = g[ri, ci]
     obj = np.zeros(g.shape, dtype=bool)
     surf = g.copy()
