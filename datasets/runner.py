@@ -72,6 +72,22 @@ class JobReport:
 Task = tuple[str, str, Callable[..., Any], tuple]
 
 
+#: A local Dask worker is a process of its own: about this much memory before any work.
+WORKER_BASE_MIB = 400
+#: At most this many local workers per core (more only wait for the cores).
+WORKERS_PER_CORE = 4
+
+
+def max_local_workers() -> int:
+    """The most local Dask workers this machine can hold: :data:`WORKERS_PER_CORE` a core,
+    and each with :data:`WORKER_BASE_MIB` of the memory available now (at least 1)."""
+    import psutil
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    mem = int(psutil.virtual_memory().available) // (WORKER_BASE_MIB * 2**20)
+    return max(1, min(WORKERS_PER_CORE * cores, mem))
+
+
 @dataclass(frozen=True)
 class RunOptions:
     """Where and how job units run."""
@@ -90,6 +106,9 @@ class RunOptions:
         if isinstance(w, bool) or not isinstance(w, int) or w < 0:
             raise DatasetError(f"workers: expected an integer >= 0, got {w!r}")
         sch = self.scheduler
+        if sch is None and w > 1 and w > (cap := max_local_workers()):
+            raise DatasetError(f"workers: {w} local workers is more than this machine holds (at most {cap}: "
+                               f"{WORKERS_PER_CORE} a core, {WORKER_BASE_MIB} MiB each); give fewer, or --scheduler")
         if sch is not None and not (isinstance(sch, str) and "://" in sch):
             raise DatasetError(f"scheduler: expected an address like tcp://HOST:PORT, got {sch!r}")
         if isinstance(r, bool) or not isinstance(r, int) or r < 0:

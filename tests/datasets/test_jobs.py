@@ -488,3 +488,18 @@ def test_resume_removes_a_killed_writers_temp_part_and_refuses_a_second_run(tmp_
             run_render_job(db, "j", **kw)
     finally:
         os.close(fd)
+
+
+def test_more_local_workers_than_the_machine_holds_is_refused_up_front(tmp_path) -> None:
+    from prism3d.cli import main
+    from prism3d.datasets.runner import max_local_workers
+
+    cap = max_local_workers()
+    assert cap >= 1
+    RunOptions(workers=cap)  # the most it holds is fine
+    RunOptions(workers=10_000, scheduler="tcp://127.0.0.1:1")  # an existing cluster decides for itself
+    with pytest.raises(DatasetError, match="more than this machine holds"):
+        RunOptions(workers=cap + 1)
+    out = tmp_path / "fields"
+    assert main(["--quiet", "simulate", "field", str(out), "--count", "2", "--workers", "10000"]) == 2
+    assert not out.exists()

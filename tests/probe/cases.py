@@ -763,7 +763,8 @@ def cases(fx: Path | str | None = None) -> list[Case]:
     b.numbers("db-render", base, "--range", {"nan": "nan", "zero": "0", "negative": "-1", "garbage": "x"}, [],
               setup=db_setup)
     b.numbers("db-render", base, "--size", {"zero": "0", "negative": "-1", "60000": "60000"}, [], setup=db_setup)
-    b.numbers("db-render", base, "--workers", {"negative": "-1"}, [], setup=db_setup)
+    b.numbers("db-render", base, "--workers", {"negative": "-1", "more_than_the_machine": "10000"}, [],
+              setup=db_setup)
     b.numbers("db-render", base, "--scheduler", {"garbage": "not a url", "unreachable": "tcp://127.0.0.1:1"}, [],
               setup=db_setup)
     b.numbers("db-render", base, "--targets", {"unknown": "no_such_id", "path_like": "../../x"}, [],
