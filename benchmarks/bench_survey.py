@@ -15,7 +15,7 @@ Every survey runs through :func:`prism3d.reconstruct.survey.run.run_survey` in t
    with the dense pairs on 1 and on 2 local Dask workers (dense stage and total; 2 vs 1).
 2. **Poses vs truth** (``evaluate_survey``: positions in GSD and rotations in deg after
    the similarity alignment). Anchor: OpenCV's two-view pose
-   (``two_view.relative_pose``: SIFT, MAGSAC essential matrix, refinement) for every
+   (``tests/reconstruct/two_view_anchor.py``: SIFT, MAGSAC essential matrix, refinement) for every
    neighbouring pair (i, i+1) in flight order, on frames undistorted with the camera's
    K/dist and area-downscaled to at most ``ANCHOR_MAX_SIDE`` px (K scaled); its relative
    rotation (and baseline direction) against the truth's ``T_enu_cam``, beside the same
@@ -55,6 +55,7 @@ import os
 import platform
 import shutil
 import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -214,7 +215,8 @@ def poses(flight: Path, ours: dict[str, Any], ev: dict[str, Any]) -> dict[str, A
 
     from prism3d.capture.calib_formats import load_camera_calibration
     from prism3d.io.images import read_image
-    from prism3d.reconstruct.survey.two_view import relative_pose
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the anchor lives with the tests
+    from tests.reconstruct.two_view_anchor import relative_pose
 
     truth = json.loads((flight / "truth.json").read_text())
     T_true = [np.asarray(f["T_enu_cam"], dtype=np.float64) for f in truth["frames"]]

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from prism3d.errors import InputError
 
-__all__ = ["DISPARITY_SIGMA_PX", "FusedSurface", "Georef", "PairRequest", "PairResult", "PairTile", "SURVEY_FILES",
+__all__ = ["TwoViewPose", "DISPARITY_SIGMA_PX", "FusedSurface", "Georef", "PairRequest", "PairResult", "PairTile", "SURVEY_FILES",
            "SURVEY_SCHEMA_VERSION", "SurveyOptions", "SurveyState"]
 
 
@@ -28,6 +28,30 @@ SURVEY_FILES = ("poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", "
 
 #: Disparity noise assumed for a pair's height tolerance, px at the matched scale.
 DISPARITY_SIGMA_PX = 0.25
+
+
+@dataclass(frozen=True)
+class TwoViewPose:
+    """``R``, ``t`` map camera-1 coordinates to camera 2 (x2 = R x1 + t, ``t`` unit
+    length); ``baseline_cam1`` is camera 2's centre in camera 1's frame (unit);
+    ``pts1``/``pts2`` the inlier matches (pixels), ``n_matches`` before the geometric
+    check, ``inlier_rms_px`` the Sampson distance RMS of the inliers."""
+
+    R: NDArray[np.float64]
+    t: NDArray[np.float64]
+    pts1: NDArray[np.float64]
+    pts2: NDArray[np.float64]
+    n_matches: int
+    inlier_rms_px: float
+
+    @property
+    def baseline_cam1(self) -> NDArray[np.float64]:
+        c = -self.R.T @ self.t
+        return c / np.linalg.norm(c)
+
+    @property
+    def n_inliers(self) -> int:
+        return len(self.pts1)
 
 
 @dataclass(frozen=True)

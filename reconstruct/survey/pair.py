@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array
 from prism3d.errors import InputError
 from prism3d.reconstruct.stereo.match import match_stereo_full
-from prism3d.reconstruct.survey.two_view import TwoViewPose
+from prism3d.reconstruct.survey.model import TwoViewPose
 
 __all__ = ["PAIR_MATCHERS", "PairCloud", "RectifiedPair", "pair_cloud", "rectify_from_pose"]
 

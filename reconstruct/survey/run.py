@@ -50,13 +50,13 @@ from prism3d.reconstruct.survey.model import (
     PairTile,
     SurveyOptions,
     SurveyState,
+    TwoViewPose,
 )
 from prism3d.reconstruct.survey.pair import pair_cloud
 from prism3d.reconstruct.survey.products import (
     write_products,
 )
 from prism3d.reconstruct.survey.sfm import SfmOptions, map_frames, similarity_align
-from prism3d.reconstruct.survey.two_view import TwoViewPose
 
 __all__ = [
     "SURVEY_SCHEMA_VERSION", "SURVEY_FILES", "Georef", "PairRequest", "PairResult", "PairTile", "SurveyOptions",

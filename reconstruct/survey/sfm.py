@@ -1,7 +1,8 @@
 """Camera poses of a drone survey (many photographs from one moving camera) by COLMAP's
 structure from motion: SIFT features, matching, incremental mapping and bundle adjustment
 that refines the focal length and radial distortion, through pycolmap, in a child
-process. The survey mode's pose step (docs/uav.md); :mod:`.two_view` is its anchor.
+process. The survey mode's pose step (docs/uav.md); OpenCV's two-view geometry
+(tests/reconstruct/two_view_anchor.py) is its anchor.
 
 Why a child process: COLMAP logs to stderr at the file-descriptor level (the child's goes
 to ``colmap.log``), a crash must not take the caller down, and a timeout must be

@@ -256,7 +256,7 @@ def test_real_drone_pair(shared_data, tmp_path):
     import pycolmap
 
     from prism3d.capture.geotag import exif_focal_px
-    from prism3d.reconstruct.survey.two_view import relative_pose
+    from tests.reconstruct.two_view_anchor import relative_pose
 
     d = shared_data / "aerial/snowpeak_internal_only"
     if not d.is_dir():

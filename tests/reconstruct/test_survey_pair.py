@@ -13,8 +13,8 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array
 from prism3d.errors import InputError
 from prism3d.reconstruct.stereo.flatness import ransac_plane
+from prism3d.reconstruct.survey.model import TwoViewPose
 from prism3d.reconstruct.survey.pair import pair_cloud, rectify_from_pose
-from prism3d.reconstruct.survey.two_view import TwoViewPose
 
 F, W, H = 700.0, 640, 480
 K = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1.0]])
@@ -100,7 +100,7 @@ def test_real_drone_pair_rectifies_and_covers_its_overlap(shared_data):
 
     from prism3d.capture.geotag import exif_focal_px, read_position_table
     from prism3d.geo import wgs84_to_enu
-    from prism3d.reconstruct.survey.two_view import relative_pose
+    from tests.reconstruct.two_view_anchor import relative_pose
 
     d = shared_data / "aerial/snowpeak_internal_only"
     s = 1600 / 4608

@@ -11,7 +11,7 @@ import pytest
 
 from prism3d.errors import InputError
 from prism3d.geometry import rotation_angle_deg
-from prism3d.reconstruct.survey.two_view import pose_from_matches, relative_pose
+from tests.reconstruct.two_view_anchor import pose_from_matches, relative_pose
 
 
 def _rot(axis: str, deg: float) -> np.ndarray:

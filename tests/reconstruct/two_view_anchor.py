@@ -1,48 +1,20 @@
-"""Relative pose of two photographs of the same ground from one moving camera: SIFT
-features, ratio-test matches, the essential matrix by MAGSAC (OpenCV), the pose it
-implies (cheirality), refined on its inliers. The anchor of the survey mode's poses
-(docs/uav.md) and the pose of a single pair when a full bundle adjustment is not
-wanted.
-
-The translation comes back as a unit vector: two views fix the direction of the motion,
+"""The OpenCV two-view pose the survey's poses are checked against (tests only): SIFT
+features, ratio-test matches, the essential matrix by MAGSAC, the pose it implies
+(cheirality), refined on its inliers by least squares of the Sampson distances. The
+translation comes back as a unit vector: two views fix the direction of the motion,
 not its length (GPS gives that).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
+import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
-
-__all__ = ["TwoViewPose", "pose_from_matches", "relative_pose"]
-
-
-@dataclass(frozen=True)
-class TwoViewPose:
-    """``R``, ``t`` map camera-1 coordinates to camera 2 (x2 = R x1 + t, ``t`` unit
-    length); ``baseline_cam1`` is camera 2's centre in camera 1's frame (unit);
-    ``pts1``/``pts2`` the inlier matches (pixels), ``n_matches`` before the geometric
-    check, ``inlier_rms_px`` the Sampson distance RMS of the inliers."""
-
-    R: NDArray[np.float64]
-    t: NDArray[np.float64]
-    pts1: NDArray[np.float64]
-    pts2: NDArray[np.float64]
-    n_matches: int
-    inlier_rms_px: float
-
-    @property
-    def baseline_cam1(self) -> NDArray[np.float64]:
-        c = -self.R.T @ self.t
-        return c / np.linalg.norm(c)
-
-    @property
-    def n_inliers(self) -> int:
-        return len(self.pts1)
+from prism3d.reconstruct.survey.model import TwoViewPose
 
 
 def _grey8(img: NDArray, name: str) -> NDArray[np.uint8]:
@@ -73,8 +45,6 @@ def relative_pose(img1: NDArray, img2: NDArray, K: NDArray, *, max_features: int
     (``ratio``), MAGSAC on the essential matrix (``threshold_px``), cheirality, and a
     last essential matrix fitted to the inliers. Refused with one line when the views
     share too little (fewer than 30 inliers)."""
-    import cv2
-
     g1, g2 = _grey8(img1, "image 1"), _grey8(img2, "image 2")
     K = check_array(K, "K", shape=(3, 3)).astype(np.float64)
     if not (0 < ratio < 1 and threshold_px > 0 and max_features >= 100):
@@ -99,8 +69,6 @@ def pose_from_matches(p1: NDArray, p2: NDArray, K: NDArray, *, threshold_px: flo
     """The relative pose from matched pixels ``p1`` <-> ``p2`` (n, 2): MAGSAC on the
     essential matrix (``threshold_px``), cheirality, then an essential matrix fitted to
     all the inliers (kept when it explains 95 % of them)."""
-    import cv2
-
     p1 = check_array(p1, "p1", ndim=2).astype(np.float64)
     p2 = check_array(p2, "p2", ndim=2).astype(np.float64)
     K = check_array(K, "K", shape=(3, 3)).astype(np.float64)
@@ -135,9 +103,6 @@ def _refine(R: NDArray, t: NDArray, q1: NDArray, q2: NDArray, K: NDArray
     vector about ``R``) and the direction of ``t`` (two angles on its tangent plane), with
     a Huber loss at 1 px: the maximum-likelihood pose the essential matrix only
     approximates."""
-    import cv2
-    from scipy.optimize import least_squares
-
     t = t / np.linalg.norm(t)
     a = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
