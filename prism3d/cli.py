@@ -149,8 +149,6 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
 
     from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 
-    if args.count is not None or args.classes or args.workers or args.scheduler:
-        raise InputError("simulate flight: --count, --classes, --workers and --scheduler are for field scenes")
     given = {"frames": args.frames, "lines": args.lines, "altitude_m": args.altitude, "overlap": args.overlap,
              "side_overlap": args.side_overlap, "heading_deg": args.heading, "targets": args.targets,
              "confusers": args.confusers, "supersample": args.supersample, "scene": args.scene}
@@ -167,137 +165,154 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_simulate(args: argparse.Namespace) -> int:
-    if args.kind == "flight":
-        return _cmd_simulate_flight(args)
-    if args.scene is not None:
-        raise InputError(f"simulate {args.kind}: --scene is for flights (field or carpark)")
-    if args.kind == "field":
-        from prism3d.datasets.simulation.field import FieldOptions, simulate_field
+def _cmd_simulate_field(args: argparse.Namespace) -> int:
+    from prism3d.datasets.simulation.field import FieldOptions, simulate_field
 
-        fo = FieldOptions(targets=args.targets, confusers=args.confusers, seed=args.seed, noise=args.noise,
-                          supersample=1 if args.supersample is None else args.supersample,
-                          **({"classes": tuple(args.classes)} if args.classes else {}))
-        if args.count is not None:
-            from prism3d.datasets.simulation.field import simulate_field_batch
-            from prism3d.datasets.runner import RunOptions
+    fo = FieldOptions(targets=args.targets, confusers=args.confusers, seed=args.seed, noise=args.noise,
+                      supersample=1 if args.supersample is None else args.supersample,
+                      **({"classes": tuple(args.classes)} if args.classes else {}))
+    if args.count is not None:
+        from prism3d.datasets.runner import RunOptions
+        from prism3d.datasets.simulation.field import simulate_field_batch
 
-            report = simulate_field_batch(args.out_dir, args.count, fo, RunOptions(
-                workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "simulate field")))
-            _say(args, report.summary())
-            if not report.ok:
-                print(f"prism3d: {report.failure_line()}", file=sys.stderr)
-            return report.exit_code
-        if args.workers or args.scheduler:
-            raise InputError("simulate field: --workers and --scheduler go with --count (a batch of scenes)")
-        summary = simulate_field(args.out_dir, fo, progress=_progress(args, "simulate field"))
-        _say(args, f"wrote a field scene ({summary['n_targets']} targets, {summary['n_confusers']} confusers) "
-                   f"to {args.out_dir} in {summary['seconds']:.1f} s")
-        return 0
+        report = simulate_field_batch(args.out_dir, args.count, fo, RunOptions(
+            workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "simulate field")))
+        _say(args, report.summary())
+        if not report.ok:
+            print(f"prism3d: {report.failure_line()}", file=sys.stderr)
+        return report.exit_code
+    if args.workers or args.scheduler:
+        raise InputError("simulate field: --workers and --scheduler go with --count (a batch of scenes)")
+    summary = simulate_field(args.out_dir, fo, progress=_progress(args, "simulate field"))
+    _say(args, f"wrote a field scene ({summary['n_targets']} targets, {summary['n_confusers']} confusers) "
+               f"to {args.out_dir} in {summary['seconds']:.1f} s")
+    return 0
+
+
+def _cmd_simulate_rig(args: argparse.Namespace) -> int:
+    """``simulate plate|calib|scene``: shots through the virtual prism rig."""
+    import dataclasses
+
+    from prism3d.capture.camera_effects import CameraEffects
     from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
+    from prism3d.reconstruct.stereo.calibrate import parse_board
 
     rig = None
     if args.rig is not None:
         from prism3d.capture.rig import StereoRig
 
         rig = StereoRig.load(args.rig)
-    if args.camouflage is None:
-        args.camouflage = args.kind == "scene"
+    camouflage = getattr(args, "camouflage", None)
+    if camouflage is None:
+        camouflage = args.kind == "scene"
     target = None
     if args.kind == "scene":
         from prism3d.datasets.models.targets import builtin_target
 
-        target = builtin_target(args.target, camouflage=args.camouflage, seed=args.seed)
-    from prism3d.reconstruct.stereo.calibrate import parse_board
-
-    import dataclasses
-
-    from prism3d.capture.camera_effects import CameraEffects
-
+        target = builtin_target(args.target, camouflage=camouflage, seed=args.seed)
     effects = CameraEffects.ideal() if args.ideal_camera else CameraEffects()
     if args.jpeg_quality is not None:
         effects = dataclasses.replace(effects, jpeg_quality=args.jpeg_quality or None)
-    board = parse_board(args.board)
+    board = parse_board(getattr(args, "board", "9x6"))
     summary = simulate_to_folder(args.kind, args.out_dir, SimulateOptions(
-        pattern=args.pattern, camouflage=args.camouflage, views=args.views, seed=args.seed, noise=args.noise,
-        supersample=2 if args.supersample is None else args.supersample, compress=args.compress, board=board, square_mm=args.square,
-        blur_sigma=args.blur, effects=effects,
+        pattern=args.pattern, camouflage=camouflage, views=args.views, seed=args.seed, noise=args.noise,
+        supersample=2 if args.supersample is None else args.supersample, compress=args.compress, board=board,
+        square_mm=getattr(args, "square", 25.0), blur_sigma=args.blur, effects=effects,
     ), rig=rig, target=target, progress=_progress(args, f"simulate {args.kind}"))
     _say(args, f"wrote {summary['n_shots']} shot(s) and ground truth to {args.out_dir} "
                f"in {summary['seconds']:.1f} s")
     return 0
 
 
-def _add_simulate(sub: Any) -> None:
-    p = _command(sub, "simulate", _cmd_simulate,
-                 help="virtual rig shots with exact ground truth (plate|calib|scene|field|flight)",
-                 description="Render side-by-side prism shots through the virtual rig and write "
-                 "them with ground truth: shot PNG(s), rig.yaml (OpenCV FileStorage) and "
-                 "truth.npz (depth_left_mm, depth_right_mm, mask, albedo, shading, true "
-                 "rectified disparity...). plate: the paper's 30x30 cm plate at 1250 mm; calib: "
-                 "5 chessboard shots (9x6 inner corners, 25 mm); scene: a built-in target on a "
-                 "turntable, 8 views at 45 deg (also target.ply and poses.json); field: full-size "
-                 "camouflaged targets, confusers and clutter on terrain under the sun, through a 4 m "
-                 "baseline rig (shot.png, rig.yaml, truth.json, truth.npz); flight: a nadir drone survey "
-                 "(lawnmower lines, 12 MP) over hills, roads, clutter and ground vehicles "
-                 "(IMG_0000.JPG..., geoinfo.txt, camera.yaml, truth.json, truth.npz with the true DSM, "
-                 "depth/).")
-    p.add_argument("kind", choices=["plate", "calib", "scene", "field", "flight"])
-    p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
-    p.add_argument("--target", default="tank_t1", help="scene: built-in target name (default tank_t1)")
-    p.add_argument("--pattern", dest="pattern", action="store_true", default=None,
+def _simulate_common(q: argparse.ArgumentParser, *, supersample: str) -> None:
+    """The options every ``simulate`` kind takes."""
+    q.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--noise", dest="noise", action="store_true", default=True, help="sensor noise (default)")
+    q.add_argument("--no-noise", dest="noise", action="store_false")
+    q.add_argument("--supersample", type=int, default=None, help=f"anti-aliasing factor (default {supersample})")
+
+
+def _simulate_rig_options(q: argparse.ArgumentParser, *, views: str, camouflage: bool) -> None:
+    """The options of shots through the virtual prism rig (plate, calib, scene)."""
+    q.add_argument("--rig", type=Path, help="rig/calibration YAML to simulate (default: the paper's rig)")
+    q.add_argument("--pattern", dest="pattern", action="store_true", default=None,
                    help="project the colour grating (default: on for plate/scene, off for calib)")
-    p.add_argument("--no-pattern", dest="pattern", action="store_false", help="white flash only")
-    p.add_argument("--camouflage", dest="camouflage", action="store_true", default=None,
-                   help="camouflage paint (default: on for scene targets, off for the plate)")
-    p.add_argument("--no-camouflage", dest="camouflage", action="store_false")
-    p.add_argument("--views", type=int, help="number of shots (default: 1 plate, 5 calib, 8 scene)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--noise", dest="noise", action="store_true", default=True, help="sensor noise (default)")
-    p.add_argument("--no-noise", dest="noise", action="store_false")
-    p.add_argument("--supersample", type=int, default=None,
-                   help="anti-aliasing factor (default 2; field, flight: 1)")
-    p.add_argument("--targets", type=int,
-                   help="field: bank-class targets (default 3-6, drawn); flight: ground vehicles (default 5-10)")
-    p.add_argument("--confusers", type=int,
-                   help="field: confusers (default 1-3, drawn); flight: crates and fuel tanks (default 0-3)")
-    p.add_argument("--frames", type=int, help="flight: photographs in all, split evenly between the lines "
-                   "(default 12)")
-    p.add_argument("--lines", type=int, help="flight: parallel flight lines, flown back and forth (default 2)")
-    p.add_argument("--scene", choices=["field", "carpark"], default=None,
-                   help="flight: camouflaged military vehicles on open ground (field, default) or a car park of "
-                   "parked civilian vehicles in rows, trees, people and poles (carpark)")
-    p.add_argument("--altitude", type=float, metavar="M", help="flight: height above the mean ground, m "
-                   "(default 100: GSD 3.6 cm)")
-    p.add_argument("--overlap", type=float, metavar="F", help="flight: forward overlap (default 0.70)")
-    p.add_argument("--side-overlap", type=float, metavar="F", help="flight: side overlap of the lines "
-                   "(default 0.60)")
-    p.add_argument("--size", metavar="WxH", help="flight: image size, px (default 4000x3000)")
-    p.add_argument("--heading", type=float, metavar="DEG", help="flight: direction of the first line, deg "
-                   "clockwise from north (default: drawn from the seed)")
-    p.add_argument("--depth", action=argparse.BooleanOptionalAction, default=True,
-                   help="flight: write each frame's true depth and object ids in depth/ (default)")
-    p.add_argument("--classes", nargs="+", metavar="NAME",
-                   help="field: built-in targets the bank knows (default tank_t1 jet_j1 ship_s1 truck_k1)")
-    p.add_argument("--count", type=int, help="field: a batch of this many scenes, seeds SEED, SEED+1... in "
-                   "OUT_DIR/scene_<seed> (a rerun resumes; batch.json has the scenes per minute)")
-    p.add_argument("--workers", type=int, default=0, help="field --count: local Dask workers (0 = in this process)")
-    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="field --count: an existing Dask scheduler")
-    p.add_argument("--rig", type=Path, help="rig/calibration YAML to simulate (default: the paper's rig)")
-    p.add_argument("--compress", action=argparse.BooleanOptionalAction, default=True,
-                   help="deflate the truth .npz files (default; --no-compress writes them plain, "
-                   "~60x larger)")
-    p.add_argument("--board", default="9x6",
-                   help="calib: chessboard inner corners COLSxROWS (default 9x6; 19x13 pins the "
-                   "principal point about twice as well)")
-    p.add_argument("--square", type=float, default=25.0, help="calib: square size, mm (default 25)")
-    p.add_argument("--blur", type=float, default=0.0, metavar="PX",
+    q.add_argument("--no-pattern", dest="pattern", action="store_false", help="white flash only")
+    if camouflage:
+        q.add_argument("--camouflage", dest="camouflage", action="store_true", default=None,
+                       help="camouflage paint (default: on for scene targets, off for the plate)")
+        q.add_argument("--no-camouflage", dest="camouflage", action="store_false")
+    q.add_argument("--views", type=int, help=f"number of shots (default {views})")
+    q.add_argument("--compress", action=argparse.BooleanOptionalAction, default=True,
+                   help="deflate the truth .npz files (default; --no-compress writes them plain, ~60x larger)")
+    q.add_argument("--blur", type=float, default=0.0, metavar="PX",
                    help="extra Gaussian blur of each view, pixels (default 0: the camera's own PSF only)")
-    p.add_argument("--ideal-camera", action="store_true",
+    q.add_argument("--ideal-camera", action="store_true",
                    help="the ideal camera: no exposure or colour difference between the views, no "
                    "vignetting, lens PSF, gloss or JPEG (default: real-camera effects on)")
-    p.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
+    q.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
                    help="JPEG quality of the simulated camera, 1-100 (default 92; 0 = none)")
+
+
+def _add_simulate(sub: Any) -> None:
+    p = _command(sub, "simulate", lambda args: 2,
+                 help="virtual rig shots and scenes with exact ground truth (plate|calib|scene|field|flight)",
+                 description="Simulate with exact ground truth; each kind has its own options "
+                 "('prism3d simulate KIND --help'). Shots through the virtual prism rig write shot PNG(s), "
+                 "rig.yaml (OpenCV FileStorage) and truth.npz (depth_left_mm, depth_right_mm, mask, albedo, "
+                 "shading, true rectified disparity...).")
+    ksub = p.add_subparsers(dest="kind", metavar="KIND", required=True, parser_class=_Parser)
+
+    def kind(name: str, run: Handler, help: str, supersample: str) -> argparse.ArgumentParser:
+        q = ksub.add_parser(name, help=help, description=help[0].upper() + help[1:] + ".")
+        _global_options(q, top=False)
+        q.set_defaults(func=run, kind=name)
+        _simulate_common(q, supersample=supersample)
+        return q
+
+    q = kind("plate", _cmd_simulate_rig, "the paper's 30x30 cm plate at 1250 mm, grating on", "2")
+    _simulate_rig_options(q, views="1", camouflage=True)
+    q = kind("calib", _cmd_simulate_rig, "chessboard shots for calibration (5 views of 9x6 inner corners, 25 mm)",
+             "2")
+    _simulate_rig_options(q, views="5", camouflage=False)
+    q.add_argument("--board", default="9x6",
+                   help="chessboard inner corners COLSxROWS (default 9x6; 19x13 pins the principal point about "
+                   "twice as well)")
+    q.add_argument("--square", type=float, default=25.0, help="square size, mm (default 25)")
+    q = kind("scene", _cmd_simulate_rig, "a built-in target on a turntable, 8 views at 45 deg (also target.ply "
+             "and poses.json)", "2")
+    _simulate_rig_options(q, views="8", camouflage=True)
+    q.add_argument("--target", default="tank_t1", help="built-in target name (default tank_t1)")
+    q = kind("field", _cmd_simulate_field, "full-size camouflaged targets, confusers and clutter on terrain under "
+             "the sun, through a 4 m baseline rig (shot.png, rig.yaml, truth.json, truth.npz)", "1")
+    q.add_argument("--targets", type=int, help="bank-class targets (default 3-6, drawn)")
+    q.add_argument("--confusers", type=int, help="confusers (default 1-3, drawn)")
+    q.add_argument("--classes", nargs="+", metavar="NAME",
+                   help="built-in targets the bank knows (default tank_t1 jet_j1 ship_s1 truck_k1)")
+    q.add_argument("--count", type=int, help="a batch of this many scenes, seeds SEED, SEED+1... in "
+                   "OUT_DIR/scene_<seed> (a rerun resumes; batch.json has the scenes per minute)")
+    q.add_argument("--workers", type=int, default=0, help="with --count: local Dask workers (0 = in this process)")
+    q.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="with --count: an existing Dask scheduler")
+    q = kind("flight", _cmd_simulate_flight, "a nadir drone survey (lawnmower lines, 12 MP) over hills, roads, "
+             "clutter and ground vehicles (IMG_0000.JPG..., geoinfo.txt, camera.yaml, truth.json, truth.npz "
+             "with the true DSM, depth/); lengths in metres", "1")
+    q.add_argument("--targets", type=int, help="ground vehicles (default 5-10)")
+    q.add_argument("--confusers", type=int, help="crates and fuel tanks (default 0-3)")
+    q.add_argument("--frames", type=int, help="photographs in all, split evenly between the lines (default 12)")
+    q.add_argument("--lines", type=int, help="parallel flight lines, flown back and forth (default 2)")
+    q.add_argument("--scene", choices=["field", "carpark"], default=None,
+                   help="camouflaged military vehicles on open ground (field, default) or a car park of "
+                   "parked civilian vehicles in rows, trees, people and poles (carpark)")
+    q.add_argument("--altitude", type=float, metavar="M", help="height above the mean ground, m "
+                   "(default 100: GSD 3.6 cm)")
+    q.add_argument("--overlap", type=float, metavar="F", help="forward overlap (default 0.70)")
+    q.add_argument("--side-overlap", type=float, metavar="F", help="side overlap of the lines (default 0.60)")
+    q.add_argument("--size", metavar="WxH", help="image size, px (default 4000x3000)")
+    q.add_argument("--heading", type=float, metavar="DEG", help="direction of the first line, deg clockwise "
+                   "from north (default: drawn from the seed)")
+    q.add_argument("--depth", action=argparse.BooleanOptionalAction, default=True,
+                   help="write each frame's true depth and object ids in depth/ (default)")
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:
