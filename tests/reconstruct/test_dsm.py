@@ -80,6 +80,9 @@ def test_las_and_geotiff_round_trip_with_their_crs(tmp_path):
     assert las.header.version.minor == 4 and las.header.global_encoding.wkt
     assert any("Orthographic" in str(getattr(v, "string", "")) or "ortho" in str(getattr(v, "string", "")).lower()
                for v in las.header.vlrs)
+    crs = las.header.parse_crs()  # laspy through pyproj, as PDAL and QGIS read it
+    assert crs is not None and crs.is_projected and crs.axis_info[0].unit_name == "metre"
+    assert crs.coordinate_operation.method_name.lower().startswith("orthographic")
     g = grid_points(xyz, rgb, 0.5)
     write_geotiff(tmp_path / "dsm.tif", g.dsm, west=g.west, north=g.north, gsd=g.gsd, crs_wkt=wkt, nodata=np.nan)
     write_geotiff(tmp_path / "ortho.tif", g.ortho, west=g.west, north=g.north, gsd=g.gsd, crs_wkt=wkt)
