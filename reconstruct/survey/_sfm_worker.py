@@ -114,6 +114,27 @@ def _verified_pairs(pycolmap, db: Path) -> dict[str, int]:
     return counts
 
 
+def _pair_inliers(pycolmap, db: Path) -> dict[str, dict[str, int]]:
+    """Per image name, the images it was verified with and their inlier matches: why a
+    frame was not placed (no partner at all, or partners with few inliers)."""
+    database = pycolmap.Database.open(db)
+    try:
+        name = {im.image_id: im.name for im in database.read_all_images()}
+        pair_ids, geometries = database.read_two_view_geometries()
+    finally:
+        database.close()
+    out: dict[str, dict[str, int]] = {}
+    for pid, g in zip(pair_ids, geometries):
+        n = len(g.inlier_matches)
+        if n == 0:
+            continue
+        a, b = (name.get(int(i)) for i in pycolmap.pair_id_to_image_pair(int(pid)))
+        if a is not None and b is not None:
+            out.setdefault(a, {})[b] = n
+            out.setdefault(b, {})[a] = n
+    return out
+
+
 def _keypoint_counts(pycolmap, db: Path) -> dict[str, int]:
     """Keypoints stored per image name: an image missing here could not be read."""
     database = pycolmap.Database.open(db)
@@ -196,6 +217,7 @@ def main(argv: list[str]) -> int:
         _match(pycolmap, req, db)
     seconds["matching"] = time.perf_counter() - t0
     pairs = _verified_pairs(pycolmap, db) if not unread else {}
+    partners = _pair_inliers(pycolmap, db) if not unread else {}
 
     stage("mapping")
     t0 = time.perf_counter()
@@ -209,6 +231,7 @@ def main(argv: list[str]) -> int:
         "keypoints": have,
         "model_sizes": [int(r.num_reg_images()) for r in ranked],
         "verified_pairs": pairs,
+        "pair_inliers": partners,
         "pycolmap_version": pycolmap.__version__,
     }
     if ranked:

@@ -47,7 +47,7 @@ from prism3d.io.atomic import atomic_write_text
 from prism3d.io.images import check_image_size
 from prism3d.reconstruct.survey import _sfm_worker
 
-__all__ = ["SfmOptions", "SfmResult", "map_frames", "similarity_align"]
+__all__ = ["SfmOptions", "SfmResult", "map_frames", "similarity_align", "why_not_placed"]
 
 log = logging.getLogger(__name__)
 
@@ -502,14 +502,33 @@ def _read_result(wd: Path, names: list[str], staged: list[str], size: tuple[int,
     rms = float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
     seconds = {k: float(v) for k, v in info["seconds"].items()}
     seconds["total"] = float(total_s)
-    unreg = [names[i] for i in range(n) if not registered[i]]
+    unreg = [i for i in range(n) if not registered[i]]
     if unreg:
-        log.warning("%d of %d frames not placed: %s", len(unreg), n, ", ".join(unreg))
+        log.warning("%d of %d frames not placed: %s", len(unreg), n,
+                    "; ".join(f"{names[i]} ({why_not_placed(staged[i], info, by_staged, names)})" for i in unreg))
     return SfmResult(
         names=names, registered=registered, cam_from_world=poses, K=K, dist=dist, size=(int(size[0]), int(size[1])),
         points=arr["points"], colors=arr["colors"], track_length=arr["track_length"],
         reprojection_rms_px=rms, n_observations=int(len(err)), model_dir=wd / "model", seconds=seconds,
         log_path=log_path, model_names=list(staged), model_sizes=[int(v) for v in info["model_sizes"]])
+
+
+#: Fewer SIFT features than this in a frame: too blurred, dark or plain to match.
+FEW_FEATURES = 200
+
+
+def why_not_placed(staged_name: str, info: dict, by_staged: dict[str, int], names: Sequence[str]) -> str:
+    """Why COLMAP left a frame out, from its worker's counts: too few features, no frame
+    verified with it, or the frames it matched and their inlier counts."""
+    k = int((info.get("keypoints") or {}).get(staged_name, 0))
+    if k < FEW_FEATURES:
+        return f"only {k} features: blurred, dark or plain?"
+    partners = (info.get("pair_inliers") or {}).get(staged_name) or {}
+    if not partners:
+        return f"{k} features, but no frame shares enough of them: no overlap?"
+    best = sorted(partners.items(), key=lambda kv: -kv[1])[:3]
+    said = ", ".join(f"{names[by_staged[o]] if o in by_staged else o} ({m} inliers)" for o, m in best)
+    return f"matched {said}, but could not be placed from them: too few inliers or too little parallax?"
 
 
 def _not_placed(k: int, n: int, info: dict, log_path: Path) -> InputError:

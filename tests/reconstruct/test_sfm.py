@@ -303,3 +303,35 @@ def test_real_frames_across_a_turn(shared_data, tmp_path):
     assert res.unregistered == [str(p) for p in paths[2:]]
     assert res.model_sizes[0] == 2 and len(res.model_sizes) <= 2  # measured [2, 2]: the second pair maps alone
     assert res.reprojection_rms_px <= 0.5 and len(res.points) >= 1000
+
+
+def test_a_frame_left_out_says_why(strip, tmp_path, caplog):
+    """The strip and an unrelated frame: the strip is placed; the stranger is named with its
+    reason (no frame shares its features), and the worker's counts back it."""
+    import json
+    import logging
+
+    paths, _ = strip
+    stranger = _noise_png(tmp_path / "stranger.png", 7, (W, H))
+    with caplog.at_level(logging.WARNING):
+        res = map_frames([*paths, stranger], tmp_path / "sfm", camera=CameraModel(K=K_TRUE, dist=np.zeros(5),
+                                                                                  size=(W, H)),
+                         options=SfmOptions(refine_distortion=False))
+    assert res.registered == [True] * 5 + [False]
+    said = [r.getMessage() for r in caplog.records if "not placed" in r.getMessage()]
+    assert len(said) == 1 and "stranger.png" in said[0] and "no frame shares enough" in said[0]
+    info = json.loads((tmp_path / "sfm" / "result.json").read_text())
+    partners = info["pair_inliers"]
+    assert all(len(partners[n]) >= 1 for n in partners) and not any("stranger" in n for n in partners)
+
+
+def test_why_not_placed_reads_the_counts():
+    from prism3d.reconstruct.survey.sfm import why_not_placed
+
+    info = {"keypoints": {"0000_a.jpg": 50, "0001_b.jpg": 4000, "0002_c.jpg": 4000},
+            "pair_inliers": {"0002_c.jpg": {"0003_d.jpg": 31}, "0003_d.jpg": {"0002_c.jpg": 31}}}
+    by = {"0000_a.jpg": 0, "0001_b.jpg": 1, "0002_c.jpg": 2, "0003_d.jpg": 3}
+    names = ["a.jpg", "b.jpg", "c.jpg", "d.jpg"]
+    assert "only 50 features" in why_not_placed("0000_a.jpg", info, by, names)
+    assert "no overlap" in why_not_placed("0001_b.jpg", info, by, names)
+    assert "matched d.jpg (31 inliers)" in why_not_placed("0002_c.jpg", info, by, names)
