@@ -7,8 +7,10 @@ A quarter-size paper rig (648x486 sensor, f = 1277 px) keeps it fast.
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -443,3 +445,22 @@ def test_detect_on_an_image_and_depth_map(tmp_path):
                 "--bank", tmp_path / "b.npz", "-o", tmp_path / "det2.json")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "det2.json").exists()
+
+
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
+def test_a_signal_mid_run_leaves_nothing_behind(tmp_path, sig, code, word):
+    """SIGTERM unwinds like Ctrl-C: one line, its exit code, no output and no staging
+    folder left beside it."""
+    work = tmp_path / "w"
+    work.mkdir()
+    proc = subprocess.Popen([sys.executable, "-m", "prism3d.cli", "-q", "simulate", "field", str(work / "f")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not any(work.iterdir()):  # wait until it is writing
+        time.sleep(0.05)
+    time.sleep(0.5)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    assert err.strip().splitlines()[-1].endswith(word) and "Traceback" not in err
+    assert list(work.iterdir()) == []
