@@ -177,7 +177,25 @@ def _write_model(pycolmap, np, req: dict, best) -> None:
     _atomic(Path(req["result_npz"]), lambda p: np.savez(p, **arrays))
 
 
+def die_with_parent() -> None:
+    """Have the kernel kill this process when its parent dies (Linux PR_SET_PDEATHSIG), so
+    a killed survey leaves no COLMAP behind; elsewhere, nothing. A parent already gone
+    before the call ends this process at once."""
+    parent = os.getppid()
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            return
+    if os.getppid() != parent or parent == 1:
+        os._exit(3)
+
+
 def main(argv: list[str]) -> int:
+    die_with_parent()
     if len(argv) != 1:
         print("usage: python -m prism3d.reconstruct.survey._sfm_worker REQUEST.json", file=sys.stderr)
         return 2

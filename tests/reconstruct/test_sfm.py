@@ -335,3 +335,38 @@ def test_why_not_placed_reads_the_counts():
     assert "only 50 features" in why_not_placed("0000_a.jpg", info, by, names)
     assert "no overlap" in why_not_placed("0001_b.jpg", info, by, names)
     assert "matched d.jpg (31 inliers)" in why_not_placed("0002_c.jpg", info, by, names)
+
+
+def test_the_colmap_child_dies_with_its_parent(tmp_path):
+    """kill -9 of the process that started the worker takes the worker with it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pid_file = tmp_path / "child.pid"
+    parent_code = (
+        "import subprocess, sys, time\n"
+        "child = subprocess.Popen([sys.executable, '-c', "
+        "'import os, sys, time; from prism3d.reconstruct.survey._sfm_worker import die_with_parent; "
+        f"die_with_parent(); open(sys.argv[1], \"w\").write(str(os.getpid())); time.sleep(120)', {str(pid_file)!r}])\n"
+        "time.sleep(120)\n")
+    parent = subprocess.Popen([sys.executable, "-c", parent_code])
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (pid_file.exists() and pid_file.read_text()):
+        time.sleep(0.05)
+    child = int(pid_file.read_text())
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 2.0
+    alive = True
+    while time.monotonic() < deadline and alive:
+        try:
+            os.kill(child, 0)
+            with open(f"/proc/{child}/stat") as f:
+                alive = f.read().split()[2] != "Z"
+        except (ProcessLookupError, FileNotFoundError):
+            alive = False
+        time.sleep(0.05)
+    assert not alive, "the worker outlived its killed parent"
