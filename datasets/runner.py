@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -260,7 +261,11 @@ def _run_dask(tasks: list[Task], job: str, run: RunOptions, finish: _Tally) -> N
     import dask
     from distributed import Client, LocalCluster, as_completed
 
-    with dask.config.set(_dask_config()), _environ_restored(), _cluster_log_quiet():
+    # the workers' scratch space is ours and goes with the run (Dask's default,
+    # $TMPDIR/dask-scratch-space, would stay behind after every run)
+    with tempfile.TemporaryDirectory(prefix="prism3d-dask-") as scratch, \
+            dask.config.set({**_dask_config(), "temporary-directory": scratch}), _environ_restored(), \
+            _cluster_log_quiet():
         if run.scheduler is not None:
             cluster = None
             client = Client(run.scheduler, timeout=SCHEDULER_TIMEOUT_S)
@@ -268,6 +273,7 @@ def _run_dask(tasks: list[Task], job: str, run: RunOptions, finish: _Tally) -> N
             cluster = LocalCluster(
                 n_workers=run.workers,
                 threads_per_worker=1,
+                local_directory=scratch,
                 processes=True,
                 host="127.0.0.1",  # scheduler and workers reachable from this machine only
                 dashboard_address="127.0.0.1:0",  # a free local port: never clash, never exposed

@@ -371,9 +371,16 @@ def test_dask_local_cluster(small_db, tmp_path: Path, monkeypatch) -> None:
             clusters.append((self.scheduler_address, self.dashboard_link))
 
     monkeypatch.setattr(distributed, "LocalCluster", Recorded)
+    tmp = tmp_path / "tmpdir"
+    tmp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", None)  # read TMPDIR again
     env = dict(os.environ)
     rep = run_render_job(small_db, "jd", run=RunOptions(workers=2), **JOB)
     assert dict(os.environ) == env
+    assert list(tmp.iterdir()) == []  # the workers' scratch space went with the run
     # reachable from this machine only: scheduler and dashboard on the loopback address
     (addr, dash), = clusters
     assert addr.startswith("tcp://127.0.0.1:") and dash.startswith("http://127.0.0.1:"), (addr, dash)
