@@ -431,8 +431,13 @@ class StereoRig:
 
     # -- file I/O ----------------------------------------------------------------------
     def to_filestorage(self) -> dict[str, Any]:
-        """The FileStorage entries of this rig (OpenCV stereoCalibrate names)."""
+        """The FileStorage entries of this rig (OpenCV stereoCalibrate names), and the
+        default rectification in ``cv2.stereoRectify``'s names (``R1 R2 P1 P2 Q`` and
+        ``rectified_size``): ``cv2.initUndistortRectifyMap(K1, D1, R1, P1, rectified_size,
+        ...)`` alone gives the maps prism3d rectifies with. Written for other tools; a rig
+        is read from ``K1 D1 K2 D2 R T`` and the split only."""
         s = self.split
+        rect = compute_rectification(self)
         return {
             "schema_version": SCHEMA_VERSION,
             "image_size": np.array(self.split.view_size, dtype=np.int32),
@@ -448,6 +453,12 @@ class StereoRig:
             "flip_left": int(s.flip_left),
             "flip_right": int(s.flip_right),
             "T_rig_left": self.T_rig_left,
+            "R1": rect.R1,
+            "R2": rect.R2,
+            "P1": rect.P1,
+            "P2": rect.P2,
+            "Q": rect.Q,
+            "rectified_size": np.array(rect.size, dtype=np.int32),
         }
 
     @classmethod

@@ -122,6 +122,31 @@ def test_yaml_round_trip_and_opencv_names(tmp_path):
     fs.release()
 
 
+@pytest.mark.parametrize("flip_right", [False, True])
+def test_yaml_rectifies_with_opencv_alone(tmp_path, flip_right):
+    """R1 R2 P1 P2 Q and rectified_size in the YAML: cv2.initUndistortRectifyMap alone
+    gives the maps prism3d rectifies with, and Q reprojects a disparity to our depth."""
+    import cv2
+
+    from prism3d.reconstruct.stereo.rectify import rectify_maps
+
+    rig = paper_rig(flip_right=flip_right)
+    rig.save(tmp_path / "rig.yaml")
+    fs = cv2.FileStorage(str(tmp_path / "rig.yaml"), cv2.FILE_STORAGE_READ)
+    m = {k: fs.getNode(k).mat() for k in ("K1", "D1", "K2", "D2", "R1", "R2", "P1", "P2", "Q", "rectified_size")}
+    fs.release()
+    size = tuple(int(v) for v in m["rectified_size"].ravel())
+    ours = rectify_maps(rig, compute_rectification(rig))
+    for K, D, R, P, (x, y) in ((m["K1"], m["D1"], m["R1"], m["P1"], (ours.left_x, ours.left_y)),
+                               (m["K2"], m["D2"], m["R2"], m["P2"], (ours.right_x, ours.right_y))):
+        mx, my = cv2.initUndistortRectifyMap(K, D, R, P, size, cv2.CV_32FC1)
+        np.testing.assert_allclose(mx, x, atol=1e-3)
+        np.testing.assert_allclose(my, y, atol=1e-3)
+    rect = compute_rectification(rig)
+    pts = cv2.reprojectImageTo3D(np.full((4, 4), 20.0, np.float32), m["Q"])
+    assert pts[0, 0, 2] == pytest.approx(float(rect.disparity_to_depth(np.array([20.0]))[0]), rel=1e-5)
+
+
 def test_yaml_from_plain_opencv_stereo_file(tmp_path):
     from prism3d.io.opencv_yaml import write_filestorage
 
