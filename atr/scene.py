@@ -106,17 +106,6 @@ class SceneChannels:
     """Pixels per label (0: the background)."""
     _normals: NDArray[np.float32] | None = None
     _object_depth: NDArray[np.float32] | None = None
-    _slices: list | None = None
-
-    def object_pixels(self, lab: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-        """Rows and columns of object ``lab``'s pixels (its bounding box found once per scene)."""
-        if self._slices is None:
-            self._slices = ndimage.find_objects(self.labels)
-        s = self._slices[lab - 1] if 0 < lab <= len(self._slices) else None
-        if s is None:
-            return np.zeros(0, np.intp), np.zeros(0, np.intp)
-        rr, cc = np.nonzero(self.labels[s] == lab)
-        return rr + s[0].start, cc + s[1].start
 
     @property
     def object_depth_mm(self) -> NDArray[np.float64]:

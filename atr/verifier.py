@@ -26,21 +26,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.atr.bank import FilterBank, spectrum_metrics
-from prism3d.atr.scene import (
-    DetectOptions,
-    SceneChannels,
-    bank_scale,
-    chip_channel,
-    class_size,
-    project,
-)
+from prism3d.atr.scene import DetectOptions, SceneChannels, bank_scale, chip_channel, class_size, project
 from prism3d.errors import InputError
 from prism3d.io.model_file import read_model_npz, write_model_npz
 
 __all__ = ["NONE", "RECOGNISER_SCHEMA_VERSION", "SceneRecogniser", "Verifier", "detect_objects",
-           "filter_features", "object_features", "object_gate", "object_stats", "n_size_features", "size_features", "train_prefilter", "train_verifier"]
+           "filter_features", "object_features", "object_gate", "n_size_features", "size_features", "train_prefilter", "train_verifier"]
 
-RECOGNISER_SCHEMA_VERSION = 2
+RECOGNISER_SCHEMA_VERSION = 1
 #: The verifier's label for "not a target".
 NONE = "none"
 #: An object is looked at when it has this many pixels, stands this high and is this long
@@ -133,76 +126,28 @@ def _pce_per_class(bank: FilterBank, scene: SceneChannels, r: float, c: float, z
     return out
 
 
-def object_stats(scene: SceneChannels, lab: int) -> tuple[float, ...]:
-    """Robust measures of object ``lab`` beside :attr:`SceneChannels.object_dims_mm`:
-    its extents across and down the image at its range (mm; precise where the footprint
-    is smeared along the line of sight by stereo noise), the share of its 2-98 % pixel box
-    it fills, its 50/75/90th height percentiles above the ground (mm), its footprint's
-    length and width between the 5th and 95th percentiles along its principal axes (mm),
-    and the spread of its depth (mm). Geometry only: the grey level carries the paint,
-    which a simulator cannot promise for a real target."""
-    rr, cc = scene.object_pixels(lab)
-    if rr.size < 5:
-        return (100.0, 100.0, 1.0, 50.0, 50.0, 50.0, 100.0, 100.0, 1.0)
-    K = scene.K
-    z = float(scene.object_xyz_mm[lab][2])
-    c0, c1 = np.percentile(cc, [2, 98])
-    r0, r1 = np.percentile(rr, [2, 98])
-    across, down = (c1 - c0 + 1) * z / K[0, 0], (r1 - r0 + 1) * z / K[1, 1]
-    fill = rr.size / ((c1 - c0 + 1) * (r1 - r0 + 1))
-    h = scene.height_mm[rr, cc]
-    h = h[np.isfinite(h)]
-    h50, h75, h90 = (float(v) for v in np.percentile(h, [50, 75, 90])) if h.size else (50.0, 50.0, 50.0)
-    d = scene.range_mm if scene.smooth_depth_mm is None else scene.smooth_depth_mm
-    dz = d[rr, cc].astype(np.float64)
-    ok = np.isfinite(dz)
-    L2 = W2 = 100.0
-    dstd = 1.0
-    if ok.sum() > 10:
-        dz = dz[ok]
-        P = np.stack([(cc[ok] - K[0, 2]) * dz / K[0, 0], (rr[ok] - K[1, 2]) * dz / K[1, 1], dz], axis=1)
-        up = np.asarray(scene.up, dtype=np.float64)
-        e1 = np.cross(up, [0.0, 0.0, 1.0])
-        e1 /= np.linalg.norm(e1)
-        ab = np.stack([P @ e1, P @ np.cross(up, e1)], axis=1)
-        ab -= np.median(ab, axis=0)
-        _, V = np.linalg.eigh(np.cov(ab.T))
-        pr = ab @ V
-        ext = np.percentile(pr, 95, axis=0) - np.percentile(pr, 5, axis=0)
-        L2, W2 = float(ext.max()), float(ext.min())
-        dstd = float(np.std(dz - np.median(dz)))
-    return (float(across), float(down), float(fill), h50, h75, h90, L2, W2, dstd)
-
-
 def size_features(banks: Sequence[FilterBank], targets: Sequence[str], scene: SceneChannels, lab: int
                   ) -> NDArray[np.float64]:
     """The cheap part of an object's features: its size and area against each target
-    class's, its range, and :func:`object_stats` (module docstring)."""
+    class's, its range (module docstring)."""
     z = float(scene.object_xyz_mm[lab][2])
     feats: list[float] = []
     L, W, H = (max(float(v), 100.0) for v in scene.object_dims_mm[lab])
     ext = class_size(banks[0].metadata, "class_extent_mm", list(targets))
     f = float(scene.K[0, 0])
-    across, down, fill, h50, h75, h90, L2, W2, dstd = object_stats(scene, lab)
-    h50, h75, h90 = (max(v, 50.0) for v in (h50, h75, h90))
-    L2, W2 = max(L2, 100.0), max(W2, 100.0)
     for t in targets:
         e = ext[t]
         cl, cw, ch = max(e[0], e[1]), min(e[0], e[1]), e[2]
         expected_px = cl * ch * (f / z) ** 2 * 0.6
         feats += [abs(math.log(L / cl)), abs(math.log(H / ch)), math.log(W / cw),
-                  math.log(max(float(scene.object_npx[lab]), 1.0) / expected_px),
-                  abs(math.log(L2 / cl)), math.log(W2 / cw), abs(math.log(h90 / ch))]
-    feats += [math.log(L), math.log(W), math.log(H), math.log(z), math.log(max(float(scene.object_npx[lab]), 1.0)),
-              math.log(max(across, 100.0)), math.log(max(down, 100.0)), fill,
-              math.log(h50), math.log(h75), math.log(h90), h50 / h90, math.log(L2), math.log(W2),
-              math.log(max(dstd, 1.0))]
+                  math.log(max(float(scene.object_npx[lab]), 1.0) / expected_px)]
+    feats += [math.log(L), math.log(W), math.log(H), math.log(z), math.log(max(float(scene.object_npx[lab]), 1.0))]
     return np.asarray(feats, dtype=np.float64)
 
 
 def n_size_features(n_targets: int) -> int:
-    """How many :func:`size_features` an object has (7 per target class, 15 shared)."""
-    return 7 * n_targets + 15
+    """How many :func:`size_features` an object has (4 per target class, 5 shared)."""
+    return 4 * n_targets + 5
 
 
 def filter_features(banks: Sequence[FilterBank], targets: Sequence[str], scene: SceneChannels, lab: int

@@ -32,10 +32,10 @@ from prism3d.atr.hog_svm import HogSvm
 from prism3d.atr.scene_eval import score_scenes
 from prism3d.atr.verifier import SceneRecogniser
 from prism3d.capture.rig import StereoRig
-from prism3d.datasets.database.resolve import resolve_targets
+from prism3d.datasets.simulation.field import FieldOptions, simulate_field, simulate_field_batch
 from prism3d.datasets.jobs.database_jobs import RunOptions
 from prism3d.datasets.jobs.mining import MiningOptions, train_scene_recogniser
-from prism3d.datasets.simulation.field import FieldOptions, simulate_field, simulate_field_batch
+from prism3d.datasets.database.resolve import resolve_targets
 from prism3d.io.images import read_image
 from prism3d.reconstruct.stereo.pipeline import (
     ReconstructOptions,
@@ -59,7 +59,6 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "field_scenes.json")
     ap.add_argument("--recogniser", type=Path, help="a trained recogniser (default: train one with the defaults)")
     ap.add_argument("--workers", type=int, default=2, help="mining scenes' Dask workers when training")
-    ap.add_argument("--save", type=Path, help="keep the recogniser trained here (.npz)")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -78,8 +77,6 @@ def main() -> None:
     else:
         recogniser = train_scene_recogniser(targets, CLASSES, options=MiningOptions(chip_spec=BANK_CHIP_SPEC),
                                             run=RunOptions(workers=a.workers))
-        if a.save is not None:
-            recogniser.save(a.save)
     t_rec = time.perf_counter() - t_rec
     banks = {c: train_bank(targets, channel=c, chip_spec=BANK_CHIP_SPEC) for c in a.channels}
     hogs = {} if a.no_hog else {c: HogSvm.train(targets, channel=c, chip_spec=BANK_CHIP_SPEC) for c in a.channels}
