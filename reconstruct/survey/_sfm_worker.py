@@ -207,13 +207,19 @@ def main(argv: list[str]) -> int:
         chan.write(f"stage {name}\n")
         chan.flush()
 
-    import numpy as np
-    import pycolmap
-
     req = json.loads(Path(argv[0]).read_text())
     if req.get("schema_version") != SCHEMA_VERSION:
         print(f"request schema_version {req.get('schema_version')!r} is not {SCHEMA_VERSION}", file=sys.stderr)
         return 2
+    _run(req, stage)
+    return 0
+
+
+def _run(req: dict, stage) -> None:
+    """Features, matching and mapping for one request; ``stage(name)`` reports each."""
+    import numpy as np
+    import pycolmap
+
     db = Path(req["database"])
     image_dir = Path(req["image_dir"])
     names = list(req["image_names"])
@@ -256,7 +262,6 @@ def main(argv: list[str]) -> int:
         _write_model(pycolmap, np, req, ranked[0])
     stage("done")
     _atomic(Path(req["result_json"]), lambda p: p.write_text(json.dumps(info, indent=1)))
-    return 0
 
 
 if __name__ == "__main__":
