@@ -14,7 +14,7 @@ from typing import IO
 
 from prism3d.errors import InputError, Prism3dError
 
-__all__ = ["check_outputs", "atomic_path", "atomic_paths", "atomic_open", "atomic_write_bytes", "atomic_write_text", "staged_folder"]
+__all__ = ["check_outputs", "atomic_path", "atomic_paths", "atomic_open", "atomic_write_bytes", "atomic_write_text", "output_lock", "staged_folder"]
 
 
 @contextlib.contextmanager
@@ -122,24 +122,98 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def output_lock(target: str | Path) -> Iterator[Path]:
+    """Own the output folder ``target`` while it is written: a lock file beside it
+    (``.NAME.lock``: this process's host and pid) that a second writer sees and is
+    refused by with one line. A lock left by a dead process of this host is taken over,
+    and the staging folders it lists are removed. Yields the lock's path."""
+    import json
+    import shutil
+    import socket
+
+    t = Path(target)
+    lock = t.parent / f".{t.name}.lock"
+    me = {"host": socket.gethostname(), "pid": os.getpid(), "stages": []}
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                other = json.loads(lock.read_text())
+                host, pid = str(other["host"]), int(other["pid"])
+            except (OSError, ValueError, KeyError, TypeError):
+                host, pid, other = me["host"], -1, {}  # unreadable: a writer died mid-write
+            if host != me["host"] or (pid > 0 and _alive(pid)):
+                raise InputError(f"{t}: another prism3d process ({host}, pid {pid}) is writing it; wait for it "
+                                 f"or give another folder (a lock left by a crash: remove {lock})") from None
+            for st in other.get("stages", []) if isinstance(other.get("stages"), list) else []:
+                sp = Path(str(st))
+                if sp.parent == t.parent and sp.name.startswith(f".{t.name}.") and sp.name.endswith(".tmp"):
+                    shutil.rmtree(sp, ignore_errors=True)  # the dead writer's half-written outputs
+            with contextlib.suppress(FileNotFoundError):
+                lock.unlink()
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(me))
+        break
+    else:
+        raise InputError(f"{t}: could not take its lock {lock}")
+    try:
+        yield lock
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            lock.unlink()
+
+
+def _note_stage(lock: Path, stage: Path) -> None:
+    """Record a staging folder in the lock, so a run after a crash can remove it."""
+    import json
+
+    doc = json.loads(lock.read_text())
+    doc["stages"] = [*doc.get("stages", []), str(stage)]
+    tmp = lock.with_name(lock.name + ".tmp")
+    tmp.write_text(json.dumps(doc))
+    os.replace(tmp, lock)
+
+
 @contextlib.contextmanager
 def staged_folder(out_dir: str | Path) -> Iterator[Path]:
     """Yield a temporary folder beside ``out_dir`` to write a command's outputs into;
     on success they move into ``out_dir`` together (one rename when it does not exist
-    yet), on any exception they are removed and ``out_dir`` is left as it was."""
-    import shutil
-
+    yet), on any exception they are removed and ``out_dir`` is left as it was. The
+    folder is owned while written (:func:`output_lock`): a second writer is refused."""
     target = Path(out_dir)
     if target.exists() and not target.is_dir():
         raise InputError(f"{target}: exists and is not a folder")
     target.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+    with output_lock(target) as lock:
+        stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+        _note_stage(lock, stage)
+        with _staged(stage, target):
+            yield stage
+
+
+@contextlib.contextmanager
+def _staged(stage: Path, target: Path) -> Iterator[None]:
+    import shutil
+
     mask = os.umask(0)
     os.umask(mask)
     stage.chmod(0o777 & ~mask)  # as a folder made by mkdir would be, not mkdtemp's 0700
     try:
         try:
-            yield stage
+            yield
         except (OSError, Prism3dError) as exc:  # name the output, not the staging folder
             renamed = _renamed(exc, str(stage), str(target))
             if renamed is exc:

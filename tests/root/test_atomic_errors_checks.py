@@ -115,3 +115,42 @@ def test_staged_folder_all_or_nothing(tmp_path):
         (stage / "a.txt").write_text("new")
     assert (out / "a.txt").read_text() == "new" and (out / "sub" / "b.txt").read_text() == "b"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_an_output_folder_has_one_writer(tmp_path):
+    """A second writer of a folder being written is refused with one line and changes
+    nothing; the lock goes with the first writer."""
+    from prism3d.io.atomic import staged_folder
+
+    out = tmp_path / "out"
+    with staged_folder(out) as stage:
+        (stage / "a.txt").write_text("first")
+        with pytest.raises(InputError, match="another prism3d process .* is writing it"):
+            with staged_folder(out) as other:
+                (other / "a.txt").write_text("second")
+    assert (out / "a.txt").read_text() == "first"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no lock, no staging folder left
+
+
+def test_a_dead_writers_lock_and_staging_are_taken_over(tmp_path):
+    """A lock left by a process that died (kill -9) is taken over, and the staging folder
+    it had started is removed."""
+    import json
+    import socket
+    import subprocess
+    import sys
+
+    from prism3d.io.atomic import staged_folder
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True)
+    pid = int(dead.stdout)  # that process has exited
+    out = tmp_path / "out"
+    left = tmp_path / ".out.abc123.tmp"
+    left.mkdir()
+    (left / "half.bin").write_bytes(b"x")
+    (tmp_path / ".out.lock").write_text(json.dumps({"host": socket.gethostname(), "pid": pid,
+                                                     "stages": [str(left)]}))
+    with staged_folder(out) as stage:
+        (stage / "a.txt").write_text("a")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

@@ -464,3 +464,29 @@ def test_a_signal_mid_run_leaves_nothing_behind(tmp_path, sig, code, word):
     assert proc.returncode == code, err
     assert err.strip().splitlines()[-1].endswith(word) and "Traceback" not in err
     assert list(work.iterdir()) == []
+
+
+def test_two_writers_of_one_output_folder(tmp_path):
+    """A command into a folder another process is writing is refused with one line and
+    touches nothing; the writer's output then appears whole."""
+    out = tmp_path / "f"
+    go = tmp_path / "go"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import pathlib, sys, time\n"
+        "from prism3d.io.atomic import staged_folder\n"
+        f"with staged_folder({str(out)!r}) as st:\n"
+        "    (st / 'a.txt').write_text('first')\n"
+        f"    while not pathlib.Path({str(go)!r}).exists():\n"
+        "        time.sleep(0.05)\n")])
+    lock = tmp_path / ".f.lock"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not lock.exists():
+        time.sleep(0.05)
+    second = subprocess.run([sys.executable, "-m", "prism3d.cli", "-q", "simulate", "field", str(out)],
+                            capture_output=True, text=True, timeout=300)
+    go.write_text("")
+    assert holder.wait(timeout=60) == 0
+    assert second.returncode == 2 and "is writing it" in second.stderr, second.stderr
+    assert len(second.stderr.strip().splitlines()) == 1
+    assert [p.name for p in out.iterdir()] == ["a.txt"] and (out / "a.txt").read_text() == "first"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f", "go"]
