@@ -164,8 +164,13 @@ def output_lock(target: str | Path) -> Iterator[Path]:
             with contextlib.suppress(FileNotFoundError):
                 lock.unlink()
             continue
-        with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(me))
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(json.dumps(me))
+        except BaseException:  # a full disk: no lock left behind
+            with contextlib.suppress(FileNotFoundError):
+                lock.unlink()
+            raise
         break
     else:
         raise InputError(f"{t}: could not take its lock {lock}")
@@ -183,8 +188,13 @@ def _note_stage(lock: Path, stage: Path) -> None:
     doc = json.loads(lock.read_text())
     doc["stages"] = [*doc.get("stages", []), str(stage)]
     tmp = lock.with_name(lock.name + ".tmp")
-    tmp.write_text(json.dumps(doc))
-    os.replace(tmp, lock)
+    try:
+        tmp.write_text(json.dumps(doc))
+        os.replace(tmp, lock)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
 
 
 @contextlib.contextmanager
@@ -197,9 +207,15 @@ def staged_folder(out_dir: str | Path) -> Iterator[Path]:
     if target.exists() and not target.is_dir():
         raise InputError(f"{target}: exists and is not a folder")
     target.parent.mkdir(parents=True, exist_ok=True)
+    import shutil
+
     with output_lock(target) as lock:
         stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
-        _note_stage(lock, stage)
+        try:
+            _note_stage(lock, stage)
+        except BaseException:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise
         with _staged(stage, target):
             yield stage
 
