@@ -448,25 +448,39 @@ def test_detect_on_an_image_and_depth_map(tmp_path):
 
 
 @pytest.mark.parametrize("sig, code, word", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
-def test_a_signal_mid_run_leaves_nothing_behind(tmp_path, sig, code, word):
-    """SIGTERM unwinds like Ctrl-C: one line, its exit code, no output and no staging
-    folder left beside it."""
+def test_a_signal_mid_run_leaves_nothing_behind(tmp_path, monkeypatch, capsys, sig, code, word):
+    """SIGTERM unwinds like Ctrl-C: a command signalled while it writes its staged outputs
+    says so in one line, exits 143 (130 for SIGINT), and leaves no output, staging folder
+    or lock; the caller's own SIGTERM handler is back afterwards."""
+    import os
+
+    import prism3d.cli as cli
+    from prism3d.io.atomic import staged_folder
+
     work = tmp_path / "w"
     work.mkdir()
-    # the default SIGINT in the child: a shell's background job (as CI may run us) starts
-    # with SIGINT ignored, and a program must keep what it was given
-    proc = subprocess.Popen([sys.executable, "-m", "prism3d.cli", "-q", "simulate", "field", str(work / "f")],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and not list(work.glob(".f.*.tmp")):  # wait until it is writing
-        time.sleep(0.05)
-    time.sleep(1.5)
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == code, err
-    assert err.strip().splitlines()[-1].endswith(word) and "Traceback" not in err
+    seen = []
+
+    def writes_then_is_signalled(args):
+        with staged_folder(work / "f") as stage:
+            (stage / "half.bin").write_bytes(b"x" * 1000)
+            seen.append(sorted(p.name for p in work.iterdir()))
+            os.kill(os.getpid(), sig)
+            time.sleep(5)  # the handler interrupts this
+        return 0
+
+    monkeypatch.setattr(cli, "_cmd_simulate_field", writes_then_is_signalled)
+    before = signal.getsignal(signal.SIGTERM)
+    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # as an interactive run has it
+    try:
+        rc = cli.main(["simulate", "field", str(work / "f")])
+    finally:
+        signal.signal(signal.SIGINT, old_int)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert seen and any(n.endswith(".tmp") for n in seen[0]) and ".f.lock" in seen[0]  # it was writing
+    assert rc == code and err[-1].endswith(word) and "Traceback" not in "\n".join(err)
     assert list(work.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is before
 
 
 def test_two_writers_of_one_output_folder(tmp_path):
