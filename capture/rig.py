@@ -437,7 +437,6 @@ class StereoRig:
         ...)`` alone gives the maps prism3d rectifies with. Written for other tools; a rig
         is read from ``K1 D1 K2 D2 R T`` and the split only."""
         s = self.split
-        rect = compute_rectification(self)
         return {
             "schema_version": SCHEMA_VERSION,
             "image_size": np.array(self.split.view_size, dtype=np.int32),
@@ -453,12 +452,7 @@ class StereoRig:
             "flip_left": int(s.flip_left),
             "flip_right": int(s.flip_right),
             "T_rig_left": self.T_rig_left,
-            "R1": rect.R1,
-            "R2": rect.R2,
-            "P1": rect.P1,
-            "P2": rect.P2,
-            "Q": rect.Q,
-            "rectified_size": np.array(rect.size, dtype=np.int32),
+            **compute_rectification(self).to_filestorage(),
         }
 
     @classmethod
@@ -603,6 +597,11 @@ class Rectification:
         for name, shape in (("R1", (3, 3)), ("R2", (3, 3)), ("P1", (3, 4)), ("P2", (3, 4)), ("Q", (4, 4))):
             object.__setattr__(self, name, _frozen_array(check_array(getattr(self, name), name, shape=shape)))
         object.__setattr__(self, "size", (int(self.size[0]), int(self.size[1])))
+
+    def to_filestorage(self) -> dict[str, Any]:
+        """``R1 R2 P1 P2 Q rectified_size``: ``cv2.stereoRectify``'s names, as FileStorage entries."""
+        return {"R1": self.R1, "R2": self.R2, "P1": self.P1, "P2": self.P2, "Q": self.Q,
+                "rectified_size": np.array(self.size, dtype=np.int32)}
 
     @property
     def focal_px(self) -> float:

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import psutil
+
 from prism3d.errors import DatasetError
 from prism3d.progress import ProgressFn
 from prism3d.reconstruct.survey.run import dense_pair
@@ -82,8 +84,6 @@ WORKERS_PER_CORE = 4
 def max_local_workers() -> int:
     """The most local Dask workers this machine can hold: :data:`WORKERS_PER_CORE` a core,
     and each with :data:`WORKER_BASE_MIB` of the memory available now (at least 1)."""
-    import psutil
-
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     mem = int(psutil.virtual_memory().available) // (WORKER_BASE_MIB * 2**20)
     return max(1, min(WORKERS_PER_CORE * cores, mem))

@@ -267,9 +267,8 @@ def _add_simulate(sub: Any) -> None:
     ksub = p.add_subparsers(dest="kind", metavar="KIND", required=True, parser_class=_Parser)
 
     def kind(name: str, run: Handler, help: str, supersample: str) -> argparse.ArgumentParser:
-        q = ksub.add_parser(name, help=help, description=help[0].upper() + help[1:] + ".")
-        _global_options(q, top=False)
-        q.set_defaults(func=run, kind=name)
+        q = _command(ksub, name, run, help=help, description=help[0].upper() + help[1:] + ".")
+        q.set_defaults(kind=name)
         _simulate_common(q, supersample=supersample)
         return q
 

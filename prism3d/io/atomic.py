@@ -6,7 +6,10 @@ An interrupted run leaves either the old file or the new one, never half of one.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import shutil
+import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -138,9 +141,6 @@ def output_lock(target: str | Path) -> Iterator[Path]:
     (``.NAME.lock``: this process's host and pid) that a second writer sees and is
     refused by with one line. A lock left by a dead process of this host is taken over,
     and the staging folders it lists are removed. Yields the lock's path."""
-    import json
-    import shutil
-    import socket
 
     t = Path(target)
     lock = t.parent / f".{t.name}.lock"
@@ -183,8 +183,6 @@ def output_lock(target: str | Path) -> Iterator[Path]:
 
 def _note_stage(lock: Path, stage: Path) -> None:
     """Record a staging folder in the lock, so a run after a crash can remove it."""
-    import json
-
     doc = json.loads(lock.read_text())
     doc["stages"] = [*doc.get("stages", []), str(stage)]
     tmp = lock.with_name(lock.name + ".tmp")
@@ -207,8 +205,6 @@ def staged_folder(out_dir: str | Path) -> Iterator[Path]:
     if target.exists() and not target.is_dir():
         raise InputError(f"{target}: exists and is not a folder")
     target.parent.mkdir(parents=True, exist_ok=True)
-    import shutil
-
     with output_lock(target) as lock:
         stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
         try:
@@ -222,8 +218,6 @@ def staged_folder(out_dir: str | Path) -> Iterator[Path]:
 
 @contextlib.contextmanager
 def _staged(stage: Path, target: Path) -> Iterator[None]:
-    import shutil
-
     mask = os.umask(0)
     os.umask(mask)
     stage.chmod(0o777 & ~mask)  # as a folder made by mkdir would be, not mkdtemp's 0700

@@ -194,12 +194,7 @@ def save_rectification(path: str | Path, rect: Rectification, rig: StereoRig | N
     """
     values: dict = {
         "schema_version": 1,
-        "R1": rect.R1,
-        "R2": rect.R2,
-        "P1": rect.P1,
-        "P2": rect.P2,
-        "Q": rect.Q,
-        "rectified_size": np.array(rect.size, dtype=np.int32),
+        **rect.to_filestorage(),
         "focal_px": rect.focal_px,
         "baseline_mm": rect.baseline_mm,
     }

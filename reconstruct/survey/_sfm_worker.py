@@ -14,9 +14,11 @@ chosen model in COLMAP's text format.
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import shutil
+import signal
 import sys
 import time
 from pathlib import Path
@@ -183,9 +185,6 @@ def die_with_parent() -> None:
     before the call ends this process at once."""
     parent = os.getppid()
     if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
         try:
             ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
         except (OSError, AttributeError):
