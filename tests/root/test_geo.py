@@ -71,3 +71,54 @@ def test_beyond_utm_and_bad_sites_are_refused():
         local_enu_crs_wkt(95.0, 0.0)
     with pytest.raises(InputError, match="finite"):
         enu_to_wgs84([[np.inf, 0.0, 0.0]], [0.0, 0.0, 0.0])
+
+
+def test_map_frame_against_transverse_mercator_facts():
+    """UTM from the site's ENU frame: a round trip to 1e-6 m; the grid's north turned from
+    true north by the meridian convergence (tan(dlon) sin(lat), spherical, to 0.01 deg);
+    map distances the ENU distances times UTM's scale (0.9996 on the central meridian,
+    growing as 1 + x^2 / 2R^2 away from it), heights the ellipsoidal heights."""
+    from prism3d.geo import MapFrame
+
+    o = (35.0, 139.5, 0.0)  # zone 54 (central meridian 141 E)
+    f = MapFrame.for_site(None, np.array(o))
+    assert f.epsg == 32654 and not f.local
+    rng = np.random.default_rng(0)
+    P = rng.uniform([-2000, -2000, 0], [2000, 2000, 300], (200, 3))
+    Q = f.enu_to_map(P)
+    np.testing.assert_allclose(f.map_to_enu(Q), P, atol=1e-6)
+    lla = f.map_to_lla(Q)
+    np.testing.assert_allclose(lla, enu_to_wgs84(P, np.array(o)), atol=1e-9)
+    gamma = np.degrees(np.arctan(np.tan(np.radians(139.5 - 141.0)) * np.sin(np.radians(35.0))))
+    assert float(f.grid_north_deg(Q[:1])[0]) == pytest.approx(gamma, abs=0.01)
+    a, b = np.array([[0.0, 0.0, 0.0]]), np.array([[1000.0, 0.0, 0.0]])
+    d_map = np.linalg.norm(f.enu_to_map(b)[0, :2] - f.enu_to_map(a)[0, :2])
+    x = f.enu_to_map(a)[0, 0] - 500000.0
+    k = 0.9996 * (1 + x**2 / (2 * 6371000.0**2))
+    assert d_map == pytest.approx(1000.0 * k, rel=2e-5)
+    # a point 1 km away on the tangent plane lies 7.8 cm above the ellipsoid
+    assert f.enu_to_map([[1000.0, 0.0, 0.0]])[0, 2] == pytest.approx(1000.0**2 / (2 * 6371000.0), rel=0.01)
+    # the local frame is the identity
+    loc = MapFrame.for_site("enu", np.array(o))
+    assert loc.local and np.array_equal(loc.enu_to_map(P), P) and "Orthographic" in loc.crs_wkt
+
+
+@pytest.mark.parametrize("spec,msg", [("EPSG:4326", "not a projected CRS"), ("EPSG:2000000", "PROJ knows"),
+                                      ("utm33", "expected utm"), ("EPSG:", "expected utm"),
+                                      ("EPSG:2249", "US survey foot")])
+def test_bad_crs_requests_are_refused(spec, msg):
+    from prism3d.geo import parse_crs
+
+    with pytest.raises(InputError, match=msg):
+        parse_crs(spec)
+
+
+def test_crs_without_gps_is_refused_and_the_default_is_utm():
+    from prism3d.geo import MapFrame
+
+    with pytest.raises(InputError, match="no GPS"):
+        MapFrame.for_site("utm", None)
+    assert MapFrame.for_site(None, None) is None
+    assert MapFrame.for_site("EPSG:3857", np.array([35.0, 139.5, 0.0])).epsg == 3857
+    assert MapFrame.for_site(None, np.array([-33.9, 18.4, 0.0])).epsg == 32734
+    assert MapFrame.for_site(None, np.array([85.0, 10.0, 0.0])).local  # beyond UTM: the local frame
