@@ -29,12 +29,13 @@ from typing import Any
 
 import cv2
 import numpy as np
+import pyproj
 from numpy.typing import NDArray
 
 from prism3d.atr.aerial import DEFAULT_THRESHOLD
 from prism3d.capture.render import RaycastRenderer
 from prism3d.errors import InputError
-from prism3d.geo import enu_to_wgs84
+from prism3d.geo import MapFrame, enu_to_wgs84
 from prism3d.io.atomic import atomic_paths, atomic_write_text
 from prism3d.io.geo import read_geotiff
 
@@ -252,6 +253,8 @@ class SurveyScene:
     north: float
     gsd: float
     origin_lla: tuple[float, float, float] | None
+    frame: MapFrame | None = None
+    """The map grid's ties to WGS84 and the survey's local frame (None without GPS)."""
 
 
 def _read_checked(path: Path, what: str) -> tuple[NDArray, dict]:
@@ -278,6 +281,7 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
         raise InputError(f"{d / 'ortho.tif'}: expected an RGB(A) 8-bit orthophoto, got shape {o.shape} {o.dtype}")
     if (mo["crs_wkt"] or "") != (mn["crs_wkt"] or ""):
         raise InputError(f"{d / 'ortho.tif'}: in another coordinate system than ndsm.tif; both must come from one survey")
+    frame, lla = _survey_frame(d, mn["crs_wkt"])
     if gr is not None and (gr.shape != nd.shape or mg["west"] != mn["west"] or mg["north"] != mn["north"]):
         raise InputError(f"{d / 'ground.tif'}: not on ndsm.tif's grid; both must come from one survey")
     west, north, cell = float(mn["west"]), float(mn["north"]), float(mn["gsd"])
@@ -317,10 +321,28 @@ def load_survey_scene(survey_dir: str | Path, gsd: float, *, appearance: bool = 
     k = max(1, int(round(ROI_MARGIN_M / gsd)))
     roi = cv2.dilate((stand | hole).astype(np.uint8), np.ones((3, 3), np.uint8), iterations=k) > 0
     roi &= covered if appearance else np.isfinite(z) | ~stand
+    return SurveyScene(grey.astype(np.float32), rgb, z, g, roi, west, north, gsd, lla, frame)
+
+
+def _survey_frame(d: Path, crs_wkt: str | None) -> tuple[MapFrame | None, tuple[float, float, float] | None]:
+    """The survey's map frame and origin from its poses.json, the rasters' CRS checked
+    against it (a raster of another survey or reprojected by hand is refused)."""
     doc = json.loads((d / "poses.json").read_text()) if (d / "poses.json").is_file() else {}
-    lla = doc.get("origin_lla") if isinstance(doc, dict) else None
-    return SurveyScene(grey.astype(np.float32), rgb, z, g, roi, west, north, gsd,
-                       None if lla is None else tuple(float(v) for v in lla))
+    frame = MapFrame.from_record(doc) if isinstance(doc, dict) else None
+    if frame is not None and not _same_crs(crs_wkt, frame.crs_wkt):
+        raise InputError(f"{d / 'ndsm.tif'}: not in the survey's coordinate system ({frame.name}); "
+                         "both must come from one survey")
+    return frame, None if frame is None else frame.origin_lla
+
+
+def _same_crs(wkt: str | None, ref: str) -> bool:
+    """Whether a raster's CRS is the survey's (PROJ's equivalence, not the text)."""
+    if not wkt:
+        return False
+    try:
+        return bool(pyproj.CRS.from_user_input(wkt).equals(pyproj.CRS.from_user_input(ref), ignore_axis_order=True))
+    except pyproj.exceptions.CRSError:
+        return False
 
 
 def _ortho_on_grid(o: NDArray, mo: dict, X: NDArray, Y: NDArray, gsd: float
@@ -360,10 +382,12 @@ def _remap_rows(img: NDArray, mx: NDArray, my: NDArray, interp: int, *, nan: boo
     return out
 
 
-def _compass_deg(heading_rad: float) -> float:
-    """A heading counter-clockwise from east (the grid's +x) as a compass bearing of the
-    long axis, degrees in [0, 180) (front and back are not told apart)."""
-    return round((90.0 - math.degrees(heading_rad)) % 180.0, 1)
+def _compass_deg(heading_rad: float, grid_north_deg: float = 0.0) -> float:
+    """A heading counter-clockwise from the grid's +x (east) as a compass bearing of the
+    long axis from true north, degrees in [0, 180) (front and back are not told apart);
+    ``grid_north_deg`` the bearing of the grid's +y (the meridian convergence)."""
+    b = round((90.0 - math.degrees(heading_rad) + grid_north_deg) % 180.0, 1)
+    return 0.0 if b >= 180.0 else b
 
 
 def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *,
@@ -418,7 +442,7 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *
                                          "total": round(time.perf_counter() - t0, 2)}}
 
 
-_SURVEY_NAMES = {"poses.json", "cloud.ply", "cloud.las", "dsm.tif", "ndsm.tif", "ground.tif", "ortho.tif",
+_SURVEY_NAMES = {"poses.json", "cloud.ply", "cloud.las", "cloud.laz", "dsm.tif", "ndsm.tif", "ground.tif", "ortho.tif",
                  "ortho_quality.tif", "survey.png"}
 
 
@@ -434,14 +458,18 @@ def _feature(x: dict, scene: SurveyScene) -> dict[str, Any]:
         if np.isfinite(scene.ground).any() else 0.0
     pts = [(scene.west + (c + 0.5) * g, scene.north - (r + 0.5) * g)]
     pts += [(scene.west + (cc + 0.5) * g, scene.north - (rr + 0.5) * g) for rr, cc in x["corners_rc"]]
-    enu = np.array([[px, py, z] for px, py in pts])
-    lla = enu_to_wgs84(enu, np.asarray(scene.origin_lla, dtype=np.float64))
+    frame = scene.frame if scene.frame is not None else MapFrame(tuple(scene.origin_lla))
+    q = np.array([[px, py, z] for px, py in pts])
+    lla = frame.map_to_lla(q)
+    local = frame.map_to_enu(q[:1])[0]
     lonlat = [[round(float(b), 9), round(float(a), 9)] for a, b, _ in lla]
     ring = lonlat[1:] + [lonlat[1]]
-    props = {"class": x["class"], "score": round(float(x["score"]), 4), "heading_deg": _compass_deg(x["heading_rad"]),
+    heading = _compass_deg(x["heading_rad"], float(frame.grid_north_deg(q[:1])[0]))
+    props = {"class": x["class"], "score": round(float(x["score"]), 4), "heading_deg": heading,
              "footprint": {"type": "Polygon", "coordinates": [ring]},
              "length_m": round(float(x["length_m"]), 2), "width_m": round(float(x["width_m"]), 2),
-             "x_local": round(pts[0][0], 3), "y_local": round(pts[0][1], 3), "z_local": round(z, 3)}
+             "x_local": round(float(local[0]), 3), "y_local": round(float(local[1]), 3),
+             "z_local": round(float(local[2]), 3)}
     return {"type": "Feature", "geometry": {"type": "Point", "coordinates": lonlat[0]}, "properties": props}
 
 

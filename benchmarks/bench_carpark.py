@@ -32,6 +32,7 @@ from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 from prism3d.datasets.jobs.recognisers import aerial_recogniser
 from prism3d.datasets.database.resolve import resolve_targets
 from prism3d.datasets.evaluation.survey_eval import evaluate_survey
+from prism3d.geo import MapFrame
 from prism3d.io.geo import read_geotiff
 
 CLASSES = ["car", "van", "truck", "bus"]
@@ -60,10 +61,11 @@ def _templates(sd: Path, out: Path) -> float:
     tpls = nadir_templates(resolve_targets(CLASSES, scale="full"), cell)
     dets = find_vehicles(ndsm, cell, tpls, west=float(meta["west"]), north=float(meta["north"]))
     z = float(np.nanmedian(ground))
-    for d in dets:
-        d["z"] = z
-        d["score"] = (d["score"] + 1.0) / 2.0  # NCC in [-1, 1] -> [0, 1]; -1 (no class fits) -> 0
     doc = json.loads((sd / "poses.json").read_text())
+    frame = MapFrame.from_record(doc)  # the map grid's points into the local frame write_geojson takes
+    for d in dets:
+        d["x"], d["y"], d["z"] = (float(v) for v in frame.map_to_enu([[d["x"], d["y"], z]])[0])
+        d["score"] = (d["score"] + 1.0) / 2.0  # NCC in [-1, 1] -> [0, 1]; -1 (no class fits) -> 0
     write_geojson(out, [d for d in dets if d["score"] > 0], origin_lla=doc["origin_lla"])
     return time.perf_counter() - t0
 

@@ -70,6 +70,7 @@ from prism3d.datasets.runner import RunOptions, run_survey_pairs
 from prism3d.datasets.evaluation.survey_eval import evaluate_survey, ground_roughness
 from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import InputError
+from prism3d.geo import MapFrame
 from prism3d.geometry import rotation_angle_deg
 from prism3d.reconstruct.survey.run import SurveyOptions, run_survey
 
@@ -382,8 +383,10 @@ def _matched(survey_dir: Path, flight: Path, geojson: Path) -> tuple[list[dict],
     for f in feats:
         p = f["properties"]
         z = p.get("z_local")
-        if z is None:
-            z = _ground_z(ground, gmeta, p["x_local"], p["y_local"])
+        if z is None:  # the ground's map height there, as an ENU up
+            frame = MapFrame.from_record(poses_doc)
+            q = frame.enu_to_map([[p["x_local"], p["y_local"], 0.0]])[0]
+            z = float(frame.map_to_enu([[q[0], q[1], _ground_z(ground, gmeta, q[0], q[1])]])[0, 2])
             filled += 1
         q = fr.to_truth(np.array([[p["x_local"], p["y_local"], z]]))[0]
         dets.append({**{k: p.get(k) for k in ("score", "class", "template", "length_m", "width_m", "height_m")},

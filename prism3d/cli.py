@@ -1002,7 +1002,7 @@ def _cmd_survey(args: argparse.Namespace) -> int:
 
     opts = SurveyOptions(max_image_size=args.max_image_size, dense_max_pixels=args.dense_max_pixels,
                          pair_steps=tuple(args.pair_steps), cross_pairs=args.cross_pairs, cell_m=args.cell,
-                         ortho_gsd_m=args.ortho_gsd,
+                         ortho_gsd_m=args.ortho_gsd, crs=args.crs, laz=args.laz,
                          refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point)
     run_pairs = None
     if args.workers or args.scheduler:
@@ -1029,9 +1029,10 @@ def _add_survey(sub: Any) -> None:
                  "frame by the GPS (--gps table or EXIF; without either the scale is unknown and every "
                  "output says so); each frame matched with the next and the next-but-one by our stereo "
                  "matcher, the pairs' heights fused with a consistency check. Writes OUT/poses.json, "
-                 "cloud.ply, cloud.las, dsm.tif, ground.tif, ndsm.tif, ortho.tif (a true orthophoto at the photographs' "
-                 "own ground sample distance), ortho_quality.tif, survey.png, depth/ "
-                 "and colmap/ (a COLMAP text model). Method: docs/uav.md.")
+                 "cloud.ply (local frame), cloud.las (or .laz; ASPRS ground class), dsm.tif, ground.tif, ndsm.tif, "
+                 "ortho.tif (a true orthophoto at the photographs' own ground sample distance), ortho_quality.tif "
+                 "(Cloud-Optimised GeoTIFFs in the site's UTM zone by default, heights above the WGS84 ellipsoid), "
+                 "survey.png, depth/ and colmap/ (a COLMAP text model). Method: docs/uav.md.")
     p.add_argument("images", nargs="+", type=Path, metavar="IMAGE_OR_VIDEO",
                    help="frames in flight order, or one video (.mp4 .mov .avi .mkv .m4v)")
     p.add_argument("--video-step", type=float, default=1.0, metavar="S",
@@ -1044,6 +1045,10 @@ def _add_survey(sub: Any) -> None:
     p.add_argument("--cell", type=float, metavar="M", help="DSM cell, metres (default: twice the matched frames' ground sample distance)")
     p.add_argument("--ortho-gsd", type=float, metavar="M",
                    help="orthophoto cell, metres (default: the photographs' own ground sample distance)")
+    p.add_argument("--crs", metavar="utm|enu|EPSG:CODE",
+                   help="the products' coordinate system: utm (the site's zone, the default with GPS), enu (the "
+                   "local east-north-up frame at the first frame) or a projected EPSG code in metres")
+    p.add_argument("--laz", action="store_true", help="write the point cloud LASzip-compressed (cloud.laz)")
     p.add_argument("--pair-steps", type=int, nargs="+", default=[1, 2], metavar="K",
                    help="pair each frame with the one K later (default 1 2: the next and the next-but-one)")
     p.add_argument("--cross-pairs", action=argparse.BooleanOptionalAction, default=True,

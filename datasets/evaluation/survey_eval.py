@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from prism3d.atr.scene_eval import score_detections
 from prism3d.errors import InputError
-from prism3d.geo import enu_to_wgs84, wgs84_to_enu
+from prism3d.geo import MapFrame, enu_to_wgs84, wgs84_to_enu
 from prism3d.geometry import rotation_angle_deg
 from prism3d.io.geo import read_geotiff
 from prism3d.reconstruct.survey.sfm import similarity_align
@@ -99,9 +99,10 @@ def _seen_twice(G: NDArray, truth: dict, poses: list[NDArray]) -> NDArray[np.boo
     return seen >= 2
 
 
-def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames) -> dict[str, Any]:
+def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames, frame: MapFrame) -> dict[str, Any]:
     """Each true cell centre into the survey's frame (the alignment undone, then WGS84),
-    the estimated height there, and that estimated point back into the truth's frame."""
+    onto its map grid, the estimated height there, and that estimated point back into
+    the truth's frame."""
     import cv2
 
     gsd = float(truth["gsd_m"])
@@ -111,7 +112,7 @@ def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames) -> 
     yy, xx = np.mgrid[:H, :W]
     G = np.c_[west + (xx.ravel() + 0.5) * cell, north - (yy.ravel() + 0.5) * cell, tdsm.ravel()]
     okg = np.flatnonzero(np.isfinite(G[:, 2]))
-    Gs = wgs84_to_enu(enu_to_wgs84(((G[okg] - fr.t) @ fr.R) / fr.s, fr.to), fr.so)
+    Gs = frame.enu_to_map(wgs84_to_enu(enu_to_wgs84(((G[okg] - fr.t) @ fr.R) / fr.s, fr.to), fr.so))
     ei = np.floor((meta["north"] - Gs[:, 1]) / meta["gsd"]).astype(np.int64)
     ej = np.floor((Gs[:, 0] - meta["west"]) / meta["gsd"]).astype(np.int64)
     inside = (ei >= 0) & (ei < dsm.shape[0]) & (ej >= 0) & (ej < dsm.shape[1])
@@ -119,14 +120,12 @@ def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames) -> 
     ze[inside] = dsm[ei[inside], ej[inside]]
     fe = np.isfinite(ze)
     est = np.full(H * W, np.nan)
-    est[okg[fe]] = fr.to_truth(np.c_[Gs[fe, :2], ze[fe]])[:, 2]
+    est[okg[fe]] = fr.to_truth(frame.map_to_enu(np.c_[Gs[fe, :2], ze[fe]]))[:, 2]
     est = est.reshape(H, W)
-    r = max(1, int(round(OPEN_MARGIN_M / cell)))
-    near_obj = cv2.dilate((tid > 1).astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
     overlap = np.zeros(H * W, bool)
     overlap[okg] = _seen_twice(G[okg], truth, fr.true_poses)
     overlap = overlap.reshape(H, W)
-    open_ground = overlap & (tid <= 1) & ~near_obj
+    open_ground = overlap & _open_ground(tid, cell)
     e = (est - tdsm)[open_ground & np.isfinite(est)]
     if not len(e):
         raise InputError("evaluate: no open ground of the truth has an estimated height")
@@ -139,15 +138,55 @@ def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames) -> 
     }
 
 
-def _vehicle_scores(dsm: NDArray, ndsm: NDArray, meta: dict, truth: dict, fr: _Frames) -> dict[str, Any]:
+def _open_ground(tid: NDArray, cell: float) -> NDArray[np.bool_]:
+    """True cells of ground or road at least :data:`OPEN_MARGIN_M` from any object."""
+    import cv2
+
+    r = max(1, int(round(OPEN_MARGIN_M / cell)))
+    near_obj = cv2.dilate((tid > 1).astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
+    return (tid <= 1) & ~near_obj
+
+
+def _cloud_scores(path: Path, tz: Any, truth: dict, fr: _Frames, frame: MapFrame) -> dict[str, Any]:
+    """The LAS/LAZ cloud's classes against the truth: the share of its points over open
+    ground (:func:`_open_ground`) that are ASPRS class 2, and of its points on a vehicle
+    (inside a counted target's footprint, above half its height) that are not."""
+    import laspy
+
+    las = laspy.read(path)
+    P = fr.to_truth(frame.map_to_enu(np.c_[las.x, las.y, las.z]))
+    cls = np.asarray(las.classification)
+    tid = tz["object_id"]
+    west, north, cell = float(tz["west"]), float(tz["north"]), float(tz["cell_m"])
+    r = np.floor((north - P[:, 1]) / cell).astype(np.int64)
+    c = np.floor((P[:, 0] - west) / cell).astype(np.int64)
+    inside = (r >= 0) & (r < tid.shape[0]) & (c >= 0) & (c < tid.shape[1])
+    og = np.zeros(len(P), bool)
+    og[inside] = _open_ground(tid, cell)[r[inside], c[inside]]
+    on_vehicle = np.zeros(len(P), bool)
+    for tg in truth["targets"]:
+        if tg.get("confuser"):
+            continue
+        R = np.asarray(tg["T_enu_obj"], dtype=np.float64)[:3, :3]
+        local = (P - np.asarray(tg["xyz_enu"], dtype=np.float64)) @ R
+        on_vehicle |= (np.abs(local[:, 0]) <= tg["length_m"] / 2) & (np.abs(local[:, 1]) <= tg["width_m"] / 2) & \
+            (local[:, 2] >= tg["height_m"] / 2)
+    return {"points": int(len(P)), "open_ground_points": int(og.sum()),
+            "open_ground_class_2_fraction": float((cls[og] == 2).mean()) if og.any() else None,
+            "vehicle_points": int(on_vehicle.sum()),
+            "vehicle_not_ground_fraction": float((cls[on_vehicle] != 2).mean()) if on_vehicle.any() else None}
+
+
+def _vehicle_scores(dsm: NDArray, ndsm: NDArray, meta: dict, truth: dict, fr: _Frames, frame: MapFrame
+                    ) -> dict[str, Any]:
     """Each counted vehicle's height in the nDSM: the highest cell within its true
     footprint (the fused heights have passed the pairs' consistency check; a median
     filter would shave a turret's top, a few cells wide), against its true height."""
     nd = ndsm
     rr, cc = np.nonzero(np.isfinite(ndsm) & np.isfinite(dsm))
     # at their height: the alignment's tilt moves points sideways otherwise
-    Pn = fr.to_truth(np.c_[meta["west"] + (cc + 0.5) * meta["gsd"], meta["north"] - (rr + 0.5) * meta["gsd"],
-                           dsm[rr, cc]])
+    Pn = fr.to_truth(frame.map_to_enu(np.c_[meta["west"] + (cc + 0.5) * meta["gsd"],
+                                            meta["north"] - (rr + 0.5) * meta["gsd"], dsm[rr, cc]]))
     each = []
     for tg in truth["targets"]:
         if tg.get("confuser"):
@@ -200,9 +239,14 @@ def evaluate_survey(survey_dir: str | Path, flight_dir: str | Path, *, detection
     out, fr = _pose_scores(poses, truth)
     dsm, meta = read_geotiff(sd / "dsm.tif")
     ndsm, _ = read_geotiff(sd / "ndsm.tif")
+    frame = MapFrame.from_record(poses)
     with np.load(fd / "truth.npz") as tz:
-        out["dsm"] = _dsm_scores(dsm, meta, tz, truth, fr)
-    out["vehicles"] = _vehicle_scores(dsm, ndsm, meta, truth, fr)
+        out["dsm"] = _dsm_scores(dsm, meta, tz, truth, fr, frame)
+    out["vehicles"] = _vehicle_scores(dsm, ndsm, meta, truth, fr, frame)
+    cloud = next((p for p in (sd / "cloud.las", sd / "cloud.laz") if p.is_file()), None)
+    if cloud is not None:
+        with np.load(fd / "truth.npz") as tz:
+            out["cloud"] = _cloud_scores(cloud, tz, truth, fr, frame)
     if detections is not None:
         out["detection"] = _detection_scores(detections, truth, fr, radius_m, threshold)
     return out

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.errors import InputError
+from prism3d.geo import parse_crs
 
 __all__ = ["TwoViewPose", "DISPARITY_SIGMA_PX", "FusedSurface", "Georef", "PairRequest", "PairResult", "PairTile", "SURVEY_FILES",
            "SURVEY_SCHEMA_VERSION", "SurveyOptions", "SurveyState"]
@@ -86,6 +87,13 @@ class SurveyOptions:
     """Free the principal point in the bundle adjustment (poorly fixed by few nadir frames)."""
     matcher: str = "ours"
     """The dense matcher: ours, or "sgbm" (OpenCV's, the benchmarks' anchor)."""
+    crs: str | None = None
+    """The products' coordinate system: "utm" (the site's UTM zone; the default with GPS),
+    "enu" (the local east-north-up frame at the first frame), or "EPSG:<code>" of a
+    projected CRS in metres. Heights stay above the WGS84 ellipsoid. Without GPS the
+    products have no CRS and asking for one is an error."""
+    laz: bool = False
+    """Write the point cloud compressed (cloud.laz) instead of cloud.las."""
     lk_window: int = 9
     """Our matcher's sub-pixel (Lucas-Kanade) window, px, with 3 iterations: nadir pairs
     see ground that is flat at the window's scale, and a wider window than the stereo
@@ -108,6 +116,7 @@ class SurveyOptions:
         if isinstance(self.lk_window, bool) or int(self.lk_window) != self.lk_window or self.lk_window < 3 \
                 or self.lk_window % 2 == 0:
             raise InputError(f"lk_window: expected an odd integer >= 3, got {self.lk_window!r}")
+        object.__setattr__(self, "crs", parse_crs(self.crs))
         if self.matcher not in ("ours", "sgbm"):
             raise InputError(f"matcher: expected ours or sgbm, got {self.matcher!r}")
         if self.refine_intrinsics not in ("auto", "focal+distortion", "none"):

@@ -5,7 +5,9 @@ horizontal distance from the camera centre, i.e. the least off-nadir ray) among 
 in which it is not hidden, found through the DSM. The DSM's holes inside the covered
 area (dark cars, shadows, uniform asphalt) are filled by interpolation first, so the
 mosaic has no holes inside its coverage; a quality raster says which cells stood on a
-measured surface (1) and which on an interpolated one (2); 0 is outside the coverage.
+measured surface (1) and which on an interpolated one (2); 0 is outside the coverage. A
+pocket inside the coverage that no photograph sees (a gap between neighbouring frames'
+footprints) is coloured from around it and marked 3.
 
 Occlusion: each frame gets a z-buffer of the filled DSM at roughly the DSM's cell; a cell
 is hidden in a frame when it lies farther than the z-buffer there by more than
@@ -37,10 +39,15 @@ OCCLUSION_TOLERANCE_CELLS = 3.0
 MAX_ORTHO_CELLS = 500_000_000
 
 
+#: ENU (x, y) of the centres of an orthophoto's cells ``[r0, r1) x [c0, c1)``.
+CellCentres = Callable[[int, int, int, int], tuple[NDArray, NDArray]]
+
+
 @dataclass(frozen=True)
 class Orthophoto:
     """``rgba`` (H, W, 4) uint8 (alpha 0 outside the coverage), ``quality`` (H, W) uint8
-    (0 outside, 1 measured surface, 2 interpolated surface), north-west corner, ``gsd``
+    (0 outside, 1 measured surface, 2 interpolated surface, 3 colour carried in: no
+    photograph sees the cell), north-west corner, ``gsd``
     (m), and which frame coloured how many cells."""
 
     rgba: NDArray[np.uint8]
@@ -128,11 +135,14 @@ def _sample(img: NDArray[np.uint8], x: NDArray, y: NDArray) -> NDArray[np.uint8]
 
 def true_orthophoto(dsm: NDArray, west: float, north: float, cell: float, frames: Sequence[tuple[str, NDArray]],
                     K: NDArray, dist: NDArray, size: tuple[int, int], *, gsd: float | None = None,
+                    on_map: Callable[[float], tuple[tuple[float, float, int, int], CellCentres]] | None = None,
                     progress: Callable[[int, int, str], None] | None = None) -> Orthophoto:
     """The orthophoto over a DSM (row 0 north; cell (r, c) centred at ``west + (c + .5)
     cell``, ``north - (r + .5) cell``; NaN holes) from ``frames`` (image path,
     ``T_enu_cam``) of one camera (``K``, ``dist`` OpenCV, full-resolution ``size``) at
-    ``gsd`` (default :func:`photo_gsd`)."""
+    ``gsd`` (default :func:`photo_gsd`). The DSM and poses are in the local ENU frame;
+    the orthophoto is on the DSM's own grid, or with ``on_map`` (given the GSD: the map
+    grid's west, north, rows, columns and the ENU centres of its cells) on a map grid."""
     filled, coverage = fill_dsm(dsm)
     measured = np.isfinite(np.asarray(dsm, dtype=np.float32))
     # occlusion and the surface each cell stands on from the 3 x 3 median: isolated
@@ -150,31 +160,63 @@ def true_orthophoto(dsm: NDArray, west: float, north: float, cell: float, frames
     if Wo * Ho > MAX_ORTHO_CELLS:
         raise InputError(f"ortho GSD: {g:.4g} m over {W0 * cell:.0f} x {H0 * cell:.0f} m is {Wo * Ho:,} cells, "
                          f"more than {MAX_ORTHO_CELLS:,}; give a coarser --ortho-gsd")
+    ow, on = float(west), float(north)
+    if on_map is None:
+        def centres(r0: int, r1: int, c0: int, c1: int) -> tuple[NDArray, NDArray]:
+            X, Y = np.meshgrid(west + (np.arange(c0, c1) + 0.5) * g, north - (np.arange(r0, r1) + 0.5) * g)
+            return X, Y
+    else:
+        (ow, on, Ho, Wo), centres = on_map(g)
     rr, cc = np.nonzero(coverage)
     P = np.c_[west + (cc + 0.5) * cell, north - (rr + 0.5) * cell, filled[rr, cc]]
     zstep = max(1.0, cell / g)  # one z-buffer cell per DSM cell, in frame pixels
     zbufs = [_zbuffer(cam, Tc, P, zstep) for Tc in T_cam]
-    centres = np.array([np.asarray(T, dtype=np.float64)[:3, 3] for _, T in frames])
+    cam_xy = np.array([np.asarray(T, dtype=np.float64)[:3, 3] for _, T in frames])
     imgs = _Frames([p for p, _ in frames])
     rgba = np.zeros((Ho, Wo, 4), dtype=np.uint8)
     quality = np.zeros((Ho, Wo), dtype=np.uint8)
     used: dict[int, int] = {}
     tiles = [(r0, c0) for r0 in range(0, Ho, TILE) for c0 in range(0, Wo, TILE)]
     for t, (r0, c0) in enumerate(tiles):
-        _ortho_tile(r0, c0, min(Ho, r0 + TILE), min(Wo, c0 + TILE), g, west, north, cell, filled, coverage,
-                    measured, cam, T_cam, zbufs, centres, imgs, rgba, quality, used)
+        r1, c1 = min(Ho, r0 + TILE), min(Wo, c0 + TILE)
+        X, Y = centres(r0, r1, c0, c1)
+        _ortho_tile(r0, c0, r1, c1, X, Y, west, north, cell, filled, coverage,
+                    measured, cam, T_cam, zbufs, cam_xy, imgs, rgba, quality, used)
         if progress:
             progress(t + 1, len(tiles), "orthophoto")
-    return Orthophoto(rgba, quality, float(west), float(north), g, used)
+    _fill_pockets(rgba, quality)
+    return Orthophoto(rgba, quality, ow, on, g, used)
 
 
-def _ortho_tile(r0: int, c0: int, r1: int, c1: int, g: float, west: float, north: float, cell: float,
+#: Margin around an unseen pocket the colour is carried in from, orthophoto cells.
+POCKET_MARGIN = 4
+
+
+def _fill_pockets(rgba: NDArray[np.uint8], quality: NDArray[np.uint8]) -> None:
+    """Cells inside the coverage that no photograph sees (a gap between the footprints of
+    neighbouring frames, enclosed by cells they do see) coloured from around them
+    (OpenCV's fast-marching inpaint), in place; ``quality`` 3 marks them."""
+    seen = rgba[..., 3] > 0
+    pockets = ndimage.binary_fill_holes(seen) & ~seen
+    if not pockets.any():
+        return
+    lab, n = ndimage.label(pockets)
+    for k, sl in enumerate(ndimage.find_objects(lab), start=1):
+        r0, r1 = max(0, sl[0].start - POCKET_MARGIN), min(rgba.shape[0], sl[0].stop + POCKET_MARGIN)
+        c0, c1 = max(0, sl[1].start - POCKET_MARGIN), min(rgba.shape[1], sl[1].stop + POCKET_MARGIN)
+        m = lab[r0:r1, c0:c1] == k
+        rgb = np.ascontiguousarray(rgba[r0:r1, c0:c1, :3])
+        rgba[r0:r1, c0:c1, :3] = np.where(m[..., None], cv2.inpaint(rgb, m.astype(np.uint8), 3, cv2.INPAINT_TELEA), rgb)
+        rgba[r0:r1, c0:c1, 3][m] = 255
+        quality[r0:r1, c0:c1][m] = 3
+
+
+def _ortho_tile(r0: int, c0: int, r1: int, c1: int, X: NDArray, Y: NDArray, west: float, north: float, cell: float,
                 filled: NDArray, coverage: NDArray, measured: NDArray, cam: CameraModel, T_cam: list[NDArray],
                 zbufs: list, centres: NDArray, imgs: _Frames, rgba: NDArray, quality: NDArray,
                 used: dict[int, int]) -> None:
-    """Colour one tile of the orthophoto in place (module docstring)."""
-    rows, cols = np.arange(r0, r1), np.arange(c0, c1)
-    X, Y = np.meshgrid(west + (cols + 0.5) * g, north - (rows + 0.5) * g)
+    """Colour one tile of the orthophoto in place (module docstring); ``X``, ``Y`` the ENU
+    centres of its cells."""
     # DSM coordinates of these cells (fractional; cell centres at integer + 0.5)
     fc = ((X - west) / cell - 0.5).astype(np.float32)
     fr = ((north - Y) / cell - 0.5).astype(np.float32)

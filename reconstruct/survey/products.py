@@ -16,72 +16,113 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.errors import InputError
-from prism3d.geo import local_enu_crs_wkt
+from prism3d.geo import MapFrame
 from prism3d.io.atomic import atomic_path, atomic_write_text
 from prism3d.io.geo import write_geotiff, write_las
 from prism3d.io.ply import write_ply
-from prism3d.reconstruct.survey.dsm import normalised_dsm
+from prism3d.reconstruct.survey.dsm import MAX_CELLS, normalised_dsm
+from prism3d.reconstruct.survey.mapgrid import Grid, GridWarp, map_grid, resample
 from prism3d.reconstruct.survey.model import (
     SURVEY_SCHEMA_VERSION,
     FusedSurface,
     SurveyState,
 )
-from prism3d.reconstruct.survey.ortho import true_orthophoto
+from prism3d.reconstruct.survey.ortho import MAX_ORTHO_CELLS, true_orthophoto
 
 __all__ = ["draw_survey", "footprint", "overlap_coverage", "overlap_mask", "write_products"]
 
 
+#: Points of the cloud at most this high above the ground surface are ASPRS class 2
+#: (ground), the rest 1 (unclassified): the ground filter's own base tolerance.
+GROUND_CLASS_M = 0.3
+
+
 def write_products(stage: Path, fused: FusedSurface, st: SurveyState) -> dict[str, Any]:
     """Every product of a survey into the staging folder ``stage`` (the caller moves it in
-    place whole): GeoTIFFs in the local ENU frame at the origin (model units without GPS),
-    cloud.ply / cloud.las, the figure and poses.json, whose summary it returns."""
-    crs = local_enu_crs_wkt(float(st.origin[0]), float(st.origin[1])) if st.scaled else None
-    ground, ndsm, ortho = _write_rasters(stage, fused, st, crs)
-    _write_clouds(stage, fused, st.scaled, crs)
-    doc = _poses_doc(stage, fused, st, ground, ortho, crs)
+    place whole): GeoTIFFs and the LAS/LAZ cloud on the map grid of ``--crs`` (UTM by
+    default; model units and no CRS without GPS), cloud.ply in the local frame, the
+    figure and poses.json, whose summary it returns."""
+    frame = MapFrame.for_site(st.options.crs, st.origin)
+    ground, ndsm, ortho, grids = _write_rasters(stage, fused, st, frame)
+    _write_clouds(stage, fused, ground, frame, laz=st.options.laz)
+    doc = _poses_doc(stage, fused, st, ground, ortho, frame, grids)
     atomic_write_text(stage / "poses.json", json.dumps(doc, indent=1))
     draw_survey(stage / "survey.png", fused, ndsm, st.T_enu, st.scaled)
     n_ok = sum(r.ok for r in st.pairs)
     return {"n_frames": len(st.paths), "n_registered": int(sum(st.sfm.registered)),
             "reprojection_rms_px": float(st.sfm.reprojection_rms_px), "scale": doc["scale"],
             "pairs_ok": n_ok, "pairs_skipped": len(st.pairs) - n_ok, "cell": fused.cell,
-            "dsm_cells": int(np.isfinite(fused.dsm).sum()), "overlap_filled_fraction": doc["dsm"]["overlap_filled_fraction"]}
+            "dsm_cells": int(np.isfinite(fused.dsm).sum()), "overlap_filled_fraction": doc["dsm"]["overlap_filled_fraction"],
+            "crs": None if frame is None else frame.name}
 
 
-def _write_rasters(stage: Path, fused: FusedSurface, st: SurveyState, crs: str | None) -> tuple[NDArray, NDArray, Any]:
-    """dsm, ground, ndsm, ortho and ortho_quality GeoTIFFs; returns ground, nDSM and the orthophoto."""
-    tags = {"SCALE": "gps" if st.scaled else "unknown", "SOFTWARE": "prism3d survey",
-            "HEIGHTS": "metres above the WGS84 ellipsoid" if st.scaled else "model units, frame levelled on the ground"}
+def _write_rasters(stage: Path, fused: FusedSurface, st: SurveyState, frame: MapFrame | None
+                   ) -> tuple[NDArray, NDArray, Any, dict[str, Grid]]:
+    """dsm, ground, ndsm, ortho and ortho_quality GeoTIFFs on the map grid; returns ground
+    and nDSM on the survey's ENU grid, the orthophoto and the map grids written."""
+    scaled = frame is not None
+    tags = {"SCALE": "gps" if scaled else "unknown", "SOFTWARE": "prism3d survey",
+            "HEIGHTS": "metres above the WGS84 ellipsoid" if scaled else "model units, frame levelled on the ground",
+            "VERTICAL_DATUM": "WGS84 ellipsoid" if scaled else "none"}
     cell = fused.cell
-    ground, ndsm = normalised_dsm(fused.dsm * (1000.0 if st.scaled else 1.0), cell * (1000.0 if st.scaled else 1.0))
-    if st.scaled:
+    ground, ndsm = normalised_dsm(fused.dsm * (1000.0 if scaled else 1.0), cell * (1000.0 if scaled else 1.0))
+    if scaled:
         ground, ndsm = ground / 1000.0, ndsm / 1000.0
-    common = dict(west=fused.west, north=fused.north, gsd=cell, crs_wkt=crs, tags=tags)
-    write_geotiff(stage / "dsm.tif", fused.dsm, nodata=float("nan"), band_names=["height"], **common)
-    write_geotiff(stage / "ground.tif", ground.astype(np.float32), nodata=float("nan"), band_names=["ground"], **common)
-    write_geotiff(stage / "ndsm.tif", ndsm.astype(np.float32), nodata=float("nan"),
+    enu = Grid(fused.west, fused.north, cell, fused.dsm.shape)
+    K, dist = np.asarray(st.sfm.K, dtype=np.float64), np.asarray(st.sfm.dist, dtype=np.float64)
+    frames = [(str(st.paths[k]), st.T_enu[k]) for k in sorted(st.T_enu)]
+    if frame is None or frame.local:
+        dsm_m, ground_m, ndsm_m, mg, on_map = fused.dsm, ground, ndsm, enu, None
+    else:
+        z0 = float(np.nanmedian(ground)) if np.isfinite(ground).any() else 0.0
+        mg = map_grid(frame, enu, cell, z0, max_cells=MAX_CELLS)
+        warp = GridWarp(frame, mg, z0)
+        dh = warp.height_offset(0, mg.shape[0], 0, mg.shape[1]).astype(np.float32)
+        dsm_m = resample(fused.dsm, enu, warp, mode="linear") + dh
+        ground_m = resample(ground, enu, warp, mode="linear") + dh
+        ndsm_m = dsm_m - ground_m
+
+        def on_map(g: float) -> tuple[tuple[float, float, int, int], Any]:
+            og = map_grid(frame, enu, g, z0, max_cells=MAX_ORTHO_CELLS)
+            ow = GridWarp(frame, og, z0)
+            return (og.west, og.north, og.shape[0], og.shape[1]), ow.enu_xy
+    crs = None if frame is None else frame.crs_wkt
+    units = "metre" if scaled else None
+    common = dict(west=mg.west, north=mg.north, gsd=mg.cell, crs_wkt=crs, tags=tags, units=units)
+    write_geotiff(stage / "dsm.tif", dsm_m, nodata=float("nan"), band_names=["height"], **common)
+    write_geotiff(stage / "ground.tif", ground_m.astype(np.float32), nodata=float("nan"), band_names=["ground"], **common)
+    write_geotiff(stage / "ndsm.tif", ndsm_m.astype(np.float32), nodata=float("nan"),
                   band_names=["height above ground"], **common)
-    ortho = true_orthophoto(fused.dsm, fused.west, fused.north, cell,
-                            [(str(st.paths[k]), st.T_enu[k]) for k in sorted(st.T_enu)],
-                            np.asarray(st.sfm.K, dtype=np.float64), np.asarray(st.sfm.dist, dtype=np.float64),
-                            tuple(st.sfm.size), gsd=st.options.ortho_gsd_m)
-    ocommon = dict(common, gsd=ortho.gsd)
+    ortho = true_orthophoto(fused.dsm, fused.west, fused.north, cell, frames, K, dist, tuple(st.sfm.size),
+                            gsd=st.options.ortho_gsd_m, on_map=on_map)
+    ocommon = dict(common, west=ortho.west, north=ortho.north, gsd=ortho.gsd, units=None)
     write_geotiff(stage / "ortho.tif", ortho.rgba, **ocommon)
     write_geotiff(stage / "ortho_quality.tif", ortho.quality, nodata=0, band_names=[
-        "1 measured surface, 2 interpolated surface"], **ocommon)
-    return ground, ndsm, ortho
+        "1 measured surface, 2 interpolated surface, 3 unseen, colour carried in"], **ocommon)
+    og = Grid(ortho.west, ortho.north, ortho.gsd, ortho.rgba.shape[:2])
+    return ground, ndsm, ortho, {"dsm": mg, "ortho": og}
 
 
-def _write_clouds(stage: Path, fused: FusedSurface, scaled: bool, crs: str | None) -> None:
-    """cloud.ply and cloud.las: one point per filled DSM cell, with its colour."""
+def _write_clouds(stage: Path, fused: FusedSurface, ground: NDArray, frame: MapFrame | None, *, laz: bool) -> None:
+    """cloud.ply (local frame) and cloud.las / cloud.laz (map frame): one point per filled
+    DSM cell, with its colour; in the LAS, ASPRS class 2 (ground) within
+    :data:`GROUND_CLASS_M` of the ground surface, else 1 (unclassified; all of them
+    without GPS)."""
     cell = fused.cell
     rr, cc = np.nonzero(np.isfinite(fused.dsm))
     xyz = np.c_[fused.west + (cc + 0.5) * cell, fused.north - (rr + 0.5) * cell, fused.dsm[rr, cc]]
     col = fused.rgb[rr, cc]
+    scaled = frame is not None
     write_ply(stage / "cloud.ply", xyz, colors=col, double=True,
               comments=[f"prism3d survey: fused surface, one point per {cell:g} cell",
-                        "frame: local east-north-up, metres" if scaled else "frame: model, scale unknown"])
-    write_las(stage / "cloud.las", xyz, col, crs_wkt=crs, scale_m=min(0.001, cell / 100.0),
+                        "frame: local east-north-up, metres (poses.json)" if scaled else "frame: model, scale unknown"])
+    cls = np.ones(len(xyz), dtype=np.uint8)
+    if scaled:  # without GPS there is no metre to measure the tolerance in: all unclassified
+        above = fused.dsm[rr, cc] - ground[rr, cc]
+        cls[np.isfinite(above) & (above <= GROUND_CLASS_M)] = 2
+    pts = xyz if frame is None else frame.enu_to_map(xyz)
+    write_las(stage / ("cloud.laz" if laz else "cloud.las"), pts, col, crs_wkt=None if frame is None else frame.crs_wkt,
+              scale_m=min(0.001, cell / 100.0), classification=cls,
               system_identifier="prism3d survey" if scaled else "prism3d survey: scale unknown")
 
 
@@ -122,7 +163,7 @@ def _frame_entries(st: SurveyState) -> list[dict]:
 
 
 def _poses_doc(stage: Path, fused: FusedSurface, st: SurveyState, ground: NDArray, ortho: Any,
-               crs: str | None) -> dict[str, Any]:
+               frame: MapFrame | None, grids: dict[str, Grid]) -> dict[str, Any]:
     """The survey's record (poses.json; docs/formats.md)."""
     pairs, overlap_filled = _pair_entries(stage, fused, st, ground)
     sfm, o, shown = st.sfm, st.options, st.shown
@@ -138,16 +179,20 @@ def _poses_doc(stage: Path, fused: FusedSurface, st: SurveyState, ground: NDArra
                   "ellipsoid); T_enu_cam maps OpenCV camera coordinates (x right, y down, z forward)")
         if st.scaled else "the model levelled on its ground (z up), camera 1 above the origin; scale unknown",
         "origin_lla": None if st.origin is None else [float(v) for v in st.origin],
-        "crs_wkt": crs,
+        "crs_wkt": None if frame is None else frame.crs_wkt,
+        "map_frame": None if frame is None else frame.record(),
         "gps_source": st.gps_source,
         "georeference": {"method": st.geo.method, "scale": st.geo.s, "residual_rms_m": st.geo.residual_rms_m},
         "camera": {"model": "RADIAL (f, cx, cy, k1, k2)", "start": st.calib_source, "refined": st.refined,
                    "K": np.asarray(sfm.K).tolist(), "dist": np.asarray(sfm.dist).tolist(), "size": list(sfm.size)},
         "dense": {"downscale": st.factor, "pair_steps": list(o.pair_steps), "pairs": pairs},
-        "ortho": {"gsd": ortho.gsd, "shape": list(ortho.rgba.shape[:2]),
+        "ortho": {"gsd": ortho.gsd, "shape": list(ortho.rgba.shape[:2]), "west": ortho.west, "north": ortho.north,
                   "cells_per_frame": {shown[k]: v for k, v in sorted(ortho.cells_per_frame.items())},
-                  "interpolated_surface_fraction": float((ortho.quality == 2).sum() / max(1, (ortho.quality > 0).sum()))},
-        "dsm": {"cell": fused.cell, "west": fused.west, "north": fused.north, "shape": list(fused.dsm.shape),
+                  "interpolated_surface_fraction": float((ortho.quality == 2).sum() / max(1, (ortho.quality > 0).sum())),
+                  "unseen_fraction": float((ortho.quality == 3).sum() / max(1, (ortho.quality > 0).sum()))},
+        "dsm": {"cell": fused.cell, "west": grids["dsm"].west, "north": grids["dsm"].north,
+                "shape": list(grids["dsm"].shape),
+                "local_grid": {"west": fused.west, "north": fused.north, "shape": list(fused.dsm.shape)},
                 "filled_cells": int(np.isfinite(fused.dsm).sum()), "cells_seen_by_2_or_more_pairs": int((fused.seen >= 2).sum()),
                 "overlap_filled_fraction": overlap_filled},
         "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(o).items()},

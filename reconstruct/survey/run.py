@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.errors import InputError
-from prism3d.geo import wgs84_to_enu
+from prism3d.geo import MapFrame, wgs84_to_enu
 from prism3d.io.atomic import atomic_write_text, staged_folder
 from prism3d.io.images import read_image
 from prism3d.reconstruct.stereo.flatness import ransac_plane
@@ -419,14 +419,14 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     if videos and len(images) > 1:
         raise InputError("survey: give one video, or image frames, not both")
     if not videos:  # checked before anything is written
-        frames = _Frames.of(images, gps_table, calib)
+        frames = _Frames.of(images, gps_table, calib, o.crs)
     refine = o.refine_intrinsics if o.refine_intrinsics != "auto" else ("none" if calib else "focal+distortion")
     free = refine != "none"
     seconds: dict[str, float] = {}
     with staged_folder(out) as stage:
         if videos:  # frames into the survey's own folder, then the same checks
             images = [str(p) for p in video_frames(videos[0], stage / "frames", step_s=video_step_s)]
-            frames = _Frames.of(images, gps_table, calib)
+            frames = _Frames.of(images, gps_table, calib, o.crs)
         t0 = time.perf_counter()
         sfm = map_frames([str(p) for p in images], stage / "sfm_work", camera=frames.camera,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
@@ -483,9 +483,12 @@ class _Frames:
     calib_source: str
 
     @classmethod
-    def of(cls, images: Sequence[str | Path], gps_table: str | Path | None, calib: str | Path | None) -> _Frames:
+    def of(cls, images: Sequence[str | Path], gps_table: str | Path | None, calib: str | Path | None,
+           crs: str | None = None) -> _Frames:
+        """The frames checked, and that ``crs`` can be given (a CRS needs GPS)."""
         paths, size = check_frames(images)
         tags, gps_source = gps_positions(paths, gps_table)
+        MapFrame.for_site(crs, None if tags is None else [tags[0].lat_deg, tags[0].lon_deg, 0.0])
         camera, calib_source = starting_camera(paths, size, calib)
         return cls(list(paths), size, tags, gps_source, camera, calib_source)
 
