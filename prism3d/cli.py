@@ -39,10 +39,10 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def _progress(args: argparse.Namespace, desc: str) -> Any:
+def _progress(args: argparse.Namespace, desc: str, *, stage_lines: bool = False) -> Any:
     from prism3d.progress import make_progress
 
-    return make_progress(desc, quiet=getattr(args, "quiet", False))
+    return make_progress(desc, quiet=getattr(args, "quiet", False), stage_lines=stage_lines)
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -1013,7 +1013,7 @@ def _cmd_survey(args: argparse.Namespace) -> int:
         def run_pairs(reqs: list, progress: Any) -> list:
             return run_survey_pairs(reqs, run, progress)
     s = run_survey(args.images, args.output, calib=args.calib, gps_table=args.gps, options=opts,
-                   progress=_progress(args, "survey"), run_pairs=run_pairs, video_step_s=args.video_step)
+                   progress=_progress(args, "survey", stage_lines=True), run_pairs=run_pairs, video_step_s=args.video_step)
     unit = "m" if s["scale"] == "gps" else "units (scale unknown: no GPS)"
     _say(args, f"survey: {s['n_registered']}/{s['n_frames']} frames placed, reprojection RMS "
                f"{s['reprojection_rms_px']:.2f} px; {s['pairs_ok']} pairs matched, {s['pairs_skipped']} skipped; "

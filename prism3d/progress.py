@@ -1,8 +1,9 @@
 """Progress display for long work: a tqdm bar on a terminal, silent otherwise.
 
 Library functions take an optional ``progress`` callable ``(done, total, label)``;
-the CLI passes one made here. Nothing is shown when stderr is not a TTY or when
-``--quiet`` was given. :func:`compile_notice` tells the user when numba kernels
+the CLI passes one made here; labels ``"stage: detail"`` name the stage of a long
+command (a bar per stage). Nothing is shown with ``--quiet``, nor when stderr is not a
+TTY, except, for commands of stages, one line as each stage starts. :func:`compile_notice` tells the user when numba kernels
 have to be compiled (a cold cache) instead of leaving a silent wait.
 """
 
@@ -24,19 +25,31 @@ def null_progress(done: int, total: int, label: str = "") -> None:
     """A progress callback that shows nothing."""
 
 
+def _stage(label: str) -> str:
+    """The stage of a ``"stage: detail"`` label ("" for a label without one)."""
+    return label.split(":", 1)[0].strip() if ":" in label else ""
+
+
 class _Bar:
+    """A tqdm bar, a new one (named after it) for each stage of ``"stage: detail"`` labels."""
+
     def __init__(self, desc: str) -> None:
         self.desc = desc
         self.bar: Any = None
+        self.stage = ""
 
     def __call__(self, done: int, total: int, label: str = "") -> None:
         from tqdm import tqdm
 
-        if self.bar is None or self.bar.total != total:
+        stage = _stage(label)
+        if self.bar is None or self.bar.total != total or stage != self.stage:
             if self.bar is not None:
                 self.bar.close()
-            self.bar = tqdm(total=total, desc=self.desc, unit="step", leave=False, file=sys.stderr,
-                            dynamic_ncols=True)
+            self.stage = stage
+            self.bar = tqdm(total=total, desc=f"{self.desc} {stage}".strip(), unit="step", leave=False,
+                            file=sys.stderr, dynamic_ncols=True)
+        if stage:
+            label = label.split(":", 1)[1].strip()
         self.bar.n = done
         if label:
             self.bar.set_postfix_str(label, refresh=False)
@@ -50,10 +63,32 @@ class _Bar:
             self.bar = None
 
 
-def make_progress(desc: str, *, quiet: bool = False) -> ProgressFn:
-    """A progress callback for the CLI: a bar on a TTY, else silent."""
-    if quiet or not sys.stderr.isatty():
+class _StageLines:
+    """One line on stderr as each stage of ``"stage: detail"`` labels starts (a log, a batch
+    job: where a long run is, without a bar's control characters)."""
+
+    def __init__(self, desc: str) -> None:
+        self.desc = desc
+        self.stage = ""
+
+    def __call__(self, done: int, total: int, label: str = "") -> None:
+        stage = _stage(label)
+        if stage and stage != self.stage:
+            self.stage = stage
+            try:
+                print(f"{self.desc}: {stage} ({total} step{'s' if total != 1 else ''})...", file=sys.stderr,
+                      flush=True)
+            except (OSError, ValueError):  # a closed or broken stderr must not break the command
+                pass
+
+
+def make_progress(desc: str, *, quiet: bool = False, stage_lines: bool = False) -> ProgressFn:
+    """A progress callback for the CLI: a bar on a TTY (one per stage); elsewhere silent,
+    or with ``stage_lines`` one line as each stage starts."""
+    if quiet:
         return null_progress
+    if not sys.stderr.isatty():
+        return _StageLines(desc) if stage_lines else null_progress
     return _Bar(desc)
 
 

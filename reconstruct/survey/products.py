@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -37,13 +37,18 @@ __all__ = ["draw_survey", "footprint", "overlap_coverage", "overlap_mask", "writ
 GROUND_CLASS_M = 0.3
 
 
-def write_products(stage: Path, fused: FusedSurface, st: SurveyState) -> dict[str, Any]:
+def write_products(stage: Path, fused: FusedSurface, st: SurveyState,
+                   progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
     """Every product of a survey into the staging folder ``stage`` (the caller moves it in
     place whole): GeoTIFFs and the LAS/LAZ cloud on the map grid of ``--crs`` (UTM by
     default; model units and no CRS without GPS), cloud.ply in the local frame, the
     figure and poses.json, whose summary it returns."""
     frame = MapFrame.for_site(st.options.crs, st.origin)
-    ground, ndsm, ortho, grids = _write_rasters(stage, fused, st, frame)
+    if progress:
+        progress(0, 1, "DSM, ground, nDSM")
+    ground, ndsm, ortho, grids = _write_rasters(stage, fused, st, frame, progress)
+    if progress:
+        progress(0, 1, "cloud")
     _write_clouds(stage, fused, ground, frame, laz=st.options.laz)
     doc = _poses_doc(stage, fused, st, ground, ortho, frame, grids)
     atomic_write_text(stage / "poses.json", json.dumps(doc, indent=1))
@@ -56,8 +61,8 @@ def write_products(stage: Path, fused: FusedSurface, st: SurveyState) -> dict[st
             "crs": None if frame is None else frame.name}
 
 
-def _write_rasters(stage: Path, fused: FusedSurface, st: SurveyState, frame: MapFrame | None
-                   ) -> tuple[NDArray, NDArray, Any, dict[str, Grid]]:
+def _write_rasters(stage: Path, fused: FusedSurface, st: SurveyState, frame: MapFrame | None,
+                   progress: Callable[[int, int, str], None] | None) -> tuple[NDArray, NDArray, Any, dict[str, Grid]]:
     """dsm, ground, ndsm, ortho and ortho_quality GeoTIFFs on the map grid; returns ground
     and nDSM on the survey's ENU grid, the orthophoto and the map grids written."""
     scaled = frame is not None
@@ -94,7 +99,7 @@ def _write_rasters(stage: Path, fused: FusedSurface, st: SurveyState, frame: Map
     write_geotiff(stage / "ndsm.tif", ndsm_m.astype(np.float32), nodata=float("nan"),
                   band_names=["height above ground"], **common)
     ortho = true_orthophoto(fused.dsm, fused.west, fused.north, cell, frames, K, dist, tuple(st.sfm.size),
-                            gsd=st.options.ortho_gsd_m, on_map=on_map)
+                            gsd=st.options.ortho_gsd_m, on_map=on_map, progress=progress)
     ocommon = dict(common, west=ortho.west, north=ortho.north, gsd=ortho.gsd, units=None)
     write_geotiff(stage / "ortho.tif", ortho.rgba, **ocommon)
     write_geotiff(stage / "ortho_quality.tif", ortho.quality, nodata=0, band_names=[

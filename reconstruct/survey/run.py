@@ -348,11 +348,19 @@ def run_pairs_here(reqs: list[PairRequest], progress: Callable[[int, int, str], 
     out = []
     for k, r in enumerate(reqs):
         if progress:
-            progress(k, len(reqs), f"pair {r.i}-{r.j}")
+            progress(k, len(reqs), f"frames {r.i}-{r.j}")
         out.append(dense_pair(r))
     if progress:
-        progress(len(reqs), len(reqs), "pairs")
+        progress(len(reqs), len(reqs), "done")
     return out
+
+
+def _in_stage(progress: Callable[[int, int, str], None] | None, stage: str
+              ) -> Callable[[int, int, str], None] | None:
+    """``progress`` with its labels put in ``stage`` (``"stage: label"``)."""
+    if progress is None:
+        return None
+    return lambda done, total, label="": progress(done, total, f"{stage}: {label}")
 
 
 def _georeference_model(sfm: Any, tags: list[Any] | None) -> tuple[Georef, dict[int, NDArray], NDArray, Any, Any]:
@@ -431,19 +439,21 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         sfm = map_frames([str(p) for p in images], stage / "sfm_work", camera=frames.camera,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
                                             refine_principal_point=o.refine_principal_point),
-                         progress=progress)
+                         progress=_in_stage(progress, "poses"))
         seconds["poses"] = time.perf_counter() - t0
         geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
         factor = _dense_scale(frames.size, o.dense_max_pixels)
         t0 = time.perf_counter()
         reqs = _pair_requests(frames, sfm, T_enu, points_enu, factor, o)
-        recs = sorted((run_pairs or run_pairs_here)(reqs, progress), key=lambda r: (r.i, r.j))
+        recs = sorted((run_pairs or run_pairs_here)(reqs, _in_stage(progress, "dense pairs")), key=lambda r: (r.i, r.j))
         seconds["dense"] = time.perf_counter() - t0
         ok = [r for r in recs if r.ok]
         if not ok:
             reasons = "; ".join(f"{frames.paths[r.i].name}+{frames.paths[r.j].name}: {r.reason}" for r in recs[:3])
             raise InputError(f"survey: no pair of frames gave depth ({reasons})")
         t0 = time.perf_counter()
+        if progress:
+            progress(0, 1, f"fusion: {len(ok)} depth maps")
         fused = fuse_tiles([r.tile for r in ok], [r.sigma_z for r in ok])
         seconds["fusion"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -451,7 +461,7 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         shown = [str(out / "frames" / p.name) for p in frames.paths] if videos else [str(p) for p in images]
         summary = write_products(stage, fused, SurveyState(
             frames.paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, frames.gps_source, frames.calib_source,
-            refined, factor, o))
+            refined, factor, o), progress=_in_stage(progress, "products"))
         shutil.copytree(sfm.model_dir, stage / "colmap", dirs_exist_ok=True)
         shutil.rmtree(stage / "sfm_work", ignore_errors=True)
         seconds["products"] = time.perf_counter() - t0

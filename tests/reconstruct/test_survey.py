@@ -210,17 +210,22 @@ def test_products_are_what_gis_tools_expect(survey: Path) -> None:
     assert assert_gis_products(survey) == 32654  # the simulated site, 139.04 E: UTM zone 54 N
 
 
-def test_crs_choices_and_refusals(flight: Path, tmp_path: Path) -> None:
-    """--crs enu keeps the local frame (the orthographic WKT at the origin), another zone's
-    EPSG is honoured, --laz writes a LASzip cloud; an unknown CRS, a geographic one, and a
-    CRS asked of frames without GPS are one line and exit 2 with nothing written."""
+def test_crs_choices_and_refusals(flight: Path, tmp_path: Path, capsys) -> None:
+    """--crs enu keeps the local frame (the orthographic WKT at the origin), --laz writes a
+    LASzip cloud, and off a terminal the survey says each stage as it starts; an unknown
+    CRS, a geographic one, and a CRS asked of frames without GPS are one line and exit 2
+    with nothing written."""
     import laspy
     import rasterio
 
     frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))[:3]
     base = [*frames, "--calib", str(flight / "camera.yaml"), "--gps", str(flight / "geoinfo.txt"),
             "--pair-steps", "1", "--no-cross-pairs", "--ortho-gsd", "0.2"]
-    assert main(["-q", "survey", *base, "--crs", "enu", "--laz", "-o", str(tmp_path / "e")]) == 0
+    capsys.readouterr()
+    assert main(["survey", *base, "--crs", "enu", "--laz", "-o", str(tmp_path / "e")]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert [ln.split(" (")[0] for ln in err if ln.startswith("survey: ")] == [
+        "survey: poses", "survey: dense pairs", "survey: fusion", "survey: products"]
     with rasterio.open(tmp_path / "e" / "dsm.tif") as src:
         assert src.crs.to_epsg() is None and "Orthographic" in src.crs.to_wkt()
     assert not (tmp_path / "e" / "cloud.las").exists()
