@@ -87,6 +87,7 @@ def _export(pycolmap, rec, np) -> dict:
                 obs_xy.append(p2.xy)
     cams = list(rec.cameras.values())
     return {
+        "camera_model": np.array(str(cams[0].model.name)),
         "reg_names": np.array(names, dtype=str),
         "cam_from_world": np.array(poses, dtype=np.float64).reshape(-1, 3, 4),
         "camera_params": np.asarray(cams[0].params, dtype=np.float64),
@@ -98,6 +99,118 @@ def _export(pycolmap, rec, np) -> dict:
         "obs_point": np.array(obs_pt, dtype=np.int64),
         "obs_xy": np.array(obs_xy, dtype=np.float64).reshape(-1, 2),
     }
+
+
+#: The camera models compared, simplest first: (COLMAP model, principal point freed).
+CAMERA_CANDIDATES = (("RADIAL", False), ("RADIAL", True), ("OPENCV", False))
+#: Share of the sparse points held back to score each camera model on.
+HOLD_SHARE = 0.2
+#: A richer model is kept only if it cuts the held-back RMS by this share.
+MIN_GAIN = 0.05
+#: Fewer sparse points than this: too few to tell the models apart; RADIAL is kept.
+MIN_POINTS_TO_COMPARE = 300
+#: OPENCV has two focal lengths; camera sensors have square pixels, so a fit whose fx / fy
+#: departs from 1 by more than this is a degenerate one (nadir frames trade the focal
+#: length against the height) and is refused.
+MAX_ASPECT_DEPARTURE = 0.01
+
+
+def _as_model(pycolmap, rec, model: str) -> None:
+    """Give ``rec``'s one camera ``model`` (OPENCV from RADIAL: fx = fy = f, p1 = p2 = 0)."""
+    c = next(iter(rec.cameras.values()))
+    if model == "RADIAL":
+        return
+    f, cx, cy, k1, k2 = c.params
+    rec.cameras[c.camera_id] = pycolmap.Camera(model="OPENCV", width=c.width, height=c.height,
+                                               params=[f, f, cx, cy, k1, k2, 0.0, 0.0], camera_id=c.camera_id)
+
+
+def _adjust(pycolmap, rec, free_pp: bool) -> None:
+    bo = pycolmap.BundleAdjustmentOptions()
+    bo.refine_focal_length = True
+    bo.refine_extra_params = True
+    bo.refine_principal_point = bool(free_pp)
+    pycolmap.bundle_adjustment(rec, bo)
+
+
+def _held_out_rms(np, rec, held: dict) -> float:
+    """RMS (px) of the held-back observations: each held point triangulated afresh (linear,
+    in normalised coordinates) from its observations through ``rec``'s camera and poses,
+    then projected back into each."""
+    cam = next(iter(rec.cameras.values()))
+    res = []
+    for obs in held.values():
+        rows, P, xy = [], [], []
+        for iid, xy_i in obs:
+            if iid not in rec.images or not rec.images[iid].has_pose:
+                continue
+            M = np.asarray(rec.images[iid].cam_from_world().matrix(), dtype=np.float64)
+            n = np.asarray(cam.cam_from_img(np.asarray(xy_i, dtype=np.float64)), dtype=np.float64).ravel()[:2]
+            rows += [n[0] * M[2] - M[0], n[1] * M[2] - M[1]]
+            P.append(M)
+            xy.append(xy_i)
+        if len(P) < 2:
+            continue
+        _, _, vt = np.linalg.svd(np.asarray(rows))
+        X = vt[-1]
+        if abs(X[3]) < 1e-12:
+            continue
+        X = X[:3] / X[3]
+        for M, xy_i in zip(P, xy):
+            pc = M[:, :3] @ X + M[:, 3]
+            if pc[2] <= 0:
+                continue
+            uv = np.asarray(cam.img_from_cam(pc), dtype=np.float64).ravel()[:2]
+            res.append(float(np.sum((uv - np.asarray(xy_i)) ** 2)))
+    return float(np.sqrt(np.mean(res))) if res else float("inf")
+
+
+def _choose_camera(pycolmap, np, rec) -> tuple:
+    """The simplest camera model that explains held-back matches (module docstring of
+    sfm.py): each candidate adjusted on 80 % of the points, scored on the rest; a richer
+    one must cut that RMS by :data:`MIN_GAIN`. Returns the model adjusted on all points
+    with the chosen camera, and the comparison."""
+    ids = sorted(rec.points3D.keys())
+    if len(ids) < MIN_POINTS_TO_COMPARE:
+        return rec, {"chosen": "RADIAL", "principal_point": "fixed",
+                     "why": f"{len(ids)} sparse points, fewer than {MIN_POINTS_TO_COMPARE} to compare models on"}
+    rng = np.random.default_rng(0)
+    held_ids = set(int(v) for v in rng.choice(ids, size=max(1, int(HOLD_SHARE * len(ids))), replace=False))
+    held = {}
+    for pid in held_ids:
+        obs = []
+        for el in rec.points3D[pid].track.elements:
+            obs.append((el.image_id, np.asarray(rec.images[el.image_id].points2D[el.point2D_idx].xy, dtype=np.float64)))
+        held[pid] = obs
+    scores = []
+    for model, pp in CAMERA_CANDIDATES:
+        r = pycolmap.Reconstruction(rec)
+        _as_model(pycolmap, r, model)
+        for pid in held_ids:
+            r.delete_point3D(pid)
+        _adjust(pycolmap, r, pp)
+        c = next(iter(r.cameras.values()))
+        sc = {"model": model, "principal_point": "free" if pp else "fixed", "params": [float(v) for v in c.params],
+              "held_out_rms_px": _held_out_rms(np, r, held), "fit_rms_px": float(r.compute_mean_reprojection_error())}
+        if model == "OPENCV" and abs(float(c.params[0]) / float(c.params[1]) - 1.0) > MAX_ASPECT_DEPARTURE:
+            sc["refused"] = f"fx / fy = {float(c.params[0]) / float(c.params[1]):.3f}: not square pixels"
+        scores.append(sc)
+    pick = 0
+    for k in range(1, len(scores)):
+        if "refused" not in scores[k] and \
+                scores[k]["held_out_rms_px"] < (1.0 - MIN_GAIN) * scores[pick]["held_out_rms_px"]:
+            pick = k
+    report = {"chosen": scores[pick]["model"], "principal_point": scores[pick]["principal_point"],
+              "held_back_points": len(held_ids), "candidates": scores,
+              "why": "the simplest whose held-back RMS no richer model cuts by "
+                     f"{MIN_GAIN:.0%} or more"}
+    if pick == 0:
+        return rec, report
+    model, pp = CAMERA_CANDIDATES[pick]
+    out = pycolmap.Reconstruction(rec)
+    _as_model(pycolmap, out, model)
+    _adjust(pycolmap, out, pp)
+    return out, report
 
 
 def _verified_pairs(pycolmap, db: Path) -> dict[str, int]:
@@ -258,7 +371,13 @@ def _run(req: dict, stage) -> None:
         "pycolmap_version": pycolmap.__version__,
     }
     if ranked:
-        _write_model(pycolmap, np, req, ranked[0])
+        best = ranked[0]
+        if req.get("choose_camera"):
+            stage("camera model")
+            t0 = time.perf_counter()
+            best, info["camera_choice"] = _choose_camera(pycolmap, np, best)
+            seconds["camera model"] = time.perf_counter() - t0
+        _write_model(pycolmap, np, req, best)
     stage("done")
     _atomic(Path(req["result_json"]), lambda p: p.write_text(json.dumps(info, indent=1)))
 

@@ -457,7 +457,7 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         fused = fuse_tiles([r.tile for r in ok], [r.sigma_z for r in ok])
         seconds["fusion"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        refined = (["f", "k1", "k2"] if free else []) + (["cx", "cy"] if o.refine_principal_point else [])
+        refined = _refined(sfm, free, o)
         shown = [str(out / "frames" / p.name) for p in frames.paths] if videos else [str(p) for p in images]
         summary = write_products(stage, fused, SurveyState(
             frames.paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, frames.gps_source, frames.calib_source,
@@ -469,6 +469,14 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         summary["seconds"] = _record_seconds(stage / "poses.json", seconds)
     summary["out_dir"] = str(out)
     return summary
+
+
+def _refined(sfm: Any, free: bool, o: SurveyOptions) -> list[str]:
+    """The intrinsics the adjustment refined, by the camera model it kept."""
+    out = [] if not free else ["f", "k1", "k2"] if sfm.camera_model == "RADIAL" else ["fx", "fy", "k1", "k2", "p1", "p2"]
+    if o.refine_principal_point or sfm.camera_choice.get("principal_point") == "free":
+        out += ["cx", "cy"]
+    return out
 
 
 def _record_seconds(poses: Path, seconds: dict[str, float]) -> dict[str, float]:

@@ -58,7 +58,7 @@ WORK_MARK = ".prism3d-sfm"
 #: What :func:`map_frames` writes in its work folder (removed before a rerun there).
 _OWNED = ("database.db", "database.db-wal", "database.db-shm", "images", "model", "sparse",
           "request.json", "result.npz", "result.json", "colmap.log")
-_STAGES = ("features", "matching", "mapping")
+_STAGES = ("features", "matching", "mapping", "camera model")
 _WORKER_SCHEMA = 1
 _WORKER_MODULE = _sfm_worker.__name__  # run as its own process (python -m)
 
@@ -83,6 +83,10 @@ class SfmOptions:
     """Bundle adjustment refines the principal point (only with many frames and lines)."""
     refine_distortion: bool = True
     """Bundle adjustment refines k1 and k2 (COLMAP's RADIAL model)."""
+    choose_camera: bool = True
+    """When the focal length and distortion are refined: compare RADIAL, RADIAL with a free
+    principal point and OPENCV (k1 k2 p1 p2) on held-back matches and keep the simplest
+    that fits (docs/uav.md); else RADIAL as mapped."""
     threads: int = 0
     """Threads for COLMAP (>= 0); 0: ``configured_threads()`` (PRISM3D_NUM_THREADS), and
     when that is 0 too, all cores."""
@@ -97,7 +101,7 @@ class SfmOptions:
         check_choice(self.matching, "matching", ("auto", "exhaustive", "sequential"))
         if check_int(self.sequential_overlap, "sequential_overlap") < 1:
             raise InputError(f"sequential_overlap: expected an integer >= 1, got {self.sequential_overlap}")
-        for name in ("refine_focal", "refine_principal_point", "refine_distortion"):
+        for name in ("refine_focal", "refine_principal_point", "refine_distortion", "choose_camera"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         if check_int(self.threads, "threads") < 0:
@@ -120,9 +124,9 @@ class SfmResult:
     cam_from_world: list[NDArray[np.float64] | None]
     """Per name: (4, 4) float64 ``T_cam_world`` (model frame to camera), None if unregistered."""
     K: NDArray[np.float64]
-    """(3, 3) refined intrinsics at full resolution (fx = fy: RADIAL has one focal length)."""
+    """(3, 3) refined intrinsics at full resolution (fx = fy with RADIAL)."""
     dist: NDArray[np.float64]
-    """(5,) OpenCV distortion (k1, k2, 0, 0, 0)."""
+    """(5,) OpenCV distortion (k1, k2, p1, p2, 0); p1 = p2 = 0 with RADIAL."""
     size: tuple[int, int]
     """(width, height) of the frames, px."""
     points: NDArray[np.float64]
@@ -147,6 +151,11 @@ class SfmResult:
     """Per name: the frame's name in the COLMAP database and model."""
     model_sizes: list[int] = field(default_factory=list)
     """Registered frames of every model COLMAP found, largest (the one returned) first."""
+    camera_model: str = "RADIAL"
+    """COLMAP's camera model of the result: RADIAL (f, cx, cy, k1, k2) or OPENCV (fx, fy,
+    cx, cy, k1, k2, p1, p2)."""
+    camera_choice: dict = field(default_factory=dict)
+    """How the camera model was chosen: the candidates' held-back RMS, or why none was compared."""
 
     @property
     def camera(self) -> CameraModel:
@@ -287,6 +296,7 @@ def _worker_request(opts: SfmOptions, wd: Path, images: Sequence[str | Path], pa
         "refine_focal": opts.refine_focal,
         "refine_principal_point": opts.refine_principal_point,
         "refine_distortion": opts.refine_distortion,
+        "choose_camera": bool(opts.choose_camera and opts.refine_focal and opts.refine_distortion),
         "threads": threads,
         "model_dir": str(wd / "model"),
         "result_npz": str(wd / "result.npz"),
@@ -491,9 +501,8 @@ def _read_result(wd: Path, names: list[str], staged: list[str], size: tuple[int,
         T = np.eye(4)
         T[:3] = arr["cam_from_world"][k]
         registered[i], poses[i] = True, T
-    f, cx, cy, k1, k2 = (float(v) for v in arr["camera_params"])
-    K = np.array([[f, 0.0, cx - 0.5], [0.0, f, cy - 0.5], [0.0, 0.0, 1.0]])
-    dist = np.array([k1, k2, 0.0, 0.0, 0.0])
+    model = str(arr["camera_model"]) if "camera_model" in arr else "RADIAL"
+    K, dist = _intrinsics(model, arr["camera_params"])
     if tuple(int(v) for v in arr["camera_size"]) != tuple(size):
         raise ReconstructionError(f"COLMAP's camera is {tuple(arr['camera_size'])} px, the frames {size}")
     obs_xy = arr["obs_xy"] - 0.5
@@ -510,7 +519,23 @@ def _read_result(wd: Path, names: list[str], staged: list[str], size: tuple[int,
         names=names, registered=registered, cam_from_world=poses, K=K, dist=dist, size=(int(size[0]), int(size[1])),
         points=arr["points"], colors=arr["colors"], track_length=arr["track_length"],
         reprojection_rms_px=rms, n_observations=int(len(err)), model_dir=wd / "model", seconds=seconds,
-        log_path=log_path, model_names=list(staged), model_sizes=[int(v) for v in info["model_sizes"]])
+        log_path=log_path, model_names=list(staged), model_sizes=[int(v) for v in info["model_sizes"]],
+        camera_model=model, camera_choice=dict(info.get("camera_choice") or {}))
+
+
+def _intrinsics(model: str, params: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """OpenCV ``K`` and ``dist`` (prism3d's pixel convention) of COLMAP camera parameters."""
+    v = [float(x) for x in params]
+    if model == "RADIAL":
+        f, cx, cy, k1, k2 = v
+        fx = fy = f
+        p1 = p2 = 0.0
+    elif model == "OPENCV":
+        fx, fy, cx, cy, k1, k2, p1, p2 = v
+    else:
+        raise ReconstructionError(f"COLMAP returned a {model} camera; expected RADIAL or OPENCV")
+    K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
+    return K, np.array([k1, k2, p1, p2, 0.0])
 
 
 #: Fewer SIFT features than this in a frame: too blurred, dark or plain to match.
@@ -544,11 +569,15 @@ def _not_placed(k: int, n: int, info: dict, log_path: Path) -> InputError:
 
 def _reprojection_errors(K: NDArray, dist: NDArray, T: NDArray, X: NDArray, xy: NDArray) -> NDArray[np.float64]:
     """Length of each observation's reprojection error (px): ``X`` (M, 3) model points
-    through ``T`` (M, 3, 4) cam_from_world and the RADIAL camera, against ``xy`` (M, 2)."""
+    through ``T`` (M, 3, 4) cam_from_world and the camera (k1, k2, p1, p2 of ``dist``),
+    against ``xy`` (M, 2)."""
     Xc = np.einsum("mij,mj->mi", T[:, :, :3], X) + T[:, :, 3]
     u, v = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2]
     r2 = u * u + v * v
     radial = 1.0 + dist[0] * r2 + dist[1] * r2 * r2
-    px = K[0, 0] * u * radial + K[0, 2]
-    py = K[1, 1] * v * radial + K[1, 2]
+    p1, p2 = (float(dist[2]), float(dist[3])) if len(dist) >= 4 else (0.0, 0.0)
+    ud = u * radial + 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
+    vd = v * radial + p1 * (r2 + 2 * v * v) + 2 * p2 * u * v
+    px = K[0, 0] * ud + K[0, 2]
+    py = K[1, 1] * vd + K[1, 2]
     return np.hypot(px - xy[:, 0], py - xy[:, 1])
