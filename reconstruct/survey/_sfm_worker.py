@@ -105,8 +105,11 @@ def _export(pycolmap, rec, np) -> dict:
 CAMERA_CANDIDATES = (("RADIAL", False), ("RADIAL", True), ("OPENCV", False))
 #: Share of the sparse points held back to score each camera model on.
 HOLD_SHARE = 0.2
-#: A richer model is kept only if it cuts the held-back RMS by this share.
-MIN_GAIN = 0.05
+#: A richer model is kept only if it cuts the held-back RMS by this share ...
+MIN_GAIN = 0.02
+#: ... and the cut is significant: the paired per-point differences of squared residuals
+#: at least this many standard errors from zero.
+MIN_Z = 3.0
 #: Fewer sparse points than this: too few to tell the models apart; RADIAL is kept.
 MIN_POINTS_TO_COMPARE = 300
 #: OPENCV has two focal lengths; camera sensors have square pixels, so a fit whose fx / fy
@@ -133,13 +136,15 @@ def _adjust(pycolmap, rec, free_pp: bool) -> None:
     pycolmap.bundle_adjustment(rec, bo)
 
 
-def _held_out_rms(np, rec, held: dict) -> float:
-    """RMS (px) of the held-back observations: each held point triangulated afresh (linear,
-    in normalised coordinates) from its observations through ``rec``'s camera and poses,
-    then projected back into each."""
+def _held_out_sq(np, rec, held: dict):
+    """Per held-back point, the mean squared reprojection error (px^2) of its observations
+    (NaN if it cannot be triangulated): each triangulated afresh (linear, in normalised
+    coordinates) from its observations through ``rec``'s camera and poses, then projected
+    back into each."""
     cam = next(iter(rec.cameras.values()))
-    res = []
+    out = []
     for obs in held.values():
+        res = []
         rows, P, xy = [], [], []
         for iid, xy_i in obs:
             if iid not in rec.images or not rec.images[iid].has_pose:
@@ -149,27 +154,33 @@ def _held_out_rms(np, rec, held: dict) -> float:
             rows += [n[0] * M[2] - M[0], n[1] * M[2] - M[1]]
             P.append(M)
             xy.append(xy_i)
-        if len(P) < 2:
-            continue
-        _, _, vt = np.linalg.svd(np.asarray(rows))
-        X = vt[-1]
-        if abs(X[3]) < 1e-12:
-            continue
-        X = X[:3] / X[3]
-        for M, xy_i in zip(P, xy):
-            pc = M[:, :3] @ X + M[:, 3]
-            if pc[2] <= 0:
-                continue
-            uv = np.asarray(cam.img_from_cam(pc), dtype=np.float64).ravel()[:2]
-            res.append(float(np.sum((uv - np.asarray(xy_i)) ** 2)))
-    return float(np.sqrt(np.mean(res))) if res else float("inf")
+        _, _, vt = np.linalg.svd(np.asarray(rows)) if len(P) >= 2 else (None, None, None)
+        if vt is not None and abs(vt[-1][3]) > 1e-12:
+            X = vt[-1][:3] / vt[-1][3]
+            for M, xy_i in zip(P, xy):
+                pc = M[:, :3] @ X + M[:, 3]
+                if pc[2] > 0:
+                    uv = np.asarray(cam.img_from_cam(pc), dtype=np.float64).ravel()[:2]
+                    res.append(float(np.sum((uv - np.asarray(xy_i)) ** 2)))
+        out.append(float(np.mean(res)) if res else float("nan"))
+    return np.asarray(out)
+
+
+def _better(np, rich, simple) -> bool:
+    """Whether per-point squared residuals ``rich`` beat ``simple`` (:data:`MIN_GAIN`, :data:`MIN_Z`)."""
+    ok = np.isfinite(rich) & np.isfinite(simple)
+    if ok.sum() < 10:
+        return False
+    d = simple[ok] - rich[ok]
+    z = float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d)) + 1e-300))
+    return bool(np.sqrt(rich[ok].mean()) < (1.0 - MIN_GAIN) * np.sqrt(simple[ok].mean()) and z >= MIN_Z)
 
 
 def _choose_camera(pycolmap, np, rec) -> tuple:
-    """The simplest camera model that explains held-back matches (module docstring of
-    sfm.py): each candidate adjusted on 80 % of the points, scored on the rest; a richer
-    one must cut that RMS by :data:`MIN_GAIN`. Returns the model adjusted on all points
-    with the chosen camera, and the comparison."""
+    """The simplest camera model that explains held-back matches (docs/uav.md): each
+    candidate adjusted on 80 % of the points, scored on the rest; a richer one must cut
+    that RMS by :data:`MIN_GAIN`, significantly (:func:`_better`). Returns the model
+    adjusted on all points with the chosen camera, and the comparison."""
     ids = sorted(rec.points3D.keys())
     if len(ids) < MIN_POINTS_TO_COMPARE:
         return rec, {"chosen": "RADIAL", "principal_point": "fixed",
@@ -182,7 +193,7 @@ def _choose_camera(pycolmap, np, rec) -> tuple:
         for el in rec.points3D[pid].track.elements:
             obs.append((el.image_id, np.asarray(rec.images[el.image_id].points2D[el.point2D_idx].xy, dtype=np.float64)))
         held[pid] = obs
-    scores = []
+    scores, sqs = [], []
     for model, pp in CAMERA_CANDIDATES:
         r = pycolmap.Reconstruction(rec)
         _as_model(pycolmap, r, model)
@@ -190,20 +201,22 @@ def _choose_camera(pycolmap, np, rec) -> tuple:
             r.delete_point3D(pid)
         _adjust(pycolmap, r, pp)
         c = next(iter(r.cameras.values()))
+        sq = _held_out_sq(np, r, held)
+        sqs.append(sq)
         sc = {"model": model, "principal_point": "free" if pp else "fixed", "params": [float(v) for v in c.params],
-              "held_out_rms_px": _held_out_rms(np, r, held), "fit_rms_px": float(r.compute_mean_reprojection_error())}
+              "held_out_rms_px": float(np.sqrt(np.nanmean(sq))) if np.isfinite(sq).any() else None,
+              "fit_rms_px": float(r.compute_mean_reprojection_error())}
         if model == "OPENCV" and abs(float(c.params[0]) / float(c.params[1]) - 1.0) > MAX_ASPECT_DEPARTURE:
             sc["refused"] = f"fx / fy = {float(c.params[0]) / float(c.params[1]):.3f}: not square pixels"
         scores.append(sc)
     pick = 0
     for k in range(1, len(scores)):
-        if "refused" not in scores[k] and \
-                scores[k]["held_out_rms_px"] < (1.0 - MIN_GAIN) * scores[pick]["held_out_rms_px"]:
+        if "refused" not in scores[k] and _better(np, sqs[k], sqs[pick]):
             pick = k
     report = {"chosen": scores[pick]["model"], "principal_point": scores[pick]["principal_point"],
               "held_back_points": len(held_ids), "candidates": scores,
               "why": "the simplest whose held-back RMS no richer model cuts by "
-                     f"{MIN_GAIN:.0%} or more"}
+                     f"{MIN_GAIN:.0%} or more, significantly (paired, z >= {MIN_Z:g})"}
     if pick == 0:
         return rec, report
     model, pp = CAMERA_CANDIDATES[pick]
