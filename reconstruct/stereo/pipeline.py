@@ -482,13 +482,32 @@ def _keep(disparity: NDArray, std: NDArray, candidates: NDArray[np.bool_], max_s
     return kept, low_conf
 
 
+#: Where the disparity search reaches 0 (infinity: two-camera pairs without a stated depth
+#: range), a point needs its disparity this many stds above 0, its own std and the
+#: matcher's median one, to be told from infinity; nearer to 0 it is "too far to measure"
+#: (sky and distance come back kilometres away otherwise: KITTI up to 14,000 km).
+FAR_SIGMAS = 3.0
+
+
+def _too_far(disparity: NDArray, std: NDArray, kept: NDArray[np.bool_], measured_ok: NDArray[np.bool_]
+             ) -> NDArray[np.bool_]:
+    """Kept pixels whose disparity is within :data:`FAR_SIGMAS` stds of 0 (set to NaN in place)."""
+    ref = std[kept & measured_ok]
+    floor = FAR_SIGMAS * np.maximum(std, float(np.median(ref)) if ref.size else 0.0)
+    far = kept & (disparity < floor)
+    disparity[far] = np.nan
+    std[far] = np.nan
+    return far
+
+
 def _report(kept: NDArray, measured_ok: NDArray, inconsistent: NDArray, low_conf: NDArray,
-            sel: _Selection) -> Coverage:
+            sel: _Selection, too_far: NDArray) -> Coverage:
     """The share kept and, for each of the dropped, the first reason that applies."""
     not_kept = sel.covered & ~kept
     hidden = sel.hidden
     reason_masks = {
         "outside depth range": not_kept & ~sel.in_range,
+        "too far to measure": not_kept & too_far,
         "no texture": not_kept & (sel.dark | ~sel.textured) & ~hidden & ~low_conf,
         "silhouette": not_kept & sel.rim & ~low_conf,
         "occluded": not_kept & hidden & ~low_conf,
@@ -566,10 +585,17 @@ def _reconstruct_views(views: tuple[NDArray, NDArray], rig: StereoRig, opts: Rec
         disparity[estimated] = est[estimated]
         std[estimated] = e_std[estimated]
     kept, low_conf = _keep(disparity, std, measured_ok | estimated, max_std)
+    too_far = np.zeros_like(kept)
+    if min_disp <= 0:  # the search reached infinity: drop what cannot be told from it
+        too_far = _too_far(disparity, std, kept, measured_ok)
+        kept &= ~too_far
     clock.stop()
-    cov = _report(kept, measured_ok, inconsistent, low_conf, sel)
+    cov = _report(kept, measured_ok, inconsistent, low_conf, sel, too_far)
     clock.start("triangulate")
     scan = _triangulate(disparity, std, rect, left, min_disp, num_disp, opts)
+    if min_disp <= 0 and np.isfinite(std[kept & measured_ok]).any():
+        scan.meta["max_range_mm"] = float(rect.focal_px * rect.baseline_mm
+                                          / (FAR_SIGMAS * float(np.median(std[kept & measured_ok]))))
     clock.stop()
     progress(_STAGES, _STAGES, "done")
     return Reconstruction(scan, rect, left, disparity, std, kept & measured_ok, cov, int(min_disp),

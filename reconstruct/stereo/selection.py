@@ -30,7 +30,8 @@ __all__ = [
 ]
 
 #: Why a pixel gave no point, in the order the checks apply.
-REASONS = ("outside depth range", "no texture", "silhouette", "occluded", "inconsistent", "low confidence")
+REASONS = ("outside depth range", "too far to measure", "no texture", "silhouette", "occluded", "inconsistent",
+           "low confidence")
 
 #: Immerkaer's operator responds to noise of std sigma with std 6 sigma; a median
 #: absolute response is 0.6745 std of a Gaussian.
