@@ -680,6 +680,8 @@ def _write_outputs(rec: Reconstruction, outs: list[Path], out_ply: Path, dispari
     meta = [f"{k} {v}" for k, v in rec.scan.meta.items()]
     meta.append("coverage " + " ".join(f"{k}={v:.4f}" for k, v in rec.coverage.shares().items()))
     props = rec.scan.point_properties()
+    px = rec.scan.pixels  # 1: matched, 0: estimated from its neighbours (local planes)
+    props["measured"] = rec.measured[px[:, 0], px[:, 1]].astype(np.uint8)
     with contextlib.ExitStack() as stack:
         tmp = {p: stack.enter_context(atomic_path(p)) for p in outs}
         write_ply(tmp[out_ply], rec.scan.points, colors=rec.scan.colors, normals=rec.scan.normals,
@@ -710,7 +712,7 @@ def reconstruct_to_files(
     """What ``prism3d reconstruct`` calls: a side-by-side shot or two view files and a
     calibration (any format :func:`~prism3d.capture.calib_formats.load_stereo_calibration`
     reads) to the scan PLY (with per-point ``confidence``, ``disparity_std``,
-    ``depth_std``) and optionally the disparity (PFM, ``inf`` where no point), the depth
+    ``depth_std`` and ``measured``: 0 for a point estimated from its neighbours) and optionally the disparity (PFM, ``inf`` where no point), the depth
     (float32 mm) and a mesh. A range the calibration states bounds an estimated one."""
     opts = ReconstructOptions() if options is None else options
     out_ply = Path(out_ply)

@@ -38,6 +38,8 @@ def test_kitti_keeps_no_point_beyond_what_its_disparities_can_tell(shared_data: 
     ply = read_ply(out)
     z = ply.points[:, 2]
     std = np.asarray(ply.extra["disparity_std"])
+    est = np.asarray(ply.extra["measured"]) == 0  # every point says whether it was matched
+    assert 0.1 < est.mean() < 0.4
     fb = 721.5377 * 537.2  # f (px) x baseline (mm)
     assert (fb / z >= FAR_SIGMAS * std - 1e-3).all()  # each point 3 of its stds from infinity
     assert z.max() < 1_000_000 and (z > 100_000).mean() < 0.09
