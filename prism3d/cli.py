@@ -1013,8 +1013,13 @@ def _cmd_survey(args: argparse.Namespace) -> int:
         def run_pairs(reqs: list, progress: Any) -> list:
             return run_survey_pairs(reqs, run, progress)
     s = run_survey(args.images, args.output, calib=args.calib, gps_table=args.gps, options=opts,
-                   progress=_progress(args, "survey", stage_lines=True), run_pairs=run_pairs, video_step_s=args.video_step)
+                   progress=_progress(args, "survey", stage_lines=True), run_pairs=run_pairs, video_step_s=args.video_step,
+                   resume=args.resume)
     unit = "m" if s["scale"] == "gps" else "units (scale unknown: no GPS)"
+    r = s["resumed"]
+    if r["poses"] or r["pairs_reused"]:
+        _say(args, f"survey: resumed: poses {'kept' if r['poses'] else 'computed'}, {r['pairs_reused']} pairs kept, "
+                   f"{r['pairs_matched']} matched")
     _say(args, f"survey: {s['n_registered']}/{s['n_frames']} frames placed, reprojection RMS "
                f"{s['reprojection_rms_px']:.2f} px; {s['pairs_ok']} pairs matched, {s['pairs_skipped']} skipped; "
                f"DSM of {s['dsm_cells']:,} cells of {s['cell']:g} {unit}; {s['seconds']['total']:.0f} s -> {args.output}")
@@ -1049,6 +1054,9 @@ def _add_survey(sub: Any) -> None:
                    help="the products' coordinate system: utm (the site's zone, the default with GPS), enu (the "
                    "local east-north-up frame at the first frame) or a projected EPSG code in metres")
     p.add_argument("--laz", action="store_true", help="write the point cloud LASzip-compressed (cloud.laz)")
+    p.add_argument("--resume", action="store_true",
+                   help="reuse the poses and finished pairs an interrupted run of this same command kept "
+                   "(in .OUT.resume beside OUT; frames, not a video); without it such leftovers are removed")
     p.add_argument("--pair-steps", type=int, nargs="+", default=[1, 2], metavar="K",
                    help="pair each frame with the one K later (default 1 2: the next and the next-but-one)")
     p.add_argument("--cross-pairs", action=argparse.BooleanOptionalAction, default=True,

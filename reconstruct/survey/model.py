@@ -184,6 +184,8 @@ class PairRequest:
     min_base_to_height: float = 0.03
     matcher: str = "ours"
     lk_window: int = 5
+    save_to: str | None = None
+    """Where the finished pair is also written (the survey's resume folder), or nowhere."""
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ import math
 import shutil
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +56,7 @@ from prism3d.reconstruct.survey.pair import pair_cloud
 from prism3d.reconstruct.survey.products import (
     write_products,
 )
+from prism3d.reconstruct.survey.resume import ResumeFolder, save_pair
 from prism3d.reconstruct.survey.sfm import SfmOptions, map_frames, similarity_align
 
 __all__ = [
@@ -186,6 +187,15 @@ def _tile_bounds(P: NDArray, cell: float) -> tuple[float, float, float, float]:
 
 
 def dense_pair(req: PairRequest) -> PairResult:
+    """:func:`match_pair`, the result also written to ``req.save_to`` when given (the
+    survey's resume folder: a pair finished before an interruption is not matched again)."""
+    res = match_pair(req)
+    if req.save_to:
+        save_pair(res, req.save_to)
+    return res
+
+
+def match_pair(req: PairRequest) -> PairResult:
     """One pair's dense heights: frames ``i`` and ``j`` undistorted and downscaled by
     ``factor``, rectified from their poses, matched over the disparity range of the sparse
     points both see, triangulated in ENU and gridded on the survey's lattice. Returns the
@@ -412,12 +422,14 @@ def _default_cell(T_enu: dict[int, NDArray], K: NDArray, points_enu: NDArray, fa
 def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str | Path | None = None,
                gps_table: str | Path | None = None, options: SurveyOptions | None = None,
                progress: Callable[[int, int, str], None] | None = None,
-               run_pairs: PairRunner | None = None, video_step_s: float = 1.0) -> dict[str, Any]:
+               run_pairs: PairRunner | None = None, video_step_s: float = 1.0, resume: bool = False) -> dict[str, Any]:
     """Survey ``images`` (frames of one camera, in flight order; or one video, sampled
     every ``video_step_s`` into ``OUT/frames/``) into ``out_dir``: poses, a COLMAP model,
     per-pair depth maps, cloud (PLY, LAS), DSM, ground, nDSM and orthophoto (GeoTIFF),
     poses.json and a drawing; all written together or nothing. ``run_pairs`` runs the
-    dense pairs (default: here, one after the other)."""
+    dense pairs (default: here, one after the other). The finished work is kept beside the
+    output while it runs; ``resume`` reuses what an interrupted run of the same command
+    kept (:mod:`~prism3d.reconstruct.survey.resume`; frames, not a video)."""
     o = SurveyOptions() if options is None else options
     t_all = time.perf_counter()
     out = Path(out_dir)
@@ -428,46 +440,70 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
         raise InputError("survey: give one video, or image frames, not both")
     if not videos:  # checked before anything is written
         frames = _Frames.of(images, gps_table, calib, o.crs)
-    refine = o.refine_intrinsics if o.refine_intrinsics != "auto" else ("none" if calib else "focal+distortion")
-    free = refine != "none"
-    seconds: dict[str, float] = {}
     with staged_folder(out) as stage:
         if videos:  # frames into the survey's own folder, then the same checks
             images = [str(p) for p in video_frames(videos[0], stage / "frames", step_s=video_step_s)]
             frames = _Frames.of(images, gps_table, calib, o.crs)
-        t0 = time.perf_counter()
-        sfm = map_frames([str(p) for p in images], stage / "sfm_work", camera=frames.camera,
+        cache = ResumeFolder(out, [Path(p) for p in images], None if gps_table is None else Path(gps_table),
+                             None if calib is None else Path(calib), o, resume=resume and not videos)
+        try:
+            free = (o.refine_intrinsics if o.refine_intrinsics != "auto" else "none" if calib else "focal+distortion") != "none"
+            summary = _stages(stage, out, [str(p) for p in images], frames, o, bool(videos), free, cache, run_pairs,
+                              progress)
+            summary["seconds"]["total"] = round(time.perf_counter() - t_all, 2)
+            _record(stage / "poses.json", {"seconds": summary["seconds"], "resumed": summary["resumed"]})
+        except Exception:
+            cache.remove()  # a failure on the input: nothing there is worth keeping
+            raise
+    cache.remove()
+    summary["out_dir"] = str(out)
+    return summary
+
+
+def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: SurveyOptions, video: bool, free: bool,
+            cache: ResumeFolder, run_pairs: PairRunner | None, progress: Callable[[int, int, str], None] | None
+            ) -> dict[str, Any]:
+    """Poses (intrinsics refined when ``free``), dense pairs, fusion and products into
+    ``stage`` (:func:`run_survey`)."""
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    sfm = cache.load_sfm(stage / "sfm_work" / "colmap.log")
+    reused_poses = sfm is not None
+    if sfm is None:
+        sfm = map_frames(images, stage / "sfm_work", camera=frames.camera,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
                                             refine_principal_point=o.refine_principal_point),
                          progress=_in_stage(progress, "poses"))
-        seconds["poses"] = time.perf_counter() - t0
-        geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
-        factor = _dense_scale(frames.size, o.dense_max_pixels)
-        t0 = time.perf_counter()
-        reqs = _pair_requests(frames, sfm, T_enu, points_enu, factor, o)
-        recs = sorted((run_pairs or run_pairs_here)(reqs, _in_stage(progress, "dense pairs")), key=lambda r: (r.i, r.j))
-        seconds["dense"] = time.perf_counter() - t0
-        ok = [r for r in recs if r.ok]
-        if not ok:
-            reasons = "; ".join(f"{frames.paths[r.i].name}+{frames.paths[r.j].name}: {r.reason}" for r in recs[:3])
-            raise InputError(f"survey: no pair of frames gave depth ({reasons})")
-        t0 = time.perf_counter()
-        if progress:
-            progress(0, 1, f"fusion: {len(ok)} depth maps")
-        fused = fuse_tiles([r.tile for r in ok], [r.sigma_z for r in ok])
-        seconds["fusion"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        refined = _refined(sfm, free, o)
-        shown = [str(out / "frames" / p.name) for p in frames.paths] if videos else [str(p) for p in images]
-        summary = write_products(stage, fused, SurveyState(
-            frames.paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, frames.gps_source, frames.calib_source,
-            refined, factor, o), progress=_in_stage(progress, "products"))
-        shutil.copytree(sfm.model_dir, stage / "colmap", dirs_exist_ok=True)
-        shutil.rmtree(stage / "sfm_work", ignore_errors=True)
-        seconds["products"] = time.perf_counter() - t0
-        seconds["total"] = time.perf_counter() - t_all
-        summary["seconds"] = _record_seconds(stage / "poses.json", seconds)
-    summary["out_dir"] = str(out)
+        cache.save_sfm(sfm)
+    seconds["poses"] = time.perf_counter() - t0
+    geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
+    factor = _dense_scale(frames.size, o.dense_max_pixels)
+    t0 = time.perf_counter()
+    reqs = _pair_requests(frames, sfm, T_enu, points_enu, factor, o)
+    kept = [cache.finished_pair(r.i, r.j) for r in reqs]
+    todo = [replace(r, save_to=str(cache.pair_path(r.i, r.j))) for r, k in zip(reqs, kept) if k is None]
+    new = (run_pairs or run_pairs_here)(todo, _in_stage(progress, "dense pairs")) if todo else []
+    recs = sorted([k for k in kept if k is not None] + list(new), key=lambda r: (r.i, r.j))
+    seconds["dense"] = time.perf_counter() - t0
+    ok = [r for r in recs if r.ok]
+    if not ok:
+        reasons = "; ".join(f"{frames.paths[r.i].name}+{frames.paths[r.j].name}: {r.reason}" for r in recs[:3])
+        raise InputError(f"survey: no pair of frames gave depth ({reasons})")
+    t0 = time.perf_counter()
+    if progress:
+        progress(0, 1, f"fusion: {len(ok)} depth maps")
+    fused = fuse_tiles([r.tile for r in ok], [r.sigma_z for r in ok])
+    seconds["fusion"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    shown = [str(out / "frames" / p.name) for p in frames.paths] if video else list(images)
+    summary = write_products(stage, fused, SurveyState(
+        frames.paths, shown, sfm, geo, T_enu, recs, origin, gps_enu, frames.gps_source, frames.calib_source,
+        _refined(sfm, free, o), factor, o), progress=_in_stage(progress, "products"))
+    shutil.copytree(sfm.model_dir, stage / "colmap", dirs_exist_ok=True)
+    shutil.rmtree(stage / "sfm_work", ignore_errors=True)
+    seconds["products"] = time.perf_counter() - t0
+    summary["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
+    summary["resumed"] = {"poses": reused_poses, "pairs_reused": len(reqs) - len(todo), "pairs_matched": len(todo)}
     return summary
 
 
@@ -479,13 +515,12 @@ def _refined(sfm: Any, free: bool, o: SurveyOptions) -> list[str]:
     return out
 
 
-def _record_seconds(poses: Path, seconds: dict[str, float]) -> dict[str, float]:
-    """The stages' times, rounded, added to poses.json (written before the last stage ended)."""
-    out = {k: round(v, 2) for k, v in seconds.items()}
+def _record(poses: Path, entries: dict[str, Any]) -> None:
+    """Entries added to poses.json (the stages' times, what was resumed: known only after
+    it was written)."""
     doc = json.loads(poses.read_text())
-    doc["seconds"] = out
+    doc.update(entries)
     atomic_write_text(poses, json.dumps(doc, indent=1))
-    return out
 
 
 @dataclass(frozen=True)

@@ -375,3 +375,47 @@ def test_a_video_is_sampled_into_frames(flight: Path, tmp_path: Path) -> None:
     for f in doc["frames"]:
         assert Path(f["image"]).parent == out / "frames" and Path(f["image"]).is_file()
     assert main(["-q", "survey", str(video), str(frames[0]), "-o", str(tmp_path / "t")]) == 2
+
+
+def test_a_killed_survey_resumes_with_identical_products(survey: Path, flight: Path, tmp_path: Path) -> None:
+    """kill -9 in the dense stage (two pairs finished), then the same command with
+    --resume: it keeps the poses and the finished pairs, finishes, leaves no staging or
+    resume folder, and its products equal those of the uninterrupted survey (one thread:
+    bit-reproducible) to the bit."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from prism3d.io.geo import read_geotiff
+
+    frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))
+    out = tmp_path / "s"
+    cmd = [sys.executable, "-m", "prism3d.cli", "-q", "survey", *frames, "--calib", str(flight / "camera.yaml"),
+           "--gps", str(flight / "geoinfo.txt"), "-o", str(out)]
+    env = dict(os.environ, PRISM3D_NUM_THREADS="1")
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    pairs = tmp_path / ".s.resume" / "pairs"
+    t0 = time.monotonic()
+    while len(list(pairs.glob("*.npz"))) < 2 and proc.poll() is None and time.monotonic() - t0 < 300:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the survey ended before two pairs were done"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not out.exists()
+    r = subprocess.run([*cmd, "--resume"], env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((out / "poses.json").read_text())
+    assert doc["resumed"]["poses"] and doc["resumed"]["pairs_reused"] >= 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]  # no lock, staging or resume folder left
+    for name in ("dsm.tif", "ndsm.tif", "ortho.tif"):
+        a, _ = read_geotiff(survey / name)
+        b, _ = read_geotiff(out / name)
+        np.testing.assert_array_equal(a, b)
+    # without --resume, leftovers of another run are removed and the survey starts again
+    (tmp_path / ".t.resume" / "pairs").mkdir(parents=True)
+    (tmp_path / ".t.resume" / "pairs" / "0_1.npz").write_bytes(b"stale")
+    assert main(["-q", "survey", *frames[:3], "--calib", str(flight / "camera.yaml"), "--gps",
+                 str(flight / "geoinfo.txt"), "--pair-steps", "1", "--no-cross-pairs", "-o", str(tmp_path / "t")]) == 0
+    assert not (tmp_path / ".t.resume").exists()
