@@ -210,6 +210,8 @@ class _Run:
         self.progress = progress
         self.warnings: list[str] = []
         self.seconds: dict[str, float] = {}
+        self.assumed: set[int] = set()
+        """Odometry pairs ``k, k+1`` placed by the given turntable step (nothing registered them)."""
 
     def tick(self, label: str) -> None:
         self.step += 1
@@ -328,14 +330,18 @@ def _odometry(prep: _Prepared, opts: StitchOptions, run: _Run) -> tuple[dict[Pai
     A = _find_turntable_motion(prep, opts, run, results) if opts.turntable_step_deg is not None else None
     for k in range(prep.n - 1):
         r = results.get((k, k + 1))
+        at_step = None
         if r is None and A is not None:
-            r = prep.icp(k, k + 1, A, first_scale=_PREDICTED_FIRST_SCALE)
+            r = at_step = prep.icp(k, k + 1, A, first_scale=_PREDICTED_FIRST_SCALE)
             if r.fitness < opts.min_turntable_fitness:
                 r = None
             else:
                 corroborated.add(k)
         if r is None:
             r = _global_pair(prep, opts, k, k + 1)
+            if at_step is not None and r.fitness < opts.min_fitness:
+                r = _assume_step(prep, run, k, A, at_step, r)
+                corroborated.add(k)
         results[(k, k + 1)] = r
         run.tick(f"odometry {k}-{k + 1}")
     if A is None and prep.n > 2:
@@ -344,6 +350,19 @@ def _odometry(prep: _Prepared, opts: StitchOptions, run: _Run) -> tuple[dict[Pai
         _yield_to_agreeing_neighbours(prep, opts, run, results, corroborated)
     _check_odometry(prep, opts, run, results, corroborated)
     return results, corroborated, A
+
+
+def _assume_step(prep: _Prepared, run: _Run, k: int, A: NDArray, at_step: RegistrationResult,
+                 matched: RegistrationResult) -> RegistrationResult:
+    """The fallback of a pair that neither the turntable step nor a global match registers
+    (too little shared surface: a thin wing seen edge-on): the given step motion ``A``
+    itself, weighted by the little overlap it has, so the pose graph and the joint
+    turntable refinement place the view; said in the warnings and the edge's ``fallback``."""
+    run.warn(f"views {prep.names[k]} and {prep.names[k + 1]} share too little to register (fitness "
+             f"{max(at_step.fitness, matched.fitness):.3f}); placed by the given turntable step")
+    run.assumed.add(k)
+    return RegistrationResult(np.array(A, dtype=np.float64), at_step.fitness, at_step.inlier_rmse,
+                              at_step.information, at_step.max_distance)
 
 
 def _same_motion(prep: _Prepared, T_a: NDArray, T_b: NDArray, k: int) -> bool:
@@ -415,7 +434,7 @@ def _check_odometry(prep: _Prepared, opts: StitchOptions, run: _Run, results: di
     for k in range(prep.n - 1):
         r = results[(k, k + 1)]
         least = opts.min_turntable_fitness if k in corroborated else opts.min_fitness
-        if r.fitness < least:
+        if r.fitness < least and k not in run.assumed:
             run.fail(
                 f"views {names[k]} and {names[k + 1]} do not overlap enough to register "
                 f"(fitness {r.fitness:.3f} < {least}); are they consecutive views of one object?"
@@ -484,7 +503,8 @@ def _edge_report(prep: _Prepared, opts: StitchOptions, run: _Run, results: dict[
         ang, disp = _residual(rel, r.T_target_source, prep.radius, prep.centres[j])
         kind = "odometry" if j == i + 1 else "loop"
         edges.append({"source": j, "target": i, "kind": kind, "fitness": r.fitness, "inlier_rmse": r.inlier_rmse,
-                      "residual_deg": ang, "residual": disp, "kept": (i, j) in kept_pairs})
+                      "residual_deg": ang, "residual": disp, "kept": (i, j) in kept_pairs,
+                      "fallback": "turntable step" if kind == "odometry" and i in run.assumed else None})
         off = ang > opts.max_residual_deg or disp > _MAX_RESIDUAL_VOXELS * prep.rsp
         if kind == "odometry" and off:
             run.fail(
@@ -722,7 +742,8 @@ def stitch_to_files(
     """Stitch ``.ply`` / ``.pcd`` scan files (the ``prism3d stitch`` command) and write, all or
     none: ``out_model_ply`` (fused cloud), ``mesh_out`` when given (``options.mesh`` follows it)
     and ``poses.json`` beside the model (``schema_version``, ``model``, ``scans`` with ``path``
-    and ``T_model_scan``, ``pairs`` as in the diagnostics). ``frame`` ``"scan"``: the model in
+    and ``T_model_scan``, ``pairs`` as in the diagnostics, ``fallbacks``: pairs placed by the
+    given turntable step, and the ``warnings``). ``frame`` ``"scan"``: the model in
     the first scan's camera frame; ``"object"``: in the object frame
     (:func:`~prism3d.reconstruct.scan.object_frame.object_frame`: z up, x forward, origin on the
     support; PLY header ``up z``), with ``object_frame`` (``T_object_model`` ...) in
@@ -737,6 +758,9 @@ def stitch_to_files(
         "model": out.name,
         "scans": [{"path": p, "T_model_scan": T.tolist()} for p, T in zip(paths, res.T_model_scan, strict=True)],
         "pairs": res.diagnostics["pairs"],
+        "fallbacks": [{"views": [e["target"], e["source"]], "placed_by": e["fallback"], "fitness": e["fitness"]}
+                      for e in res.diagnostics["edges"] if e.get("fallback")],
+        "warnings": list(res.diagnostics["warnings"]),
     }
     T_out, where = np.eye(4), ["frame of the first scan"]
     if frame == "object":

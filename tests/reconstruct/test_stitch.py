@@ -536,6 +536,26 @@ def test_turntable_motion_accepts_small_overlap(tank_views):
                                            max_registration_points=30000))
 
 
+def test_a_pair_nothing_registers_is_placed_by_the_given_step(tank_views):
+    """With the turntable step given, a pair that shares too little for ICP from the step
+    (fitness < 0.1) or a global match (< 0.2) is placed by the step motion itself, said in
+    the warnings and the edge's ``fallback``; the poses stay right (the step is the truth
+    here). Without the step the same scans are refused, naming the views."""
+    scans, poses = tank_views[0], tank_views[1]
+    p2 = scans[2][0]
+    padded = np.concatenate([p2] + [p2 + [8000.0 * (i + 1), 0, 0] for i in range(15)])  # 1/16 can overlap
+    three = [scans[0], scans[1], (padded, None, None)]
+    res = stitch_scans(three, StitchOptions(turntable_step_deg=45.0, mesh=False, max_registration_points=30000))
+    edge = {(e["source"], e["target"]): e for e in res.diagnostics["edges"]}
+    assert edge[(2, 1)]["fallback"] == "turntable step" and edge[(2, 1)]["fitness"] < 0.1
+    assert edge[(1, 0)]["fallback"] is None
+    assert any("placed by the given turntable step" in w for w in res.diagnostics["warnings"])
+    err = _rotation_errors(res, poses[:3])
+    assert max(err) < 0.05, err
+    with pytest.raises(ReconstructionError, match="scan 1 and scan 2"):
+        stitch_scans(three, StitchOptions(turntable_step_deg=None, mesh=False, max_registration_points=30000))
+
+
 def test_turntable_constraint_auto_and_rejected(tank_views):
     """Without a hint the poses are recognised as one turntable's and constrained to
     it; when the object is tilted 2 deg between shots 3 and 4, the hinted run finds
