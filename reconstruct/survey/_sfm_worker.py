@@ -282,8 +282,33 @@ def _match(pycolmap, req: dict, db: Path) -> None:
         so.overlap = int(req["sequential_overlap"])
         so.loop_detection = False
         pycolmap.match_sequential(db, matching_options=mo, pairing_options=so, device=pycolmap.Device.cpu)
+    elif req["matching"] == "spatial":
+        _write_position_priors(pycolmap, req, db)
+        so = pycolmap.SpatialPairingOptions()
+        so.max_num_neighbors = int(req["spatial_neighbours"])
+        so.max_distance = 1e9  # the nearest, however far: the flying height sets the spacing
+        so.ignore_z = False
+        pycolmap.match_spatial(db, matching_options=mo, pairing_options=so, device=pycolmap.Device.cpu)
     else:
         pycolmap.match_exhaustive(db, matching_options=mo, device=pycolmap.Device.cpu)
+
+
+def _write_position_priors(pycolmap, req: dict, db: Path) -> None:
+    """The frames' positions (the request's local metres) as the database's pose priors,
+    replacing those extraction read from EXIF (a position table may be the better source)."""
+    pos = dict(zip(req["image_names"], req["positions"]))
+    database = pycolmap.Database.open(db)
+    try:
+        database.clear_pose_priors()
+        for im in database.read_all_images():
+            if im.name in pos:
+                pr = pycolmap.PosePrior()
+                pr.corr_data_id = im.data_id
+                pr.position = [float(v) for v in pos[im.name]]
+                pr.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+                database.write_pose_prior(pr)
+    finally:
+        database.close()
 
 
 def _map(pycolmap, req: dict, db: Path, image_dir: Path) -> dict:

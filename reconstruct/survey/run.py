@@ -470,10 +470,13 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     sfm = cache.load_sfm(stage / "sfm_work" / "colmap.log")
     reused_poses = sfm is not None
     if sfm is None:
+        positions = None if frames.tags is None else wgs84_to_enu(  # GPS: spatial matching above 40 frames
+            np.array([[t.lat_deg, t.lon_deg, t.alt_m] for t in frames.tags]),
+            np.array([frames.tags[0].lat_deg, frames.tags[0].lon_deg, 0.0]))
         sfm = map_frames(images, stage / "sfm_work", camera=frames.camera,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
                                             refine_principal_point=o.refine_principal_point),
-                         progress=_in_stage(progress, "poses"))
+                         progress=_in_stage(progress, "poses"), positions=positions)
         cache.save_sfm(sfm)
     seconds["poses"] = time.perf_counter() - t0
     geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)

@@ -74,7 +74,12 @@ class SfmOptions:
     """Most SIFT features per frame (>= 100)."""
     matching: str = "auto"
     """Which pairs are matched: "exhaustive" (all), "sequential" (each frame with the next
-    ``sequential_overlap`` in input order) or "auto" (exhaustive up to 40 frames)."""
+    ``sequential_overlap`` in input order), "spatial" (each frame with its
+    ``spatial_neighbours`` nearest by GPS position: a lawnmower block's neighbours on the
+    next line too, at a cost linear in the frames) or "auto" (exhaustive up to 40 frames,
+    above: spatial with positions, else sequential)."""
+    spatial_neighbours: int = 20
+    """Frames nearest by position that spatial matching pairs each frame with (>= 1)."""
     sequential_overlap: int = 6
     """Frames after each frame that sequential matching pairs it with (>= 1)."""
     refine_focal: bool = True
@@ -98,7 +103,9 @@ class SfmOptions:
             raise InputError(f"max_image_size: expected an integer >= 100, got {self.max_image_size}")
         if check_int(self.max_features, "max_features") < 100:
             raise InputError(f"max_features: expected an integer >= 100, got {self.max_features}")
-        check_choice(self.matching, "matching", ("auto", "exhaustive", "sequential"))
+        check_choice(self.matching, "matching", ("auto", "exhaustive", "sequential", "spatial"))
+        if check_int(self.spatial_neighbours, "spatial_neighbours") < 1:
+            raise InputError(f"spatial_neighbours: expected an integer >= 1, got {self.spatial_neighbours}")
         if check_int(self.sequential_overlap, "sequential_overlap") < 1:
             raise InputError(f"sequential_overlap: expected an integer >= 1, got {self.sequential_overlap}")
         for name in ("refine_focal", "refine_principal_point", "refine_distortion", "choose_camera"):
@@ -217,7 +224,8 @@ def similarity_align(src: NDArray, dst: NDArray, *, scale: bool = True
 
 def map_frames(images: Sequence[str | Path], work_dir: str | Path, *, camera: CameraModel | None = None,
                focal_px: float | None = None, options: SfmOptions | None = None,
-               progress: Callable[[int, int, str], None] | None = None) -> SfmResult:
+               progress: Callable[[int, int, str], None] | None = None,
+               positions: NDArray | None = None) -> SfmResult:
     """Poses of ``images`` (frames of one camera) by COLMAP's incremental structure from
     motion, run in a child process in ``work_dir``.
 
@@ -237,6 +245,9 @@ def map_frames(images: Sequence[str | Path], work_dir: str | Path, *, camera: Ca
         Used without ``camera`` (``camera`` wins when both are given): the focal length
         (px, e.g. from EXIF), principal point at the centre, no distortion.
     options : SfmOptions, optional
+    positions : (n, 3) array, optional
+        Each frame's position (GPS, metres in a local frame): spatial matching pairs
+        frames by it (COLMAP pose priors, CARTESIAN).
     progress : callable, optional
         ``progress(done, 3, stage)`` as the features, matching and mapping stages start,
         and ``progress(3, 3, "done")``.
@@ -264,23 +275,35 @@ def map_frames(images: Sequence[str | Path], work_dir: str | Path, *, camera: Ca
     params = _starting_params(camera, focal_px, size)
     wd = _prepare_work_dir(work_dir, paths)
     staged = _stage_images(paths, wd / "images")
-    request = _worker_request(opts, wd, images, paths, staged, params)
+    request = _worker_request(opts, wd, images, paths, staged, params, _checked_positions(positions, len(paths)))
     atomic_write_text(wd / "request.json", json.dumps(request, indent=1))
     log_path = wd / "colmap.log"
     _run_worker(wd, log_path, opts.timeout_s, progress)
     return _read_result(wd, [str(p) for p in images], staged, size, log_path, time.perf_counter() - t_start)
 
 
+def _checked_positions(positions: NDArray | None, n: int) -> NDArray[np.float64] | None:
+    if positions is None:
+        return None
+    p = np.asarray(positions, dtype=np.float64)
+    if p.shape != (n, 3) or not np.isfinite(p).all():
+        raise InputError(f"positions: expected {n} finite (x, y, z) rows, got shape {p.shape}")
+    return p
+
+
 def _worker_request(opts: SfmOptions, wd: Path, images: Sequence[str | Path], paths: list[Path],
-                    staged: list[str], params: list[float]) -> dict:
-    """The child's JSON request: where things go, the starting calibration, and the
-    options with "auto" matching and 0 threads resolved."""
+                    staged: list[str], params: list[float], positions: NDArray | None = None) -> dict:
+    """The child's JSON request: where things go, the starting calibration, the frames'
+    positions, and the options with "auto" matching and 0 threads resolved."""
     threads = opts.threads
     if threads == 0:
         threads = configured_threads() or -1  # COLMAP: -1 = all cores
     matching = opts.matching
     if matching == "auto":
-        matching = "exhaustive" if len(paths) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
+        matching = ("exhaustive" if len(paths) <= EXHAUSTIVE_MAX_IMAGES
+                    else "spatial" if positions is not None else "sequential")
+    if matching == "spatial" and positions is None:
+        raise InputError("matching: spatial matching needs the frames' positions (GPS)")
     return {
         "schema_version": _WORKER_SCHEMA,
         "work_dir": str(wd),
@@ -293,6 +316,8 @@ def _worker_request(opts: SfmOptions, wd: Path, images: Sequence[str | Path], pa
         "max_features": opts.max_features,
         "matching": matching,
         "sequential_overlap": opts.sequential_overlap,
+        "spatial_neighbours": opts.spatial_neighbours,
+        "positions": None if positions is None else positions.tolist(),
         "refine_focal": opts.refine_focal,
         "refine_principal_point": opts.refine_principal_point,
         "refine_distortion": opts.refine_distortion,

@@ -4,6 +4,7 @@ OpenCV two-view anchor."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -404,3 +405,37 @@ def test_the_colmap_child_dies_with_its_parent(tmp_path):
             alive = False
         time.sleep(0.05)
     assert not alive, "the worker outlived its killed parent"
+
+
+def test_spatial_matching_by_gps_positions(strip, tmp_path):
+    """Each frame matched only with its 2 nearest by position (COLMAP pose priors written
+    from the positions given): every frame placed and the poses those of exhaustive
+    matching; "auto" takes spatial matching above 40 frames when positions are known;
+    positions of the wrong shape are refused."""
+    from prism3d.reconstruct.survey import sfm as S
+
+    paths, truth = strip
+    pos = np.array([c for _, c in truth]) + np.random.default_rng(3).normal(0, 0.5, (5, 3))  # GPS-like noise
+    cam = CameraModel(K=K_TRUE, dist=np.zeros(5), size=(W, H))
+    opts = SfmOptions(refine_distortion=False, refine_focal=False)
+    sp = map_frames(paths, tmp_path / "sp", camera=cam, positions=pos,
+                    options=SfmOptions(refine_distortion=False, refine_focal=False, matching="spatial",
+                                       spatial_neighbours=2))
+    ex = map_frames(paths, tmp_path / "ex", camera=cam, options=opts)
+    assert sp.registered == [True] * 5
+    req = json.loads((tmp_path / "sp" / "request.json").read_text())
+    assert req["matching"] == "spatial" and len(req["positions"]) == 5
+    n_sp, n_ex = (sum(json.loads((tmp_path / d / "result.json").read_text())["verified_pairs"].values())
+                  for d in ("sp", "ex"))
+    assert n_sp < n_ex  # measured: 6 pairs matched against 9 of the 10
+    ca = np.array([np.linalg.inv(T)[:3, 3] for T in sp.cam_from_world])
+    cb = np.array([np.linalg.inv(T)[:3, 3] for T in ex.cam_from_world])
+    s, R, t = similarity_align(ca, cb)
+    assert np.abs(s * ca @ R.T + t - cb).max() < 0.002 * np.linalg.norm(cb[4] - cb[0])
+    many = [Path(f"f{k}.png") for k in range(41)]
+    r = S._worker_request(opts, tmp_path, many, many, [p.name for p in many], [F, 400, 300, 0, 0], np.zeros((41, 3)))
+    assert r["matching"] == "spatial"
+    r = S._worker_request(opts, tmp_path, many, many, [p.name for p in many], [F, 400, 300, 0, 0], None)
+    assert r["matching"] == "sequential"
+    with pytest.raises(InputError, match="positions"):
+        map_frames(paths, tmp_path / "bad", camera=cam, positions=np.zeros((4, 3)), options=opts)
