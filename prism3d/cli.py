@@ -1002,7 +1002,7 @@ def _cmd_survey(args: argparse.Namespace) -> int:
 
     opts = SurveyOptions(max_image_size=args.max_image_size, dense_max_pixels=args.dense_max_pixels,
                          pair_steps=tuple(args.pair_steps), cross_pairs=args.cross_pairs, cell_m=args.cell,
-                         ortho_gsd_m=args.ortho_gsd, crs=args.crs, laz=args.laz,
+                         ortho_gsd_m=args.ortho_gsd, crs=args.crs, laz=args.laz, matching=args.matching,
                          refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point)
     run_pairs = None
     if args.workers or args.scheduler:
@@ -1054,6 +1054,9 @@ def _add_survey(sub: Any) -> None:
                    help="the products' coordinate system: utm (the site's zone, the default with GPS), enu (the "
                    "local east-north-up frame at the first frame) or a projected EPSG code in metres")
     p.add_argument("--laz", action="store_true", help="write the point cloud LASzip-compressed (cloud.laz)")
+    p.add_argument("--matching", choices=["auto", "exhaustive", "spatial", "sequential"], default="auto",
+                   help="frame pairs matched for the poses (default auto: all up to 40 frames; above, each frame's 20 "
+                   "nearest by GPS, or the next 6 without GPS)")
     p.add_argument("--resume", action="store_true",
                    help="reuse the poses and finished pairs an interrupted run of this same command kept "
                    "(in .OUT.resume beside OUT; frames, not a video); without it such leftovers are removed")

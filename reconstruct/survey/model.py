@@ -87,6 +87,10 @@ class SurveyOptions:
     """Free the principal point in the bundle adjustment (poorly fixed by few nadir frames)."""
     matcher: str = "ours"
     """The dense matcher: ours, or "sgbm" (OpenCV's, the benchmarks' anchor)."""
+    matching: str = "auto"
+    """Which frames' features are matched for the poses: "auto" (all pairs up to 40 frames;
+    above, each frame with its 20 nearest by GPS position, or the next 6 in flight order
+    without GPS), "exhaustive", "spatial" or "sequential" (:class:`~.sfm.SfmOptions`)."""
     crs: str | None = None
     """The products' coordinate system: "utm" (the site's UTM zone; the default with GPS),
     "enu" (the local east-north-up frame at the first frame), or "EPSG:<code>" of a
@@ -117,6 +121,8 @@ class SurveyOptions:
                 or self.lk_window % 2 == 0:
             raise InputError(f"lk_window: expected an odd integer >= 3, got {self.lk_window!r}")
         object.__setattr__(self, "crs", parse_crs(self.crs))
+        if self.matching not in ("auto", "exhaustive", "spatial", "sequential"):
+            raise InputError(f"matching: expected auto, exhaustive, spatial or sequential, got {self.matching!r}")
         if self.matcher not in ("ours", "sgbm"):
             raise InputError(f"matcher: expected ours or sgbm, got {self.matcher!r}")
         if self.refine_intrinsics not in ("auto", "focal+distortion", "none"):

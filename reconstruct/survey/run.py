@@ -475,7 +475,7 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
             np.array([frames.tags[0].lat_deg, frames.tags[0].lon_deg, 0.0]))
         sfm = map_frames(images, stage / "sfm_work", camera=frames.camera,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
-                                            refine_principal_point=o.refine_principal_point),
+                                            refine_principal_point=o.refine_principal_point, matching=o.matching),
                          progress=_in_stage(progress, "poses"), positions=positions)
         cache.save_sfm(sfm)
     seconds["poses"] = time.perf_counter() - t0
