@@ -170,7 +170,9 @@ def true_orthophoto(dsm: NDArray, west: float, north: float, cell: float, frames
     rr, cc = np.nonzero(coverage)
     P = np.c_[west + (cc + 0.5) * cell, north - (rr + 0.5) * cell, filled[rr, cc]]
     zstep = max(1.0, cell / g)  # one z-buffer cell per DSM cell, in frame pixels
-    zbufs = [_zbuffer(cam, Tc, P, zstep) for Tc in T_cam]
+    boxes = _frame_boxes(cam, [np.asarray(T, dtype=np.float64) for _, T in frames], float(np.nanmin(filled)),
+                         float(np.nanmax(filled)), 2.0 * cell)
+    zbufs = [_zbuffer(cam, Tc, P[_rows_in(rr, cc, box, west, north, cell)], zstep) for Tc, box in zip(T_cam, boxes)]
     cam_xy = np.array([np.asarray(T, dtype=np.float64)[:3, 3] for _, T in frames])
     imgs = _Frames([p for p, _ in frames])
     rgba = np.zeros((Ho, Wo, 4), dtype=np.uint8)
@@ -180,8 +182,10 @@ def true_orthophoto(dsm: NDArray, west: float, north: float, cell: float, frames
     for t, (r0, c0) in enumerate(tiles):
         r1, c1 = min(Ho, r0 + TILE), min(Wo, c0 + TILE)
         X, Y = centres(r0, r1, c0, c1)
+        seeing = [k for k, b in enumerate(boxes) if b is None or not (
+            X.max() < b[0] or X.min() > b[1] or Y.max() < b[2] or Y.min() > b[3])]
         _ortho_tile(r0, c0, r1, c1, X, Y, west, north, cell, filled, coverage,
-                    measured, cam, T_cam, zbufs, cam_xy, imgs, rgba, quality, used)
+                    measured, cam, T_cam, zbufs, cam_xy, imgs, rgba, quality, used, seeing)
         if progress:
             progress(t + 1, len(tiles), "orthophoto")
     _fill_pockets(rgba, quality)
@@ -211,12 +215,59 @@ def _fill_pockets(rgba: NDArray[np.uint8], quality: NDArray[np.uint8]) -> None:
         quality[r0:r1, c0:c1][m] = 3
 
 
+def _frame_boxes(cam: CameraModel, T_enu_cam: Sequence[NDArray], zmin: float, zmax: float, margin: float
+                 ) -> list[tuple[float, float, float, float] | None]:
+    """Per frame, an ENU box (x0, x1, y0, y1) holding every ground point between heights
+    ``zmin`` and ``zmax`` the frame can see: its border's rays meet both planes (the
+    pyramid's sections between lie inside), widened by 10 % and ``margin``; None when a
+    ray does not reach them (an oblique frame: no bound). Tiles and z-buffers then look at
+    the frames that can see them only, so the orthophoto's cost grows with the area, not
+    with the area times the frames."""
+    w, h = cam.size
+    t = np.linspace(0.0, 1.0, 9)
+    border = np.r_[np.c_[t * (w - 1), 0 * t], np.c_[t * (w - 1), 0 * t + (h - 1)], np.c_[0 * t, t * (h - 1)],
+                   np.c_[0 * t + (w - 1), t * (h - 1)]]
+    rays = cam.pixel_rays(border)
+    out: list[tuple[float, float, float, float] | None] = []
+    for T in T_enu_cam:
+        d = rays @ np.asarray(T)[:3, :3].T
+        C = np.asarray(T)[:3, 3]
+        pts = []
+        for z in (zmin, zmax):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = (z - C[2]) / d[:, 2]
+            if not np.isfinite(s).all() or (s <= 0).any():
+                pts = []
+                break
+            pts.append(C + s[:, None] * d)
+        if not pts:
+            out.append(None)
+            continue
+        p = np.vstack(pts)
+        (x0, y0), (x1, y1) = p[:, :2].min(axis=0), p[:, :2].max(axis=0)
+        pad = margin + 0.1 * max(x1 - x0, y1 - y0)
+        out.append((float(x0 - pad), float(x1 + pad), float(y0 - pad), float(y1 + pad)))
+    return out
+
+
+def _rows_in(rr: NDArray, cc: NDArray, box: tuple[float, float, float, float] | None, west: float, north: float,
+             cell: float) -> NDArray | slice:
+    """Which of the coverage cells (``rr``, ``cc`` in row-major order) lie in ``box``."""
+    if box is None:
+        return slice(None)
+    r0 = int(np.searchsorted(rr, int(np.floor((north - box[3]) / cell)), side="left"))
+    r1 = int(np.searchsorted(rr, int(np.ceil((north - box[2]) / cell)), side="right"))
+    c = cc[r0:r1]
+    keep = (c >= np.floor((box[0] - west) / cell)) & (c <= np.ceil((box[1] - west) / cell))
+    return r0 + np.flatnonzero(keep)
+
+
 def _ortho_tile(r0: int, c0: int, r1: int, c1: int, X: NDArray, Y: NDArray, west: float, north: float, cell: float,
                 filled: NDArray, coverage: NDArray, measured: NDArray, cam: CameraModel, T_cam: list[NDArray],
                 zbufs: list, centres: NDArray, imgs: _Frames, rgba: NDArray, quality: NDArray,
-                used: dict[int, int]) -> None:
+                used: dict[int, int], seeing: list[int]) -> None:
     """Colour one tile of the orthophoto in place (module docstring); ``X``, ``Y`` the ENU
-    centres of its cells."""
+    centres of its cells; ``seeing`` the frames that may see it."""
     # DSM coordinates of these cells (fractional; cell centres at integer + 0.5)
     fc = ((X - west) / cell - 0.5).astype(np.float32)
     fr = ((north - Y) / cell - 0.5).astype(np.float32)
@@ -232,8 +283,9 @@ def _ortho_tile(r0: int, c0: int, r1: int, c1: int, X: NDArray, Y: NDArray, west
     best_d = np.full(n, np.inf)
     near = np.full(n, -1, dtype=np.int64)  # the most direct frame holding the cell, seen or not
     near_d = np.full(n, np.inf)
-    uv_all: list[NDArray | None] = []
-    for k, Tc in enumerate(T_cam):
+    uv_all: dict[int, NDArray] = {}
+    for k in seeing:
+        Tc = T_cam[k]
         pc = P @ Tc[:3, :3].T + Tc[:3, 3]
         z = pc[:, 2]
         uv = np.full((n, 2), np.nan)
@@ -251,7 +303,7 @@ def _ortho_tile(r0: int, c0: int, r1: int, c1: int, X: NDArray, Y: NDArray, west
         best[better], best_d[better] = k, d[better]
         closer = inside & (d < near_d)
         near[closer], near_d[closer] = k, d[closer]
-        uv_all.append(uv)
+        uv_all[k] = uv
     # hidden in every frame (a spike of the DSM in front of it): the most direct frame anyway
     best = np.where(best >= 0, best, near)
     out = np.zeros((n, 4), dtype=np.uint8)

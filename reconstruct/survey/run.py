@@ -270,7 +270,8 @@ def fuse_tiles(tiles: Sequence[PairTile], sigmas: Sequence[float], *, band_rows:
     heights; a pair agrees when within ``3 sigma + cell/2`` of it (``sigma`` its
     expected height noise); cells seen by two or more pairs keep the mean of those that
     agree when at least two do (else no height: the pairs contradict each other); cells
-    only one pair saw keep its height. Processed in bands of rows (memory ~ one band)."""
+    only one pair saw keep its height. Processed in square blocks of ``band_rows`` cells
+    (memory ~ one block times the tiles over it)."""
     if not tiles:
         raise InputError("fusion: no pair produced heights")
     cell = float(tiles[0].cell)
@@ -290,21 +291,24 @@ def fuse_tiles(tiles: Sequence[PairTile], sigmas: Sequence[float], *, band_rows:
     rgb = np.zeros((H, W, 3), dtype=np.uint8)
     agree = np.zeros((H, W), dtype=np.uint8)
     seen = np.zeros((H, W), dtype=np.uint8)
-    for b0 in range(0, H, band_rows):
-        b1 = min(H, b0 + band_rows)
-        idx = [k for k, (r0, _, h, _) in enumerate(offs) if r0 < b1 and r0 + h > b0]
-        if not idx:
-            continue
-        Z = np.full((len(idx), b1 - b0, W), np.nan, dtype=np.float32)
-        C = np.zeros((len(idx), b1 - b0, W, 3), dtype=np.float32)
-        tol = np.empty((len(idx), 1, 1), dtype=np.float32)
-        for n, k in enumerate(idx):
-            r0, c0, h, w = offs[k]
-            s0, s1 = max(b0, r0), min(b1, r0 + h)
-            Z[n, s0 - b0:s1 - b0, c0:c0 + w] = tiles[k].dsm[s0 - r0:s1 - r0]
-            C[n, s0 - b0:s1 - b0, c0:c0 + w] = tiles[k].rgb[s0 - r0:s1 - r0]
-            tol[n] = 3.0 * float(sigmas[k]) + 0.5 * cell
-        dsm[b0:b1], rgb[b0:b1], agree[b0:b1], seen[b0:b1] = _fuse_band(Z, C, tol)
+    for b0 in range(0, H, band_rows):  # blocks of the lattice, each with the tiles over it: the cost
+        b1 = min(H, b0 + band_rows)       # grows with the tiles' area, not with the block's width too
+        for e0 in range(0, W, band_rows):
+            e1 = min(W, e0 + band_rows)
+            idx = [k for k, (r0, c0, h, w) in enumerate(offs) if r0 < b1 and r0 + h > b0 and c0 < e1 and c0 + w > e0]
+            if not idx:
+                continue
+            Z = np.full((len(idx), b1 - b0, e1 - e0), np.nan, dtype=np.float32)
+            C = np.zeros((len(idx), b1 - b0, e1 - e0, 3), dtype=np.float32)
+            tol = np.empty((len(idx), 1, 1), dtype=np.float32)
+            for n, k in enumerate(idx):
+                r0, c0, h, w = offs[k]
+                s0, s1 = max(b0, r0), min(b1, r0 + h)
+                t0, t1 = max(e0, c0), min(e1, c0 + w)
+                Z[n, s0 - b0:s1 - b0, t0 - e0:t1 - e0] = tiles[k].dsm[s0 - r0:s1 - r0, t0 - c0:t1 - c0]
+                C[n, s0 - b0:s1 - b0, t0 - e0:t1 - e0] = tiles[k].rgb[s0 - r0:s1 - r0, t0 - c0:t1 - c0]
+                tol[n] = 3.0 * float(sigmas[k]) + 0.5 * cell
+            dsm[b0:b1, e0:e1], rgb[b0:b1, e0:e1], agree[b0:b1, e0:e1], seen[b0:b1, e0:e1] = _fuse_band(Z, C, tol)
     rgb[~np.isfinite(dsm)] = 0
     return FusedSurface(dsm, rgb, agree, seen, west, north, cell)
 
