@@ -379,12 +379,12 @@ def _matched(survey_dir: Path, flight: Path, geojson: Path) -> tuple[list[dict],
     _, fr = _pose_scores(poses_doc, truth)
     ground, gmeta = read_geotiff(survey_dir / "ground.tif")
     feats = json.loads(geojson.read_text())["features"]
+    frame = MapFrame.from_record(poses_doc)
     dets, filled = [], 0
     for f in feats:
         p = f["properties"]
         z = p.get("z_local")
         if z is None:  # the ground's map height there, as an ENU up
-            frame = MapFrame.from_record(poses_doc)
             q = frame.enu_to_map([[p["x_local"], p["y_local"], 0.0]])[0]
             z = float(frame.map_to_enu([[q[0], q[1], _ground_z(ground, gmeta, q[0], q[1])]])[0, 2])
             filled += 1

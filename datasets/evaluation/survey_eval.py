@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
+import laspy
 import numpy as np
 from numpy.typing import NDArray
 
@@ -103,8 +105,6 @@ def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames, fra
     """Each true cell centre into the survey's frame (the alignment undone, then WGS84),
     onto its map grid, the estimated height there, and that estimated point back into
     the truth's frame."""
-    import cv2
-
     gsd = float(truth["gsd_m"])
     tdsm, tid = tz["dsm"], tz["object_id"]
     west, north, cell = float(tz["west"]), float(tz["north"]), float(tz["cell_m"])
@@ -140,8 +140,6 @@ def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames, fra
 
 def _open_ground(tid: NDArray, cell: float) -> NDArray[np.bool_]:
     """True cells of ground or road at least :data:`OPEN_MARGIN_M` from any object."""
-    import cv2
-
     r = max(1, int(round(OPEN_MARGIN_M / cell)))
     near_obj = cv2.dilate((tid > 1).astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
     return (tid <= 1) & ~near_obj
@@ -151,8 +149,6 @@ def _cloud_scores(path: Path, tz: Any, truth: dict, fr: _Frames, frame: MapFrame
     """The LAS/LAZ cloud's classes against the truth: the share of its points over open
     ground (:func:`_open_ground`) that are ASPRS class 2, and of its points on a vehicle
     (inside a counted target's footprint, above half its height) that are not."""
-    import laspy
-
     las = laspy.read(path)
     P = fr.to_truth(frame.map_to_enu(np.c_[las.x, las.y, las.z]))
     cls = np.asarray(las.classification)
@@ -240,12 +236,11 @@ def evaluate_survey(survey_dir: str | Path, flight_dir: str | Path, *, detection
     dsm, meta = read_geotiff(sd / "dsm.tif")
     ndsm, _ = read_geotiff(sd / "ndsm.tif")
     frame = MapFrame.from_record(poses)
+    cloud = next((p for p in (sd / "cloud.las", sd / "cloud.laz") if p.is_file()), None)
     with np.load(fd / "truth.npz") as tz:
         out["dsm"] = _dsm_scores(dsm, meta, tz, truth, fr, frame)
-    out["vehicles"] = _vehicle_scores(dsm, ndsm, meta, truth, fr, frame)
-    cloud = next((p for p in (sd / "cloud.las", sd / "cloud.laz") if p.is_file()), None)
-    if cloud is not None:
-        with np.load(fd / "truth.npz") as tz:
+        out["vehicles"] = _vehicle_scores(dsm, ndsm, meta, truth, fr, frame)
+        if cloud is not None:
             out["cloud"] = _cloud_scores(cloud, tz, truth, fr, frame)
     if detections is not None:
         out["detection"] = _detection_scores(detections, truth, fr, radius_m, threshold)

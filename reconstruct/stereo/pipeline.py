@@ -490,14 +490,16 @@ FAR_SIGMAS = 3.0
 
 
 def _too_far(disparity: NDArray, std: NDArray, kept: NDArray[np.bool_], measured_ok: NDArray[np.bool_]
-             ) -> NDArray[np.bool_]:
-    """Kept pixels whose disparity is within :data:`FAR_SIGMAS` stds of 0 (set to NaN in place)."""
+             ) -> tuple[NDArray[np.bool_], float]:
+    """Kept pixels whose disparity is within :data:`FAR_SIGMAS` stds of 0 (set to NaN in
+    place), and the matcher's median std that floor used (NaN without measured pixels)."""
     ref = std[kept & measured_ok]
-    floor = FAR_SIGMAS * np.maximum(std, float(np.median(ref)) if ref.size else 0.0)
+    med = float(np.median(ref)) if ref.size else float("nan")
+    floor = FAR_SIGMAS * np.maximum(std, med if ref.size else 0.0)
     far = kept & (disparity < floor)
     disparity[far] = np.nan
     std[far] = np.nan
-    return far
+    return far, med
 
 
 def _report(kept: NDArray, measured_ok: NDArray, inconsistent: NDArray, low_conf: NDArray,
@@ -585,17 +587,16 @@ def _reconstruct_views(views: tuple[NDArray, NDArray], rig: StereoRig, opts: Rec
         disparity[estimated] = est[estimated]
         std[estimated] = e_std[estimated]
     kept, low_conf = _keep(disparity, std, measured_ok | estimated, max_std)
-    too_far = np.zeros_like(kept)
+    too_far, med_std = np.zeros_like(kept), float("nan")
     if min_disp <= 0:  # the search reached infinity: drop what cannot be told from it
-        too_far = _too_far(disparity, std, kept, measured_ok)
+        too_far, med_std = _too_far(disparity, std, kept, measured_ok)
         kept &= ~too_far
     clock.stop()
     cov = _report(kept, measured_ok, inconsistent, low_conf, sel, too_far)
     clock.start("triangulate")
     scan = _triangulate(disparity, std, rect, left, min_disp, num_disp, opts)
-    if min_disp <= 0 and np.isfinite(std[kept & measured_ok]).any():
-        scan.meta["max_range_mm"] = float(rect.focal_px * rect.baseline_mm
-                                          / (FAR_SIGMAS * float(np.median(std[kept & measured_ok]))))
+    if np.isfinite(med_std) and med_std > 0:
+        scan.meta["max_range_mm"] = float(rect.focal_px * rect.baseline_mm / (FAR_SIGMAS * med_std))
     clock.stop()
     progress(_STAGES, _STAGES, "done")
     return Reconstruction(scan, rect, left, disparity, std, kept & measured_ok, cov, int(min_disp),

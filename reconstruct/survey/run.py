@@ -377,15 +377,21 @@ def _in_stage(progress: Callable[[int, int, str], None] | None, stage: str
     return lambda done, total, label="": progress(done, total, f"{stage}: {label}")
 
 
+def _gps_enu(tags: list[Any] | None) -> tuple[NDArray | None, NDArray | None]:
+    """The survey's ENU origin (the first frame's latitude and longitude, height 0) and the
+    frames' GPS positions in it; (None, None) without GPS."""
+    if tags is None:
+        return None, None
+    origin = np.array([tags[0].lat_deg, tags[0].lon_deg, 0.0])
+    return origin, wgs84_to_enu(np.array([[t.lat_deg, t.lon_deg, t.alt_m] for t in tags]), origin)
+
+
 def _georeference_model(sfm: Any, tags: list[Any] | None) -> tuple[Georef, dict[int, NDArray], NDArray, Any, Any]:
     """The model in ENU (or levelled, without GPS): the similarity, ``T_enu_cam`` per
     placed frame, the sparse points, the ENU origin (lat, lon, 0) and the GPS positions."""
     reg = [k for k, r in enumerate(sfm.registered) if r]
     C_model = np.array([np.linalg.inv(sfm.cam_from_world[k])[:3, 3] for k in reg])
-    origin = gps_enu = None
-    if tags is not None:
-        origin = np.array([tags[0].lat_deg, tags[0].lon_deg, 0.0])
-        gps_enu = wgs84_to_enu(np.array([[t.lat_deg, t.lon_deg, t.alt_m] for t in tags]), origin)
+    origin, gps_enu = _gps_enu(tags)
     geo = georeference(C_model, None if gps_enu is None else gps_enu[reg], sfm.points)
     T_enu = {k: geo.pose(sfm.cam_from_world[k]) for k in reg}
     return geo, T_enu, geo.apply(sfm.points), origin, gps_enu
@@ -474,9 +480,7 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     sfm = cache.load_sfm(stage / "sfm_work" / "colmap.log")
     reused_poses = sfm is not None
     if sfm is None:
-        positions = None if frames.tags is None else wgs84_to_enu(  # GPS: spatial matching above 40 frames
-            np.array([[t.lat_deg, t.lon_deg, t.alt_m] for t in frames.tags]),
-            np.array([frames.tags[0].lat_deg, frames.tags[0].lon_deg, 0.0]))
+        positions = _gps_enu(frames.tags)[1]  # GPS: spatial matching above 40 frames
         sfm = map_frames(images, stage / "sfm_work", camera=frames.camera,
                          options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
                                             refine_principal_point=o.refine_principal_point, matching=o.matching),

@@ -215,6 +215,7 @@ def test_crs_choices_and_refusals(flight: Path, tmp_path: Path, capsys) -> None:
     LASzip cloud, and off a terminal the survey says each stage as it starts; an unknown
     CRS, a geographic one, and a CRS asked of frames without GPS are one line and exit 2
     with nothing written."""
+    import cv2
     import laspy
     import rasterio
 
@@ -236,8 +237,6 @@ def test_crs_choices_and_refusals(flight: Path, tmp_path: Path, capsys) -> None:
         assert not (tmp_path / "b").exists()
     plain = []
     for p in frames:  # re-encoded: no EXIF GPS
-        import cv2
-
         q = tmp_path / Path(p).name
         cv2.imwrite(str(q), cv2.imread(p))
         plain.append(str(q))
