@@ -41,9 +41,12 @@ from prism3d.reconstruct.stereo.selection import (
     enclosed,
     estimate_noise,
     fill_from_planes,
+    isolated_matches,
     near,
     occlusions,
     std_from_confidence,
+    surrounded,
+    texture_energy,
     textured,
     unlit,
 )
@@ -450,13 +453,18 @@ def _refine(views: tuple[NDArray, NDArray], maps: RectifyMaps, left: NDArray, ri
 
 
 def _fill(dense: NDArray, refined: NDArray, own_std: NDArray, disparity: NDArray, measured_ok: NDArray,
-          sel: _Selection) -> tuple[NDArray[np.bool_], NDArray[np.float32], NDArray[np.float32]]:
+          sel: _Selection, *, open_regions: bool = True
+          ) -> tuple[NDArray[np.bool_], NDArray[np.float32], NDArray[np.float32]]:
     """Unmeasured pixels keep the matcher's estimate with the local planes' prediction
-    std widened by the estimate's distance from them: ``(estimated, disparity, std)``."""
-    # untextured pixels are filled only where measured surface encloses them
-
-    blank = sel.usable & ~sel.textured & ~measured_ok
-    targets = sel.usable & ~measured_ok & (sel.textured | enclosed(blank, sel.dark | sel.rim | ~sel.covered))
+    std widened by the estimate's distance from them: ``(estimated, disparity, std)``.
+    Untextured pixels are filled only where measured surface encloses them; without
+    ``open_regions`` (a search reaching infinity, where what lies beyond a surface may be
+    sky) every unmeasured pixel needs measured surface above, below and to both sides
+    within the planes' reach, occlusions excepted."""
+    unmeasured = sel.usable & ~measured_ok
+    targets = unmeasured & (sel.textured | enclosed(unmeasured & ~sel.textured, sel.dark | sel.rim | ~sel.covered))
+    if not open_regions:
+        targets &= sel.hidden | surrounded(measured_ok, _FILL_RADII_PX[-1])
     est = np.where(np.isfinite(refined), refined, dense).astype(np.float32)
     e_own = np.where(np.isfinite(own_std), own_std, 0.0).astype(np.float32)
     plane = np.full(dense.shape, np.nan, np.float32)
@@ -502,7 +510,7 @@ def _too_far(disparity: NDArray, std: NDArray, kept: NDArray[np.bool_], measured
     return far, med
 
 
-def _report(kept: NDArray, measured_ok: NDArray, inconsistent: NDArray, low_conf: NDArray,
+def _report(kept: NDArray, measured_ok: NDArray, inconsistent: NDArray, isolated: NDArray, low_conf: NDArray,
             sel: _Selection, too_far: NDArray) -> Coverage:
     """The share kept and, for each of the dropped, the first reason that applies."""
     not_kept = sel.covered & ~kept
@@ -514,6 +522,8 @@ def _report(kept: NDArray, measured_ok: NDArray, inconsistent: NDArray, low_conf
         "silhouette": not_kept & sel.rim & ~low_conf,
         "occluded": not_kept & hidden & ~low_conf,
         "inconsistent": not_kept & inconsistent & ~low_conf,
+        "isolated match": not_kept & isolated & ~low_conf,
+        "unmatched": np.zeros_like(not_kept),  # the remainder, below
         "low confidence": not_kept & low_conf,
     }
     dropped, taken = {}, np.zeros_like(kept)
@@ -521,7 +531,9 @@ def _report(kept: NDArray, measured_ok: NDArray, inconsistent: NDArray, low_conf
         m = reason_masks[name] & ~taken
         dropped[name] = int(m.sum())
         taken |= m
-    dropped["no texture"] += int((not_kept & ~taken).sum())  # holes nothing around could serve
+    rest = not_kept & ~taken  # holes nothing around could serve: failed matches if textured
+    dropped["unmatched"] += int((rest & sel.textured).sum())
+    dropped["no texture"] += int((rest & ~sel.textured).sum())
     return Coverage(int(sel.covered.sum()), int((kept & measured_ok).sum()), int((kept & ~measured_ok).sum()),
                     dropped)
 
@@ -578,21 +590,28 @@ def _reconstruct_views(views: tuple[NDArray, NDArray], rig: StereoRig, opts: Rec
     refined, own_std = _refine(views, maps, left, right, res, sel, noise, opts)
     measured_ok = sel.measured & np.isfinite(own_std)
     inconsistent = sel.measured & ~measured_ok
+    reaches_infinity = min_disp <= 0  # a two-camera pair without a stated depth range
+    isolated = np.zeros_like(measured_ok)
+    if reaches_infinity:  # there a chance match is a point kilometres away: matches need company
+        isolated = isolated_matches(measured_ok, sel.usable & sel.textured & ~sel.hidden,
+                                    texture_energy(left, window=opts.refine_window))
+        measured_ok &= ~isolated
     disparity = np.where(measured_ok, refined, np.nan).astype(np.float32)
     std = np.where(measured_ok, own_std, np.nan).astype(np.float32)
     clock.start("fill", announce=False)
     estimated = np.zeros_like(sel.measured)
     if opts.fill:
-        estimated, est, e_std = _fill(res.disparity, refined, own_std, disparity, measured_ok, sel)
+        estimated, est, e_std = _fill(res.disparity, refined, own_std, disparity, measured_ok, sel,
+                                      open_regions=not reaches_infinity)
         disparity[estimated] = est[estimated]
         std[estimated] = e_std[estimated]
     kept, low_conf = _keep(disparity, std, measured_ok | estimated, max_std)
     too_far, med_std = np.zeros_like(kept), float("nan")
-    if min_disp <= 0:  # the search reached infinity: drop what cannot be told from it
+    if reaches_infinity:  # drop what cannot be told from infinity
         too_far, med_std = _too_far(disparity, std, kept, measured_ok)
         kept &= ~too_far
     clock.stop()
-    cov = _report(kept, measured_ok, inconsistent, low_conf, sel, too_far)
+    cov = _report(kept, measured_ok, inconsistent, isolated, low_conf, sel, too_far)
     clock.start("triangulate")
     scan = _triangulate(disparity, std, rect, left, min_disp, num_disp, opts)
     if np.isfinite(med_std) and med_std > 0:

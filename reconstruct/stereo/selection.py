@@ -22,16 +22,20 @@ __all__ = [
     "estimate_noise",
     "enclosed",
     "fill_from_planes",
+    "isolated_matches",
     "near",
     "occlusions",
+    "surrounded",
     "std_from_confidence",
+    "texture_energy",
     "textured",
     "unlit",
 ]
 
 #: Why a pixel gave no point, in the order the checks apply.
 REASONS = ("outside depth range", "too far to measure", "no texture", "silhouette", "occluded", "inconsistent",
-           "low confidence")
+           "isolated match", "low confidence",
+           "unmatched")
 
 #: Immerkaer's operator responds to noise of std sigma with std 6 sigma; a median
 #: absolute response is 0.6745 std of a Gaussian.
@@ -105,6 +109,61 @@ def near(mask: NDArray, radius: int) -> NDArray[np.bool_]:
     return cv2.dilate(m, np.ones((size, size), np.uint8)).astype(bool) & ~m.astype(bool)
 
 
+#: Side (px) of the neighbourhood whose matches vote on a pixel's (:func:`isolated_matches`):
+#: about a thousand pixels, so that the vote is a region's and not one window's.
+ISOLATION_WINDOW_PX = 31
+#: A match is kept where at least this share of its peers matched too.
+ISOLATION_MIN_SHARE = 0.5
+#: Texture levels (log-spaced between the 1st and 99th percentiles) that rank the peers.
+_ISOLATION_LEVELS = 12
+
+
+def isolated_matches(valid: NDArray, matchable: NDArray, energy: NDArray, *,
+                     window: int = ISOLATION_WINDOW_PX, min_share: float = ISOLATION_MIN_SHARE
+                     ) -> NDArray[np.bool_]:
+    """Valid matches whose peers mostly failed: among the ``matchable`` pixels of the
+    ``window`` square around a match with at least its texture ``energy``
+    (:func:`texture_energy`), fewer than ``min_share`` passed the matcher's checks. Where
+    faint texture (sky, haze, a smooth gradient) defeats the matcher almost everywhere,
+    the few matches that survive are chance agreements; a chessboard's edges, among
+    failed flat squares, are judged by the other edges."""
+    v = check_array(valid, "valid", ndim=2).astype(bool)
+    m = check_array(matchable, "matchable", shape=v.shape).astype(bool)
+    e = check_array(energy, "energy", shape=v.shape)
+    out = np.zeros(v.shape, bool)
+    if not (v & m).any():
+        return out
+    log_e = np.log2(np.maximum(e, 1e-12, dtype=np.float32))
+    lo, hi = np.percentile(log_e[m], [1.0, 99.0])
+    level = np.clip(np.digitize(log_e, np.linspace(lo, hi, _ISOLATION_LEVELS + 1)) - 1, 0, _ISOLATION_LEVELS - 1)
+    k = (int(window), int(window))
+    for i in range(_ISOLATION_LEVELS):
+        here = v & (level == i)
+        if not here.any():
+            continue
+        peers = m & (level >= i)
+        ok = cv2.boxFilter((v & peers).astype(np.float32), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        n = cv2.boxFilter(peers.astype(np.float32), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        out |= here & (ok < float(min_share) * np.maximum(n, 1.0))
+    return out
+
+
+def surrounded(mask: NDArray, radius: int) -> NDArray[np.bool_]:
+    """Pixels with a ``mask`` pixel within ``radius`` px straight above, below, left and
+    right: inside a surface's outline, where interpolation holds, rather than beside
+    it (above a tree crown is sky as often as tree)."""
+    m = check_array(mask, "mask", ndim=2).astype(bool)
+    r = int(radius)
+
+    def reach_from_before(a: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        cols = np.arange(a.shape[1], dtype=np.int64)
+        last = np.maximum.accumulate(np.where(a, cols[None, :], -(r + 1) - a.shape[1]), axis=1)
+        return cols[None, :] - last <= r
+
+    return (reach_from_before(m) & reach_from_before(m[:, ::-1])[:, ::-1]
+            & reach_from_before(m.T).T & reach_from_before(m.T[:, ::-1])[:, ::-1].T)
+
+
 def enclosed(region: NDArray, outside: NDArray) -> NDArray[np.bool_]:
     """Pixels of ``region`` whose connected component (8-connected) touches neither an
     ``outside`` pixel nor the image border: holes in a surface, not the space beside
@@ -123,23 +182,28 @@ def enclosed(region: NDArray, outside: NDArray) -> NDArray[np.bool_]:
     return ~bad[labels] & r.astype(bool)
 
 
+def texture_energy(image: NDArray, *, window: tuple[int, int] = (7, 19)) -> NDArray[np.float32]:
+    """Horizontal-gradient energy summed over the colour channels and the ``window``
+    (rows, cols) around each pixel: what a horizontal match has to hold on to."""
+    img = check_array(image, "image", ndim=(2, 3)).astype(np.float32)
+    img = img[..., None] if img.ndim == 2 else img
+    energy = np.zeros(img.shape[:2], np.float32)
+    for c in range(img.shape[2]):
+        g = cv2.Sobel(np.ascontiguousarray(img[..., c]), cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+        energy += g * g
+    wy, wx = int(window[0]), int(window[1])
+    return cv2.boxFilter(energy, -1, (wx, wy), normalize=True, borderType=cv2.BORDER_REFLECT) * (wy * wx)
+
+
 def textured(image: NDArray, noise: float, *, window: tuple[int, int] = (7, 19),
              k_sigma: float = 3.0) -> NDArray[np.bool_]:
     """Pixels whose ``window`` (rows, cols) holds more horizontal-gradient energy than
     noise alone would: ``n sigma^2 / 2`` over ``n`` samples, exceeded by ``k_sigma``
     relative spreads ``sqrt(3 / n)``."""
-    img = check_array(image, "image", ndim=(2, 3)).astype(np.float32)
-    img = img[..., None] if img.ndim == 2 else img
-    nc = img.shape[2]
-    energy = np.zeros(img.shape[:2], np.float32)
-    for c in range(nc):
-        g = cv2.Sobel(np.ascontiguousarray(img[..., c]), cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
-        energy += g * g
-    wy, wx = int(window[0]), int(window[1])
-    n = wy * wx * nc
-    mean = cv2.boxFilter(energy, -1, (wx, wy), normalize=True, borderType=cv2.BORDER_REFLECT) * wy * wx
+    img = check_array(image, "image", ndim=(2, 3))
+    n = int(window[0]) * int(window[1]) * (1 if img.ndim == 2 else img.shape[2])
     floor = n * float(noise) ** 2 / 2.0
-    return mean > floor * (1.0 + float(k_sigma) * np.sqrt(3.0 / n))
+    return texture_energy(img, window=window) > floor * (1.0 + float(k_sigma) * np.sqrt(3.0 / n))
 
 
 def occlusions(disparity: NDArray, *, margin: float = 1.0) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:

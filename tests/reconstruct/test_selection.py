@@ -13,9 +13,12 @@ from prism3d.reconstruct.stereo.selection import (
     enclosed,
     estimate_noise,
     fill_from_planes,
+    isolated_matches,
     near,
     occlusions,
     std_from_confidence,
+    surrounded,
+    texture_energy,
     textured,
     unlit,
 )
@@ -155,3 +158,35 @@ def test_coverage_summary() -> None:
     assert s["kept"] == 0.9 and s["occluded"] == 0.04
     line = c.summary()
     assert "kept 90.0%" in line and "6.0% no texture" in line and "4.0% occluded" in line
+
+
+def test_chance_matches_in_faint_texture_are_isolated_and_a_boards_edges_are_not() -> None:
+    """Left half: faint texture where 5 % of the pixels passed the matcher's checks (chance
+    agreements, as in a sky); right half: a board of flat squares whose strong edges all
+    matched and whose flat, noisy interiors failed. The faint half's matches go; every
+    edge match stays, judged by the other edges, not by the failed squares."""
+    rng = np.random.default_rng(3)
+    h, w = 120, 240
+    img = 128 + rng.normal(0, 1.0, (h, w)).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    board = xx >= w // 2
+    img[board] = np.where(((yy[board] // 30) + (xx[board] // 30)) % 2 == 0, 40.0, 215.0)
+    img[board] += rng.normal(0, 1.0, board.sum())
+    energy = texture_energy(img)
+    edges = board & (energy > 50 * np.median(energy[board]))
+    valid = np.zeros((h, w), bool)
+    valid[~board] = rng.random((~board).sum()) < 0.05
+    valid |= edges
+    out = isolated_matches(valid, np.ones((h, w), bool), energy)
+    assert out[~board & valid].mean() > 0.95
+    assert not out[edges].any()
+    assert not out[~valid].any()
+
+
+def test_surrounded_needs_surface_on_all_four_sides() -> None:
+    m = np.zeros((60, 60), bool)
+    m[20:40, 20] = m[20:40, 39] = m[20, 20:40] = m[39, 20:40] = True  # a square outline
+    inside = surrounded(m, 25)
+    assert inside[25:35, 25:35].all()  # the outline on every side
+    assert not inside[5:15, 25:35].any()  # above it: nothing further up
+    assert not surrounded(m, 3)[25:35, 25:35].any()  # too far for a 3 px reach
