@@ -231,3 +231,12 @@ def test_right_view_of_another_size_is_refused(route: dict, tmp_path: Path,
     assert "right03_cropped.png" in lines[0] and "600x400" in lines[0] and "640x480" in lines[0], err
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["right03_cropped.png"]  # no partial output
+
+
+def test_no_point_beyond_the_computed_range(route: dict, scan03: dict) -> None:
+    """The search reached disparity 0 (no range given): the scan records the range its
+    precision can tell from infinity (f B / 3 median stds) and keeps nothing beyond it."""
+    ply = read_ply(route["tmp"] / "scan03.ply")
+    meta = dict(c.split(" ", 1) for c in ply.comments if " " in c)
+    assert meta["min_disp"] == "0"
+    assert ply.points[:, 2].max() <= float(meta["max_range_mm"])
