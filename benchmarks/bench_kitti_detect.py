@@ -29,6 +29,26 @@ KITTI_F, KITTI_B_MM = 721.5377, 537.2
 CAR_ROWS, CAR_COLS = (185, 262), (615, 835)
 
 
+KITTI_CALIB = ("S_rect_02: 1242 375\n"
+               "P_rect_02: 721.5377 0 609.5593 44.85728 0 721.5377 172.854 0.2163791 0 0 1 0.002745884\n"
+               "S_rect_03: 1242 375\n"
+               "P_rect_03: 721.5377 0 609.5593 -339.5242 0 721.5377 172.854 2.199936 0 0 1 0.002729905\n")
+
+
+def sky_mask(path: Path) -> np.ndarray:
+    """The sky told by colour alone, as tests/reconstruct/test_far_points.py tells it."""
+    import cv2
+
+    im = cv2.imread(str(path)).astype(np.float32)
+    b, g, r = im[..., 0], im[..., 1], im[..., 2]
+    grey = cv2.cvtColor(im.astype(np.uint8), cv2.COLOR_BGR2GRAY).astype(np.float32)
+    grad = cv2.GaussianBlur(np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)), (0, 0), 2)
+    blue = (b > r + 30) & (b > g + 5) & (b > 120) & (grad < 25)
+    _, lab = cv2.connectedComponents(blue.astype(np.uint8), connectivity=4)
+    sky = np.isin(lab, np.unique(lab[0][blue[0]])) & blue
+    return cv2.erode(sky.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
@@ -46,14 +66,31 @@ def main() -> None:
     far = float(np.nanmax(depth)) / 1000.0
     res = {"matcher_s": round(t_match, 2), "depth_max_km": round(far / 1000.0, 2),
            "sky_share_with_depth": float(np.isfinite(depth[:60]).mean()), "runs": {}}
+    # the user's route: `prism3d reconstruct --left --right` (the far-point, isolation and
+    # enclosure rules of a search reaching infinity) -> its depth map
+    cal = a.work / "calib_cam_to_cam.txt"
+    cal.write_text(KITTI_CALIB)
+    k = a.data / "stereo" / "kitti2015_sample"
+    subprocess.run([sys.executable, "-m", "prism3d.cli", "-q", "reconstruct", "--left", str(k / "image_2_000046_10.png"),
+                    "--right", str(k / "image_3_000046_10.png"), "--calib", str(cal), "-o", str(a.work / "scan.ply"),
+                    "--depth-out", str(a.work / "depth_pipeline.npy")], check=True)
+    sky = sky_mask(k / "image_2_000046_10.png")
+    res["sky_with_depth"] = {"matcher": float(np.isfinite(depth[sky]).mean()),
+                             "reconstruct": float(np.isfinite(np.load(a.work / "depth_pipeline.npy")[sky]).mean())}
+    print(f"sky pixels with a depth: matcher alone {res['sky_with_depth']['matcher']:.1%}, "
+          f"prism3d reconstruct {res['sky_with_depth']['reconstruct']:.1%}")
     cmd = [sys.executable, "-m", "prism3d.cli", "-q", "detect", "--image", str(a.work / "left.png"), "--depth",
            str(a.work / "depth.npy"), "--fx", str(KITTI_F)]
     subprocess.run([sys.executable, "-m", "prism3d.cli", "-q", "bank", "train", "--scenes", "0", "--targets", "car", "van",
                     "--channel", "shape", "-o", str(a.work / "car_bank.npz")], check=True)
-    for name, extra in (("recogniser", ["--targets", "car"]), ("bank", ["--bank", str(a.work / "car_bank.npz")])):
-        out = a.work / f"det_{name}.json"
+    raw_depth = str(a.work / "depth.npy")
+    pipeline = [str(a.work / "depth_pipeline.npy") if arg == raw_depth else arg for arg in cmd]
+    for name, base, extra in (("recogniser", cmd, ["--targets", "car"]),
+                              ("recogniser on reconstruct's depth", pipeline, ["--targets", "car"]),
+                              ("bank", cmd, ["--bank", str(a.work / "car_bank.npz")])):
+        out = a.work / f"det_{name.replace(' ', '_').replace(chr(39), '')}.json"
         t1 = time.perf_counter()
-        r = subprocess.run(cmd + extra + ["-o", str(out), "--draw", str(a.work / f"det_{name}.png")],
+        r = subprocess.run(base + extra + ["-o", str(out), "--draw", str(out.with_suffix(".png"))],
                            capture_output=True, text=True)
         wall = time.perf_counter() - t1
         if r.returncode != 0:

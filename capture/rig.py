@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
-from prism3d.io.images import max_pixels
+from prism3d.io.images import max_pixels, pixel_count
 from prism3d.io.opencv_yaml import read_filestorage, write_filestorage
 
 __all__ = [
@@ -61,7 +61,7 @@ def _check_pixels(w: int, h: int) -> None:
     """A camera or sensor whose images would not fit the decode budget is refused where it
     is declared, before anything is rendered or read at that size."""
     if w * h > max_pixels():
-        raise InputError(f"size: {w}x{h} is {w * h / 1e6:,.0f} MP, more than the {max_pixels() / 1e6:,.0f} MP "
+        raise InputError(f"size: {w}x{h} is {pixel_count(w * h)}, more than the {pixel_count(max_pixels())} "
                          "limit (--max-pixels or PRISM3D_MAX_PIXELS raises it)")
 
 

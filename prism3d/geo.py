@@ -22,7 +22,10 @@ __all__ = ["CRS_CHOICES", "MapFrame", "check_lla", "enu_to_wgs84", "local_enu_cr
 
 def check_lla(lla: NDArray, what: str) -> NDArray[np.float64]:
     """``(n, 3)`` float64 (latitude, longitude, height) rows, or a one-line error."""
-    a = np.asarray(lla, dtype=np.float64)
+    try:
+        a = np.asarray(lla, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: expected (latitude, longitude, height) numbers, got {str(lla)[:60]!r}") from None
     if a.ndim == 1:
         a = a[None]
     if a.ndim != 2 or a.shape[1] != 3 or not np.isfinite(a).all():
@@ -161,6 +164,11 @@ class MapFrame:
         if epsg is not None and (isinstance(epsg, bool) or not isinstance(epsg, int)):
             raise InputError(f"map_frame: epsg must be an integer, got {epsg!r}")
         o = check_lla(lla, "origin_lla")[0]
+        if epsg is not None:
+            try:
+                parse_crs(f"EPSG:{epsg}")
+            except InputError as exc:
+                raise InputError(f"map_frame: {exc}") from None
         return cls((float(o[0]), float(o[1]), float(o[2])), epsg)
 
     @property

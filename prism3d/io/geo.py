@@ -123,7 +123,13 @@ def read_geotiff(path: str | Path) -> tuple[NDArray, dict]:
     "nodata", "tags"}``."""
     import rasterio
 
+    from prism3d.io.images import max_pixels, pixel_count
+
     with rasterio.open(path) as src:
+        n = int(src.width) * int(src.height)
+        if n > max_pixels():  # checked on the header, before a band is decoded
+            raise InputError(f"{path}: the raster declares {src.width}x{src.height} = {pixel_count(n)}, more than "
+                             f"the {pixel_count(max_pixels())} limit (--max-pixels or PRISM3D_MAX_PIXELS raises it)")
         a = np.moveaxis(src.read(), 0, 2)
         t = src.transform
         meta = {"west": t.c, "north": t.f, "gsd": t.a, "crs_wkt": src.crs.to_wkt() if src.crs else None,

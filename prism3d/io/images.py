@@ -22,7 +22,7 @@ from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 from prism3d.io.pfm import read_pfm
 
-__all__ = ["DEFAULT_MAX_PIXELS", "IMAGE_EXTENSIONS", "max_pixels", "check_image_size", "check_npy_header", "read_image", "write_image",
+__all__ = ["DEFAULT_MAX_PIXELS", "IMAGE_EXTENSIONS", "max_pixels", "pixel_count", "check_image_size", "check_npy_header", "read_image", "write_image",
            "read_depth", "write_depth", "split_npz_spec", "decode_image"]
 
 #: Largest image decoded unless ``PRISM3D_MAX_PIXELS`` says otherwise: 100 MP is twice
@@ -127,17 +127,18 @@ def check_image_size(path: Path) -> None:
         n = int(m.group(1)) if m else None
         if n is not None and n <= limit:
             return
-        declared = f"declares {_count(n)}" if n is not None else "declares too many pixels"
-        raise InputError(f"{path}: the image {declared}, more than the {_count(limit)} limit "
+        declared = f"declares {pixel_count(n)}" if n is not None else "declares too many pixels"
+        raise InputError(f"{path}: the image {declared}, more than the {pixel_count(limit)} limit "
                          "(--max-pixels or PRISM3D_MAX_PIXELS raises it)") from None
     except Exception:  # noqa: BLE001 - not a format Pillow reads: the decoder decides
         return
     if w * h > limit:
-        raise InputError(f"{path}: {w}x{h} is {_count(w * h)}, more than the {_count(limit)} limit "
+        raise InputError(f"{path}: {w}x{h} is {pixel_count(w * h)}, more than the {pixel_count(limit)} limit "
                          "(--max-pixels or PRISM3D_MAX_PIXELS raises it)")
 
 
-def _count(n: int) -> str:
+def pixel_count(n: int) -> str:
+    """A pixel count for a message: ``"12 MP"``, ``"1.7 MP"`` or ``"172,800 pixels"``."""
     if n >= 10_000_000:
         return f"{n / 1e6:,.0f} MP"
     return f"{n / 1e6:.1f} MP" if n >= 1_000_000 else f"{n:,} pixels"
@@ -229,7 +230,7 @@ def check_npy_header(fh: Any, where: str | Path) -> None:
     shape, _, _ = (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(fh)
     n = math.prod(int(v) for v in shape)  # Python ints: a forged shape cannot overflow to small
     if n > max_pixels():
-        raise InputError(f"{where}: the array declares {_count(n)}, more than the {_count(max_pixels())} "
+        raise InputError(f"{where}: the array declares {pixel_count(n)}, more than the {pixel_count(max_pixels())} "
                          "limit (--max-pixels or PRISM3D_MAX_PIXELS raises it)")
 
 

@@ -5,6 +5,8 @@ EXIF) and the starting camera (a calibration file, else EXIF).
 from __future__ import annotations
 
 import math
+import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -16,6 +18,7 @@ from prism3d.capture.calib_formats import load_camera_calibration
 from prism3d.capture.geotag import exif_focal_px, exif_geotag, read_position_table
 from prism3d.capture.rig import CameraModel
 from prism3d.errors import InputError
+from prism3d.io.images import check_image_size
 
 __all__ = ["VIDEO_SUFFIXES", "check_frames", "gps_positions", "starting_camera", "video_frames"]
 
@@ -29,9 +32,16 @@ def _image_sizes(paths: Sequence[Path]) -> list[tuple[int, int]]:
             raise InputError(f"{p}: is a folder; give the frames themselves (e.g. {p}/*.JPG)")
         if not p.is_file():
             raise InputError(f"{p}: image not found")
+        check_image_size(p)  # a header declaring more than the decode budget is refused here
         try:
-            with Image.open(p) as im:
-                sizes.append(im.size)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                with Image.open(p) as im:
+                    sizes.append(im.size)
+        except Image.DecompressionBombError as exc:  # within our budget, beyond Pillow's own limit
+            n = re.search(r"\((\d+) pixels\)", str(exc))
+            raise InputError(f"{p}: the image declares {n.group(1) if n else 'too many'} pixels; "
+                             "Pillow will not open it") from None
         except (UnidentifiedImageError, OSError) as exc:
             raise InputError(f"{p}: not an image this tool can read ({exc})") from None
     return sizes
@@ -79,6 +89,9 @@ def check_frames(images: Sequence[str | Path]) -> tuple[list[Path], tuple[int, i
     """The frames as paths and their common (width, height); one-line errors for fewer
     than two frames, a missing or unreadable one, a repeated one, or different sizes."""
     paths = [Path(p) for p in images]
+    for p in paths:
+        if p.is_dir():
+            raise InputError(f"{p}: is a folder; give the frames themselves (e.g. {p}/*.JPG)")
     if len(paths) < 2:
         raise InputError(f"survey: {len(paths)} frame(s) given; a survey needs at least 2 overlapping frames")
     names = [p.name for p in paths]

@@ -113,10 +113,11 @@ class SurveyOptions:
         if not steps or any(s < 1 or s > 10 for s in steps) or len(set(steps)) != len(steps):
             raise InputError(f"pair_steps: expected distinct steps in 1-10, got {self.pair_steps!r}")
         object.__setattr__(self, "pair_steps", steps)
-        if self.cell_m is not None and not (math.isfinite(self.cell_m) and self.cell_m > 0):
-            raise InputError(f"cell: expected a DSM cell size > 0, got {self.cell_m!r}")
-        if self.ortho_gsd_m is not None and not (math.isfinite(self.ortho_gsd_m) and self.ortho_gsd_m > 0):
-            raise InputError(f"ortho-gsd: expected an orthophoto cell > 0, got {self.ortho_gsd_m!r}")
+        if self.cell_m is not None and not (math.isfinite(self.cell_m) and 0 < self.cell_m <= MAX_CELL_M):
+            raise InputError(f"cell: expected a DSM cell size > 0 and <= {MAX_CELL_M:g} m, got {self.cell_m!r}")
+        if self.ortho_gsd_m is not None and not (math.isfinite(self.ortho_gsd_m) and 0 < self.ortho_gsd_m <= MAX_CELL_M):
+            raise InputError(f"ortho-gsd: expected an orthophoto cell > 0 and <= {MAX_CELL_M:g} m, "
+                             f"got {self.ortho_gsd_m!r}")
         if isinstance(self.lk_window, bool) or int(self.lk_window) != self.lk_window or self.lk_window < 3 \
                 or self.lk_window % 2 == 0:
             raise InputError(f"lk_window: expected an odd integer >= 3, got {self.lk_window!r}")
@@ -127,6 +128,11 @@ class SurveyOptions:
             raise InputError(f"matcher: expected ours or sgbm, got {self.matcher!r}")
         if self.refine_intrinsics not in ("auto", "focal+distortion", "none"):
             raise InputError(f"refine_intrinsics: expected auto, focal+distortion or none, got {self.refine_intrinsics!r}")
+
+
+#: Largest DSM or orthophoto cell, m: a kilometre cell maps no drone survey (a larger value
+#: is a unit mistake; the products' grids would be one cell, or overflow).
+MAX_CELL_M = 1000.0
 
 
 @dataclass(frozen=True)

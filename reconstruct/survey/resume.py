@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from prism3d import __version__
+from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path, atomic_write_text
 from prism3d.reconstruct.survey.model import PairResult, PairTile, SurveyOptions
 from prism3d.reconstruct.survey.sfm import SfmResult
@@ -88,6 +89,9 @@ class ResumeFolder:
     def __init__(self, out: Path, images: list[Path], gps_table: Path | None, calib: Path | None,
                  options: SurveyOptions, *, resume: bool) -> None:
         self.dir = resume_dir(out)
+        if self.dir.exists() and not self.dir.is_dir():
+            raise InputError(f"{self.dir}: exists and is not a folder (the survey keeps its resume data there); "
+                             "move it away")
         fp = _fingerprint(images, gps_table, calib, options)
         old = self.dir / "fingerprint.json"
         same = False

@@ -13,6 +13,7 @@ cell by cell with a consistency check (:func:`fuse_tiles`); then the products.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 import time
@@ -25,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.errors import InputError
+from prism3d.errors import InputError, ReconstructionError
 from prism3d.geo import MapFrame, wgs84_to_enu
 from prism3d.io.atomic import atomic_write_text, staged_folder
 from prism3d.io.images import read_image
@@ -58,6 +59,8 @@ from prism3d.reconstruct.survey.products import (
 )
 from prism3d.reconstruct.survey.resume import ResumeFolder, save_pair
 from prism3d.reconstruct.survey.sfm import SfmOptions, map_frames, similarity_align
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "SURVEY_SCHEMA_VERSION", "SURVEY_FILES", "Georef", "PairRequest", "PairResult", "PairTile", "SurveyOptions",
@@ -470,6 +473,21 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     return summary
 
 
+def _without_staged_log(exc: Exception, log: Path) -> Exception:
+    """An SfM error that points at COLMAP's log in the staging folder, which goes with the
+    failed run: the pointer becomes "-v", and with -v the log's tail goes to the log now."""
+    msg = str(exc)
+    if str(log) not in msg:
+        return exc
+    try:
+        tail = log.read_text(errors="replace").splitlines()[-40:]
+    except OSError:
+        tail = []
+    if tail:
+        _log.info("COLMAP's log, last %d lines:\n%s", len(tail), "\n".join(tail))
+    return type(exc)(msg.replace(f"see {log}", "-v shows COLMAP's log"))
+
+
 def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: SurveyOptions, video: bool, free: bool,
             cache: ResumeFolder, run_pairs: PairRunner | None, progress: Callable[[int, int, str], None] | None
             ) -> dict[str, Any]:
@@ -481,10 +499,15 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     reused_poses = sfm is not None
     if sfm is None:
         positions = _gps_enu(frames.tags)[1]  # GPS: spatial matching above 40 frames
-        sfm = map_frames(images, stage / "sfm_work", camera=frames.camera,
-                         options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free, refine_distortion=free,
-                                            refine_principal_point=o.refine_principal_point, matching=o.matching),
-                         progress=_in_stage(progress, "poses"), positions=positions)
+        work = stage / "sfm_work"
+        try:
+            sfm = map_frames(images, work, camera=frames.camera,
+                             options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free,
+                                                refine_distortion=free, refine_principal_point=o.refine_principal_point,
+                                                matching=o.matching),
+                             progress=_in_stage(progress, "poses"), positions=positions)
+        except (InputError, ReconstructionError) as exc:
+            raise _without_staged_log(exc, work / "colmap.log") from None
         cache.save_sfm(sfm)
     seconds["poses"] = time.perf_counter() - t0
     geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)

@@ -445,7 +445,9 @@ def _run_worker(wd: Path, log_path: Path, timeout_s: float,
     cmd = [sys.executable, "-m", _WORKER_MODULE, str(wd / "request.json")]
     deadline = time.monotonic() + timeout_s
     with open(log_path, "wb") as logf:
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=logf, cwd=wd)
+        # COLMAP's glog writes to stderr (our log) only, not to log files of its own in $TMPDIR
+        env = {**os.environ, "GLOG_logtostderr": "1"}
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=logf, cwd=wd, env=env)
         try:
             fd = proc.stdout.fileno()  # type: ignore[union-attr]  # stdout=PIPE
             sel = selectors.DefaultSelector()

@@ -121,3 +121,43 @@ def test_dense_scale_and_options() -> None:
         SurveyOptions(pair_steps=(1, 1))
     with pytest.raises(InputError, match="cell"):
         SurveyOptions(cell_m=0.0)
+
+
+def test_frames_whose_headers_declare_too_many_pixels_are_refused_before_decoding(tmp_path) -> None:
+    """A PNG header claiming 60000 x 60000 pixels (Pillow's own bomb error before) and a
+    folder given as a frame are one-line errors naming the file."""
+    import struct
+    import zlib
+
+    from prism3d.reconstruct.survey.inputs import check_frames
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    big = tmp_path / "big.png"
+    big.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 60000, 60000, 8, 2, 0, 0, 0))
+                    + chunk(b"IEND", b""))
+    import cv2
+
+    ok = tmp_path / "ok.png"
+    cv2.imwrite(str(ok), np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(InputError, match="big.png: the image declares 3,600 MP, more than the 100 MP limit"):
+        check_frames([ok, big])
+    with pytest.raises(InputError, match="is a folder"):
+        check_frames([tmp_path])
+
+
+def test_a_cell_beyond_a_kilometre_is_refused() -> None:
+    for name in ("cell_m", "ortho_gsd_m"):
+        with pytest.raises(InputError, match="<= 1000 m"):
+            SurveyOptions(**{name: 1e300})
+    assert SurveyOptions(cell_m=1000.0).cell_m == 1000.0
+
+
+def test_a_resume_leftover_that_is_a_file_is_refused(tmp_path) -> None:
+    from prism3d.reconstruct.survey.resume import ResumeFolder, resume_dir
+
+    out = tmp_path / "s"
+    resume_dir(out).write_text("not a folder")
+    with pytest.raises(InputError, match="exists and is not a folder"):
+        ResumeFolder(out, [], None, None, SurveyOptions(), resume=True)

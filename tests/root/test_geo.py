@@ -122,3 +122,28 @@ def test_crs_without_gps_is_refused_and_the_default_is_utm():
     assert MapFrame.for_site("EPSG:3857", np.array([35.0, 139.5, 0.0])).epsg == 3857
     assert MapFrame.for_site(None, np.array([-33.9, 18.4, 0.0])).epsg == 32734
     assert MapFrame.for_site(None, np.array([85.0, 10.0, 0.0])).local  # beyond UTM: the local frame
+
+
+def test_a_damaged_map_frame_record_is_a_one_line_error():
+    """poses.json edited by hand or damaged: a text origin, an EPSG code PROJ does not
+    know, a geographic one: InputError, not a ValueError or CRSError from below."""
+    from prism3d.geo import MapFrame
+
+    with pytest.raises(InputError, match="origin_lla: expected"):
+        MapFrame.from_record({"origin_lla": "37.5 139.0"})
+    for code, said in ((999999, "not a coordinate system PROJ knows"), (4326, "not a projected CRS")):
+        with pytest.raises(InputError, match=said):
+            MapFrame.from_record({"origin_lla": [37.5, 139.0, 10.0], "map_frame": {"epsg": code}})
+    assert MapFrame.from_record({"origin_lla": [37.5, 139.0, 10.0], "map_frame": {"epsg": 32654}}).epsg == 32654
+
+
+def test_a_raster_beyond_the_pixel_budget_is_refused_on_its_header(tmp_path, monkeypatch):
+    from prism3d.io.geo import read_geotiff, write_geotiff
+
+    p = tmp_path / "r.tif"
+    write_geotiff(p, np.zeros((100, 100), np.float32), west=5e5, north=4e6, gsd=1.0,
+                  crs_wkt=pyproj.CRS.from_epsg(32654).to_wkt("WKT1_GDAL"))
+    assert read_geotiff(p)[0].shape == (100, 100)
+    monkeypatch.setenv("PRISM3D_MAX_PIXELS", "1000")
+    with pytest.raises(InputError, match="100x100 = 10,000 pixels, more than the 1,000 pixels limit"):
+        read_geotiff(p)
