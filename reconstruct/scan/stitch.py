@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from prism3d.checks import check_array, check_choice
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import invert_transform, rotation_angle_deg, rotvec_from_matrix
-from prism3d.io.atomic import atomic_paths, atomic_write_text
+from prism3d.io.atomic import atomic_paths, atomic_write_text, output_lock
 from prism3d.io.pcd import read_pcd
 from prism3d.io.ply import read_ply, write_ply
 from prism3d.progress import ProgressFn
@@ -751,8 +751,15 @@ def stitch_to_files(
     (index) that faced the object's front, which sets x's sign (else a stated guess)."""
     paths = _checked_file_args(scan_paths, out_model_ply, mesh_out, frame, front_view)
     opts = dataclasses.replace(StitchOptions() if options is None else options, mesh=mesh_out is not None)
-    res = stitch_scans(paths, opts, progress=progress)
     out = Path(out_model_ply)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with output_lock(out):  # a second stitch into the same model is refused, not raced
+        return _stitch_and_write(paths, opts, out, mesh_out, progress, frame, front_view)
+
+
+def _stitch_and_write(paths: list[str], opts: StitchOptions, out: Path, mesh_out: str | Path | None,
+                      progress: ProgressFn | None, frame: str, front_view: int | None) -> StitchResult:
+    res = stitch_scans(paths, opts, progress=progress)
     doc = {
         "schema_version": POSES_SCHEMA_VERSION,
         "model": out.name,

@@ -330,6 +330,16 @@ def test_stitch_to_files_writes_model_mesh_and_poses(tank_views, tmp_path):
     assert set(doc["pairs"][0]) == {
         "i", "j", "kind", "kept", "max_correspondence_distance", "fitness", "inlier_rmse", "plane_sigma",
         "final_fitness", "final_inlier_rmse", "final_plane_sigma", "noise_sigma", "check"}
+    # A second writer of the same model (another stitch still running) is refused up front
+    # and changes nothing; the lock goes with the first.
+    from prism3d.io.atomic import output_lock
+
+    before = (tmp_path / "out" / "model.ply").read_bytes()
+    with output_lock(tmp_path / "out" / "model.ply"):
+        with pytest.raises(InputError, match="another prism3d process"):
+            stitch_to_files(paths, tmp_path / "out" / "model.ply", StitchOptions(turntable_step_deg=45.0))
+    assert (tmp_path / "out" / "model.ply").read_bytes() == before
+    assert sorted(q.name for q in (tmp_path / "out").iterdir()) == ["mesh.ply", "model.ply", "poses.json"]
     # Nothing written on error.
     with pytest.raises(InputError, match="missing.ply"):
         stitch_to_files([paths[0], tmp_path / "missing.ply"], tmp_path / "o2" / "model.ply")
