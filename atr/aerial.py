@@ -239,23 +239,104 @@ class AerialModel:
 
     @classmethod
     def load(cls, path: str | Path) -> AerialModel:
-        """Read a model written by :meth:`save`; a file of another kind or version is refused."""
+        """Read a model written by :meth:`save`; a file of another kind or version, or one
+        whose contents are damaged or inconsistent (:func:`_model_from_file`), is refused."""
         p = Path(path)
         meta, arr = read_model_npz(p, "model")
-        if meta.get("kind") != "aerial_recogniser":
-            raise InputError(f"{p}: a {meta.get('kind', 'unknown')} model, not an aerial recogniser "
+        if not isinstance(meta, dict) or meta.get("kind") != "aerial_recogniser":
+            kind = meta.get("kind", "unknown") if isinstance(meta, dict) else "unknown"
+            raise InputError(f"{p}: a {kind} model, not an aerial recogniser "
                              "(train one with 'prism3d bank train --view nadir')")
         if meta.get("schema_version") != AERIAL_SCHEMA_VERSION:
             raise InputError(f"{p}: aerial model schema {meta.get('schema_version')}, this prism3d reads "
                              f"{AERIAL_SCHEMA_VERSION}; train it again")
-        groups = []
-        for i, gm in enumerate(meta["groups"]):
-            groups.append(AerialGroup(tuple(gm["classes"]), tuple(gm["names"]), tuple(gm["cells"]),
-                                      arr[f"g{i}_weights"], float(gm["bias"]), tuple(gm["platt"]),
-                                      arr[f"g{i}_class_coef"], arr[f"g{i}_class_bias"],
-                                      {c: tuple(v) for c, v in gm["dims"].items()}))
-        return cls(float(meta["gsd_m"]), int(meta["cell_px"]), str(meta["channels"]), float(meta["angle_step_deg"]),
-                   tuple(groups), dict(meta.get("metadata", {})))
+        try:
+            return _model_from_file(meta, arr)
+        except InputError as exc:
+            raise InputError(f"{p}: not a valid aerial recogniser ({exc}); train it again") from None
+
+
+#: What a loaded model's grid may be (the training options' ranges, :mod:`prism3d.atr.aerial_train`).
+_GSD_RANGE_M, _ANGLE_STEP_RANGE_DEG, _MAX_CELL_PX, _MAX_WINDOW_CELLS = (0.01, 0.5), (1.0, 45.0), 64, 255
+
+
+def _model_from_file(meta: dict, arr: dict[str, NDArray]) -> AerialModel:
+    """The model of a file's metadata and arrays, every field checked: the grid (``gsd_m``,
+    ``cell_px``, ``angle_step_deg`` within the training ranges; ``channels`` known) and
+    each group (:func:`_group_from_file`). A file edited by hand or damaged would otherwise
+    divide by zero, index out of range or report NaN scores as no vehicles."""
+    gsd = _number(meta.get("gsd_m"), "gsd_m", *_GSD_RANGE_M)
+    cell_px = meta.get("cell_px")
+    if isinstance(cell_px, bool) or not isinstance(cell_px, int) or not 1 <= cell_px <= _MAX_CELL_PX:
+        raise InputError(f"cell_px: expected an integer in [1, {_MAX_CELL_PX}], got {cell_px!r}")
+    channels = meta.get("channels")
+    if channels not in CHANNEL_SETS:
+        raise InputError(f"channels: expected one of {', '.join(CHANNEL_SETS)}, got {channels!r}")
+    step = _number(meta.get("angle_step_deg"), "angle_step_deg", *_ANGLE_STEP_RANGE_DEG)
+    gms = meta.get("groups")
+    if not isinstance(gms, list) or not gms:
+        raise InputError(f"groups: expected a non-empty list of window groups, got {gms!r}")
+    groups = tuple(_group_from_file(i, gm, arr, len(CHANNEL_SETS[channels])) for i, gm in enumerate(gms))
+    md = meta.get("metadata", {})
+    return AerialModel(gsd, cell_px, channels, step, groups, dict(md) if isinstance(md, dict) else {})
+
+
+def _group_from_file(i: int, gm: object, arr: dict[str, NDArray], n_feat: int) -> AerialGroup:
+    """Window group ``i`` of a model file: its classes and names, window cells (two odd
+    sizes), finite bias, Platt pair and class sizes, and its arrays present, finite and
+    of the shapes the window and the ``n_feat`` features per cell imply."""
+    w = f"groups[{i}]"
+    if not isinstance(gm, dict):
+        raise InputError(f"{w}: expected an object, got {type(gm).__name__}")
+    classes, names = _names(gm.get("classes"), f"{w}.classes"), _names(gm.get("names"), f"{w}.names")
+    cells = gm.get("cells")
+    if (not isinstance(cells, list) or len(cells) != 2
+            or not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= _MAX_WINDOW_CELLS
+                       and c % 2 == 1 for c in cells)):
+        raise InputError(f"{w}.cells: expected [rows, cols], odd, 1-{_MAX_WINDOW_CELLS}, got {cells!r}")
+    platt = gm.get("platt")
+    if not isinstance(platt, list) or len(platt) != 2:
+        raise InputError(f"{w}.platt: expected [a, b], got {platt!r}")
+    dims_in = gm.get("dims")
+    if not isinstance(dims_in, dict) or set(dims_in) != set(classes):
+        raise InputError(f"{w}.dims: expected the sizes of {', '.join(classes)}, got {dims_in!r}")
+    dims = {}
+    for c, v in dims_in.items():
+        if not isinstance(v, list) or len(v) != 3:
+            raise InputError(f"{w}.dims.{c}: expected [length, width, height] m, got {v!r}")
+        dims[c] = tuple(_number(x, f"{w}.dims.{c}", 0.01, 1000.0) for x in v)
+    n_cls = len(classes)
+    want = {"weights": (cells[0], cells[1], n_feat),
+            "class_coef": (1, 1) if n_cls == 1 else (n_cls, cells[0] * cells[1] * n_feat), "class_bias": (n_cls,)}
+    got = {}
+    for key, shape in want.items():
+        name = f"g{i}_{key}"
+        if name not in arr:
+            raise InputError(f"no array {name}")
+        a = arr[name]
+        if a.dtype.kind not in "fiu" or a.shape != shape:
+            raise InputError(f"{name}: expected {shape} numbers, got {a.shape} {a.dtype}")
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"{name}: holds NaN or infinite values")
+        got[key] = a.astype(np.float32)
+    return AerialGroup(classes, names, (cells[0], cells[1]), got["weights"], _number(gm.get("bias"), f"{w}.bias"),
+                       (_number(platt[0], f"{w}.platt"), _number(platt[1], f"{w}.platt")),
+                       got["class_coef"], got["class_bias"], dims)
+
+
+def _number(v: object, what: str, lo: float = -math.inf, hi: float = math.inf) -> float:
+    """``v`` as a float, if it is a finite JSON number in [lo, hi]."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
+        rng = "" if (lo, hi) == (-math.inf, math.inf) else f" in [{lo:g}, {hi:g}]"
+        raise InputError(f"{what}: expected a finite number{rng}, got {v!r}")
+    return float(v)
+
+
+def _names(v: object, what: str) -> tuple[str, ...]:
+    """``v`` as a tuple of names, if it is a non-empty JSON list of non-empty strings."""
+    if not isinstance(v, list) or not v or not all(isinstance(x, str) and x for x in v):
+        raise InputError(f"{what}: expected a non-empty list of names, got {v!r}")
+    return tuple(v)
 
 
 def _boxes(roi: NDArray[np.bool_], reach: int) -> list[tuple[int, int, int, int]]:

@@ -59,9 +59,10 @@ from prism3d.atr.scene import (
 )
 from prism3d.atr.verifier import SceneRecogniser, detect_objects
 from prism3d.capture.rig import StereoRig
+from prism3d.checks import check_outputs_not_inputs
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
-from prism3d.io.images import read_depth, read_image
+from prism3d.io.images import read_depth, read_image, split_npz_spec
 from prism3d.reconstruct.stereo.pipeline import (
     ReconstructOptions,
     convergence_distance_mm,
@@ -69,8 +70,8 @@ from prism3d.reconstruct.stereo.pipeline import (
 )
 
 __all__ = [
-    "DetectOptions", "SceneChannels", "SceneSource", "bank_scale", "detect_scene", "detect_scene_hog", "detect_shot",
-    "detect_to_file", "draw_detections", "scene_channels",
+    "DetectOptions", "SceneChannels", "SceneInput", "SceneSource", "bank_scale", "detect_scene", "detect_scene_hog", "detect_shot",
+    "detect_to_file", "draw_detections", "read_scene_source", "scene_channels",
 ]
 
 
@@ -402,12 +403,26 @@ class SceneSource:
     fx: float | None = None
 
 
-def detect_to_file(model: Any, output: str | Path, source: SceneSource, *,
-                   depth_range_mm: tuple[float, float] | None = None, options: DetectOptions | None = None,
-                   draw: str | Path | None = None, source_name: str | None = None) -> dict[str, Any]:
-    """``prism3d detect``: a shot + calibration, or an image + depth map (+ focal), to a
-    detections JSON (and a drawing, PNG) written atomically and together; ``model`` is a
-    bank or a scene recogniser (or the path of one). Everything is checked before work starts."""
+@dataclass(frozen=True)
+class SceneInput:
+    """A :class:`SceneSource` read and checked by :func:`read_scene_source`: the shot (with
+    its ``rig``) or the image (with its ``depth`` map, mm), ready to search."""
+
+    source: SceneSource
+    image: NDArray
+    rig: StereoRig | None = None
+    depth: NDArray | None = None
+
+
+def read_scene_source(source: SceneSource, *, output: str | Path, draw: str | Path | None = None,
+                      models: Sequence[str | Path] = (),
+                      depth_range_mm: tuple[float, float] | None = None) -> SceneInput:
+    """Every input of ``detect`` read and checked, and its outputs (``output`` JSON,
+    ``draw`` PNG) checked against them, so that a bad input is refused before a recogniser
+    is loaded or trained (minutes): the shot and its calibration (the shot's size must be
+    the rig's sensor; without ``depth_range_mm`` the views must converge), or the image,
+    its depth map of the image's size and a focal length > 0. ``models`` (model files
+    read) count as inputs too: no output may replace any of them."""
     shot, calib, image, depth, fx = source.shot, source.calib, source.image, source.depth, source.fx
     out = Path(output)
     if out.suffix.lower() != ".json":
@@ -416,32 +431,65 @@ def detect_to_file(model: Any, output: str | Path, source: SceneSource, *,
         raise InputError(f"{draw}: expected a .png file name for the drawing")
     if (shot is None) == (image is None):
         raise InputError("detect: give a shot (with --calib) or --image with --depth, not both")
-    if isinstance(model, (str, Path)):
-        source_name = source_name or str(model)
-        model = load_scene_model(model)
+    depth_file = None if depth is None else split_npz_spec(depth)[0]
+    check_outputs_not_inputs([out, draw], [shot, calib, image, depth_file, *models])
     if shot is not None:
         if calib is None:
             raise InputError("detect: a shot needs --calib (the rig or calibration YAML)")
         if depth is not None:
             raise InputError("detect: --depth goes with --image, not with a shot")
         rig = StereoRig.load(calib)
+        if depth_range_mm is None and convergence_distance_mm(rig) is None:
+            raise InputError("detect: the rig's views do not converge; give --depth-range NEAR:FAR (m)")
         img = read_image(shot)
+        if getattr(rig, "split", None) is not None:
+            sw, sh = rig.split.sensor_size
+            if img.shape[1] != sw or img.shape[0] != sh:
+                raise InputError(f"{shot}: {img.shape[1]}x{img.shape[0]} px, the rig {calib} has a {sw}x{sh} "
+                                 "sensor; give the shot this calibration was made for")
+        return SceneInput(source, img, rig=rig)
+    if depth is None:
+        raise InputError("detect: --image needs --depth (a depth map in mm: .npy, .tiff or .pfm)")
+    if fx is None:
+        raise InputError("detect: --image needs --fx (the focal length in pixels)")
+    if not (math.isfinite(fx) and fx > 0):
+        raise InputError(f"detect: --fx must be a focal length > 0 px, got {fx}")
+    img = read_image(image)
+    dmap = read_depth(depth)
+    if dmap.shape[:2] != img.shape[:2]:
+        raise InputError(f"{depth}: {dmap.shape[1]}x{dmap.shape[0]} px, the image is "
+                         f"{img.shape[1]}x{img.shape[0]}; give a depth map of the image's size")
+    return SceneInput(source, img, depth=dmap)
+
+
+def detect_to_file(model: Any, output: str | Path, source: SceneSource | SceneInput, *,
+                   depth_range_mm: tuple[float, float] | None = None, options: DetectOptions | None = None,
+                   draw: str | Path | None = None, source_name: str | None = None) -> dict[str, Any]:
+    """``prism3d detect``: a shot + calibration, or an image + depth map (+ focal), to a
+    detections JSON (and a drawing, PNG) written atomically and together; ``model`` is a
+    bank or a scene recogniser (or the path of one); ``source`` as given, or already read
+    by :func:`read_scene_source`. Everything is checked before work starts."""
+    out = Path(output)
+    if isinstance(source, SceneSource):
+        source = read_scene_source(source, output=out, draw=draw, depth_range_mm=depth_range_mm,
+                                   models=[model] if isinstance(model, (str, Path)) else [])
+    else:  # read before the model was trained or loaded: its outputs are checked as those were
+        if out.suffix.lower() != ".json":
+            raise InputError(f"{out}: expected a .json file name for the detections")
+        if draw is not None and Path(draw).suffix.lower() != ".png":
+            raise InputError(f"{draw}: expected a .png file name for the drawing")
+    if isinstance(model, (str, Path)):
+        source_name = source_name or str(model)
+        model = load_scene_model(model)
+    src, img = source.source, source.image
+    if source.rig is not None:
+        rig = source.rig
         dets, times = detect_shot(model, img, rig, depth_range_mm=depth_range_mm, options=options)
-        source = {"shot": str(shot), "calib": str(calib), "frame": "left view pixels, left camera (mm)"}
-        view = rig.split.split(img)[0] if hasattr(rig, "split") and rig.split is not None else img
+        where = {"shot": str(src.shot), "calib": str(src.calib), "frame": "left view pixels, left camera (mm)"}
+        view = rig.split.split(img)[0] if getattr(rig, "split", None) is not None else img
     else:
-        if depth is None:
-            raise InputError("detect: --image needs --depth (a depth map in mm: .npy, .tiff or .pfm)")
-        img = read_image(image)
-        dmap = read_depth(depth)
-        if dmap.shape[:2] != img.shape[:2]:
-            raise InputError(f"{depth}: {dmap.shape[1]}x{dmap.shape[0]} px, the image is "
-                             f"{img.shape[1]}x{img.shape[0]}; give a depth map of the image's size")
+        dmap, fx = source.depth, float(src.fx)
         h, w = img.shape[:2]
-        if fx is None:
-            raise InputError("detect: --image needs --fx (the focal length in pixels)")
-        if not (math.isfinite(fx) and fx > 0):
-            raise InputError(f"detect: --fx must be a focal length > 0 px, got {fx}")
         K = np.array([[fx, 0, (w - 1) / 2.0], [0, fx, (h - 1) / 2.0], [0, 0, 1.0]])
         grey = img.astype(np.float32)
         if grey.ndim == 3:
@@ -451,11 +499,11 @@ def detect_to_file(model: Any, output: str | Path, source: SceneSource, *,
         t1 = time.perf_counter()
         dets = detect_scene(model, sc, options)
         times = {"channels_s": t1 - t0, "detect_s": time.perf_counter() - t1}
-        source = {"image": str(image), "depth": str(depth), "fx": float(fx), "frame": "image pixels, camera (mm)"}
+        where = {"image": str(src.image), "depth": str(src.depth), "fx": fx, "frame": "image pixels, camera (mm)"}
         view = img
     channel = ",".join(model.channels) if isinstance(model, SceneRecogniser) else model.channel
     doc = {"schema_version": 1, "model": source_name, "channel": channel, "classes": list(model.classes),
-           **source, "timings_s": times, "detections": dets}
+           **where, "timings_s": times, "detections": dets}
     with atomic_paths(*([out] if draw is None else [out, Path(draw)])) as tmps:
         tmps[0].write_text(json.dumps(doc, indent=1))
         if draw is not None:

@@ -28,11 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from prism3d.capture.rig import StereoRig
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
+from prism3d.io.images import check_image_size
 
-__all__ = ["FPPI_POINTS", "Match", "check_scene_folders", "match_best_first", "match_map_detections", "plot_fppi", "plot_scene", "score_detections",
-           "score_scenes", "write_scene_results"]
+__all__ = ["FPPI_POINTS", "Match", "check_scene_folders", "match_best_first", "match_map_detections", "plot_fppi", "plot_scene",
+           "read_scene_truth", "score_detections", "score_scenes", "write_scene_results"]
 
 #: FPPI operating points reported (Pd and identification accuracy at each).
 FPPI_POINTS = (0.1, 1.0)
@@ -221,14 +223,14 @@ def _xyz(v: object, what: str) -> np.ndarray | None:
     return np.array([_finite(c, what) for c in v])
 
 
-def _items(doc: object, key: str, k: int, fields: str, what: str) -> list[tuple[str, dict]]:
-    """``doc[key]`` of scene ``k``: (name for messages, item) pairs, each an object with a
-    string ``class``."""
+def _items(doc: object, key: str, k: int | None, fields: str, what: str) -> list[tuple[str, dict]]:
+    """``doc[key]`` of scene ``k`` (None: a file of its own, named by the caller): (name for
+    messages, item) pairs, each an object with a string ``class``."""
     if not isinstance(doc, dict) or not isinstance(doc.get(key), list):
-        raise InputError(f"scenes[{k}]: {what}: expected {{\"{key}\": [...]}}")
+        raise InputError(f"{'' if k is None else f'scenes[{k}]: '}{what}: expected {{\"{key}\": [...]}}")
     out = []
     for i, item in enumerate(doc[key]):
-        w = f"scenes[{k}].{key}[{i}]"
+        w = f"{'' if k is None else f'scenes[{k}].'}{key}[{i}]"
         if not isinstance(item, dict) or not isinstance(item.get("class"), str):
             raise InputError(f"{w}: expected an object with {fields}")
         out.append((w, item))
@@ -242,7 +244,9 @@ def _detections(doc: object, k: int) -> list[dict]:
             for w, d in _items(doc, "detections", k, "row, col, class, score", "detections")]
 
 
-def _targets(doc: object, k: int) -> list[dict]:
+def _targets(doc: object, k: int | None) -> list[dict]:
+    """A truth document's targets, each checked (box inside out, finite numbers, a 3D
+    radius > 0: a negative one would silently never match)."""
     out = []
     for w, t in _items(doc, "targets", k, "class, confuser, box_rc", "truth"):
         box = t.get("box_rc")
@@ -252,6 +256,8 @@ def _targets(doc: object, k: int) -> list[dict]:
         if r1 < r0 or c1 < c0:
             raise InputError(f"{w}.box_rc: expected r0 <= r1 and c0 <= c1, got {box!r}")
         radius = t.get("radius_mm")
+        if radius is not None and _finite(radius, f"{w}.radius_mm") <= 0:
+            raise InputError(f"{w}.radius_mm: expected a radius > 0 mm, got {radius!r}")
         conf = bool(t.get("confuser", False))
         out.append({"class": t["class"], "confuser": conf, "counted": not conf, "box": (r0, c0, r1, c1),
                     "difficult": bool(t.get("difficult", False)),
@@ -277,9 +283,43 @@ def _match(d: dict, targets: list[dict], taken: list[bool]) -> int | None:
     return best
 
 
-def check_scene_folders(scenes: Sequence[str]) -> list:
-    """Scene folders (``shot.png``, ``rig.yaml``, ``truth.json`` each), all checked first."""
+def read_scene_truth(path: Any) -> dict:
+    """A scene's ``truth.json``, parsed and its targets checked as scoring will read them;
+    InputError naming the file otherwise (a nesting deeper than the JSON parser goes
+    included)."""
+    import json
     from pathlib import Path
+
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: not readable ({exc})") from None
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"{p}: not valid JSON ({type(exc).__name__}: {exc})") from None
+    try:
+        _targets(doc, None)
+    except InputError as exc:
+        raise InputError(f"{p}: {exc}") from None
+    return doc
+
+
+def _in_message(exc: Exception, path: Any) -> str:
+    """An error's message naming ``path`` once (loaders name their file; some do not)."""
+    text = str(exc)
+    return text if str(path) in text else f"{path}: {text}"
+
+
+def check_scene_folders(scenes: Sequence[str]) -> list:
+    """Scene folders (``shot.png``, ``rig.yaml``, ``truth.json`` each), every one checked
+    before any detection: the shot's header readable and within the pixel budget, the rig
+    loading and its sensor the shot's size, the truth valid (:func:`read_scene_truth`).
+    A broken scene is one error naming it, not a failed unit after the others' work.
+    Returns ``(folder, truth)`` pairs."""
+    import warnings
+    from pathlib import Path
+
+    from PIL import Image
 
     if not scenes:
         raise InputError("eval-scenes: no scenes given (folders written by 'prism3d simulate field')")
@@ -291,7 +331,24 @@ def check_scene_folders(scenes: Sequence[str]) -> list:
         for name in ("shot.png", "rig.yaml", "truth.json"):
             if not (p / name).is_file():
                 raise InputError(f"{p}: has no {name} (expected a scene from 'prism3d simulate field')")
-        out.append(p)
+        shot = p / "shot.png"
+        check_image_size(shot)  # a header claiming more than the budget (a decompression bomb)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                with Image.open(shot) as im:
+                    w, h = im.size
+        except Exception as exc:  # noqa: BLE001 - Pillow raises many types for a damaged file
+            raise InputError(f"{shot}: not a readable image ({type(exc).__name__})") from None
+        try:
+            rig = StereoRig.load(p / "rig.yaml")
+        except InputError as exc:
+            raise InputError(_in_message(exc, p / "rig.yaml")) from None
+        sw, sh = rig.split.sensor_size
+        if (w, h) != (sw, sh):
+            raise InputError(f"{shot}: {w}x{h} px, but its rig.yaml has a {sw}x{sh} sensor; the scene's "
+                             "files do not belong together")
+        out.append((p, read_scene_truth(p / "truth.json")))
     return out
 
 

@@ -34,12 +34,13 @@ from numpy.typing import NDArray
 
 from prism3d.atr.aerial import DEFAULT_THRESHOLD
 from prism3d.capture.render import RaycastRenderer
+from prism3d.checks import check_outputs_not_inputs
 from prism3d.errors import InputError
 from prism3d.geo import MapFrame, enu_to_wgs84
 from prism3d.io.atomic import atomic_paths, atomic_write_text
 from prism3d.io.geo import read_geotiff
 
-__all__ = ["NadirTemplate", "SurveyScene", "detect_in_survey", "draw_survey_detections", "find_vehicles",
+__all__ = ["NadirTemplate", "SurveyScene", "check_survey_request", "detect_in_survey", "draw_survey_detections", "find_vehicles",
            "load_survey_scene", "nadir_templates", "write_geojson"]
 
 #: A class fits a candidate when the candidate's length, width and height are within
@@ -263,6 +264,8 @@ def _read_checked(path: Path, what: str) -> tuple[NDArray, dict]:
         raise InputError(f"{path.parent}: no {path.name}; give a folder written by 'prism3d survey'")
     try:
         return read_geotiff(path)
+    except InputError:
+        raise
     except Exception as exc:  # noqa: BLE001 - rasterio raises its own types for a bad file
         raise InputError(f"{path}: not a readable GeoTIFF {what} ({type(exc).__name__}: {exc})") from None
 
@@ -399,28 +402,8 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *
     and drawn on the orthophoto to ``draw`` (PNG). A survey without GPS is refused (its
     sizes are in unknown units)."""
     t0 = time.perf_counter()
-    d = Path(survey_dir)
-    out = Path(out_path)
-    if out.suffix.lower() not in (".geojson", ".json"):
-        raise InputError(f"{out}: expected a .geojson (or .json) file name for the vehicles")
-    if draw is not None and Path(draw).suffix.lower() != ".png":
-        raise InputError(f"{draw}: expected a .png file name for the drawing")
-    for f in (out, Path(draw) if draw is not None else None):
-        if f is not None and f.resolve().parent == d.resolve() and f.name in _SURVEY_NAMES:
-            raise InputError(f"{f}: would overwrite the survey's own {f.name}; write the vehicles elsewhere")
-    if not (d / "poses.json").is_file():
-        raise InputError(f"{d}: no poses.json; give a folder written by 'prism3d survey'")
-    try:
-        doc = json.loads((d / "poses.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{d / 'poses.json'}: unreadable ({exc})") from None
-    if not isinstance(doc, dict):
-        raise InputError(f"{d / 'poses.json'}: expected a JSON object, got {type(doc).__name__}")
-    if doc.get("scale") != "gps" or doc.get("origin_lla") is None:
-        raise InputError(f"{d}: the survey's scale is unknown (no GPS); vehicle sizes cannot be compared")
-    th = DEFAULT_THRESHOLD if threshold is None else float(threshold)
-    if not (math.isfinite(th) and 0.0 <= th <= 1.0):
-        raise InputError(f"threshold: expected a score in [0, 1], got {threshold!r}")
+    d, out = Path(survey_dir), Path(out_path)
+    th = check_survey_request(d, out, threshold=threshold, draw=draw)
     scene = load_survey_scene(d, model.gsd_m, appearance=model.channels != "height",
                               height=model.channels != "appearance")
     t1 = time.perf_counter()
@@ -440,6 +423,46 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *
     return {"n_vehicles": sum(counts.values()), "by_class": counts, "n_written": len(kept),
             "threshold": th, "seconds": {"read": round(t1 - t0, 2), "detect": round(t2 - t1, 2),
                                          "total": round(time.perf_counter() - t0, 2)}}
+
+
+def check_survey_request(survey_dir: str | Path, out_path: str | Path, *, threshold: float | None = None,
+                         draw: str | Path | None = None) -> float:
+    """What :func:`detect_in_survey` is asked, checked before a recogniser is loaded or
+    trained (minutes): the output names (``.geojson``/``.json``, a ``.png`` drawing, none
+    of them one of the survey's own files), the survey folder (a folder with a readable
+    ``poses.json`` of a GPS-scaled survey, ``ndsm.tif`` and ``ortho.tif``) and the
+    threshold. Returns the threshold to use. The rasters' contents are read by
+    :func:`load_survey_scene`."""
+    d, out = Path(survey_dir), Path(out_path)
+    if out.suffix.lower() not in (".geojson", ".json"):
+        raise InputError(f"{out}: expected a .geojson (or .json) file name for the vehicles")
+    if draw is not None and Path(draw).suffix.lower() != ".png":
+        raise InputError(f"{draw}: expected a .png file name for the drawing")
+    for f in (out, Path(draw) if draw is not None else None):
+        if f is not None and f.resolve().parent == d.resolve() and f.name in _SURVEY_NAMES:
+            raise InputError(f"{f}: would overwrite the survey's own {f.name}; write the vehicles elsewhere")
+    check_outputs_not_inputs([out, draw], [d / n for n in sorted(_SURVEY_NAMES)])  # links to them too
+    if not d.exists():
+        raise InputError(f"{d}: no such survey folder; give a folder written by 'prism3d survey'")
+    if not d.is_dir():
+        raise InputError(f"{d}: not a folder; give a folder written by 'prism3d survey'")
+    if not (d / "poses.json").is_file():
+        raise InputError(f"{d}: no poses.json; give a folder written by 'prism3d survey'")
+    try:
+        doc = json.loads((d / "poses.json").read_text())
+    except (OSError, ValueError, RecursionError) as exc:  # RecursionError: nesting deeper than the parser goes
+        raise InputError(f"{d / 'poses.json'}: unreadable ({type(exc).__name__}: {exc})") from None
+    if not isinstance(doc, dict):
+        raise InputError(f"{d / 'poses.json'}: expected a JSON object, got {type(doc).__name__}")
+    if doc.get("scale") != "gps" or doc.get("origin_lla") is None:
+        raise InputError(f"{d}: the survey's scale is unknown (no GPS); vehicle sizes cannot be compared")
+    for name in ("ndsm.tif", "ortho.tif"):
+        if not (d / name).is_file():
+            raise InputError(f"{d}: no {name}; give a folder written by 'prism3d survey'")
+    th = DEFAULT_THRESHOLD if threshold is None else float(threshold)
+    if not (math.isfinite(th) and 0.0 <= th <= 1.0):
+        raise InputError(f"threshold: expected a score in [0, 1], got {threshold!r}")
+    return th
 
 
 _SURVEY_NAMES = {"poses.json", "cloud.ply", "cloud.las", "cloud.laz", "dsm.tif", "ndsm.tif", "ground.tif", "ortho.tif",

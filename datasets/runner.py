@@ -130,7 +130,10 @@ class _Tally:
             self.report.done_units += 1
             self.report.stats.append(res)
         else:
-            log.warning("unit %s (%s) failed: %s", unit_id, what, err)
+            # INFO, shown with -v: the report carries every failure and each job's caller
+            # reports them once (JobReport.summary / failure_line); a warning here printed
+            # a second line before the command's own error
+            log.info("unit %s (%s) failed: %s", unit_id, what, err)
             self.report.failed.append(
                 {"unit": unit_id, "what": what, "error": f"{type(err).__name__}: {err}"}
             )

@@ -7,6 +7,7 @@ Every message states what was expected and what was found, and names the argumen
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ __all__ = [
     "check_seed",
     "check_file",
     "check_finite",
+    "check_outputs_not_inputs",
 ]
 
 
@@ -161,3 +163,35 @@ def check_file(path: str | Path, what: str = "file") -> Path:
     if not p.is_file():
         raise InputError(f"{p}: expected a {what}, found a directory or special file")
     return p
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name one file or folder (hard links and symlinks included)."""
+    try:
+        if a.exists() and b.exists() and os.path.samefile(a, b):
+            return True
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
+def check_outputs_not_inputs(
+    outputs: Iterable[str | Path | None],
+    inputs: Iterable[str | Path | None] = (),
+    *,
+    input_folders: Iterable[str | Path | None] = (),
+) -> None:
+    """Raise InputError when an output would replace an input: an output path that is
+    one of ``inputs`` (the same file, through any link), or lies inside one of
+    ``input_folders``. Checked before any work, since the outputs are written last and an
+    input overwritten by its own results is lost. ``None`` entries are skipped."""
+    ins = [Path(p) for p in inputs if p is not None]
+    dirs = [Path(p) for p in input_folders if p is not None]
+    for out in (Path(p) for p in outputs if p is not None):
+        for inp in ins:
+            if _same_path(out, inp):
+                raise InputError(f"{out}: is also an input ({inp}); give another output path")
+        r = out.resolve()
+        for d in dirs:
+            if _same_path(out, d) or r.is_relative_to(d.resolve()):
+                raise InputError(f"{out}: lies in the input folder {d}; write it elsewhere")

@@ -11,6 +11,7 @@ a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -853,7 +854,7 @@ def _bank_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
-    from prism3d.datasets.runner import RunOptions
+    from prism3d.datasets.runner import RunOptions, check_scheduler
     from prism3d.datasets.jobs.mining import DEFAULT_SCENES
     from prism3d.datasets.jobs.recognisers import aerial_recogniser, scene_recogniser
 
@@ -879,6 +880,7 @@ def _bank_train(args: argparse.Namespace) -> int:
     if args.channel is not None:
         raise InputError("bank train: --channel is for the filters alone (--scenes 0); a recogniser uses --channels")
     run = RunOptions(workers=args.workers, scheduler=args.scheduler)
+    check_scheduler(args.scheduler)  # reached before the banks are trained, not only when mining starts
     model, _ = scene_recogniser(targets, scenes=scenes, channels=args.channels, chip_spec=spec, bank_options=grid,
                                 run=run, cache=False, progress=_progress(args, "bank train"))
     model.save(args.output)
@@ -945,13 +947,19 @@ def _parse_depth_range(text: str | None) -> tuple[float, float] | None:
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
-    from prism3d.atr.detect import SceneSource, detect_to_file
+    from prism3d.atr.detect import SceneSource, detect_to_file, read_scene_source
     from prism3d.atr.models import load_scene_model, model_kind
 
     _finish_targets(args)
+    if args.bank is not None and (args.targets_given or args.db is not None):
+        raise InputError("detect: give --bank (a trained model) or --targets/--db, not both")
+    depth_range = _parse_depth_range(args.depth_range)
+    # every input read before a recogniser is loaded or trained (minutes)
+    src = read_scene_source(SceneSource(shot=args.shot, calib=args.calib, image=args.image, depth=args.depth,
+                                        fx=args.fx), output=args.output, draw=args.draw, depth_range_mm=depth_range,
+                            models=([args.bank] if args.bank is not None else [])
+                            + [t for t in args.targets if model_kind(t) is not None])
     if args.bank is not None:
-        if args.targets_given or args.db is not None:
-            raise InputError("detect: give --bank (a trained model) or --targets/--db, not both")
         model, how = load_scene_model(args.bank), str(args.bank)
     elif len(args.targets) == 1 and model_kind(args.targets[0]) is not None:
         model, how = load_scene_model(args.targets[0]), args.targets[0]
@@ -964,9 +972,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
                                        chip_spec=BANK_CHIP_SPEC, cache=not args.no_cache,
                                        progress=_progress(args, "training the recogniser"))
         how = "cached recogniser" if info["cached"] else "recogniser trained now"
-    src = SceneSource(shot=args.shot, calib=args.calib, image=args.image, depth=args.depth, fx=args.fx)
-    doc = detect_to_file(model, args.output, src, depth_range_mm=_parse_depth_range(args.depth_range),
-                         draw=args.draw, source_name=how)
+    doc = detect_to_file(model, args.output, src, depth_range_mm=depth_range, draw=args.draw, source_name=how)
     t = doc["timings_s"]
     _say(args, f"wrote {args.output}: {len(doc['detections'])} detections ({how}; "
                + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in t.items()) + ")")
@@ -1116,11 +1122,13 @@ def _finish_targets(args: argparse.Namespace) -> None:
 
 def _cmd_survey_detect(args: argparse.Namespace) -> int:
     from prism3d.atr.aerial import AerialModel
-    from prism3d.atr.survey_detect import detect_in_survey
+    from prism3d.atr.survey_detect import check_survey_request, detect_in_survey, load_survey_scene
     from prism3d.datasets.jobs.recognisers import aerial_recogniser
     from prism3d.atr.models import model_kind
 
     _finish_targets(args)
+    # the survey and outputs first: loading or training a recogniser must not precede a refusal
+    check_survey_request(args.survey, args.output, threshold=args.threshold, draw=args.draw)
     models = [t for t in args.targets if model_kind(t) is not None]
     if models:
         if len(args.targets) != 1 or args.db is not None:
@@ -1132,7 +1140,12 @@ def _cmd_survey_detect(args: argparse.Namespace) -> int:
         model, how = AerialModel.load(models[0]), "model file"
     else:
         targets = _targets_for(args, scale="full")
-        model, info = aerial_recogniser(targets, cache=not args.no_cache,
+
+        def read_survey(options: Any) -> None:  # its contents, at the grid the model will have
+            load_survey_scene(args.survey, options.gsd_m, appearance=options.channels != "height",
+                              height=options.channels != "appearance")
+
+        model, info = aerial_recogniser(targets, cache=not args.no_cache, before_training=read_survey,
                                         progress=_progress(args, "training the aerial recogniser"))
         how = "cached" if info["cached"] else "trained now" + (f", cached in {info['path']}" if info["path"] else "")
     s = detect_in_survey(args.survey, args.output, model, threshold=args.threshold,
@@ -1352,6 +1365,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, old_term)
 
 
+def run() -> int:
+    """The console script: :func:`main`, then the interpreter's teardown (up to a second
+    with numba and Dask loaded) with SIGTERM ending the process with ``main``'s exit
+    code: its outputs are in place by then, and a signal death would report them lost."""
+    rc = main()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda signum, frame: os._exit(rc))
+    return rc
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1380,7 +1406,7 @@ def _main(argv: Sequence[str] | None) -> int:
 #: Commands whose -o names a folder (the others write a file).
 _FOLDER_OUTPUT = {"rectify", "decamo", "render", "capture", "survey"}
 #: Arguments that name an output file when they hold a path.
-_FILE_OUTPUT_ARGS = ("output", "mesh", "depth_out", "disparity_out", "valid_out", "json", "link")
+_FILE_OUTPUT_ARGS = ("output", "mesh", "depth_out", "disparity_out", "valid_out", "json", "link", "draw")
 
 
 def _check_command_outputs(args: argparse.Namespace) -> None:
@@ -1442,6 +1468,8 @@ def _quiet_other_libraries(level: int, *, verbose: bool) -> dict[str, int]:
         cv2 = sys.modules.get("cv2")
         if cv2 is not None:
             cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    if not verbose:  # FFmpeg's own lines ("[mjpeg @ 0x...] overread 8") on a damaged video:
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # the survey says what failed
     return old
 
 
@@ -1467,4 +1495,4 @@ def _check_out_not_dir(path: Path) -> None:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    sys.exit(run())

@@ -102,10 +102,13 @@ def _key(targets: Sequence[tuple[str, SceneMesh]], negatives: Sequence[tuple[str
 
 
 def aerial_recogniser(targets: Sequence[tuple[str, SceneMesh]], *, options: AerialTrainOptions | None = None,
-                      cache: bool = True, progress: Callable[[int, int, str], None] | None = None
+                      cache: bool = True, progress: Callable[[int, int, str], None] | None = None,
+                      before_training: Callable[[AerialTrainOptions], None] | None = None
                       ) -> tuple[AerialModel, dict]:
     """The aerial recogniser of ``targets`` (``(class, SceneMesh)`` at full size): from the
-    cache when this exact training was done before, else trained (minutes) and cached.
+    cache when this exact training was done before, else trained (minutes) and cached;
+    ``before_training(options)`` is called only when it must be trained (a caller checks
+    there, at the model's grid, the inputs it will read, so a bad one costs no training).
     Returns the model and ``{"cached": bool, "path": str | None}``."""
     if not targets:
         raise InputError("survey-detect: no targets to look for")
@@ -122,6 +125,8 @@ def aerial_recogniser(targets: Sequence[tuple[str, SceneMesh]], *, options: Aeri
             return AerialModel.load(path), {"cached": True, "path": str(path)}
         except InputError:
             pass  # a damaged cache entry is trained again
+    if before_training is not None:
+        before_training(o)
     model = train_aerial(targets, negatives, o, progress=progress)
     if cache:
         try:

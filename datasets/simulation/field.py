@@ -37,13 +37,13 @@ from prism3d.capture.render import RaycastRenderer
 from prism3d.capture.rig import StereoRig, look_at, paper_rig
 from prism3d.capture.scenes import value_noise
 from prism3d.capture.simulate import Projector, ShotOptions, effects_entries, simulate_shot
-from prism3d.checks import check_seed
+from prism3d.checks import check_outputs_not_inputs, check_seed
 from prism3d.datasets.models._primitives import Part, box, cylinder, ellipse, loft, prism
 from prism3d.datasets.database.resolve import resolve_model
 from prism3d.datasets.runner import RunOptions, run_tasks
 from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 from prism3d.errors import InputError
-from prism3d.io.atomic import atomic_write_text, staged_folder
+from prism3d.io.atomic import atomic_write_text, check_outputs, staged_folder
 from prism3d.io.images import read_image, write_image
 
 __all__ = [
@@ -545,7 +545,7 @@ def simulate_field_batch(out_dir: str | Path, count: int, options: FieldOptions 
     if old.is_file():  # a resumed batch must not mix scenes made with other options
         try:
             before = json.loads(old.read_text()).get("options", {})
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError, AttributeError):  # unreadable, or not a batch's object
             before = None
         if before != opts_doc:
             raise InputError(f"{out}: holds a batch made with other options ({old}); give a new folder")
@@ -594,14 +594,13 @@ def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progr
     scenes would not be the score asked for)."""
     if out_json is not None and Path(out_json).suffix.lower() != ".json":
         raise InputError(f"{out_json}: expected a .json file name for the results")
-    folders = check_scene_folders(scenes)
+    if out_json is not None:  # neither the results nor their plot may replace the model or land in a scene
+        outs = [Path(out_json), Path(f"{Path(out_json).with_suffix('')}_fppi.png")]
+        check_outputs_not_inputs(outs, [bank_path], input_folders=scenes)
+        check_outputs(outs)  # the plot's name too: a folder there fails now, not after the detections
+    checked = check_scene_folders(scenes)  # every scene whole, before any detection
+    folders, truths = [p for p, _ in checked], [t for _, t in checked]
     bank = load_scene_model(bank_path)
-    truths = []
-    for p in folders:
-        try:
-            truths.append(json.loads((p / "truth.json").read_text()))
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{p / 'truth.json'}: not readable JSON ({exc})") from None
     run = RunOptions() if run is None else run
     if run.progress is None and progress is not None:
         run = replace(run, progress=progress)

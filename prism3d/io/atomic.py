@@ -156,7 +156,7 @@ def output_lock(target: str | Path) -> Iterator[Path]:
                 host, pid, other = me["host"], -1, {}  # unreadable: a writer died mid-write
             if host != me["host"] or (pid > 0 and _alive(pid)):
                 raise InputError(f"{t}: another prism3d process ({host}, pid {pid}) is writing it; wait for it "
-                                 f"or give another folder (a lock left by a crash: remove {lock})") from None
+                                 f"or give another output (a lock left by a crash: remove {lock})") from None
             for st in other.get("stages", []) if isinstance(other.get("stages"), list) else []:
                 sp = Path(str(st))
                 if sp.parent == t.parent and sp.name.startswith(f".{t.name}.") and sp.name.endswith(".tmp"):

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array
 from prism3d.errors import InputError
+from prism3d.io.images import max_pixels, pixel_count
 from prism3d.io.atomic import atomic_path
 
 __all__ = ["read_geotiff", "write_geotiff", "write_las"]
@@ -122,8 +123,6 @@ def read_geotiff(path: str | Path) -> tuple[NDArray, dict]:
     """A GeoTIFF's bands (H, W[, bands]) and ``{"west", "north", "gsd", "crs_wkt",
     "nodata", "tags"}``."""
     import rasterio
-
-    from prism3d.io.images import max_pixels, pixel_count
 
     with rasterio.open(path) as src:
         n = int(src.width) * int(src.height)

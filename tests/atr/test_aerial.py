@@ -352,3 +352,144 @@ def test_cli_refuses_unknown_classes_and_models_of_the_other_view(model: AerialM
     assert main(["-q", "survey-detect", str(d), "--targets", str(aerial), "-o", str(out), "--draw",
                  str(tmp_path / "v.png")]) == 0
     assert out.is_file() and (tmp_path / "v.png").is_file()
+
+
+# -- a model file's contents are checked when it is read ---------------------------------------
+def _tiny_model() -> AerialModel:
+    """A hand-made model (no training): a one-class group and a two-class group with a namer."""
+    from prism3d.atr.aerial import AerialGroup
+
+    F = len(feature_names("both"))
+    rng = np.random.default_rng(0)
+    g0 = AerialGroup(("car",), ("car_kei",), (3, 5), rng.normal(size=(3, 5, F)).astype(np.float32), -1.0,
+                     (1.0, 0.0), np.zeros((1, 1), np.float32), np.zeros(1, np.float32), {"car": (3.7, 1.6, 1.6)})
+    g1 = AerialGroup(("bus", "truck"), ("bus_city", "truck_k1"), (3, 7), rng.normal(size=(3, 7, F)).astype(np.float32),
+                     -2.0, (2.0, -1.0), rng.normal(size=(2, 3 * 7 * F)).astype(np.float32), np.zeros(2, np.float32),
+                     {"bus": (11.0, 2.5, 3.2), "truck": (7.5, 2.4, 3.0)})
+    return AerialModel(0.06, 8, "both", 15.0, (g0, g1))
+
+
+def _rewrite(src, dst, meta_change=None, arrays_change=None) -> None:
+    """``src``'s model file written to ``dst`` with its metadata and arrays changed (a
+    damaged or hand-edited file)."""
+    import json
+
+    with np.load(src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(arrays.pop("meta_json")).decode())
+    if meta_change:
+        meta_change(meta)
+    if arrays_change:
+        arrays = arrays_change(arrays)
+    np.savez(dst, meta_json=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+
+
+def _set(**kv):
+    return lambda m: m.update(kv)
+
+
+def _set_group(i, **kv):
+    return lambda m: m["groups"][i].update(kv)
+
+
+DAMAGED = {
+    "nan_weights": (None, lambda a: {**a, "g0_weights": np.full_like(a["g0_weights"], np.nan)}, "g0_weights: holds NaN"),
+    "inf_namer": (None, lambda a: {**a, "g1_class_coef": np.full_like(a["g1_class_coef"], np.inf)}, "g1_class_coef"),
+    "gsd_zero": (_set(gsd_m=0.0), None, "gsd_m"),
+    "gsd_1e-6": (_set(gsd_m=1e-6), None, "gsd_m"),
+    "gsd_string": (_set(gsd_m="0.06"), None, "gsd_m"),
+    "cell_px_zero": (_set(cell_px=0), None, "cell_px"),
+    "angle_step_zero": (_set(angle_step_deg=0.0), None, "angle_step_deg"),
+    "channels_unknown": (_set(channels="x-ray"), None, "channels"),
+    "no_groups": (_set(groups=[]), None, "groups"),
+    "groups_not_a_list": (_set(groups="g"), None, "groups"),
+    "weights_wrong_shape": (None, lambda a: {**a, "g0_weights": np.zeros(3, np.float32)}, r"g0_weights: expected \(3, 5, 14\)"),
+    "namer_wrong_shape": (None, lambda a: {**a, "g1_class_coef": np.zeros((2, 10), np.float32)}, "g1_class_coef"),
+    "missing_arrays": (None, lambda a: {}, "no array g0_weights"),
+    "even_cells": (_set_group(0, cells=[4, 5]), None, "cells"),
+    "dims_of_a_class_missing": (_set_group(1, dims={"bus": [11.0, 2.5, 3.2]}), None, "dims"),
+    "platt_nan": (_set_group(0, platt=[float("nan"), 0.0]), None, "platt"),
+    "bias_null": (_set_group(0, bias=None), None, "bias"),
+    "classes_empty": (_set_group(0, classes=[]), None, "classes"),
+}
+
+
+def test_a_sound_model_file_reads_back_whole(tmp_path) -> None:
+    m = _tiny_model()
+    back = AerialModel.load(m.save(tmp_path / "m.npz"))
+    assert back.classes == ["car", "bus", "truck"] and back.gsd_m == 0.06 and back.cell_px == 8
+    for a, b in zip(m.groups, back.groups):
+        assert np.array_equal(a.weights, b.weights) and np.array_equal(a.class_coef, b.class_coef)
+        assert a.cells == b.cells and a.platt == b.platt and a.dims == b.dims
+
+
+@pytest.mark.parametrize("case", sorted(DAMAGED))
+def test_a_damaged_model_file_is_refused_when_read(tmp_path, case: str) -> None:
+    """NaN weights once gave exit 0 with no vehicles, gsd 0 a ZeroDivisionError, weights of
+    the wrong shape an IndexError and missing arrays a KeyError: each is now one InputError
+    naming the file and what is wrong."""
+    meta_change, arrays_change, match = DAMAGED[case]
+    src = _tiny_model().save(tmp_path / "m.npz")
+    bad = tmp_path / f"{case}.npz"
+    _rewrite(src, bad, meta_change, arrays_change)
+    with pytest.raises(InputError, match=match) as exc:
+        AerialModel.load(bad)
+    assert str(bad) in str(exc.value) and "train it again" in str(exc.value)
+
+
+def _flat_survey(tmp_path, *, ndsm_value: float = 0.0):
+    """A tiny survey folder (20 x 20 m): a grey orthophoto, an nDSM of ``ndsm_value``
+    everywhere (NaN: no height at all), poses.json with GPS."""
+    import json
+
+    from prism3d.geo import local_enu_crs_wkt
+    from prism3d.io.geo import write_geotiff
+
+    d = tmp_path / "flat_survey"
+    d.mkdir()
+    wkt = local_enu_crs_wkt(ORIGIN[0], ORIGIN[1])
+    write_geotiff(d / "ortho.tif", np.full((250, 250, 4), 120, np.uint8), west=0.0, north=20.0, gsd=0.08, crs_wkt=wkt)
+    write_geotiff(d / "ndsm.tif", np.full((125, 125), ndsm_value, np.float32), west=0.0, north=20.0, gsd=0.16,
+                  crs_wkt=wkt, nodata=float("nan"))
+    (d / "poses.json").write_text(json.dumps({"scale": "gps", "origin_lla": list(ORIGIN)}))
+    return d
+
+
+def test_cli_survey_detect_refuses_a_damaged_model_file(tmp_path, capsys) -> None:
+    from prism3d.cli import main
+
+    d = _flat_survey(tmp_path)
+    bad = tmp_path / "nan.npz"
+    _rewrite(_tiny_model().save(tmp_path / "m.npz"), bad, None, lambda a: {k: np.full_like(v, np.nan) for k, v in a.items()})
+    out = tmp_path / "v.geojson"
+    assert main(["-q", "survey-detect", str(d), "--targets", str(bad), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds NaN" in err[0] and str(bad) in err[0], err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", ["missing_folder", "a_file", "no_ndsm", "no_height_at_all"])
+def test_cli_survey_detect_refuses_a_bad_survey_before_training(tmp_path, monkeypatch, capsys, case: str) -> None:
+    """A missing or broken survey is refused before the aerial recogniser is trained (that
+    took minutes before the survey folder was even looked at)."""
+    import prism3d.datasets.jobs.recognisers as recognisers
+    from prism3d.cli import main
+
+    def no_training(*a, **k):
+        raise AssertionError("trained before the survey was checked")
+
+    monkeypatch.setattr(recognisers, "train_aerial", no_training)
+    d = {"missing_folder": tmp_path / "no_such_survey", "a_file": tmp_path / "v.txt"}.get(case)
+    if case == "a_file":
+        d.write_text("x")
+    if d is None:
+        d = _flat_survey(tmp_path, ndsm_value=float("nan") if case == "no_height_at_all" else 0.0)
+    if case == "no_ndsm":
+        (d / "ndsm.tif").unlink()
+    match = {"missing_folder": "no such survey folder", "a_file": "not a folder", "no_ndsm": "no ndsm.tif",
+             "no_height_at_all": "holds no height"}[case]
+    out = tmp_path / "v.geojson"
+    assert main(["-q", "survey-detect", str(d), "--targets", "car", "--no-cache", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0], err
+    assert not out.exists()

@@ -180,3 +180,80 @@ def test_detect_on_a_shot_writes_left_view_detections(field, small_bank, tmp_pat
         assert -w <= d["col"] <= 2 * w and -h <= d["row"] <= 2 * h
         if d["xyz_mm"] is not None:
             assert d["xyz_mm"][2] > 0
+
+
+@pytest.fixture
+def no_training(monkeypatch):
+    """Any recogniser training fails the test: bad input must be refused before it."""
+    import prism3d.datasets.jobs.recognisers as recognisers
+
+    def trained(*a, **k):
+        raise AssertionError("trained before the inputs were checked")
+
+    monkeypatch.setattr(recognisers, "scene_recogniser", trained)
+
+
+def _rig_and_shot(tmp_path, size=(720, 540)):
+    from prism3d.capture.rig import paper_rig
+    from prism3d.io.images import write_image
+
+    rig = tmp_path / "rig.yaml"
+    paper_rig(sensor_size=(720, 540), focal_px=600.0).save(rig)
+    shot = tmp_path / "shot.png"
+    write_image(shot, np.full((size[1], size[0], 3), 90, np.uint8))
+    return rig, shot
+
+
+@pytest.mark.parametrize("case", ["missing_shot", "shot_of_another_size", "garbage_calib", "missing_calib",
+                                  "image_with_a_bad_depth"])
+def test_cli_detect_checks_every_input_before_training(tmp_path, capsys, no_training, case):
+    """Each input is read before a recogniser is trained (minutes): a missing shot was once
+    noticed only after the training."""
+    from prism3d.cli import main
+
+    rig, shot = _rig_and_shot(tmp_path, size=(360, 540) if case == "shot_of_another_size" else (720, 540))
+    if case == "garbage_calib":
+        rig.write_bytes(b"\x00\x01 not yaml")
+    src = {"missing_shot": [str(tmp_path / "missing_input.png"), "--calib", str(rig)],
+           "missing_calib": [str(shot), "--calib", str(tmp_path / "no_rig.yaml")],
+           "image_with_a_bad_depth": ["--image", str(shot), "--depth", str(tmp_path / "no_depth.npy"), "--fx", "600"]
+           }.get(case, [str(shot), "--calib", str(rig)])
+    match = {"missing_shot": "missing_input.png", "shot_of_another_size": "sensor", "garbage_calib": "rig.yaml",
+             "missing_calib": "no_rig.yaml", "image_with_a_bad_depth": "no_depth.npy"}[case]
+    out = tmp_path / "det.json"
+    assert main(["-q", "detect", *src, "--targets", "tank_t1", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0], err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", ["draw_is_the_shot", "draw_is_a_link_to_the_shot", "draw_is_the_output",
+                                  "draw_in_a_file", "draw_is_a_folder"])
+def test_cli_detect_draw_is_checked_first_and_never_replaces_an_input(tmp_path, capsys, no_training, case):
+    """``--draw`` is an output like -o: checked before any work, and never the input shot
+    (which it once overwrote, exit 0)."""
+    import os
+
+    from prism3d.cli import main
+
+    rig, shot = _rig_and_shot(tmp_path)
+    before = shot.read_bytes()
+    (tmp_path / "blocker").write_text("x")
+    (tmp_path / "taken.png").mkdir()
+    (tmp_path / "link.png").symlink_to(shot)
+    draw = {"draw_is_the_shot": shot, "draw_is_a_link_to_the_shot": tmp_path / "link.png",
+            "draw_is_the_output": tmp_path / "det.json", "draw_in_a_file": tmp_path / "blocker" / "d.png",
+            "draw_is_a_folder": tmp_path / "taken.png"}[case]
+    match = {"draw_is_the_shot": "is also an input", "draw_is_a_link_to_the_shot": "is also an input",
+             "draw_is_the_output": "named twice", "draw_in_a_file": "is a file, not a folder",
+             "draw_is_a_folder": "is a directory"}[case]
+    cwd = os.getcwd()
+    os.chdir(tmp_path)  # relative names, as typed
+    try:
+        rc = main(["-q", "detect", "shot.png", "--calib", str(rig), "--targets", "tank_t1", "-o", "det.json",
+                   "--draw", os.path.relpath(draw, tmp_path)])
+    finally:
+        os.chdir(cwd)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and match in err[0], err
+    assert shot.read_bytes() == before and not (tmp_path / "det.json").exists()

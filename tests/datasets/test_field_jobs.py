@@ -109,3 +109,111 @@ def test_eval_scenes_refuses_a_scene_missing_a_file_before_any_work(batch, tmp_p
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "has no shot.png" in err[0], err
     assert not r.exists() and not (tmp_path / "r_fppi.png").exists()
+
+
+def _broken_scene(src, dst, case: str) -> str:
+    """A copy of scene ``src`` at ``dst`` with one file damaged as ``case`` says."""
+    import shutil
+
+    import numpy as np
+
+    from prism3d.io.images import write_image
+
+    shutil.copytree(src, dst)
+    if case == "shot_grey10":
+        write_image(dst / "shot.png", np.full((10, 10), 128, np.uint8))
+    elif case == "shot_half_size":
+        write_image(dst / "shot.png", np.zeros((540, 360, 3), np.uint8))
+    elif case == "shot_garbage":
+        (dst / "shot.png").write_bytes(b"garbage, not a PNG" * 10)
+    elif case == "rig_garbage":
+        (dst / "rig.yaml").write_bytes(b"\x00\xff\x00 garbage")
+    elif case == "rig_is_a_camera_yaml":
+        (dst / "rig.yaml").write_text("%YAML:1.0\n---\nimage_width: 720\nimage_height: 540\n")
+    elif case.startswith("truth_"):
+        doc = json.loads((dst / "truth.json").read_text())
+        doc["targets"][0]["radius_mm"] = -150.0
+        text = "[" * 100_000 + "]" * 100_000 if case == "truth_deep_nesting" else json.dumps(doc)
+        (dst / "truth.json").write_text(text)
+    return str(dst)
+
+
+@pytest.mark.parametrize("case, match", [
+    ("shot_grey10", "10x10 px, but its rig.yaml has a 720x540 sensor"),
+    ("shot_half_size", "360x540 px"),
+    ("shot_garbage", "not a readable image"),
+    ("shot_over_the_pixel_budget", "limit"),
+    ("rig_garbage", "rig.yaml"),
+    ("rig_is_a_camera_yaml", "rig.yaml"),
+    ("truth_radius_negative", "radius_mm: expected a radius > 0 mm"),
+    ("truth_deep_nesting", "not valid JSON"),
+])
+def test_eval_scenes_refuses_a_broken_scene_in_one_line_before_any_detection(batch, tmp_path, monkeypatch, capsys,
+                                                                             case, match):
+    """Each scene is checked whole before any detection: one line naming the scene and its
+    problem (once a runner warning came first, and a negative radius was taken)."""
+    import prism3d.datasets.simulation.field as field
+    from prism3d.cli import main
+
+    def no_detection(*a, **k):
+        raise AssertionError("detected before the scenes were checked")
+
+    monkeypatch.setattr(field, "detect_scene_folder", no_detection)
+    out, _ = batch
+    if case == "shot_over_the_pixel_budget":
+        monkeypatch.setenv("PRISM3D_MAX_PIXELS", "100000")  # the 720x540 shot is 388,800 pixels
+    broken = _broken_scene(out / "scene_0007", tmp_path / "broken", case)
+    scenes = [broken] if case == "shot_over_the_pixel_budget" else [str(out / "scene_0008"), broken]
+    r = tmp_path / "r.json"
+    assert main(["-q", "bank", "eval-scenes", str(tmp_path / "b.npz"), *scenes, "--json", str(r)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0] and broken in err[0], err
+    assert not r.exists() and not (tmp_path / "r_fppi.png").exists()
+
+
+@pytest.mark.parametrize("name", ["truth.json", "r.json", "sub/r.json"])
+def test_eval_scenes_writes_nothing_into_a_scene_folder(batch, tmp_path, capsys, name):
+    """--json naming a scene's own truth.json (once overwritten, exit 0) or any file in a
+    scene folder is refused, and the scene is left as it was."""
+    import shutil
+
+    from prism3d.cli import main
+
+    sc = tmp_path / "sc"
+    shutil.copytree(batch[0] / "scene_0007", sc)
+    before = {p.name: p.read_bytes() for p in sc.iterdir()}
+    assert main(["-q", "bank", "eval-scenes", str(tmp_path / "b.npz"), str(sc), "--json", str(sc / name)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lies in the input folder" in err[0], err
+    assert {p.name: p.read_bytes() for p in sc.iterdir()} == before
+
+
+def test_a_failed_unit_is_reported_once(batch, tmp_path, monkeypatch, capsys, caplog):
+    """A scene that fails in its detection unit: the command's one error line, and no
+    runner warning before it (the runner logs failed units at INFO, shown with -v)."""
+    import logging
+
+    import prism3d.datasets.simulation.field as field
+    from prism3d.atr.bank import train_bank
+    from prism3d.cli import main
+    from prism3d.datasets.database.resolve import resolve_targets
+
+    train_bank(resolve_targets(["tank_t1", "jet_j1"]), channel="depth", azimuth="0:360:90", bin_deg=90.0,
+               params=(1.0, 0.0, 0.0)).save(tmp_path / "b.npz")
+
+    def fails(bank_path, scene):
+        raise InputError(f"{scene}/shot.png: cannot decode as an image")
+
+    monkeypatch.setattr(field, "detect_scene_folder", fails)
+    r = tmp_path / "r.json"
+    args = ["bank", "eval-scenes", str(tmp_path / "b.npz"), str(batch[0] / "scene_0007"), "--json", str(r)]
+    with caplog.at_level(logging.INFO):
+        assert main(["-q", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot decode" in err[0], err
+    assert not [rec for rec in caplog.records if rec.levelno >= logging.WARNING], caplog.text
+    assert not r.exists()
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert main(["-q", "-v", *args]) == 2  # -v shows the unit's failure as it happens
+    assert any("failed" in rec.getMessage() for rec in caplog.records if rec.name.endswith("runner"))

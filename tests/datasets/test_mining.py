@@ -73,3 +73,59 @@ def test_verifier_refusals() -> None:
         train_verifier(np.zeros((3, 2)), [NONE, NONE, NONE], ["tank"])
     with pytest.raises(InputError, match="mining scenes"):
         train_scene_recogniser(resolve_targets(NAMES), NAMES, options=MiningOptions(scenes=0))
+
+
+def test_sigterm_while_mining_leaves_no_temp_folder(tmp_path, monkeypatch) -> None:
+    """SIGTERM (the command line turns it into an unwinding KeyboardInterrupt) in the middle
+    of a mining scene removes the mining folder from $TMPDIR (once left behind, 73 MB)."""
+    import os
+    import signal
+    import tempfile
+    import time
+    from pathlib import Path
+
+    import prism3d.cli as cli
+    import prism3d.datasets.jobs.mining as mining
+    from prism3d.datasets.simulation.field import prop_mesh
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
+    seen = []
+
+    def simulating_when_terminated(out, options):
+        Path(out).mkdir(parents=True)
+        (Path(out) / "shot.png").write_bytes(bytes(100_000))
+        seen.append(sorted(p.name for p in tmp.iterdir()))
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler interrupts this
+
+    monkeypatch.setattr(mining, "simulate_field", simulating_when_terminated)
+    old = signal.signal(signal.SIGTERM, cli._on_sigterm)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            train_scene_recogniser(resolve_targets(["tank_t1"]), ["tank_t1"],
+                                   rejects=[("crate", prop_mesh("crate", np.random.default_rng(0), 0))],
+                                   options=MiningOptions(scenes=2, channels=("depth",), bank_options={
+                                       "azimuth": "0:360:90", "bin_deg": 90.0, "params": (1.0, 0.0, 0.0)}))
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert seen and seen[0][0].startswith("prism3d-mining-")  # it was mining in $TMPDIR
+    assert list(tmp.iterdir()) == []
+
+
+def test_cli_bank_train_reaches_the_scheduler_before_training(tmp_path, monkeypatch, capsys) -> None:
+    """An unreachable --scheduler is refused before the filter banks are trained (it was
+    first tried when mining started, minutes later)."""
+    import prism3d.datasets.jobs.recognisers as recognisers
+    from prism3d.cli import main
+
+    def trained(*a, **k):
+        raise AssertionError("trained before the scheduler was reached")
+
+    monkeypatch.setattr(recognisers, "scene_recogniser", trained)
+    out = tmp_path / "r.npz"
+    assert main(["-q", "bank", "train", "--targets", *NAMES, "--scheduler", "tcp://127.0.0.1:1", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot connect" in err[0], err
+    assert not out.exists()

@@ -12,6 +12,7 @@ from prism3d.checks import (
     check_file,
     check_finite,
     check_in_range,
+    check_outputs_not_inputs,
     check_positive,
     check_same_shape,
 )
@@ -154,3 +155,23 @@ def test_a_dead_writers_lock_and_staging_are_taken_over(tmp_path):
     with staged_folder(out) as stage:
         (stage / "a.txt").write_text("a")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_an_output_may_not_replace_an_input(tmp_path):
+    """An output that is an input (by name, through a symlink or a hard link) or lies in
+    an input folder is refused; other outputs, and missing or None paths, pass."""
+    shot = tmp_path / "shot.png"
+    shot.write_bytes(b"x")
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (tmp_path / "link.png").symlink_to(shot)
+    os.link(shot, tmp_path / "hard.png")
+    for out in (shot, tmp_path / "link.png", tmp_path / "hard.png", tmp_path / "." / "shot.png"):
+        with pytest.raises(InputError, match="is also an input"):
+            check_outputs_not_inputs([out], [shot])
+    for out in (scene / "truth.json", scene / "new" / "r.json", scene):
+        with pytest.raises(InputError, match="lies in the input folder"):
+            check_outputs_not_inputs([out], input_folders=[scene])
+    check_outputs_not_inputs([tmp_path / "det.json", None], [shot, None, tmp_path / "missing.npz"],
+                             input_folders=[scene, tmp_path / "no_such_folder"])
+    check_outputs_not_inputs([tmp_path / "scene_results.json"], input_folders=[scene])  # a sibling, not inside

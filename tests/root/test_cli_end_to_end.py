@@ -507,3 +507,18 @@ def test_two_writers_of_one_output_folder(tmp_path):
     assert len(second.stderr.strip().splitlines()) == 1
     assert [p.name for p in out.iterdir()] == ["a.txt"] and (out / "a.txt").read_text() == "first"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f", "go"]
+
+
+def test_sigterm_after_the_outputs_are_in_place_keeps_the_exit_code(tmp_path):
+    """A SIGTERM while the interpreter tears down (up to a second with numba and Dask
+    loaded), after ``main`` returned: the process ends with ``main``'s code, not killed by
+    the signal (a caller would take the finished outputs for lost)."""
+    script = ("import os, signal, sys, time\n"
+              "sys.argv = ['prism3d']\n"  # prints the help and returns 2
+              "from prism3d.cli import run\n"
+              "run()\n"
+              "os.kill(os.getpid(), signal.SIGTERM)\n"
+              "time.sleep(5)\n"
+              "sys.exit(9)\n")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, (r.returncode, r.stderr)
