@@ -1,6 +1,6 @@
 """The bad-input probe of issue 27, one subprocess per case (``python -m prism3d.cli
 --quiet ...``): exit code, stderr line count, traceback, files created or changed in the
-work folder, protected files, and the child's peak RSS (its ``VmHWM``, written at exit;
+work folder, protected files, what it left in its own $TMPDIR, and the child's peak RSS (its ``VmHWM``, written at exit;
 sampled every 0.25 s for a child killed at the timeout).
 Prints a Markdown summary; never asserts (the in-process test is
 ``tests/root/test_bad_inputs.py``).
@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -79,12 +80,15 @@ def run_case(case: Case, fx: Path, work: Path, trigger: str, timeout: float) -> 
     # The child's peak RSS is its own VmHWM, written at exit by _CHILD; ru_maxrss from
     # wait4 is not usable: Linux carries the parent's high-water mark across fork + exec.
     hwm_file = work.parent / f"{work.name}.hwm"
+    tmpdir = work.parent / f"{work.name}.tmpdir"  # the child's own $TMPDIR: what it leaves there is seen
+    tmpdir.mkdir()
     argv = ["prlimit", f"--as={AS_CAP}", sys.executable, "-c", _CHILD, "--quiet", *case.resolve(fx, trigger)]
     t0 = time.perf_counter()
     with open(work.parent / f"{work.name}.err", "w+b") as err_f:
         proc = subprocess.Popen(argv, cwd=work, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=err_f, start_new_session=True,
-                                env={**os.environ, "PYTHONPATH": str(REPO), "PRISM3D_PROBE_HWM": str(hwm_file)})
+                                env={**os.environ, "PYTHONPATH": str(REPO), "PRISM3D_PROBE_HWM": str(hwm_file),
+                                     "TMPDIR": str(tmpdir)})
         timed_out = False
         done = threading.Event()
         polled_kib = [0]
@@ -123,8 +127,12 @@ def run_case(case: Case, fx: Path, work: Path, trigger: str, timeout: float) -> 
                     lines[-1] if lines else "")
         problems.append(f"traceback: {last.strip()[:200]}")
     problems += outcome_problems(case, rc, lines, work, before, fx, fx_before, prot)
-    if peak_mb >= MEMORY_BUDGET_MB:
+    if peak_mb >= MEMORY_BUDGET_MB and rc != 0:  # the budget is a refusal's: accepted input did real work
         problems.append(f"peak RSS {peak_mb:.0f} MB >= 1 GB")
+    left = sorted(q.name for q in tmpdir.iterdir())
+    if left:
+        problems.append(f"left in $TMPDIR: {left[:5]}")
+    shutil.rmtree(tmpdir, ignore_errors=True)
     return {"id": case.id, "command": command_of(case.id), "expect": case.expect, "rc": rc,
             "stderr_lines": len(lines), "stderr_first": lines[0][:300] if lines else "",
             "traceback": traceback, "peak_rss_mb": round(peak_mb, 1), "seconds": round(seconds, 2),

@@ -1,4 +1,5 @@
-"""The bad-input probe's case list (issue 27), reproducible from its description.
+"""The bad-input probe's case list (issue 27; the survey and ATR commands added by issue 40),
+reproducible from its description.
 
 Per command and per input argument: missing, empty, a directory, garbage bytes, a
 truncated valid file, wrong shape, NaN/inf values, absurd sizes (headers claiming
@@ -7,7 +8,8 @@ negative/zero numbers; per output: an existing folder, an existing file, a paren
 is a regular file, a read-only place, a missing parent folder, a suffix that does not
 match the format, two outputs naming one file.
 
-:func:`build_fixtures` writes the valid inputs and the bad files once (< 20 s);
+:func:`build_fixtures` writes the valid inputs and the bad files once (~40 s, ~25 s of it the
+survey and ATR inputs of issue 40: a flight, its survey, a tiny aerial recogniser);
 :func:`cases` turns them into :class:`Case` rows. A case runs in a fresh, empty work
 folder (its cwd): relative paths in ``argv`` are outputs there, ``{fx}`` is the
 fixture folder (never written: the runners check it), ``{trigger}`` a running
@@ -24,6 +26,7 @@ import dataclasses
 import hashlib
 import io
 import os
+import re
 import shutil
 import struct
 import zipfile
@@ -134,7 +137,7 @@ def outcome_problems(case: Case, rc: int | str, lines: list[str], work: Path, be
     problems = []
     if rc not in EXPECT_CODES[case.expect]:
         problems.append(f"exit {rc} (expected {case.expect})")
-    if rc == 2 and (len(lines) != 1 or not lines[0].startswith("prism3d ")):
+    if rc == 2 and (len(lines) != 1 or not lines[0].startswith(("prism3d ", "prism3d:"))):  # "prism3d:" global options
         problems.append(f"exit 2 with {len(lines)} stderr lines: {lines[:3]}")
     if rc != 0:
         changes = diff_snapshots(before, snapshot(work))
@@ -191,7 +194,7 @@ def _replace_matrix(yaml_text: str, name: str, rows: int, cols: int, data: str) 
 
 
 def build_fixtures(root: Path) -> dict[str, Path]:
-    """Write the valid inputs and the bad files under ``root`` (~10 s); return named paths."""
+    """Write the valid inputs and the bad files under ``root`` (~40 s); return named paths."""
     import warnings
 
     from prism3d.capture.rig import paper_rig
@@ -250,12 +253,7 @@ def build_fixtures(root: Path) -> dict[str, Path]:
     valid = {"png": root / "plate/shot.png", "yaml": root / "rig.yaml", "txt": root / "calib.txt",
              "pfm": root / "disp.pfm", "ply": root / "scan.ply", "pcd": root / "cloud.pcd",
              "obj": root / "box.obj", "npz": root / "bank.npz", "npy": root / "depth.npy"}
-    for ext, src in valid.items():
-        (bad / f"empty.{ext}").write_bytes(b"")
-        (bad / f"dir.{ext}").mkdir()
-        (bad / f"garbage.{ext}").write_bytes(b"\x00\xff garbage \x80\x81\n" * 7)
-        data = src.read_bytes()
-        (bad / f"truncated.{ext}").write_bytes(data[: len(data) // 2])
+    _generic_bad_files(bad, valid)
     (bad / "garbage.tiff").write_bytes(b"II*\x00garbage")
     # images
     write_image(bad / "grey10.png", np.full((10, 10), 128, np.uint8))
@@ -363,7 +361,335 @@ def build_fixtures(root: Path) -> dict[str, Path]:
     (bad / "db_garbage_yaml" / "db.yaml").write_text("schema_version: [unclosed\n")
     # misc
     (bad / "blocker").write_text("a regular file where a folder is expected\n")
+    _build_survey_fixtures(root, run)
     return {"root": root}
+
+
+def _generic_bad_files(bad: Path, valid: dict[str, Path]) -> None:
+    """empty, dir, garbage and truncated (the first half of a valid one) files per suffix."""
+    for ext, src in valid.items():
+        (bad / f"empty.{ext}").write_bytes(b"")
+        (bad / f"dir.{ext}").mkdir()
+        (bad / f"garbage.{ext}").write_bytes(b"\x00\xff garbage \x80\x81\n" * 7)
+        data = src.read_bytes()
+        (bad / f"truncated.{ext}").write_bytes(data[: len(data) // 2])
+
+
+# ------------------------------------------------------------ survey and ATR fixtures (issue 40)
+#: the fixture flight's frames (6 of 480 x 360 px from 40 m on two lines); cases use the first three
+FLIGHT_FRAMES = tuple(f"IMG_{k:04d}.JPG" for k in range(6))
+_GARBAGE = b"\x00\xff garbage \x80\x81\n" * 7
+
+
+def _with_camera(text: str, w: int, h: int, k: str | None = None, dist: str | None = None) -> str:
+    """The flight's camera.yaml stating another image size, camera matrix or distortion."""
+    out = re.sub(r"(?m)^image_width: .*$", f"image_width: {w}", text)
+    out = re.sub(r"(?m)^image_height: .*$", f"image_height: {h}", out)
+    if k is not None:
+        out = _replace_matrix(out, "camera_matrix", 3, 3, k)
+    if dist is not None:
+        out = _replace_matrix(out, "distortion_coefficients", 5, 1, dist)
+    return out
+
+
+def _sparse_geotiff(path: Path, n: int, bands: int, dtype: str, meta: dict) -> None:
+    """An n x n GeoTIFF of ``bands`` whose tiles are all absent (a few hundred bytes that
+    read back as n * n * bands values: a decompression bomb) on ``meta``'s origin and CRS."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    with rasterio.open(path, "w", driver="GTiff", width=n, height=n, count=bands, dtype=dtype, tiled=True,
+                       blockxsize=512, blockysize=512, compress="deflate", sparse_ok=True,
+                       crs=meta["crs_wkt"], transform=from_origin(meta["west"], meta["north"], meta["gsd"],
+                                                                  meta["gsd"])):
+        pass
+
+
+def _folder_variant(bad: Path, src: Path, name: str, names: tuple[str, ...], changes: dict) -> None:
+    """``bad/name``: the files ``names`` of ``src``, with ``changes`` (file -> None: left
+    out, "dir": a folder, bytes/str: its content, a Path: copied from, a callable: writes it)."""
+    d = bad / name
+    d.mkdir()
+    for n in names:
+        v = changes.get(n, src / n)
+        if v is None:
+            continue
+        if isinstance(v, str) and v == "dir":
+            (d / n).mkdir()
+        elif isinstance(v, bytes):
+            (d / n).write_bytes(v)
+        elif isinstance(v, str):
+            (d / n).write_text(v)
+        elif isinstance(v, Path):
+            shutil.copy2(v, d / n)
+        else:
+            v(d / n)
+
+
+def _build_survey_fixtures(root: Path, run) -> None:
+    """The drone-survey and ATR inputs: a small flight and its survey (~12 s), a tiny aerial
+    recogniser (~9 s), an intensity-channel bank, a scene folder made of the plate shot,
+    a short video, and their bad variants."""
+    import json
+    import warnings
+
+    import cv2
+    import pyproj
+
+    from prism3d.io.geo import read_geotiff, write_geotiff
+    from prism3d.io.images import write_image
+
+    bad = root / "bad"
+    flight, survey = root / "flight", root / "survey"
+    run("simulate", "flight", flight, "--frames", "6", "--size", "480x360", "--altitude", "40", "--no-depth",
+        "--seed", "2")
+    run("survey", *[flight / n for n in FLIGHT_FRAMES], "--calib", flight / "camera.yaml", "--gps",
+        flight / "geoinfo.txt", "-o", survey)
+    run("bank", "train", "--targets", "tank_t1", "jet_j1", "-o", root / "bank_intensity.npz", "--azimuth",
+        "0:360:90", "--elevation", "20:20:1", "--size", "32", "--no-camouflage", "--scenes", "0", "--channel",
+        "intensity")
+    with warnings.catch_warnings():  # a tiny aerial recogniser: 2 patches, no mining rounds
+        warnings.simplefilter("ignore")
+        from prism3d.atr.aerial_train import AerialTrainOptions, train_aerial
+        from prism3d.datasets.database.resolve import resolve_targets
+        from prism3d.datasets.jobs.recognisers import aerial_negatives
+
+        train_aerial(resolve_targets(["car"], scale="full"), aerial_negatives(["car"])[:3], AerialTrainOptions(
+            patches=2, mining_patches=1, mining_rounds=0, calibration_patches=1, random_negatives=2,
+            positive_views=0)).save(root / "aerial.npz")
+
+    # frames: without EXIF (no GPS, no focal length), a short video, the left view of the plate
+    (root / "nogps").mkdir()
+    imgs = [cv2.imread(str(flight / n)) for n in FLIGHT_FRAMES[:3]]
+    for n, img in zip(FLIGHT_FRAMES, imgs):
+        cv2.imwrite(str(root / "nogps" / n), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    for name, frames in (("flight.avi", imgs), ("bad/one_frame.avi", imgs[:1])):
+        vw = cv2.VideoWriter(str(root / name), cv2.VideoWriter_fourcc(*"MJPG"), 1.0, (480, 360))
+        for img in frames:
+            vw.write(img)
+        vw.release()
+    shot = cv2.imread(str(root / "plate/shot.png"))
+    cv2.imwrite(str(root / "plate_left.png"), shot[:, : shot.shape[1] // 2])
+
+    # a scene folder as 'simulate field' writes one, from the plate shot (detect takes ~1 s)
+    target = {"instance": 0, "class": "tank", "name": "tank_t1", "confuser": False, "box_rc": [150, 60, 330, 260],
+              "xyz_mm": [0.0, 0.0, 1250.0], "radius_mm": 150.0, "range_mm": 1250.0, "heading_deg": 30.0,
+              "zone": "land", "visible_fraction": 1.0, "difficult": False, "object_index": 1}
+    confuser = {**target, "instance": 1, "class": "crate", "name": "crate", "confuser": True,
+                "box_rc": [20, 20, 90, 120], "object_index": 2}
+    truth = {"schema_version": 1, "units": "mm", "camera": "left view of the prism rig, OpenCV frame",
+             "options": {"targets": 1, "confusers": 1, "classes": ["tank_t1", "jet_j1"], "seed": 0},
+             "T_world_rig": np.eye(4).tolist(), "n_objects": 2, "targets": [target, confuser]}
+    scene = root / "scene"
+    scene.mkdir()
+    shutil.copy2(root / "plate/shot.png", scene / "shot.png")
+    shutil.copy2(root / "rig.yaml", scene / "rig.yaml")
+    (scene / "truth.json").write_text(json.dumps(truth, indent=1))
+
+    _generic_bad_files(bad, {"jpg": flight / FLIGHT_FRAMES[0], "csv": flight / "geoinfo.txt",
+                             "tif": survey / "ndsm.tif", "json": survey / "poses.json", "avi": root / "flight.avi"})
+    # the generic truncated.csv is a tab table cut in half; a comma-separated one as well
+    rows = [ln.rstrip("\t").split("\t") for ln in (flight / "geoinfo.txt").read_text().splitlines()[1:]]
+    head, body = rows[0], rows[1:]
+
+    def table(rs: list[list[str]], header: list[str] | None = None) -> str:
+        return "#Rev: sensefly/geoinfo/2\n" + "\n".join("\t".join(r) for r in [header or head, *rs]) + "\n"
+
+    def col(r: list[str], i: int, v: str) -> list[str]:
+        return r[:i] + [v] + r[i + 1:]
+
+    (bad / "gps_comma.csv").write_text("fileName,latitude,longitude,altitude\n" + "".join(
+        f"{r[0]},{r[1]},{r[2]},{r[4]}\n" for r in body))
+    (bad / "gps_nan.txt").write_text(table([col(body[0], 1, "nan"), *body[1:]]))
+    (bad / "gps_inf.txt").write_text(table([col(body[0], 2, "inf"), *body[1:]]))
+    (bad / "gps_lat_91.txt").write_text(table([col(body[0], 1, "91.0"), *body[1:]]))
+    (bad / "gps_no_altitude.txt").write_text(table([r[:3] + r[5:] for r in body], head[:3] + head[5:]))
+    (bad / "gps_other_names.txt").write_text(table([col(r, 0, r[0].replace("IMG_", "DSC_")) for r in body]))
+    (bad / "gps_duplicate_row.txt").write_text(table([body[0], *body]))
+    (bad / "gps_same_position.txt").write_text(table([[r[0], *body[0][1:]] for r in body]))
+    (bad / "gps_1000km_apart.txt").write_text(table([col(r, 1, f"{float(r[1]) + 9.0 * k:.10f}")
+                                                     for k, r in enumerate(body)]))
+    (bad / "gps_altitude_1e12.txt").write_text(table([col(col(r, 3, "1e12"), 4, "1e12") for r in body]))
+    (bad / "gps_altitude_negative.txt").write_text(table([col(col(r, 3, "-1e6"), 4, "-1e6") for r in body]))
+    (bad / "gps_header_only.txt").write_text(table([]))
+    (bad / "gps_missing_frames.txt").write_text(table(body[3:]))
+    (bad / "gps_no_names.txt").write_text(table([col(r, 0, "") for r in body]))
+    (bad / "gps_latin1.txt").write_bytes(table(body).replace("IMG_0000", "IMG_\xe9000").encode("latin-1"))
+
+    # camera calibrations of the survey (the flight's camera.yaml changed)
+    cam = (flight / "camera.yaml").read_text()
+    f = re.search(r"data: \[ ([0-9.e+-]+),", cam).group(1)
+    kk = f"{f}, 0., 239.5, 0., {f}, 179.5, 0., 0., 1."
+    cams = {"nan": _with_camera(cam, 480, 360, kk.replace(f, ".nan", 1)),
+            "inf": _with_camera(cam, 480, 360, kk.replace(f, ".inf", 1)),
+            "negative_focal": _with_camera(cam, 480, 360, kk.replace(f, "-" + f)),
+            "zero_focal": _with_camera(cam, 480, 360, kk.replace(f, "0.")),
+            "focal_1e300": _with_camera(cam, 480, 360, kk.replace(f, "1e300")),
+            "dist_1e6": _with_camera(cam, 480, 360, None, "1e6, 0., 0., 0., 0."),
+            "dist_nan": _with_camera(cam, 480, 360, None, ".nan, 0., 0., 0., 0."),
+            "centre_1e6": _with_camera(cam, 480, 360, kk.replace("239.5", "1e6")),
+            "other_size": _with_camera(cam, 4000, 3000),
+            "size_zero": _with_camera(cam, 0, 0),
+            "size_negative": _with_camera(cam, -480, -360),
+            "k_2x2": _replace_matrix(cam, "camera_matrix", 2, 2, f"{f}, 0., 0., {f}"),
+            "no_camera_matrix": cam.replace("camera_matrix:", "not_a_matrix:"),
+            "no_size": re.sub(r"(?m)^image_(width|height): .*\n", "", cam),
+            "truncated": cam[: len(cam) // 2],
+            # for the frames that are not photographs: a camera of their size
+            "10x10": _with_camera(cam, 10, 10, "7., 0., 4.5, 0., 7., 4.5, 0., 0., 1."),
+            "1x1": _with_camera(cam, 1, 1, "1., 0., 0., 0., 1., 0., 0., 0., 1."),
+            "60000x60000": _with_camera(cam, 60000, 60000, "42000., 0., 29999.5, 0., 42000., 29999.5, 0., 0., 1."),
+            "20000x20000": _with_camera(cam, 20000, 20000, "14000., 0., 9999.5, 0., 14000., 9999.5, 0., 0., 1.")}
+    for kind, text in cams.items():
+        (bad / f"cam_{kind}.yaml").write_text(text)
+
+    # frames that are not the flight's photographs
+    write_image(bad / "IMG_small.JPG", cv2.resize(imgs[1], (240, 180))[..., ::-1])
+    shutil.copy2(flight / FLIGHT_FRAMES[0], bad / "IMG_0000_copy.JPG")
+    rng = np.random.default_rng(7)
+    pairs = {"grey10": [np.full((10, 10), 128, np.uint8)] * 2, "1x1": [np.zeros((1, 1, 3), np.uint8)] * 2,
+             "uniform_grey": [np.full((360, 480, 3), 128, np.uint8)] * 2,
+             "noise": [rng.integers(0, 256, (360, 480, 3), dtype=np.uint8) for _ in range(2)]}
+    for kind, images in pairs.items():
+        (bad / f"pair_{kind}").mkdir()
+        for n, img in zip("ab", images):
+            write_image(bad / f"pair_{kind}" / f"{n}.{'jpg' if img.shape[0] > 10 else 'png'}", img)
+    for kind, src in (("claims_60000", bad / "claims_60000.png"), ("bomb_20000", bad / "bomb_20000.png")):
+        (bad / f"pair_{kind}").mkdir()
+        for n in "ab":
+            shutil.copy2(src, bad / f"pair_{kind}" / f"{n}.png")
+    (bad / "pair_truncated").mkdir()
+    for n in FLIGHT_FRAMES[:2]:
+        data = (flight / n).read_bytes()
+        (bad / "pair_truncated" / n).write_bytes(data[: len(data) // 2])
+    (bad / "empty_frames").mkdir()
+    (bad / "one_frame").mkdir()
+    shutil.copy2(flight / FLIGHT_FRAMES[0], bad / "one_frame" / FLIGHT_FRAMES[0])
+    (bad / "vehicles.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "geometry": {"type": "Point", "coordinates": [139.0427, 37.5435]},
+         "properties": {"class": "car", "score": 0.9}}]}))
+
+    # survey folders, each with one product changed (what survey-detect reads)
+    sv_files = ("poses.json", "ndsm.tif", "ground.tif", "ortho.tif")
+    doc = json.loads((survey / "poses.json").read_text())
+    nd, mn = read_geotiff(survey / "ndsm.tif")
+    gr, mg = read_geotiff(survey / "ground.tif")
+    orth, mo = read_geotiff(survey / "ortho.tif")
+    utm33 = pyproj.CRS.from_epsg(32633).to_wkt("WKT1_GDAL")
+
+    def tif(a: np.ndarray, meta: dict, **over):
+        m = {**meta, **over}
+        return lambda p: write_geotiff(p, a, west=m["west"], north=m["north"], gsd=m["gsd"], crs_wkt=m["crs_wkt"],
+                                       nodata=m["nodata"] if np.asarray(a).dtype.kind == "f" else None)
+
+    def poses(**over) -> str:
+        return json.dumps({**doc, **over}, indent=1)
+
+    def half(p: Path) -> bytes:
+        data = p.read_bytes()
+        return data[: len(data) // 2]
+
+    variants = {
+        "poses_empty": {"poses.json": b""}, "poses_garbage": {"poses.json": _GARBAGE},
+        "poses_truncated": {"poses.json": half(survey / "poses.json")}, "poses_list": {"poses.json": "[]"},
+        "poses_no_keys": {"poses.json": "{}"}, "poses_is_dir": {"poses.json": "dir"},
+        "poses_scale_unknown": {"poses.json": poses(scale="unknown", origin_lla=None)},
+        "poses_origin_nan": {"poses.json": poses(origin_lla=[float("nan")] * 3)},
+        "poses_origin_out_of_range": {"poses.json": poses(origin_lla=[123.0, 500.0, 0.0])},
+        "poses_origin_short": {"poses.json": poses(origin_lla=[37.5])},
+        "poses_origin_string": {"poses.json": poses(origin_lla="37.5 139.0")},
+        "poses_origin_1e400": {"poses.json": poses(origin_lla=[37.5, 139.0, 0.0]).replace(
+            '"origin_lla": [\n  37.5,', '"origin_lla": [\n  1e400,')},
+        "poses_epsg_string": {"poses.json": poses(map_frame={**doc["map_frame"], "epsg": "EPSG:32654"})},
+        "poses_epsg_4326": {"poses.json": poses(map_frame={**doc["map_frame"], "epsg": 4326})},
+        "poses_epsg_999999": {"poses.json": poses(map_frame={**doc["map_frame"], "epsg": 999999})},
+        "poses_epsg_other_zone": {"poses.json": poses(map_frame={**doc["map_frame"], "epsg": 32633})},
+        "poses_map_frame_list": {"poses.json": poses(map_frame=[32654])},
+        "poses_deep_nesting": {"poses.json": "[" * 200000 + "]" * 200000},
+        "no_ndsm": {"ndsm.tif": None}, "ndsm_empty": {"ndsm.tif": b""}, "ndsm_garbage": {"ndsm.tif": _GARBAGE},
+        "ndsm_truncated": {"ndsm.tif": half(survey / "ndsm.tif")}, "ndsm_is_dir": {"ndsm.tif": "dir"},
+        "ndsm_is_the_ortho": {"ndsm.tif": survey / "ortho.tif"},
+        "ndsm_all_nan": {"ndsm.tif": tif(np.full_like(nd, np.nan), mn)},
+        "ndsm_inf": {"ndsm.tif": tif(np.where(np.isfinite(nd), np.inf, nd).astype(np.float32), mn)},
+        "ndsm_1e30": {"ndsm.tif": tif(np.where(np.isfinite(nd), 1e30, nd).astype(np.float32), mn)},
+        "ndsm_int16": {"ndsm.tif": tif(np.nan_to_num(nd).astype(np.int16), mn)},
+        "ndsm_two_bands": {"ndsm.tif": tif(np.dstack([nd, nd]), mn)},
+        "ndsm_other_grid": {"ndsm.tif": tif(nd, mn, west=mn["west"] + 10000.0)},
+        "ndsm_no_crs": {"ndsm.tif": tif(nd, mn, crs_wkt=None)},
+        "ndsm_cell_100m": {"ndsm.tif": tif(nd, mn, gsd=100.0), "ground.tif": tif(gr, mg, gsd=100.0)},
+        "ndsm_bomb_20000": {"ndsm.tif": lambda p: _sparse_geotiff(p, 20000, 1, "float32", mn)},
+        "ndsm_claims_60000": {"ndsm.tif": lambda p: _sparse_geotiff(p, 60000, 1, "float32", mn)},
+        "no_ortho": {"ortho.tif": None}, "ortho_empty": {"ortho.tif": b""}, "ortho_garbage": {"ortho.tif": _GARBAGE},
+        "ortho_truncated": {"ortho.tif": half(survey / "ortho.tif")},
+        "ortho_is_the_ndsm": {"ortho.tif": survey / "ndsm.tif"},
+        "ortho_grey": {"ortho.tif": tif(orth[..., 0].copy(), mo)},
+        "ortho_other_grid": {"ortho.tif": tif(orth, mo, west=mo["west"] - 10000.0)},
+        "ortho_other_crs": {"ortho.tif": tif(orth, mo, crs_wkt=utm33)},
+        "ortho_half_gsd": {"ortho.tif": tif(np.ascontiguousarray(orth[::2, ::2]), mo, gsd=2 * mo["gsd"])},
+        "ortho_bomb_20000": {"ortho.tif": lambda p: _sparse_geotiff(p, 20000, 3, "uint8", mo)},
+        "no_ground": {"ground.tif": None}, "ground_garbage": {"ground.tif": _GARBAGE},
+        "ground_other_grid": {"ground.tif": tif(np.ascontiguousarray(gr[10:]), mg, north=mg["north"] - 10 * mg["gsd"])},
+        "only_poses": {"ndsm.tif": None, "ground.tif": None, "ortho.tif": None},
+    }
+    for kind, changes in variants.items():
+        _folder_variant(bad, survey, f"survey_{kind}", sv_files, changes)
+    (bad / "survey_empty").mkdir()
+
+    # scene folders for bank eval-scenes
+    sc_files = ("shot.png", "rig.yaml", "truth.json")
+
+    def truth_with(**over) -> str:
+        return json.dumps({**truth, **over}, indent=1)
+
+    def one_target(**over) -> str:
+        return truth_with(targets=[{**target, **over}])
+
+    no_class = {k: v for k, v in target.items() if k != "class"}
+    scenes = {
+        "no_shot": {"shot.png": None}, "no_rig": {"rig.yaml": None}, "no_truth": {"truth.json": None},
+        "shot_is_dir": {"shot.png": "dir"}, "shot_garbage": {"shot.png": _GARBAGE},
+        "shot_grey10": {"shot.png": bad / "grey10.png"}, "shot_half_size": {"shot.png": bad / "half_shot.png"},
+        "shot_claims_60000": {"shot.png": bad / "claims_60000.png"},
+        "shot_bomb_20000": {"shot.png": bad / "bomb_20000.png"},
+        "rig_garbage": {"rig.yaml": _GARBAGE}, "rig_k1_nan": {"rig.yaml": bad / "k1_nan.yaml"},
+        "rig_sensor_60000": {"rig.yaml": bad / "sensor_60000.yaml"},
+        "rig_is_a_camera_yaml": {"rig.yaml": flight / "camera.yaml"},
+        "truth_empty": {"truth.json": b""}, "truth_garbage": {"truth.json": _GARBAGE},
+        "truth_truncated": {"truth.json": truth_with()[: len(truth_with()) // 2]},
+        "truth_list": {"truth.json": "[]"}, "truth_no_keys": {"truth.json": "{}"},
+        "truth_targets_dict": {"truth.json": truth_with(targets={})},
+        "truth_target_string": {"truth.json": truth_with(targets=["tank"])},
+        "truth_target_no_class": {"truth.json": truth_with(targets=[no_class])},
+        "truth_box_nan": {"truth.json": one_target(box_rc=[float("nan"), 0, 10, 10])},
+        "truth_box_short": {"truth.json": one_target(box_rc=[1, 2])},
+        "truth_box_reversed": {"truth.json": one_target(box_rc=[300, 260, 150, 60])},
+        "truth_box_strings": {"truth.json": one_target(box_rc=["a", "b", "c", "d"])},
+        "truth_box_1e300": {"truth.json": one_target(box_rc=[-1e300, -1e300, 1e300, 1e300])},
+        "truth_xyz_nan": {"truth.json": one_target(xyz_mm=[float("nan")] * 3)},
+        "truth_radius_negative": {"truth.json": one_target(radius_mm=-150.0)},
+        "truth_no_targets_at_all": {"truth.json": truth_with(targets=[])},
+        "truth_deep_nesting": {"truth.json": "[" * 200000 + "]" * 200000},
+    }
+    for kind, changes in scenes.items():
+        _folder_variant(bad, scene, f"scene_{kind}", sc_files, changes)
+
+    # aerial recognisers that are damaged or lie about themselves
+    with np.load(root / "aerial.npz", allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(arrays.pop("meta_json")).decode())
+
+    def aerial(name: str, m: dict, arr: dict) -> None:
+        np.savez(bad / name, meta_json=np.frombuffer(json.dumps(m).encode(), np.uint8), **arr)
+
+    aerial("aerial_nan.npz", meta, {k: np.full_like(v, np.nan) for k, v in arrays.items()})
+    aerial("aerial_schema_99.npz", {**meta, "schema_version": 99}, arrays)
+    aerial("aerial_no_groups.npz", {**meta, "groups": []}, arrays)
+    aerial("aerial_gsd_zero.npz", {**meta, "gsd_m": 0.0}, arrays)
+    aerial("aerial_gsd_1e-6.npz", {**meta, "gsd_m": 1e-6}, arrays)
+    aerial("aerial_channels_unknown.npz", {**meta, "channels": "x-ray"}, arrays)
+    aerial("aerial_weights_wrong_shape.npz", meta, {k: (np.zeros(3, np.float32) if k.endswith("_weights") else v)
+                                                    for k, v in arrays.items()})
+    aerial("aerial_missing_arrays.npz", meta, {})
 
 
 # --------------------------------------------------------------------------- case builders
@@ -402,7 +728,36 @@ _EXTRA: dict[str, dict[str, str]] = {
               "npz_missing_key": "{fx}/plate/truth.npz:nokey", "npz_no_key": "{fx}/plate/truth.npz",
               "pfm_garbage": "garbage.pfm", "pfm_10x10": "pfm_10x10.pfm", "tiff_garbage": "garbage.tiff"},
 }
-_EXT = {"png": "png", "yaml": "yaml", "pfm": "pfm", "ply": "ply", "obj": "obj", "npz": "npz", "depth": "npy"}
+_PHOTO_EXTRA = {k: _EXTRA["png"][k] for k in ("grey_10x10", "rgb_1x1", "claims_60000x60000", "claims_1x1e9",
+                                                "bomb_20000x20000", "tiff_garbage")}
+_EXTRA.update({
+    # survey frames
+    "jpg": {**_PHOTO_EXTRA, "other_size": "IMG_small.JPG", "ply_scan": "{fx}/scan.ply", "geojson": "vehicles.geojson",
+            "geotiff_ortho": "{fx}/survey/ortho.tif", "video_garbage": "garbage.avi",
+            "prism_shot": "{fx}/plate/shot.png"},
+    # a survey's GPS position table
+    "gps": {"nan": "gps_nan.txt", "inf": "gps_inf.txt", "lat_91": "gps_lat_91.txt",
+            "no_altitude": "gps_no_altitude.txt", "other_names": "gps_other_names.txt",
+            "duplicate_row": "gps_duplicate_row.txt", "same_position": "gps_same_position.txt",
+            "1000km_apart": "gps_1000km_apart.txt", "altitude_1e12": "gps_altitude_1e12.txt",
+            "altitude_negative": "gps_altitude_negative.txt", "header_only": "gps_header_only.txt",
+            "missing_frames": "gps_missing_frames.txt", "no_names": "gps_no_names.txt", "latin1": "gps_latin1.txt",
+            "comma_separated": "gps_comma.csv", "poses_json": "{fx}/survey/poses.json",
+            "geojson": "vehicles.geojson", "jpeg": "{fx}/flight/IMG_0000.JPG", "middlebury_calib": "{fx}/calib.txt"},
+    # a survey camera's calibration
+    "cam": {**{k: f"cam_{k}.yaml" for k in ("nan", "inf", "negative_focal", "zero_focal", "focal_1e300", "dist_1e6",
+                                            "dist_nan", "centre_1e6", "other_size", "size_zero", "size_negative",
+                                            "k_2x2", "no_camera_matrix", "no_size")},
+            "camera_truncated": "cam_truncated.yaml", "stereo_rig": "{fx}/rig.yaml",
+            "middlebury_calib": "{fx}/calib.txt", "poses_json": "{fx}/survey/poses.json"},
+    "avi": {"one_frame": "one_frame.avi", "a_png_instead": "{fx}/plate/shot.png"},
+    # survey-detect's aerial recogniser
+    "aerial": {**_EXTRA["npz"], **{k: f"aerial_{k}.npz" for k in (
+        "nan", "schema_99", "no_groups", "gsd_zero", "gsd_1e-6", "channels_unknown", "weights_wrong_shape",
+        "missing_arrays")}, "ground_bank": "{fx}/bank.npz", "ground_bank_intensity": "{fx}/bank_intensity.npz"},
+})
+_EXT = {"png": "png", "yaml": "yaml", "pfm": "pfm", "ply": "ply", "obj": "obj", "npz": "npz", "depth": "npy",
+        "jpg": "jpg", "gps": "csv", "cam": "yaml", "avi": "avi", "aerial": "npz"}
 
 
 def bad_files(fmt: str) -> dict[str, str]:
@@ -489,6 +844,308 @@ NAN_INF = {"nan": "nan", "inf": "inf", "-inf": "-inf"}
 RANGE_SPECS = {"nan": "nan", "inf": "inf", "step_1e-7": "0:360:1e-7", "step_0": "0:360:0",
                "step_negative": "0:360:-10", "reversed": "360:0:10", "garbage": "a:b:c",
                "huge_span": "-1e308:1e308:1", "empty": ""}
+
+
+def _survey_and_atr_cases(b: _Builder, F: str) -> None:
+    """Issue 40: survey, survey-detect, detect, simulate flight|field, bank eval-scenes."""
+    ZERO_NEG = {"zero": "0", "negative": "-1"}
+    fr = [f"{F}/flight/{n}" for n in FLIGHT_FRAMES[:3]]
+    cam = f"{F}/flight/camera.yaml"
+    BOX = f"{F}/box.obj"
+    #: target specs refused before any training: unknown names and mesh files that cannot be read as given
+    bad_specs = {"unknown_name": "no_such_target", "path_like": "../../etc/passwd", "empty_string": "",
+                 "mesh_without_units": BOX, "mesh_bad_units": f"{BOX}=car:furlong", "mesh_bad_up": f"{BOX}=car:mm:q",
+                 "mesh_bad_forward": f"{BOX}=car:mm:z:w", "mesh_forward_is_up": f"{BOX}=car:mm:z:z",
+                 "mesh_five_fields": f"{BOX}=car:mm:z:x:extra", "mesh_empty_class": f"{BOX}=",
+                 "mesh_missing_file": "nope.obj=car:mm:z:x", "mesh_garbage": f"{F}/bad/garbage.obj=car:mm:z:x",
+                 "mesh_nan": f"{F}/bad/obj_nan.obj=car:mm:z:x",
+                 "mesh_no_faces": f"{F}/bad/obj_no_faces.obj=car:mm:z:x",
+                 "mesh_degenerate": f"{F}/bad/obj_degenerate.obj=car:mm:z:x",
+                 "mesh_ply_claims_1e9": f"{F}/bad/ply_claims_1e9.ply=car:mm:z:x",
+                 "mesh_is_a_directory": f"{F}/bad/dir.obj=car:mm:z:x"}
+    bad_dbs = {"missing": "nope_db", "file": f"{F}/bad/garbage.yaml", "not_a_db": f"{F}/bad/not_a_db",
+               "garbage_targets": f"{F}/bad/db_garbage_targets", "garbage_db_yaml": f"{F}/bad/db_garbage_yaml"}
+    LENGTHS = {**NAN_INF, "zero": "0", "negative": "-100", "huge": "1e300"}
+    CHOICES = {"--units": "furlong", "--up": "w", "--forward": "q"}
+
+    # survey --------------------------------------------------------------------------
+    outs = ["sv"]
+    base = ["survey", *fr, "--calib", cam, "-o", "sv"]
+    b.files("survey/IMAGE_OR_VIDEO[1]", base, 2, "jpg", outs)
+    # frames that are not photographs, two alike (so they agree in size) with a camera of that size
+    for kind, names, calib in (("grey_10x10", "a.png b.png", "cam_10x10"), ("rgb_1x1", "a.png b.png", "cam_1x1"),
+                               ("claims_60000", "a.png b.png", "cam_60000x60000"),
+                               ("bomb_20000", "a.png b.png", "cam_20000x20000"),
+                               ("uniform_grey", "a.jpg b.jpg", None), ("noise", "a.jpg b.jpg", None),
+                               ("truncated", " ".join(FLIGHT_FRAMES[:2]), None)):
+        folder = {"grey_10x10": "grey10", "rgb_1x1": "1x1"}.get(kind, kind)
+        b.add(f"survey/IMAGE_OR_VIDEO/two_{kind}", ["survey", *[f"{F}/bad/pair_{folder}/{n}" for n in names.split()],
+                                                    "--calib", f"{F}/bad/{calib}.yaml" if calib else cam, "-o", "sv"],
+              "2", outs)
+    b.add("survey/IMAGE_OR_VIDEO/one_frame", ["survey", fr[0], "--calib", cam, "-o", "sv"], "2", outs)
+    b.add("survey/IMAGE_OR_VIDEO/none", ["survey", "--calib", cam, "-o", "sv"], "2", outs)
+    b.add("survey/IMAGE_OR_VIDEO/a_folder", ["survey", f"{F}/flight", "--calib", cam, "-o", "sv"], "2", outs)
+    b.add("survey/IMAGE_OR_VIDEO/folder_of_0", ["survey", f"{F}/bad/empty_frames", "--calib", cam, "-o", "sv"], "2",
+          outs)
+    b.add("survey/IMAGE_OR_VIDEO/folder_of_1", ["survey", f"{F}/bad/one_frame", "--calib", cam, "-o", "sv"], "2",
+          outs)
+    b.add("survey/IMAGE_OR_VIDEO/folder_and_frames", ["survey", f"{F}/bad/one_frame", *fr, "--calib", cam, "-o",
+                                                      "sv"], "2", outs)
+    b.add("survey/IMAGE_OR_VIDEO/same_frame_twice", ["survey", fr[0], fr[0], fr[1], "--calib", cam, "-o", "sv"],
+          "2", outs)
+    b.add("survey/IMAGE_OR_VIDEO/same_photo_two_names", ["survey", fr[0], f"{F}/bad/IMG_0000_copy.JPG", fr[1],
+                                                         "--calib", cam, "-o", "sv"], "0or2", outs)
+    b.add("survey/IMAGE_OR_VIDEO/out_of_order", ["survey", fr[2], fr[0], fr[1], "--calib", cam, "-o", "sv"], "0or2",
+          outs)
+    b.add("survey/--calib/not_given_no_exif", ["survey", *[f"{F}/nogps/{n}" for n in FLIGHT_FRAMES[:3]], "-o", "sv"],
+          "2", outs)
+    vbase = ["survey", f"{F}/flight.avi", "--calib", cam, "-o", "sv"]
+    b.files("survey/VIDEO", vbase, 1, "avi", outs)
+    b.add("survey/VIDEO/and_frames", ["survey", f"{F}/flight.avi", *fr, "--calib", cam, "-o", "sv"], "2", outs)
+    b.add("survey/VIDEO/two_videos", ["survey", f"{F}/flight.avi", f"{F}/flight.avi", "--calib", cam, "-o", "sv"],
+          "2", outs)
+    b.add("survey/VIDEO/with_--gps_of_the_frames", vbase + ["--gps", f"{F}/flight/geoinfo.txt"], "2", outs)
+    b.add("survey/VIDEO/with_--resume", vbase + ["--resume"], "0or2", outs)
+    b.numbers("survey", vbase, "--video-step", {**NAN_INF, **ZERO_NEG, "huge": "1e9", "tiny": "1e-9"}, outs,
+              ok={"tiny"})
+    b.add("survey/--video-step/nan_with_frames", base + ["--video-step", "nan"], "0or2", outs)
+    b.files("survey/--calib", base, base.index("--calib") + 1, "cam", outs, ok={"no_size"})
+    gbase = base + ["--gps", f"{F}/flight/geoinfo.txt"]
+    b.files("survey/--gps", gbase, gbase.index("--gps") + 1, "gps", outs,
+            ok={"comma_separated", "1000km_apart", "altitude_1e12", "altitude_negative"})
+    b.numbers("survey", base, "--crs", {"EPSG:4326_geographic": "EPSG:4326", "EPSG:999999": "EPSG:999999",
+                                        "foo": "foo", "empty": "", "EPSG:": "EPSG:", "EPSG:-1": "EPSG:-1",
+                                        "EPSG:4978_geocentric": "EPSG:4978", "EPSG:2227_us_feet": "EPSG:2227",
+                                        "EPSG:huge": "EPSG:99999999999999999999", "EPSG:3857": "EPSG:3857",
+                                        "EPSG:2056_other_continent": "EPSG:2056",
+                                        "EPSG:32633_other_zone": "EPSG:32633"}, outs,
+              ok={"EPSG:3857", "EPSG:2056_other_continent", "EPSG:32633_other_zone"})
+    nogps = ["survey", *[f"{F}/nogps/{n}" for n in FLIGHT_FRAMES[:3]], "--calib", cam, "-o", "sv"]
+    for v in ("utm", "enu", "EPSG:32654"):
+        b.add(f"survey/--crs/{v}_without_gps", nogps + ["--crs", v], "2", outs)
+    CELLS = {**NAN_INF, **ZERO_NEG, "tiny": "1e-9", "0.1mm": "1e-4", "huge": "1e300", "1000km": "1e6"}
+    b.numbers("survey", base, "--cell", CELLS, outs, ok={"huge", "1000km"})
+    b.numbers("survey", base, "--ortho-gsd", CELLS, outs, ok={"huge", "1000km"})
+    b.numbers("survey", base, "--pair-steps", {**ZERO_NEG, "11": "11", "huge": "99999999999999999999",
+                                               "garbage": "a"}, outs)
+    b.add("survey/--pair-steps/duplicate", base + ["--pair-steps", "1", "1"], "2", outs)
+    b.numbers("survey", base, "--max-image-size", {**ZERO_NEG, "319": "319", "20001": "20001",
+                                                   "huge": "99999999999999999999"}, outs)
+    b.numbers("survey", base, "--dense-max-pixels", {**NAN_INF, **ZERO_NEG, "9999": "9999", "huge": "1e300"}, outs,
+              ok={"huge"})
+    b.numbers("survey", base, "--workers", {"negative": "-1", "more_than_the_machine": "10000"}, outs)
+    b.numbers("survey", base, "--scheduler", {"garbage": "not a url", "unreachable": "tcp://127.0.0.1:1"}, outs)
+    b.numbers("survey", base, "--matching", {"unknown": "nearest"}, outs)
+    b.numbers("survey", base, "--refine", {"unknown": "everything"}, outs)
+    for name, v in {"tiny": "1000", "zero": "0", "negative": "-5"}.items():
+        b.add(f"survey/--max-pixels/{name}", ["--max-pixels", v, *base], "2", outs)
+    b.out_dir("survey/-o", base, base.index("sv"), outs, nonempty_ok=False)
+    b.add("survey/-o/is_a_frame", _sub(base, base.index("sv"), fr[0]), "2")
+    b.add("survey/-o/is_the_frames_folder", _sub(base, base.index("sv"), f"{F}/flight"), "2")
+    b.add("survey/-o/resume_leftover_is_a_file", base, "0or2", outs, setup=[(".sv.resume", "file")])
+    b.add("survey/--resume/leftover_is_garbage", base + ["--resume"], "0or2", outs,
+          setup=[(".sv.resume", "mkdir"), (".sv.resume/manifest.json", "file")])
+
+    # survey-detect -------------------------------------------------------------------
+    outs = ["v.geojson"]
+    base = ["survey-detect", f"{F}/survey", "--targets", f"{F}/aerial.npz", "-o", "v.geojson"]
+    surveys = {"missing": "no_such_survey", "empty_dir": f"{F}/bad/survey_empty",
+               "geojson_file": f"{F}/bad/vehicles.geojson", "ply_file": f"{F}/scan.ply",
+               "geotiff_file": f"{F}/survey/ndsm.tif", "garbage_file": f"{F}/bad/garbage.json",
+               "frames_folder": f"{F}/flight", "scene_folder": f"{F}/scene"}
+    surveys.update({k: f"{F}/bad/survey_{k}" for k in (
+        "poses_empty", "poses_garbage", "poses_truncated", "poses_list", "poses_no_keys", "poses_is_dir",
+        "poses_scale_unknown", "poses_origin_nan", "poses_origin_out_of_range", "poses_origin_short",
+        "poses_origin_string", "poses_origin_1e400", "poses_epsg_string", "poses_epsg_4326", "poses_epsg_999999",
+        "poses_epsg_other_zone", "poses_map_frame_list", "poses_deep_nesting", "no_ndsm", "ndsm_empty",
+        "ndsm_garbage", "ndsm_truncated", "ndsm_is_dir", "ndsm_is_the_ortho", "ndsm_all_nan", "ndsm_inf",
+        "ndsm_1e30", "ndsm_int16", "ndsm_two_bands", "ndsm_other_grid", "ndsm_no_crs", "ndsm_cell_100m",
+        "ndsm_bomb_20000", "ndsm_claims_60000", "no_ortho", "ortho_empty", "ortho_garbage", "ortho_truncated",
+        "ortho_is_the_ndsm", "ortho_grey", "ortho_other_grid", "ortho_other_crs", "ortho_half_gsd",
+        "ortho_bomb_20000", "no_ground", "ground_garbage", "ground_other_grid", "only_poses")})
+    for kind, path in surveys.items():
+        b.add(f"survey-detect/SURVEY_DIR/{kind}", _sub(base, 1, path),
+              "0or2" if kind in ("no_ground", "ortho_half_gsd", "ndsm_inf", "ndsm_1e30") else "2", outs)
+    b.add("survey-detect/SURVEY_DIR/missing_training_first", ["survey-detect", "no_such_survey", "--no-cache", "-o",
+                                                              "v.geojson"], "2", outs)
+    b.files("survey-detect/--targets", base, 3, "aerial", outs)
+    for kind, spec in bad_specs.items():
+        b.add(f"survey-detect/--targets/{kind}", _sub(base, 3, spec), "2", outs)
+    b.add("survey-detect/--targets/model_and_a_class", base[:4] + ["car"] + base[4:], "2", outs)
+    b.add("survey-detect/--targets/mesh_too_small_for_aerial", _sub(base, 3, f"{BOX}=car:mm:z:x")
+          + ("--length-mm", "100"), "2", outs)
+    for kind, db in bad_dbs.items():
+        b.add(f"survey-detect/--db/{kind}", [a for a in base if a not in ("--targets", f"{F}/aerial.npz")]
+              + ["--db", db], "2", outs)
+    b.add("survey-detect/--db/and_--targets", base + ["--db", f"{F}/db"], "2", outs)
+    for flag, v in CHOICES.items():
+        b.add(f"survey-detect/{flag}/unknown", _sub(base, 3, BOX) + (flag, v), "2", outs)
+    b.numbers("survey-detect", list(_sub(base, 3, f"{BOX}=car")), "--length-mm", LENGTHS, outs)
+    b.numbers("survey-detect", base, "--threshold", {**NAN_INF, "negative": "-0.1", "over_1": "1.5",
+                                                     "huge": "1e300", "zero": "0", "one": "1"}, outs,
+              ok={"zero", "one"})
+    b.out_file("survey-detect/-o", base, 5, outs, ext="csv")
+    sv = [("sv", "copy:survey")]
+    b.add("survey-detect/-o/the_surveys_poses.json", _sub(_sub(base, 1, "sv"), 5, "sv/poses.json"), "2",
+          protect=["sv/poses.json"], setup=sv)
+    b.add("survey-detect/-o/the_surveys_ortho.tif", _sub(_sub(base, 1, "sv"), 5, "sv/ortho.tif"), "2",
+          protect=["sv/ortho.tif"], setup=sv)
+    b.add("survey-detect/--draw/the_surveys_survey.png", _sub(base, 1, "sv") + ("--draw", "sv/survey.png"), "2",
+          outs, protect=["sv/survey.png"], setup=sv)
+    b.add("survey-detect/--draw/wrong_suffix", base + ["--draw", "d.jpg"], "2", outs + ["d.jpg"])
+    b.add("survey-detect/--draw/same_as_-o", base + ["--draw", "v.geojson"], "2", outs)
+    b.add("survey-detect/--draw/is_existing_dir", base + ["--draw", "taken.png"], "2", outs,
+          protect=["taken.png/keep.txt"], setup=[("taken.png", "mkdir")])
+    b.add("survey-detect/--draw/parent_is_file", base + ["--draw", "blocker/d.png"], "2", outs,
+          protect=["blocker"], setup=[("blocker", "file")])
+    b.add("survey-detect/--draw/read_only", base + ["--draw", f"{READ_ONLY_DIR}/d.png"], "2", outs)
+    b.add("survey-detect/--draw/missing_parent", base + ["--draw", "new/sub/d.png"], "0or2", outs + ["new/sub/d.png"])
+
+    # detect --------------------------------------------------------------------------
+    outs = ["det.json"]
+    base = ["detect", f"{F}/plate/shot.png", "--calib", f"{F}/rig.yaml", "--bank", f"{F}/bank.npz", "-o", "det.json"]
+    ibase = ["detect", "--image", f"{F}/plate_left.png", "--depth", f"{F}/depth.npy", "--fx", "1276.75", "--bank",
+             f"{F}/bank.npz", "-o", "det.json"]
+    tbase = [a for a in base if a not in ("--bank", f"{F}/bank.npz")] + ["--targets", "tank_t1"]
+    b.files("detect/SHOT", base, 1, "png", outs)
+    b.files("detect/--calib", base, 3, "yaml", outs)
+    b.files("detect/--bank", base, 5, "npz", outs)
+    b.add("detect/--bank/aerial_recogniser", _sub(base, 5, f"{F}/aerial.npz"), "2", outs)
+    b.add("detect/--bank/aerial_nan", _sub(base, 5, f"{F}/bad/aerial_nan.npz"), "2", outs)
+    b.add("detect/--bank/other_channel", _sub(base, 5, f"{F}/bank_intensity.npz"), "0or2", outs)
+    b.add("detect/--bank/a_survey_folder", _sub(base, 5, f"{F}/survey"), "2", outs)
+    b.files("detect/--image", ibase, 2, "png", outs, ok={"half_shot"})  # the left view's size: the depth map's
+    b.files("detect/--depth", ibase, 4, "depth", outs)
+    b.numbers("detect", ibase, "--fx", {**NAN_INF, **ZERO_NEG, "huge": "1e300", "tiny": "1e-300"}, outs,
+              ok={"huge", "tiny"})
+    b.numbers("detect", base, "--depth-range", {"nan": "nan:nan", "inf": "1:inf", "zero": "0:0",
+                                                "reversed": "2:1", "negative": "-5:-1", "huge": "0.001:1e12",
+                                                "garbage": "a:b", "one_value": "1", "empty": ""}, outs,
+              ok={"inf", "huge"})
+    b.add("detect/SHOT+--image", base + ["--image", f"{F}/plate_left.png"], "2", outs)
+    b.add("detect/SHOT/none", [a for a in base if a != f"{F}/plate/shot.png"], "2", outs)
+    b.add("detect/SHOT/without_--calib", [a for a in base if a not in ("--calib", f"{F}/rig.yaml")], "2", outs)
+    b.add("detect/SHOT/with_--depth", base + ["--depth", f"{F}/depth.npy"], "2", outs)
+    b.add("detect/SHOT/with_--fx", base + ["--fx", "1000"], "0or2", outs)
+    b.add("detect/--image/without_--depth", [a for a in ibase if a not in ("--depth", f"{F}/depth.npy")], "2", outs)
+    b.add("detect/--image/without_--fx", [a for a in ibase if a not in ("--fx", "1276.75")], "2", outs)
+    b.add("detect/--image/with_--calib", ibase + ["--calib", f"{F}/rig.yaml"], "0or2", outs)
+    b.add("detect/--bank+--targets", base + ["--targets", "tank_t1"], "2", outs)
+    b.add("detect/--bank+--db", base + ["--db", f"{F}/db"], "2", outs)
+    b.add("detect/SHOT/missing_training_first", _sub(tbase, 1, "missing_input.png"), "2", outs)
+    for kind, spec in bad_specs.items():
+        b.add(f"detect/--targets/{kind}", _sub(tbase, len(tbase) - 1, spec), "2", outs)
+    b.add("detect/--targets/a_model_alone", _sub(tbase, len(tbase) - 1, f"{F}/bank.npz"), "0or2", outs)
+    b.add("detect/--targets/a_model_and_a_name", list(tbase) + [f"{F}/bank.npz"], "2", outs)
+    b.add("detect/--targets/aerial_model", _sub(tbase, len(tbase) - 1, f"{F}/aerial.npz"), "2", outs)
+    for kind, db in bad_dbs.items():
+        b.add(f"detect/--db/{kind}", tbase[:-2] + ["--db", db], "2", outs)
+    for flag, v in CHOICES.items():
+        b.add(f"detect/{flag}/unknown", _sub(tbase, len(tbase) - 1, BOX) + (flag, v), "2", outs)
+    b.numbers("detect", list(_sub(tbase, len(tbase) - 1, f"{BOX}=tank")), "--length-mm", LENGTHS, outs)
+    b.out_file("detect/-o", base, 7, outs, ext="txt")
+    b.add("detect/--draw/wrong_suffix", base + ["--draw", "d.jpg"], "2", outs + ["d.jpg"])
+    b.add("detect/--draw/same_as_-o", base + ["--draw", "det.json"], "2", outs)
+    b.add("detect/--draw/is_existing_dir", base + ["--draw", "taken.png"], "2", outs,
+          protect=["taken.png/keep.txt"], setup=[("taken.png", "mkdir")])
+    b.add("detect/--draw/parent_is_file", base + ["--draw", "blocker/d.png"], "2", outs, protect=["blocker"],
+          setup=[("blocker", "file")])
+    b.add("detect/--draw/read_only", base + ["--draw", f"{READ_ONLY_DIR}/d.png"], "2", outs)
+    b.add("detect/--draw/missing_parent", base + ["--draw", "new/sub/d.png"], "0or2", outs + ["new/sub/d.png"])
+    b.add("detect/--draw/is_the_input_shot", ["detect", "shot.png", *base[2:], "--draw", "shot.png"], "2", outs,
+          protect=["shot.png"], setup=[("shot.png", "copy:plate/shot.png")])
+    for name, v in {"tiny": "1000", "zero": "0"}.items():
+        b.add(f"detect/--max-pixels/{name}", ["--max-pixels", v, *base], "2", outs)
+
+    # simulate flight -----------------------------------------------------------------
+    outs = ["fl"]
+    base = ["simulate", "flight", "fl", "--frames", "2", "--lines", "1", "--size", "160x120", "--no-depth"]
+    p = "simulate-flight"
+    b.out_dir(f"{p}/OUT_DIR", base, 2, outs, nonempty_ok=False)
+    b.numbers(p, base, "--frames", {**ZERO_NEG, "one": "1", "1001": "1001", "huge": "1000000000",
+                                    "int_overflow": str(2**70)}, outs)
+    b.add(f"{p}/--frames/not_a_multiple_of_--lines", _flag(_flag(base, "--lines", "2"), "--frames", "3"), "2", outs)
+    b.numbers(p, base, "--lines", {**ZERO_NEG, "101": "101", "more_than_frames": "2"}, outs)
+    b.numbers(p, base, "--altitude", {**NAN_INF, **ZERO_NEG, "1m": "1", "1001": "1001", "huge": "1e300"}, outs)
+    b.numbers(p, base, "--overlap", {**NAN_INF, **ZERO_NEG, "one": "1", "over_1": "1.5"}, outs)
+    b.numbers(p, base, "--side-overlap", {**NAN_INF, "negative": "-0.1", "one": "1", "over_1": "1.5"}, outs)
+    b.numbers(p, base, "--size", {"0x0": "0x0", "1x1": "1x1", "63x63": "63x63", "60000x60000": "60000x60000",
+                                  "12001x100": "12001x100", "garbage": "axb", "negative": "-160x120", "empty": "",
+                                  "three_numbers": "160x120x3", "fraction": "160.5x120",
+                                  "int_overflow": "99999999999999999999x120"}, outs)
+    b.numbers(p, base, "--heading", {**NAN_INF, "over_360": "361", "huge": "1e300", "negative": "-90"}, outs,
+              ok={"negative"})
+    b.numbers(p, base, "--seed", {"negative": "-1", "huge": str(2**70)}, outs, ok={"negative", "huge"})
+    b.numbers(p, base, "--supersample", {**ZERO_NEG, "5": "5", "huge": "100000"}, outs)
+    b.numbers(p, base, "--targets", {"negative": "-1", "41": "41", "huge": "1000000000"}, outs)
+    b.add(f"{p}/--targets/carpark_201", base + ["--scene", "carpark", "--targets", "201"], "2", outs)
+    b.numbers(p, base, "--confusers", {"negative": "-1", "21": "21"}, outs)
+    b.numbers(p, base, "--scene", {"unknown": "moon"}, outs)
+
+    # simulate field ------------------------------------------------------------------
+    outs = ["fs"]
+    base = ["simulate", "field", "fs", "--targets", "1", "--confusers", "0", "--no-noise"]
+    p = "simulate-field"
+    b.out_dir(f"{p}/OUT_DIR", base, 2, outs, nonempty_ok=False)
+    b.numbers(p, base, "--targets", {**ZERO_NEG, "13": "13", "huge": "1000000000"}, outs)
+    b.numbers(p, base, "--confusers", {"negative": "-1", "13": "13"}, outs)
+    b.numbers(p, base, "--seed", {"negative": "-1", "huge": str(2**70)}, outs, ok={"negative", "huge"})
+    b.numbers(p, base, "--supersample", {**ZERO_NEG, "5": "5", "huge": "100000"}, outs)
+    for kind, spec in {k: bad_specs[k] for k in ("unknown_name", "path_like", "empty_string", "mesh_without_units",
+                                                 "mesh_bad_units", "mesh_bad_up", "mesh_bad_forward",
+                                                 "mesh_missing_file", "mesh_garbage", "mesh_nan",
+                                                 "mesh_degenerate")}.items():
+        b.add(f"{p}/--classes/{kind}", base + ["--classes", spec.replace("=car", "=tank")], "2", outs)
+    count = base + ["--count", "1"]
+    b.numbers(p, base, "--count", {**ZERO_NEG, "huge": "100001"}, outs)
+    b.add(f"{p}/--workers/without_--count", base + ["--workers", "2"], "2", outs)
+    b.numbers(p, count, "--workers", {"negative": "-1", "more_than_the_machine": "10000"}, outs)
+    b.add(f"{p}/--scheduler/without_--count", base + ["--scheduler", "tcp://127.0.0.1:1"], "2", outs)
+    b.numbers(p, count, "--scheduler", {"garbage": "not a url", "unreachable": "tcp://127.0.0.1:1"}, outs)
+    b.add(f"{p}/--count/batch.json_of_other_options", count, "2", protect=["fs/batch.json"],
+          setup=[("fs", "mkdir"), ("fs/batch.json", "file")])
+    b.add(f"{p}/--count/incomplete_scene", count, "2", protect=["fs/scene_0000/keep.txt"],
+          setup=[("fs/scene_0000", "mkdir")])
+    b.add(f"{p}/--count/OUT_DIR_is_existing_file", count, "2", protect=["fs"], setup=[("fs", "file")])
+
+    # bank eval-scenes ----------------------------------------------------------------
+    outs = ["res.json", "res_fppi.png"]
+    base = ["bank", "eval-scenes", f"{F}/bank.npz", f"{F}/scene", "--json", "res.json"]
+    p = "bank-eval-scenes"
+    b.files(f"{p}/MODEL_NPZ", base, 2, "npz", outs)
+    for kind, path in {"aerial_recogniser": f"{F}/aerial.npz", "aerial_nan": f"{F}/bad/aerial_nan.npz",
+                       "a_scene_folder": f"{F}/scene", "truth_npz_of_a_flight": f"{F}/flight/truth.npz"}.items():
+        b.add(f"{p}/MODEL_NPZ/{kind}", _sub(base, 2, path), "2", outs)
+    b.add(f"{p}/MODEL_NPZ/other_channel", _sub(base, 2, f"{F}/bank_intensity.npz"), "0or2", outs)
+    b.add(f"{p}/MODEL_NPZ/not_given", ["bank", "eval-scenes"], "2")
+    scenes = {"missing": "no_such_scene", "a_file": f"{F}/scene/shot.png", "empty_dir": f"{F}/bad/survey_empty",
+              "survey_folder": f"{F}/survey", "frames_folder": f"{F}/flight"}
+    scenes.update({k: f"{F}/bad/scene_{k}" for k in (
+        "no_shot", "no_rig", "no_truth", "shot_is_dir", "shot_garbage", "shot_grey10", "shot_half_size",
+        "shot_claims_60000", "shot_bomb_20000", "rig_garbage", "rig_k1_nan", "rig_sensor_60000",
+        "rig_is_a_camera_yaml", "truth_empty", "truth_garbage", "truth_truncated", "truth_list", "truth_no_keys",
+        "truth_targets_dict", "truth_target_string", "truth_target_no_class", "truth_box_nan", "truth_box_short",
+        "truth_box_reversed", "truth_box_strings", "truth_box_1e300", "truth_xyz_nan", "truth_radius_negative",
+        "truth_no_targets_at_all", "truth_deep_nesting")})
+    for kind, path in scenes.items():
+        b.add(f"{p}/SCENE_DIR/{kind}", _sub(base, 3, path),
+              "0or2" if kind in ("truth_box_1e300", "truth_no_targets_at_all") else "2", outs)
+    b.add(f"{p}/SCENE_DIR/one_good_one_bad", base[:4] + [f"{F}/bad/scene_truth_garbage"] + base[4:], "2", outs)
+    b.add(f"{p}/SCENE_DIR/twice", base[:4] + [f"{F}/scene"] + base[4:], "0or2", outs)
+    b.add(f"{p}/SCENE_DIR/none", base[:3] + base[4:], "2", outs)
+    b.out_file(f"{p}/--json", base, 5, outs, ext="txt")
+    b.add(f"{p}/--json/plot_name_is_existing_dir", base, "2", protect=["res_fppi.png/keep.txt"],
+          setup=[("res_fppi.png", "mkdir")])
+    b.add(f"{p}/--json/plot_name_exists", base, "0or2", setup=[("res_fppi.png", "file")])
+    b.add(f"{p}/--json/is_the_scenes_truth", _sub(_sub(base, 3, "sc"), 5, "sc/truth.json"), "2",
+          protect=["sc/truth.json"], setup=[("sc", "copy:scene")])
+    b.add(f"{p}/-o/given", base + ["-o", "x.npz"], "2", outs + ["x.npz"])
+    b.numbers(p, base, "--workers", {"negative": "-1", "more_than_the_machine": "10000"}, outs)
+    b.numbers(p, base, "--scheduler", {"garbage": "not a url", "unreachable": "tcp://127.0.0.1:1"}, outs)
+    # options of the other actions, given to eval-scenes
+    b.numbers(p, base, "--noise", {"nan": "nan"}, outs, ok={"nan"})
+    b.numbers(p, base, "--size", {"zero": "0"}, outs, ok={"zero"})
+    b.numbers(p, base, "--scenes", {"negative": "-1"}, outs, ok={"negative"})
 
 
 def cases(fx: Path | str | None = None) -> list[Case]:
@@ -824,6 +1481,8 @@ def cases(fx: Path | str | None = None) -> list[Case]:
     b.add("capture/-o/parent_is_file", _sub(base, 6, "blocker/shots"), "2", setup=[("blocker", "file")])
     b.add("capture/-o/read_only", _sub(base, 6, f"{READ_ONLY_DIR}/shots"), "2")
     b.add("capture/-o/exists_nonempty", base, "0or2", protect=["shots/keep.txt"], setup=[("shots", "mkdir")])
+
+    _survey_and_atr_cases(b, F)
 
     # real data (../shared/data; skipped when absent) ----------------------------------
     D, S = "{data}", "shared_data"
