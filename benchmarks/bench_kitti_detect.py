@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from prism3d.io.images import write_image
+from prism3d.io.images import read_image, write_image
 from prism3d.reconstruct.stereo.match import match_stereo
-from prism3d.reconstruct.stereo.stereo_eval import load_benchmark_pair
+from prism3d.reconstruct.stereo.stereo_eval import load_benchmark_pair, sky_mask
 
 #: KITTI's rectified colour cameras (devkit calibration of the 2011_09_26 drives).
 KITTI_F, KITTI_B_MM = 721.5377, 537.2
@@ -33,20 +33,6 @@ KITTI_CALIB = ("S_rect_02: 1242 375\n"
                "P_rect_02: 721.5377 0 609.5593 44.85728 0 721.5377 172.854 0.2163791 0 0 1 0.002745884\n"
                "S_rect_03: 1242 375\n"
                "P_rect_03: 721.5377 0 609.5593 -339.5242 0 721.5377 172.854 2.199936 0 0 1 0.002729905\n")
-
-
-def sky_mask(path: Path) -> np.ndarray:
-    """The sky told by colour alone, as tests/reconstruct/test_far_points.py tells it."""
-    import cv2
-
-    im = cv2.imread(str(path)).astype(np.float32)
-    b, g, r = im[..., 0], im[..., 1], im[..., 2]
-    grey = cv2.cvtColor(im.astype(np.uint8), cv2.COLOR_BGR2GRAY).astype(np.float32)
-    grad = cv2.GaussianBlur(np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)), (0, 0), 2)
-    blue = (b > r + 30) & (b > g + 5) & (b > 120) & (grad < 25)
-    _, lab = cv2.connectedComponents(blue.astype(np.uint8), connectivity=4)
-    sky = np.isin(lab, np.unique(lab[0][blue[0]])) & blue
-    return cv2.erode(sky.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
 
 
 def main() -> None:
@@ -74,7 +60,7 @@ def main() -> None:
     subprocess.run([sys.executable, "-m", "prism3d.cli", "-q", "reconstruct", "--left", str(k / "image_2_000046_10.png"),
                     "--right", str(k / "image_3_000046_10.png"), "--calib", str(cal), "-o", str(a.work / "scan.ply"),
                     "--depth-out", str(a.work / "depth_pipeline.npy")], check=True)
-    sky = sky_mask(k / "image_2_000046_10.png")
+    sky = sky_mask(read_image(k / "image_2_000046_10.png"))
     res["sky_with_depth"] = {"matcher": float(np.isfinite(depth[sky]).mean()),
                              "reconstruct": float(np.isfinite(np.load(a.work / "depth_pipeline.npy")[sky]).mean())}
     print(f"sky pixels with a depth: matcher alone {res['sky_with_depth']['matcher']:.1%}, "

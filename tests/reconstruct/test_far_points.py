@@ -53,19 +53,10 @@ def test_kitti_keeps_no_point_beyond_what_its_disparities_can_tell(shared_data: 
 
 
 def _sky_mask(path: Path) -> np.ndarray:
-    """KITTI's sky, told by colour alone: blue above red and green, bright, smooth
-    (blurred gradient magnitude < 25 levels), 4-connected to the top row, eroded by 2 px
-    so that no edge pixel counts (82,852 pixels of frame 000046_10, rows 0-155)."""
-    import cv2
+    from prism3d.io.images import read_image
+    from prism3d.reconstruct.stereo.stereo_eval import sky_mask
 
-    im = cv2.imread(str(path)).astype(np.float32)
-    b, g, r = im[..., 0], im[..., 1], im[..., 2]
-    grey = cv2.cvtColor(im.astype(np.uint8), cv2.COLOR_BGR2GRAY).astype(np.float32)
-    grad = cv2.GaussianBlur(np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)), (0, 0), 2)
-    blue = (b > r + 30) & (b > g + 5) & (b > 120) & (grad < 25)
-    _, lab = cv2.connectedComponents(blue.astype(np.uint8), connectivity=4)
-    sky = np.isin(lab, np.unique(lab[0][blue[0]])) & blue
-    sky = cv2.erode(sky.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    sky = sky_mask(read_image(path))
     assert sky.sum() > 50_000  # the mask found the sky
     return sky
 
