@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import hashlib
 import json
 import os
 import random
@@ -45,6 +44,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from tests.probe.cases import file_hash  # noqa: E402
 
 try:
     import psutil
@@ -225,14 +226,6 @@ def survey_cmd(inp: Inputs, out: Path, *, quiet: bool, resume: bool = False) -> 
 
 
 # -- comparing outputs ---------------------------------------------------------------------
-
-
-def file_hash(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def tree(root: Path) -> dict[str, str]:
