@@ -60,7 +60,7 @@ precompile: setup
 	$(PY) -m prism3d._precompile
 
 test: setup
-	@set +e; $(PY) -m pytest -q -m "not slow" -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS); rc=$$?; \
+	@set +e; $(PY) -m pytest -q -m "not slow" -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=30 $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing (a test run must run tests)"; exit 1; fi; \
 	exit $$rc
 
