@@ -14,8 +14,10 @@ the OpenCV camera), with attitude and altitude jitter; the GPS positions are noi
 Folder (all or nothing): ``IMG_0000.JPG`` ... (EXIF focal length and GPS),
 ``geoinfo.txt`` (senseFly), ``camera.yaml`` (OpenCV calibration-sample FileStorage:
 ``camera_matrix``, ``distortion_coefficients``, ``image_width``, ``image_height``),
-``truth.json``, ``truth.npz`` (true DSM, bare ground, object ids) and
-``depth/IMG_0000.npz`` ... (``depth_m`` z-depth float32 NaN = no hit, ``object_id`` int16).
+``truth.json``, ``truth.npz`` (true DSM, bare ground, object ids),
+``depth/IMG_0000.npz`` ... (``depth_m`` z-depth float32 NaN = no hit, ``object_id`` int16)
+and, with ``gcp``, ``gcp_list.txt`` (painted ground control points in OpenDroneMap's
+format: :mod:`~prism3d.datasets.simulation.flight_gcp`).
 """
 
 from __future__ import annotations
@@ -66,6 +68,16 @@ from prism3d.datasets.simulation.flight_ground import (
     Road,
     SurveyGroundAlbedo,
     on_road,
+)
+from prism3d.datasets.simulation.flight_gcp import (
+    GCP_FILE,
+    gcp_list_text,
+    map_crs,
+    marker_side_m,
+    merged_markers,
+    observe_markers,
+    place_markers,
+    to_map,
 )
 from prism3d.datasets.simulation.flight_placing import Placer, corners_enu
 from prism3d.errors import InputError
@@ -167,6 +179,11 @@ class FlightOptions:
     """Colour rays per pixel along each axis (2 smooths edges at 4x the time)."""
     noise: bool = True
     """Sensor noise (the other camera effects are always on)."""
+    gcp: int = 0
+    """Ground control points: painted chequer boards spread over the block, each inside two
+    frames or more, written to ``gcp_list.txt`` (0: none; at most 50)."""
+    gcp_pixel_sigma: float = 0.5
+    """Noise of the control points' pixels in ``gcp_list.txt`` (px per axis, the clicking)."""
     seed: int = 0
     """Seeds the terrain, layout, paints, sun, flight jitter, GPS and noise."""
 
@@ -216,6 +233,8 @@ class FlightOptions:
         if self.dsm_cell_m is not None:
             _check_num(self.dsm_cell_m, "dsm_cell_m", 0.005, 100.0)
         _check_int(self.supersample, "supersample", 1, 4)
+        _check_int(self.gcp, "gcp", 0, 50)
+        _check_num(self.gcp_pixel_sigma, "gcp_pixel_sigma", 0.0, 20.0)
 
 
 # -- geometry ----------------------------------------------------------------------------
@@ -250,6 +269,7 @@ class FlightPlan:
     gsd_m: float
     mean_ground_m: float
     meta: dict[str, Any] = field(default_factory=dict)
+    gcps: list[dict[str, Any]] = field(default_factory=list)  # name, enu (marker top centre), object id
 
 
 def _camera(o: FlightOptions) -> CameraModel:
@@ -496,6 +516,15 @@ def plan_flight(options: FlightOptions | None = None) -> FlightPlan:
                            math.degrees(math.atan2(lot.ux, lot.uy)) % 360.0, "size_m": [2 * lot.half_a, 2 * lot.half_b],
                            "surface": lot.surface, "bays": len(bays), "painted_lines": len(lot.lines)}
     objects = [(ground, np.eye(4))] + targets + clutter
+    gcps: list[dict[str, Any]] = []
+    if o.gcp:  # last, on their own draws: the rest of the flight is the same with or without them
+        side = marker_side_m(gsd)
+        zone = (dsm["west"] + 5.0, dsm["east"] - 5.0, dsm["south"] + 5.0, dsm["north"] - 5.0)
+        placed = place_markers(o.gcp, np.random.default_rng([o.seed, 34]), placer, cam, poses, zone, side, 20.0)
+        objects.append((merged_markers(placed, side), np.eye(4)))
+        gcps = [{"name": f"gcp{k + 1:02d}", "enu": [float(v) for v in top], "id": len(objects)}
+                for k, (_, top) in enumerate(placed)]
+        meta["gcp_side_m"] = side
     kinds: list[dict[str, Any]] = [{"id": 0, "kind": "ground"}, {"id": 1, "kind": "road"}]
     for i, (mesh, _) in enumerate(objects[1:], start=1):
         if i <= len(records):
@@ -508,7 +537,8 @@ def plan_flight(options: FlightOptions | None = None) -> FlightPlan:
     sun = np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)])
     meta.update(heading_deg=math.degrees(psi) % 360.0, footprint_m=list(foot), texture_scale=scale,
                 sun_elevation_deg=math.degrees(el), sun_azimuth_deg=math.degrees(az))
-    return FlightPlan(cam, poses, lines, att, gps, land, roads, objects, kinds, records, sun, dsm, gsd, z_mean, meta)
+    return FlightPlan(cam, poses, lines, att, gps, land, roads, objects, kinds, records, sun, dsm, gsd, z_mean, meta,
+                      gcps)
 
 
 # -- rendering and truth ------------------------------------------------------------------
@@ -664,6 +694,24 @@ def _truth_doc(o: FlightOptions, plan: FlightPlan, names: list[str], targets: li
     }
 
 
+def _write_gcps(stage: Path, plan: FlightPlan, o: FlightOptions, names: list[str], seen: list[dict[int, Any]]
+                ) -> dict[str, Any]:
+    """``gcp_list.txt`` (clicked pixels) and the control points' truth for ``truth.json``:
+    per point its ENU and map coordinates and its true pixel in each frame that sees it."""
+    epsg = map_crs(np.asarray(o.origin_lla))
+    enu = np.array([g["enu"] for g in plan.gcps])
+    xyz = to_map(enu, np.asarray(o.origin_lla), epsg)
+    gnames = [g["name"] for g in plan.gcps]
+    atomic_write_text(stage / GCP_FILE, gcp_list_text(epsg, gnames, xyz, seen, names))
+    points = [{"name": n, "enu": [round(float(v), 4) for v in enu[g]], "map": [round(float(v), 3) for v in xyz[g]],
+               "pixels": {names[k]: [round(v, 3) for v in seen[k][g][0]] for k in range(len(names)) if g in seen[k]}}
+              for g, n in enumerate(gnames)]
+    return {"file": GCP_FILE, "crs": f"EPSG:{epsg}", "heights": "WGS84 ellipsoidal, m",
+            "pixel_convention": "(0, 0) the centre of the top-left pixel", "pixel_sigma": o.gcp_pixel_sigma,
+            "marker": f"{plan.meta['gcp_side_m']} m square board, 2 x 2 black and white chequer; the point is "
+                      "its top's centre", "points": points}
+
+
 def _target_records(plan: FlightPlan) -> list[dict[str, Any]]:
     out = []
     for t, ((mesh, T), rec) in enumerate(zip(plan.objects[1:], plan.records)):
@@ -684,9 +732,10 @@ def _target_records(plan: FlightPlan) -> list[dict[str, Any]]:
 
 
 def _fly(stage: Path, plan: FlightPlan, o: FlightOptions, names: list[str], lla: NDArray, targets: list[dict],
-         renderer: Any, progress: Callable[[int, int, str], None] | None) -> None:
+         renderer: Any, progress: Callable[[int, int, str], None] | None) -> list[dict[int, Any]]:
     """Render the frames in turn; a second thread labels and writes each (JPEG, depth)
-    while the next renders, one frame behind, so at most two frames are in memory."""
+    while the next renders, one frame behind, so at most two frames are in memory.
+    Returns per frame the control points it sees (:func:`observe_markers`)."""
     from concurrent.futures import Future, ThreadPoolExecutor
 
     effects = CameraEffects()
@@ -702,6 +751,8 @@ def _fly(stage: Path, plan: FlightPlan, o: FlightOptions, names: list[str], lla:
     solo = [RaycastRenderer([obj]) for obj in plan.objects[1:len(targets) + 1]]
     if o.depth:
         (stage / "depth").mkdir()
+    seen: list[dict[int, Any]] = [{} for _ in names]
+    gcp_enu = np.array([g["enu"] for g in plan.gcps]).reshape(-1, 3)
 
     def finish(k: int, img: NDArray, depth_mm: NDArray, oid: NDArray) -> None:
         name = names[k]
@@ -709,6 +760,9 @@ def _fly(stage: Path, plan: FlightPlan, o: FlightOptions, names: list[str], lla:
         depth_m = depth_mm / np.float32(1000.0)
         ids = _truth_ids(plan, k, depth_m, oid, xn, yn)
         _visibility(plan, k, ids, solo, targets)
+        if plan.gcps:
+            seen[k] = observe_markers(plan.camera, plan.T_enu_cam[k], gcp_enu, ids, plan.gcps[0]["id"],
+                                      np.random.default_rng([o.seed, 35, k]), o.gcp_pixel_sigma)
         if o.depth:
             write_npz(stage / "depth" / f"{name[:-4]}.npz", {"depth_m": depth_m, "object_id": ids}, compress=True)
 
@@ -724,6 +778,7 @@ def _fly(stage: Path, plan: FlightPlan, o: FlightOptions, names: list[str], lla:
                 progress(k, len(names) + 1, names[k - 1])
         if pending is not None:
             pending.result()
+    return seen
 
 
 def simulate_flight(out_dir: str | Path, options: FlightOptions | None = None, *,
@@ -755,7 +810,7 @@ def simulate_flight(out_dir: str | Path, options: FlightOptions | None = None, *
     targets = _target_records(plan)
     renderer = RaycastRenderer(plan.objects)
     with staged_folder(out) as stage:
-        _fly(stage, plan, o, names, lla, targets, renderer, progress)
+        seen = _fly(stage, plan, o, names, lla, targets, renderer, progress)
         if progress:
             progress(n, n + 1, "true DSM")
         truth = _true_dsm(renderer, plan)
@@ -770,8 +825,10 @@ def simulate_flight(out_dir: str | Path, options: FlightOptions | None = None, *
         write_filestorage(stage / "camera.yaml", {
             "image_width": cam.width, "image_height": cam.height, "camera_matrix": cam.K,
             "distortion_coefficients": cam.dist, "schema_version": FLIGHT_SCHEMA_VERSION, "simulated": 1})
-        atomic_write_text(stage / "truth.json",
-                          json.dumps(_truth_doc(o, plan, names, targets, CameraEffects()), indent=1))
+        doc = _truth_doc(o, plan, names, targets, CameraEffects())
+        if plan.gcps:
+            doc["gcps"] = _write_gcps(stage, plan, o, names, seen)
+        atomic_write_text(stage / "truth.json", json.dumps(doc, indent=1))
         files = sorted(p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file())
     if progress:
         progress(n + 1, n + 1, "written")

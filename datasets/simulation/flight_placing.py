@@ -43,6 +43,22 @@ class Placer:
             return T
         return None
 
+    def clear(self, x: float, y: float, rad: float, spacing: float) -> bool:
+        """Whether a footprint of radius ``rad`` (m) at (x, y) keeps ``spacing`` from those
+        placed and 1 m beyond the roads' edges."""
+        tk = self.taken
+        if np.any(np.hypot(tk[:, 0] - x, tk[:, 1] - y) < spacing * (tk[:, 2] + rad)):
+            return False
+        return all(float(rd.offset(x, y)) >= rd.width / 2.0 + rad + 1.0 for rd in self.roads)
+
+    def put(self, mesh: SceneMesh, x: float, y: float, angle_rad: float, *, tilt: bool) -> NDArray[np.float64]:
+        """``T_world_obj`` (mm) of ``mesh`` stood at (x, y) turned by ``angle_rad``, marked taken."""
+        lo, hi = mesh.bounds / 1000.0
+        T = self._stand(lo, hi, x, y, angle_rad, tilt)
+        self.taken = np.vstack([self.taken, [x, y, float(np.hypot(*(hi[:2] - lo[:2])) / 2.0)]])
+        T[:3, 3] *= 1000.0
+        return T
+
     def _stand(self, lo: NDArray, hi: NDArray, x: float, y: float, a: float, tilt: bool) -> NDArray[np.float64]:
         """The pose (m) at (x, y), turned by ``a`` (rad, from east), its base below the ground
         at 5 x 5 footprint points and touching it at one; tilted to the fitted slope."""
