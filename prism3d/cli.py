@@ -154,7 +154,8 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
 
     given = {"frames": args.frames, "lines": args.lines, "altitude_m": args.altitude, "overlap": args.overlap,
              "side_overlap": args.side_overlap, "heading_deg": args.heading, "targets": args.targets,
-             "confusers": args.confusers, "supersample": args.supersample, "scene": args.scene}
+             "confusers": args.confusers, "supersample": args.supersample, "scene": args.scene, "gcp": args.gcp,
+             "gcp_pixel_sigma": args.gcp_pixel_sigma}
     if args.size is not None:
         m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", args.size)
         if m is None:
@@ -315,6 +316,11 @@ def _add_simulate(sub: Any) -> None:
                    "from north (default: drawn from the seed)")
     q.add_argument("--depth", action=argparse.BooleanOptionalAction, default=True,
                    help="write each frame's true depth and object ids in depth/ (default)")
+    q.add_argument("--gcp", type=int, metavar="N", help="lay N painted ground control points (chequer boards) "
+                   "over the block and write gcp_list.txt (OpenDroneMap's format: the site's UTM zone, ellipsoidal "
+                   "heights; the markers' pixels in every frame that sees them); default none")
+    q.add_argument("--gcp-pixel-sigma", type=float, metavar="PX",
+                   help="noise of the control points' pixels in gcp_list.txt, px per axis (default 0.5)")
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:
@@ -1009,7 +1015,10 @@ def _cmd_survey(args: argparse.Namespace) -> int:
     opts = SurveyOptions(max_image_size=args.max_image_size, dense_max_pixels=args.dense_max_pixels,
                          pair_steps=tuple(args.pair_steps), cross_pairs=args.cross_pairs, cell_m=args.cell,
                          ortho_gsd_m=args.ortho_gsd, crs=args.crs, laz=args.laz, matching=args.matching,
-                         refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point)
+                         refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point,
+                         gps_prior=args.gps_prior, gps_accuracy=_gps_accuracy(args.gps_accuracy),
+                         gcp_file=None if args.gcp is None else str(args.gcp),
+                         gcp_check=tuple(c for a in args.gcp_check for c in a.split(",") if c))
     run_pairs = None
     if args.workers or args.scheduler:
         from prism3d.datasets.runner import RunOptions, run_survey_pairs
@@ -1026,10 +1035,25 @@ def _cmd_survey(args: argparse.Namespace) -> int:
     if r["poses"] or r["pairs_reused"]:
         _say(args, f"survey: resumed: poses {'kept' if r['poses'] else 'computed'}, {r['pairs_reused']} pairs kept, "
                    f"{r['pairs_matched']} matched")
+    if "gcp_check" in s:
+        _say(args, "survey: " + s["gcp_check"])
     _say(args, f"survey: {s['n_registered']}/{s['n_frames']} frames placed, reprojection RMS "
                f"{s['reprojection_rms_px']:.2f} px; {s['pairs_ok']} pairs matched, {s['pairs_skipped']} skipped; "
                f"DSM of {s['dsm_cells']:,} cells of {s['cell']:g} {unit}; {s['seconds']['total']:.0f} s -> {args.output}")
     return 0
+
+
+def _gps_accuracy(text: str | None) -> tuple[float, float] | None:
+    """``--gps-accuracy H[,V]`` (m; V defaults to 2 H) as (horizontal, vertical); None: estimated."""
+    if text is None:
+        return None
+    try:
+        v = [float(a) for a in text.split(",")]
+    except ValueError:
+        raise InputError(f"--gps-accuracy: expected H or H,V in metres, got {text!r}") from None
+    if len(v) not in (1, 2):
+        raise InputError(f"--gps-accuracy: expected H or H,V in metres, got {text!r}")
+    return (v[0], v[1] if len(v) == 2 else 2.0 * v[0])
 
 
 def _add_survey(sub: Any) -> None:
@@ -1081,6 +1105,18 @@ def _add_survey(sub: Any) -> None:
     p.add_argument("--refine-principal-point", action="store_true",
                    help="free the principal point in the bundle adjustment (default fixed: few nadir frames "
                    "do not determine it)")
+    p.add_argument("--gcp", type=Path, metavar="GCP_LIST", help="ground control points in OpenDroneMap's "
+                   "gcp_list.txt format (a CRS line, then x y z pixel_x pixel_y image name): held fixed in the bundle "
+                   "adjustment; every point's residual goes to OUT/gcp_check.json")
+    p.add_argument("--gcp-check", nargs="+", default=[], metavar="NAME",
+                   help="names in the --gcp file kept out of the adjustment and only measured (check points; all of "
+                   "them: the GPS-only survey's absolute error is measured)")
+    p.add_argument("--gps-accuracy", metavar="H[,V]", help="the GPS positions' standard deviation, m, horizontal "
+                   "and vertical; they weigh the positions in the adjustment (default: estimated from their residuals "
+                   "after a first adjustment at 1 m / 2 m, a consumer drone's GNSS)")
+    p.add_argument("--gps-prior", action=argparse.BooleanOptionalAction, default=True,
+                   help="the GPS positions as constraints in the bundle adjustment (default); --no-gps-prior: a "
+                   "similarity onto them after it")
     p.add_argument("--workers", type=int, default=0, help="dense pairs on a local Dask cluster of W processes")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="dense pairs on an existing Dask scheduler")
 

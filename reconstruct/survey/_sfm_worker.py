@@ -226,6 +226,307 @@ def _choose_camera(pycolmap, np, rec) -> tuple:
     return out, report
 
 
+def umeyama(np, src, dst):
+    """The least-squares similarity ``dst ~ s R src + t`` of (N, 3) point sets (Umeyama,
+    TPAMI 1991; a proper rotation): ``(s, R, t)``. Unchecked: callers check their input."""
+    ma, mb = src.mean(axis=0), dst.mean(axis=0)
+    ac, bc = src - ma, dst - mb
+    U, S, Vt = np.linalg.svd(bc.T @ ac / len(src))
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1.0
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (np.sum(ac**2) / len(src)))
+    return s, R, mb - s * R @ ma
+
+
+def _triangulate(np, rec, obs):
+    """A point (linear, in normalised coordinates) from ``[(image_id, xy COLMAP px)]`` of
+    posed images of ``rec``'s one camera; None when it falls behind a camera."""
+    cam = next(iter(rec.cameras.values()))
+    rows, Ms = [], []
+    for iid, xy in obs:
+        M = np.asarray(rec.images[iid].cam_from_world().matrix(), dtype=np.float64)
+        n = np.asarray(cam.cam_from_img(np.asarray(xy, dtype=np.float64)), dtype=np.float64).ravel()[:2]
+        rows += [n[0] * M[2] - M[0], n[1] * M[2] - M[1]]
+        Ms.append(M)
+    vt = np.linalg.svd(np.asarray(rows))[2]
+    if abs(vt[-1][3]) < 1e-12:
+        return None
+    X = vt[-1][:3] / vt[-1][3]
+    return X if all((M[:, :3] @ X + M[:, 3])[2] > 0 for M in Ms) else None
+
+
+def _control(np, rec, req):
+    """The request's control points observed in two posed images or more, each as
+    ``(point, [(image_id, xy)], X_model)`` (triangulated in ``rec``'s frame)."""
+    by_name = {rec.images[i].name: i for i in rec.reg_image_ids()}
+    out = []
+    for g in req.get("gcps") or []:
+        obs = [(by_name[n], (float(x), float(y))) for n, x, y in g["obs"] if n in by_name]
+        X = _triangulate(np, rec, obs) if len(obs) >= 2 else None
+        if X is not None:
+            out.append((g, obs, X))
+    return out
+
+
+def _bundle_options(pycolmap, req: dict, free_pp: bool, *, focal: bool | None = None):
+    bo = pycolmap.BundleAdjustmentOptions()
+    bo.refine_focal_length = bool(req["refine_focal"]) if focal is None else focal
+    bo.refine_extra_params = bool(req["refine_distortion"])
+    bo.refine_principal_point = bool(free_pp)
+    return bo
+
+
+def _solve(pycolmap, rec, req, free_pp: bool, control_ids, priors, *, focal: bool | None = None):
+    """One bundle adjustment of every posed image: control points held where the map puts
+    them, GPS positions (``priors``) as soft constraints; else the usual gauge."""
+    config = pycolmap.BundleAdjustmentConfig()
+    for iid in rec.reg_image_ids():
+        config.add_image(iid)
+    for pid in control_ids:
+        config.add_constant_point(pid)
+    bo = _bundle_options(pycolmap, req, free_pp, focal=focal)
+    if priors:
+        po = pycolmap.PosePriorBundleAdjustmentOptions()
+        adjuster = pycolmap.create_pose_prior_bundle_adjuster(bo, po, config, priors, rec)
+    else:
+        if not control_ids:
+            config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+        adjuster = pycolmap.create_default_bundle_adjuster(bo, config, rec)
+    summary = adjuster.solve()
+    rec.update_point_3d_errors()
+    return summary
+
+
+#: Positions whose second singular value is below this share of the first lie on one line:
+#: the roll about it is free, and the positions cannot place the model alone.
+MIN_SPREAD = 0.05
+
+
+def _spread(np, positions) -> bool:
+    """Three positions or more, not on one line (:data:`MIN_SPREAD`)."""
+    P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if len(P) < 3:
+        return False
+    sv = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+    return bool(sv[1] > MIN_SPREAD * sv[0])
+
+
+#: The finest GPS accuracy an estimate may give (m): an RTK receiver's.
+MIN_GPS_SIGMA = 0.02
+
+
+def _priors(pycolmap, np, rec, ids, pos: dict, sigma_h: float, sigma_v: float) -> list:
+    """COLMAP pose priors for images ``ids`` at their positions, of the given accuracy.
+    The image residuals keep COLMAP's unit weight (a 1 px a-priori accuracy, the
+    photogrammetric default for tie points), not their own sigma (0.15 px on the
+    simulator): weighed at that, the images' biased optimum along the focal length /
+    flying height valley wins (docs/uav.md, "GPS in the adjustment")."""
+    cov = np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
+    out = []
+    for iid in ids:
+        pr = pycolmap.PosePrior()
+        pr.corr_data_id = rec.images[iid].data_id
+        pr.position = np.asarray(pos[rec.images[iid].name], dtype=np.float64)
+        pr.position_covariance = cov
+        pr.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+        out.append(pr)
+    return out
+
+
+def _gps_sigma(np, rec, ids, pos: dict) -> tuple[float, float]:
+    """The positions' accuracy (horizontal per axis, vertical; m) from their residuals to
+    the adjusted camera centres, corrected for the 7 parameters of the frame they fix
+    (a variance-component estimate), and no finer than :data:`MIN_GPS_SIGMA`."""
+    d = np.array([rec.images[i].projection_center() - np.asarray(pos[rec.images[i].name]) for i in ids])
+    n = len(d)
+    k = np.sqrt(3.0 * n / max(3.0 * n - 7.0, 1.0))
+    sh = k * float(np.sqrt(np.mean(d[:, :2] ** 2)))
+    sv = k * float(np.sqrt(np.mean(d[:, 2] ** 2)))
+    return max(sh, MIN_GPS_SIGMA), max(sv, MIN_GPS_SIGMA)
+
+
+def _adjust_held(pycolmap, np, out, req, free_pp: bool, control, control_ids, priors) -> None:
+    """The adjustment with the control points held. COLMAP's pose-prior adjustment first
+    moves the whole model, held points too, by a similarity onto the positions; held
+    points move only by that similarity, so the one that takes them back onto the map
+    (three or more) undoes it exactly."""
+    _solve(pycolmap, out, req, free_pp, control_ids, priors)
+    if not control_ids:
+        return
+    P = np.array([out.points3D[pid].xyz for pid in control_ids], dtype=np.float64)
+    Q = np.array([g["enu"] for g, _, _ in control], dtype=np.float64)
+    if float(np.abs(P - Q).max()) > 1e-6:
+        s, R, t = umeyama(np, P, Q)
+        out.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
+
+def _georeferenced(pycolmap, np, rec, req, free_pp: bool):
+    """The model moved into the request's local ENU frame and adjusted there. GPS priors
+    asked (and three positions or more off one line): moved onto the positions, which are
+    soft constraints (COLMAP's pose-prior adjustment, their accuracy the covariance).
+    Control points (three or more triangulated): held where the map puts them (moved onto
+    them first when there is no GPS prior). Returns the model and a record; the model is
+    untouched when neither applies."""
+    gps = req.get("gps_prior")
+    pos = dict(zip(req["image_names"], req.get("positions") or []))
+    control = _control(np, rec, req)
+    reg = sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name)
+    gps = gps if gps and _spread(np, [pos[rec.images[i].name] for i in reg if rec.images[i].name in pos]) else None
+    if len(control) >= 3 and not gps:
+        src = np.array([X for _, _, X in control])
+        dst = np.array([g["enu"] for g, _, _ in control], dtype=np.float64)
+        how = f"{len(control)} ground control points"
+    elif gps:
+        named = [i for i in reg if rec.images[i].name in pos]
+        src = np.array([rec.images[i].projection_center() for i in named])
+        dst = np.array([pos[rec.images[i].name] for i in named], dtype=np.float64)
+        how = "the GPS positions" + (f" and {len(control)} ground control points" if len(control) >= 3 else "")
+    else:
+        return rec, {"frame": "model", "why": f"{len(control)} control point(s) triangulated (3 needed) and no GPS "
+                                              "prior (not asked, or fewer than 3 positions off one line)"}
+    s, R, t = umeyama(np, src, dst)
+    out = pycolmap.Reconstruction(rec)
+    out.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
+    control_ids = []
+    for g, obs, X in control if len(control) >= 3 else ():
+        track = pycolmap.Track()
+        for iid, xy in obs:
+            pts = out.images[iid].points2D
+            pts.append(pycolmap.Point2D(np.asarray(xy, dtype=np.float64)))
+            track.add_element(iid, len(pts) - 1)
+        control_ids.append(out.add_point3D(np.asarray(g["enu"], dtype=np.float64), track))
+    named = [i for i in reg if out.images[i].name in pos] if gps else []
+    priors = _priors(pycolmap, np, out, named, pos, gps["sigma_h"], gps["sigma_v"]) if gps else []
+    out.update_point_3d_errors()
+    before = float(out.compute_mean_reprojection_error())
+    _adjust_held(pycolmap, np, out, req, free_pp, control, control_ids, priors)
+    rec_out = {"frame": "enu", "aligned_to": how, "control_points": len(control_ids), "gps_priors": len(priors),
+               "similarity_scale": s, "mean_reprojection_px_before": before}
+    if gps:
+        rec_out["gps_accuracy_m"] = [gps["sigma_h"], gps["sigma_v"]]
+    if gps and gps.get("estimate"):
+        sh, sv = _gps_sigma(np, out, named, pos)
+        rec_out["gps_accuracy_m"] = [sh, sv]
+        rec_out["gps_accuracy_source"] = "estimated from the positions' residuals after a first adjustment"
+        priors = _priors(pycolmap, np, out, named, pos, sh, sv)
+        _adjust_held(pycolmap, np, out, req, free_pp, control, control_ids, priors)
+    rec_out["mean_reprojection_px_after"] = float(out.compute_mean_reprojection_error())
+    if req["refine_focal"]:
+        rec_out["self_calibration"] = _determined(_focal_profile(
+            pycolmap, np, out, lambda r, focal: _solve(pycolmap, r, req, free_pp, control_ids, priors, focal=focal)),
+            bool(control_ids) and bool(priors))
+    rec_out["control_residuals_px"] = {g["name"]: float(out.points3D[pid].error)
+                                       for (g, _, _), pid in zip(control, control_ids)}
+    for pid in control_ids:
+        out.delete_point3D(pid)
+    return out, rec_out
+
+
+#: The focal length's relative step for its profile (:func:`_focal_profile`).
+PROFILE_STEP = 0.005
+#: A relative focal-length uncertainty (1 sigma) above this: the block does not determine it.
+MAX_FOCAL_SIGMA = 0.005
+#: Viewing directions all within this of their mean (deg): a one-direction (nadir) block.
+ONE_DIRECTION_DEG = 10.0
+#: Camera heights along the viewing direction spread less than this share of the depth: one altitude.
+ONE_ALTITUDE_SPREAD = 0.05
+
+
+def _depth_in_baselines(np, rec) -> float:
+    """The median depth of the points in the images that see them over the median
+    distance from each image to its nearest: the flying height in baselines (scale-free)."""
+    ids = list(rec.reg_image_ids())
+    C = np.array([rec.images[i].projection_center() for i in ids])
+    depths = []
+    for i in ids:
+        im = rec.images[i]
+        M = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+        X = np.array([rec.points3D[p.point3D_id].xyz for p in im.points2D if p.has_point3D()]).reshape(-1, 3)
+        if len(X):
+            depths.append(float(np.median(X @ M[2, :3] + M[2, 3])))
+    d = np.linalg.norm(C[:, None] - C[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(depths) / max(float(np.median(d.min(axis=1))), 1e-12))
+
+
+def _block_geometry(np, rec) -> dict:
+    """Whether the images look one way (nadir) from one altitude: the two geometries that
+    leave the focal length tied to the flying height."""
+    ids = list(rec.reg_image_ids())
+    V = np.array([np.asarray(rec.images[i].cam_from_world().matrix(), dtype=np.float64)[2, :3] for i in ids])
+    m = V.mean(axis=0)
+    m /= np.linalg.norm(m)
+    spread_deg = float(np.degrees(np.arccos(np.clip(V @ m, -1.0, 1.0))).max())
+    C = np.array([rec.images[i].projection_center() for i in ids])
+    along = C @ m
+    depth = _depth_in_baselines(np, rec)
+    d = np.linalg.norm(C[:, None] - C[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    height_spread = float(np.std(along) / max(depth * float(np.median(d.min(axis=1))), 1e-12))
+    return {"viewing_directions_within_deg": round(spread_deg, 2), "one_direction": spread_deg <= ONE_DIRECTION_DEG,
+            "height_spread_of_depth": round(height_spread, 4), "one_altitude": height_spread <= ONE_ALTITUDE_SPREAD}
+
+
+def _scaled_focal(pycolmap, np, rec, factor: float) -> None:
+    cam = next(iter(rec.cameras.values()))
+    p = np.array(cam.params, dtype=np.float64)
+    p[:2 if cam.model.name == "OPENCV" else 1] *= factor
+    cam.params = p
+
+
+def _focal_profile(pycolmap, np, rec, solve) -> dict:
+    """:func:`_profile`, or why it could not be computed (it only reports: it never stops a survey)."""
+    try:
+        return _profile(pycolmap, np, rec, solve)
+    except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+        return {"error": f"{type(exc).__name__}: {exc}"[:200]}
+
+
+def _profile(pycolmap, np, rec, solve) -> dict:
+    """How well the block determines the focal length, and what it trades against: the
+    adjustment (``solve(model, refine_focal)``, returning Ceres' summary) repeated with
+    the focal length held :data:`PROFILE_STEP` above and below its value. The cost's rise gives
+    its 1-sigma uncertainty (least squares: S(f) - S0 = (df / sigma_f)^2 sigma^2, sigma^2 the
+    residual variance); the flying height's change (in baselines) per focal change gives
+    the tie (1.0: a 1 % longer focal length is a 1 % higher flight, nothing else)."""
+    base = pycolmap.Reconstruction(rec)
+    s0 = solve(base, None).ceres_summary
+    c0, dof = float(s0.final_cost), max(1, int(s0.num_residuals_reduced) - int(s0.num_effective_parameters_reduced))
+    sigma2 = 2.0 * c0 / dof
+    h0 = _depth_in_baselines(np, base)
+    cost, height = [], []
+    for sign in (1.0, -1.0):
+        r = pycolmap.Reconstruction(base)
+        _scaled_focal(pycolmap, np, r, 1.0 + sign * PROFILE_STEP)
+        cost.append(float(solve(r, False).ceres_summary.final_cost))
+        height.append(_depth_in_baselines(np, r))
+    rise = cost[0] + cost[1] - 2.0 * c0  # = (S+ + S-) / 2 - S0 with S = 2 cost
+    sig = PROFILE_STEP * float(np.sqrt(sigma2 / rise)) if rise > 0 else float("inf")
+    f = float(next(iter(base.cameras.values())).params[0])
+    out = {"focal_px": f, "focal_sigma_pct": None if not np.isfinite(sig) else 100.0 * sig,
+           "height_change_per_focal_change": (height[0] - height[1]) / (2.0 * PROFILE_STEP * h0),
+           "geometry": _block_geometry(np, base),
+           "method": f"the adjustment repeated with f held {100 * PROFILE_STEP:g} % above and below"}
+    return out
+
+
+def _determined(report: dict, anchored: bool) -> dict:
+    """``report`` with ``determined``: a formal uncertainty within :data:`MAX_FOCAL_SIGMA`,
+    and either a block that is not nadir-only at one altitude or heights held from outside
+    the images (control points with GPS priors). A nadir block at one altitude ties the
+    focal length to the flying height, and the formal figure (a curvature at the optimum)
+    then understates the error: on the simulator's 12-frame nadir block the images' own
+    optimum lay 3.6 % (7 formal sigma) from the true focal length."""
+    if "error" in report:
+        return {**report, "determined": False}
+    g = report["geometry"]
+    weak = g["one_direction"] and g["one_altitude"] and not anchored
+    sig = report["focal_sigma_pct"]
+    return {**report, "determined": bool(sig is not None and sig <= 100.0 * MAX_FOCAL_SIGMA and not weak),
+            "anchored_by": "control points and GPS heights" if anchored else None}
+
+
 def _verified_pairs(pycolmap, db: Path) -> dict[str, int]:
     """Image pairs that passed geometric verification, counted by COLMAP's configuration
     (CALIBRATED, PLANAR_OR_PANORAMIC, ...): tells "no overlap" from "no parallax"."""
@@ -365,6 +666,30 @@ def main(argv: list[str]) -> int:
     return 0
 
 
+def _refine(pycolmap, np, best, req: dict, info: dict, stage):
+    """The largest model after the camera-model choice, the adjustment in the local frame
+    (GPS priors, control points) and the focal length's profile, each as the request asks;
+    their records and times go into ``info``."""
+    seconds = info["seconds"]
+    if req.get("choose_camera"):
+        stage("camera model")
+        t0 = time.perf_counter()
+        best, info["camera_choice"] = _choose_camera(pycolmap, np, best)
+        seconds["camera model"] = time.perf_counter() - t0
+    free_pp = bool(req["refine_principal_point"]) or info.get("camera_choice", {}).get("principal_point") == "free"
+    if req.get("gcps") or req.get("gps_prior"):
+        stage("georeferencing")
+        t0 = time.perf_counter()
+        best, info["georeferencing"] = _georeferenced(pycolmap, np, best, req, free_pp)
+        seconds["georeferencing"] = time.perf_counter() - t0
+    if "self_calibration" in info.get("georeferencing", {}):
+        info["self_calibration"] = info["georeferencing"].pop("self_calibration")
+    elif req["refine_focal"]:
+        info["self_calibration"] = _determined(_focal_profile(
+            pycolmap, np, best, lambda r, focal: _solve(pycolmap, r, req, free_pp, [], [], focal=focal)), False)
+    return best
+
+
 def _run(req: dict, stage) -> None:
     """Features, matching and mapping for one request; ``stage(name)`` reports each."""
     import numpy as np
@@ -409,13 +734,7 @@ def _run(req: dict, stage) -> None:
         "pycolmap_version": pycolmap.__version__,
     }
     if ranked:
-        best = ranked[0]
-        if req.get("choose_camera"):
-            stage("camera model")
-            t0 = time.perf_counter()
-            best, info["camera_choice"] = _choose_camera(pycolmap, np, best)
-            seconds["camera model"] = time.perf_counter() - t0
-        _write_model(pycolmap, np, req, best)
+        _write_model(pycolmap, np, req, _refine(pycolmap, np, ranked[0], req, info, stage))
     stage("done")
     _atomic(Path(req["result_json"]), lambda p: p.write_text(json.dumps(info, indent=1)))
 

@@ -104,6 +104,18 @@ class SurveyOptions:
     default (5) averages more noise (docs/uav.md: on the simulator the DSM's median error
     0.26 -> 0.19 GSD; the real pair's open ground 7.3 -> 5.3 cm rough)."""
 
+    gps_prior: bool = True
+    """With GPS: the positions are soft constraints in the bundle adjustment (each with
+    ``gps_accuracy``), the model adjusted in the local frame; off: a similarity onto the
+    positions after the adjustment, as before (docs/uav.md)."""
+    gps_accuracy: tuple[float, float] | None = None
+    """The positions' standard deviation (horizontal, vertical), m; None: estimated from
+    their residuals after a first adjustment that assumes a consumer drone's 1 m / 2 m."""
+    gcp_file: str | None = None
+    """Ground control points, OpenDroneMap's ``gcp_list.txt`` (:mod:`~prism3d.reconstruct.survey.gcp`)."""
+    gcp_check: tuple[str, ...] = ()
+    """Names in ``gcp_file`` kept out of the adjustment and only measured (``gcp_check.json``)."""
+
     def __post_init__(self) -> None:
         if isinstance(self.max_image_size, bool) or not 320 <= int(self.max_image_size) <= 20000:
             raise InputError(f"max_image_size: expected 320-20000 px, got {self.max_image_size!r}")
@@ -126,6 +138,18 @@ class SurveyOptions:
             raise InputError(f"matching: expected auto, exhaustive, spatial or sequential, got {self.matching!r}")
         if self.matcher not in ("ours", "sgbm"):
             raise InputError(f"matcher: expected ours or sgbm, got {self.matcher!r}")
+        if not isinstance(self.gps_prior, bool):
+            raise InputError(f"gps_prior: expected True or False, got {self.gps_prior!r}")
+        if self.gps_accuracy is not None:
+            acc = tuple(self.gps_accuracy) if isinstance(self.gps_accuracy, (tuple, list)) else (self.gps_accuracy,)
+            if len(acc) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                                        and 0.005 <= v <= 1000.0 for v in acc):
+                raise InputError(f"gps_accuracy: expected (horizontal, vertical) in 0.005-1000 m, "
+                                 f"got {self.gps_accuracy!r}")
+            object.__setattr__(self, "gps_accuracy", (float(acc[0]), float(acc[1])))
+        object.__setattr__(self, "gcp_check", tuple(str(c) for c in self.gcp_check))
+        if self.gcp_check and self.gcp_file is None:
+            raise InputError("gcp_check: check points need a control point file (gcp_file)")
         if self.refine_intrinsics not in ("auto", "focal+distortion", "none"):
             raise InputError(f"refine_intrinsics: expected auto, focal+distortion or none, got {self.refine_intrinsics!r}")
 

@@ -187,10 +187,12 @@ def _poses_doc(stage: Path, fused: FusedSurface, st: SurveyState, ground: NDArra
         "crs_wkt": None if frame is None else frame.crs_wkt,
         "map_frame": None if frame is None else frame.record(),
         "gps_source": st.gps_source,
-        "georeference": {"method": st.geo.method, "scale": st.geo.s, "residual_rms_m": st.geo.residual_rms_m},
+        "georeference": {"method": st.geo.method, "scale": st.geo.s, "residual_rms_m": st.geo.residual_rms_m,
+                         "adjustment": getattr(sfm, "georeferencing", {})},
         "camera": {"model": {"RADIAL": "RADIAL (f, cx, cy, k1, k2)", "OPENCV": "OPENCV (fx, fy, cx, cy, k1, k2, p1, p2)"}
                    .get(getattr(sfm, "camera_model", "RADIAL"), str(getattr(sfm, "camera_model", "RADIAL"))),
                    "choice": getattr(sfm, "camera_choice", {}), "start": st.calib_source, "refined": st.refined,
+                   "self_calibration": getattr(sfm, "self_calibration", {}),
                    "K": np.asarray(sfm.K).tolist(), "dist": np.asarray(sfm.dist).tolist(), "size": list(sfm.size)},
         "dense": {"downscale": st.factor, "pair_steps": list(o.pair_steps), "pairs": pairs},
         "ortho": {"gsd": ortho.gsd, "shape": list(ortho.rgba.shape[:2]), "west": ortho.west, "north": ortho.north,

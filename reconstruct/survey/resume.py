@@ -45,7 +45,7 @@ def _fingerprint(images: list[Path], gps_table: Path | None, calib: Path | None,
     for p in images:
         st = p.stat()
         h.update(f"{p.resolve()} {st.st_size} {st.st_mtime_ns}\n".encode())
-    for f in (gps_table, calib):
+    for f in (gps_table, calib, options.gcp_file):
         h.update(b"-" if f is None else Path(f).read_bytes())
     h.update(json.dumps(asdict(options), sort_keys=True, default=str).encode())
     return h.hexdigest()
@@ -127,7 +127,8 @@ class ResumeFolder:
                          track_length=sfm.track_length)
         meta = {"names": sfm.names, "registered": reg, "size": list(sfm.size), "reprojection_rms_px": sfm.reprojection_rms_px,
                 "n_observations": sfm.n_observations, "seconds": sfm.seconds, "model_names": sfm.model_names,
-                "model_sizes": sfm.model_sizes, "camera_model": sfm.camera_model, "camera_choice": sfm.camera_choice}
+                "model_sizes": sfm.model_sizes, "camera_model": sfm.camera_model, "camera_choice": sfm.camera_choice,
+                "frame": sfm.frame, "georeferencing": sfm.georeferencing, "self_calibration": sfm.self_calibration}
         atomic_write_text(d / "sfm.json", json.dumps(meta))  # last: its presence says the poses are whole
 
     def load_sfm(self, log_path: Path) -> SfmResult | None:
@@ -147,7 +148,9 @@ class ResumeFolder:
                          n_observations=meta["n_observations"], model_dir=d / "model",
                          seconds=dict(meta["seconds"]), log_path=log_path, model_names=meta["model_names"],
                          model_sizes=meta["model_sizes"], camera_model=meta["camera_model"],
-                         camera_choice=meta["camera_choice"])
+                         camera_choice=meta["camera_choice"], frame=meta.get("frame", "model"),
+                         georeferencing=meta.get("georeferencing", {}),
+                         self_calibration=meta.get("self_calibration", {}))
 
     def remove(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)

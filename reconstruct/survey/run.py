@@ -33,6 +33,7 @@ from prism3d.io.images import read_image
 from prism3d.reconstruct.stereo.flatness import ransac_plane
 from prism3d.reconstruct.stereo.match_options import MatchOptions
 from prism3d.reconstruct.survey.dsm import MAX_CELLS, grid_points
+from prism3d.reconstruct.survey.gcp import GcpFile, check_points_report, read_gcp_file, survey_control
 from prism3d.reconstruct.survey.inputs import (
     VIDEO_SUFFIXES,
     check_frames,
@@ -391,11 +392,19 @@ def _gps_enu(tags: list[Any] | None) -> tuple[NDArray | None, NDArray | None]:
 
 def _georeference_model(sfm: Any, tags: list[Any] | None) -> tuple[Georef, dict[int, NDArray], NDArray, Any, Any]:
     """The model in ENU (or levelled, without GPS): the similarity, ``T_enu_cam`` per
-    placed frame, the sparse points, the ENU origin (lat, lon, 0) and the GPS positions."""
+    placed frame, the sparse points, the ENU origin (lat, lon, 0) and the GPS positions.
+    A model the adjustment already put in ENU (GPS priors, control points) keeps its frame."""
     reg = [k for k, r in enumerate(sfm.registered) if r]
     C_model = np.array([np.linalg.inv(sfm.cam_from_world[k])[:3, 3] for k in reg])
     origin, gps_enu = _gps_enu(tags)
-    geo = georeference(C_model, None if gps_enu is None else gps_enu[reg], sfm.points)
+    if getattr(sfm, "frame", "model") == "enu":
+        g = sfm.georeferencing
+        rms = None if gps_enu is None else float(np.sqrt(np.mean(np.sum((C_model - gps_enu[reg]) ** 2, axis=1))))
+        how = (f"bundle adjustment in the local frame on {g.get('aligned_to', '?')}"
+               + (f" (GPS a constraint: {g['gps_priors']} positions)" if g.get("gps_priors") else ""))
+        geo = Georef(1.0, np.eye(3), np.zeros(3), how, rms)
+    else:
+        geo = georeference(C_model, None if gps_enu is None else gps_enu[reg], sfm.points)
     T_enu = {k: geo.pose(sfm.cam_from_world[k]) for k in reg}
     return geo, T_enu, geo.apply(sfm.points), origin, gps_enu
 
@@ -452,11 +461,11 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
     if videos and len(images) > 1:
         raise InputError("survey: give one video, or image frames, not both")
     if not videos:  # checked before anything is written
-        frames = _Frames.of(images, gps_table, calib, o.crs)
+        frames = _Frames.of(images, gps_table, calib, o.crs, o.gcp_file, o.gcp_check)
     with staged_folder(out) as stage:
         if videos:  # frames into the survey's own folder, then the same checks
             images = [str(p) for p in video_frames(videos[0], stage / "frames", step_s=video_step_s)]
-            frames = _Frames.of(images, gps_table, calib, o.crs)
+            frames = _Frames.of(images, gps_table, calib, o.crs, o.gcp_file, o.gcp_check)
         cache = ResumeFolder(out, [Path(p) for p in images], None if gps_table is None else Path(gps_table),
                              None if calib is None else Path(calib), o, resume=resume and not videos)
         try:
@@ -495,22 +504,11 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     ``stage`` (:func:`run_survey`)."""
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
-    sfm = cache.load_sfm(stage / "sfm_work" / "colmap.log")
-    reused_poses = sfm is not None
-    if sfm is None:
-        positions = _gps_enu(frames.tags)[1]  # GPS: spatial matching above 40 frames
-        work = stage / "sfm_work"
-        try:
-            sfm = map_frames(images, work, camera=frames.camera,
-                             options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free,
-                                                refine_distortion=free, refine_principal_point=o.refine_principal_point,
-                                                matching=o.matching),
-                             progress=_in_stage(progress, "poses"), positions=positions)
-        except (InputError, ReconstructionError) as exc:
-            raise _without_staged_log(exc, work / "colmap.log") from None
-        cache.save_sfm(sfm)
+    sfm, reused_poses, control, checks = _poses(stage, images, frames, o, free, cache, progress)
     seconds["poses"] = time.perf_counter() - t0
     geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
+    gcp_line = None if frames.gcp is None else _gcp_check(stage, frames.gcp, control, checks, sfm, T_enu, points_enu,
+                                                           origin, geo)
     factor = _dense_scale(frames.size, o.dense_max_pixels)
     t0 = time.perf_counter()
     reqs = _pair_requests(frames, sfm, T_enu, points_enu, factor, o)
@@ -536,9 +534,68 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     shutil.copytree(sfm.model_dir, stage / "colmap", dirs_exist_ok=True)
     shutil.rmtree(stage / "sfm_work", ignore_errors=True)
     seconds["products"] = time.perf_counter() - t0
+    if gcp_line is not None:
+        summary["gcp_check"] = gcp_line
     summary["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
     summary["resumed"] = {"poses": reused_poses, "pairs_reused": len(reqs) - len(todo), "pairs_matched": len(todo)}
     return summary
+
+
+def _poses(stage: Path, images: list[str], frames: _Frames, o: SurveyOptions, free: bool, cache: ResumeFolder,
+           progress: Callable[[int, int, str], None] | None) -> tuple[Any, bool, list, list]:
+    """The SfM result (kept from an interrupted run, or computed with the GPS priors and
+    control points), whether it was kept, and the control and check points (local ENU)."""
+    sfm = cache.load_sfm(stage / "sfm_work" / "colmap.log")
+    reused = sfm is not None
+    origin, positions = _gps_enu(frames.tags)  # GPS: spatial matching above 40 frames, and priors
+    control, checks = ([], []) if frames.gcp is None else survey_control(frames.gcp, images, origin, o.gcp_check)
+    if sfm is None:
+        work = stage / "sfm_work"
+        try:
+            sfm = map_frames(images, work, camera=frames.camera,
+                             options=SfmOptions(max_image_size=o.max_image_size, refine_focal=free,
+                                                refine_distortion=free, refine_principal_point=o.refine_principal_point,
+                                                matching=o.matching),
+                             progress=_in_stage(progress, "poses"), positions=positions,
+                             gps_accuracy=(o.gps_accuracy or "estimate") if o.gps_prior else None,
+                             control=control)
+        except (InputError, ReconstructionError) as exc:
+            raise _without_staged_log(exc, work / "colmap.log") from None
+        cache.save_sfm(sfm)
+    _warn_self_calibration(sfm.self_calibration)
+    return sfm, reused, control, checks
+
+
+def _gcp_check(stage: Path, gf: GcpFile, control: list, checks: list, sfm: Any, T_enu: dict[int, NDArray],
+               points_enu: NDArray, origin: NDArray, geo: Georef) -> str:
+    """``gcp_check.json`` into ``stage`` (every point measured through the final poses);
+    returns its one-line summary."""
+    K = np.asarray(sfm.K, dtype=np.float64)
+    gsd = float(np.median([np.median(_project(np.linalg.inv(T), K, points_enu)[1]) for T in T_enu.values()]) / K[0, 0])
+    report = check_points_report(gf, control, checks, T_enu, K, np.asarray(sfm.dist, dtype=np.float64), origin, gsd,
+                                 geo.method)
+    atomic_write_text(stage / "gcp_check.json", json.dumps(report, indent=1))
+    return "; ".join(f"{r} points RMS {report[r]['rms_horizontal_m']:.3f} m horizontal, "
+                     f"{report[r]['rms_vertical_m']:.3f} m vertical" for r in ("control", "check") if r in report
+                     ) + " (gcp_check.json)"
+
+
+def _warn_self_calibration(sc: dict) -> None:
+    """A warning when the adjustment refined the focal length but the block cannot
+    determine it (a nadir block at one altitude with nothing holding heights from outside)."""
+    if not sc or sc.get("determined", True):
+        return
+    if "error" in sc:
+        _log.warning("survey: the focal length's uncertainty could not be estimated (%s)", sc["error"])
+        return
+    g = sc["geometry"]
+    sig = sc["focal_sigma_pct"]
+    _log.warning(
+        "survey: the focal length (%.1f px, formal +-%s) is not determined by this block: %s; a 1 %% longer focal "
+        "length is a %.2f %% higher flight. Give ground control points (--gcp) with GPS, a calibration (--calib), "
+        "or fly oblique or at a second altitude", sc["focal_px"], "inf" if sig is None else f"{sig:.2f} %",
+        "nadir frames at one altitude" if g["one_direction"] and g["one_altitude"] else "too few constraints",
+        sc["height_change_per_focal_change"])
 
 
 def _refined(sfm: Any, free: bool, o: SurveyOptions) -> list[str]:
@@ -568,16 +625,23 @@ class _Frames:
     gps_source: str
     camera: Any
     calib_source: str
+    gcp: GcpFile | None = None
 
     @classmethod
     def of(cls, images: Sequence[str | Path], gps_table: str | Path | None, calib: str | Path | None,
-           crs: str | None = None) -> _Frames:
-        """The frames checked, and that ``crs`` can be given (a CRS needs GPS)."""
+           crs: str | None = None, gcp: str | None = None, gcp_check: Sequence[str] = ()) -> _Frames:
+        """The frames checked, that ``crs`` can be given (a CRS needs GPS), and the control
+        points (their file, images and check names)."""
         paths, size = check_frames(images)
         tags, gps_source = gps_positions(paths, gps_table)
-        MapFrame.for_site(crs, None if tags is None else [tags[0].lat_deg, tags[0].lon_deg, 0.0])
+        origin = None if tags is None else [tags[0].lat_deg, tags[0].lon_deg, 0.0]
+        MapFrame.for_site(crs, origin)
+        gf = None
+        if gcp is not None:
+            gf = read_gcp_file(gcp)
+            survey_control(gf, [str(p) for p in paths], None if origin is None else np.asarray(origin), gcp_check)
         camera, calib_source = starting_camera(paths, size, calib)
-        return cls(list(paths), size, tags, gps_source, camera, calib_source)
+        return cls(list(paths), size, tags, gps_source, camera, calib_source, gf)
 
 
 def _pair_requests(frames: _Frames, sfm: Any, T_enu: dict[int, NDArray], points_enu: NDArray, factor: int,

@@ -47,20 +47,33 @@ from prism3d.io.atomic import atomic_write_text
 from prism3d.io.images import check_image_size
 from prism3d.reconstruct.survey import _sfm_worker
 
-__all__ = ["SfmOptions", "SfmResult", "map_frames", "similarity_align", "why_not_placed"]
+__all__ = ["ControlPoint", "SfmOptions", "SfmResult", "map_frames", "similarity_align", "why_not_placed"]
 
 log = logging.getLogger(__name__)
 
 #: "auto" matching is exhaustive up to this many images, sequential above.
 EXHAUSTIVE_MAX_IMAGES = 40
+#: The GPS accuracy (horizontal, vertical; m) a first adjustment assumes when it is estimated:
+#: a consumer drone's GNSS.
+GPS_START_ACCURACY = (1.0, 2.0)
 #: The file that marks a work folder as made by :func:`map_frames`.
 WORK_MARK = ".prism3d-sfm"
 #: What :func:`map_frames` writes in its work folder (removed before a rerun there).
 _OWNED = ("database.db", "database.db-wal", "database.db-shm", "images", "model", "sparse",
           "request.json", "result.npz", "result.json", "colmap.log")
-_STAGES = ("features", "matching", "mapping", "camera model")
+_STAGES = ("features", "matching", "mapping", "camera model", "georeferencing")
 _WORKER_SCHEMA = 1
 _WORKER_MODULE = _sfm_worker.__name__  # run as its own process (python -m)
+
+
+@dataclass(frozen=True)
+class ControlPoint:
+    """A ground control point: its name, its position (local ENU m) and its pixels
+    ``(frame index, x, y)`` in prism3d's convention (the frames of :func:`map_frames`)."""
+
+    name: str
+    enu: tuple[float, float, float]
+    observations: tuple[tuple[int, float, float], ...]
 
 
 @dataclass(frozen=True)
@@ -163,6 +176,15 @@ class SfmResult:
     cx, cy, k1, k2, p1, p2)."""
     camera_choice: dict = field(default_factory=dict)
     """How the camera model was chosen: the candidates' held-back RMS, or why none was compared."""
+    frame: str = "model"
+    """``model`` (COLMAP's arbitrary frame) or ``enu``: the poses and points are already in
+    the local east-north-up frame of the control points or GPS positions given
+    (``georeferencing`` says how)."""
+    georeferencing: dict = field(default_factory=dict)
+    """How the model was moved into ENU and adjusted there (control points, GPS priors)."""
+    self_calibration: dict = field(default_factory=dict)
+    """When the focal length was refined: its formal uncertainty, how the flying height
+    trades against it, the block's geometry and whether the block ``determined`` it."""
 
     @property
     def camera(self) -> CameraModel:
@@ -211,60 +233,36 @@ def similarity_align(src: NDArray, dst: NDArray, *, scale: bool = True
     if sv[0] <= 0 or sv[1] <= 1e-9 * sv[0]:
         raise InputError("similarity_align: the source points are all on one line (or one point); "
                          "the rotation is undetermined")
-    cov = bc.T @ ac / len(a)
-    U, S, Vt = np.linalg.svd(cov)
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1.0
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (np.sum(ac**2) / len(a))) if scale else 1.0
-    t = mb - s * R @ ma
+    s, R, t = _sfm_worker.umeyama(np, a, b)
+    if not scale:
+        s, t = 1.0, mb - R @ ma
     return s, R, t
 
 
 def map_frames(images: Sequence[str | Path], work_dir: str | Path, *, camera: CameraModel | None = None,
                focal_px: float | None = None, options: SfmOptions | None = None,
                progress: Callable[[int, int, str], None] | None = None,
-               positions: NDArray | None = None) -> SfmResult:
-    """Poses of ``images`` (frames of one camera) by COLMAP's incremental structure from
-    motion, run in a child process in ``work_dir``.
+               positions: NDArray | None = None, gps_accuracy: tuple[float, float] | str | None = None,
+               control: Sequence[ControlPoint] = ()) -> SfmResult:
+    """Poses of ``images`` (two or more frames of one camera and size, in flight order) by
+    COLMAP's incremental structure from motion, run in a child process in ``work_dir``: a
+    new or empty folder, or one an earlier call made (``.prism3d-sfm``; a rerun replaces
+    its database, staged frames, ``request.json``, ``colmap.log``, results and ``model/``).
 
-    Parameters
-    ----------
-    images : sequence of paths
-        Two or more frames of one size, in flight order (sequential matching follows it).
-    work_dir : path
-        A new or empty folder, or one an earlier call made (marked by ``.prism3d-sfm``):
-        a rerun there starts again from scratch, replacing what that call wrote. It holds
-        the database, the staged frames (``images/``, symlinks), ``request.json`` (with the
-        staged name -> input path table), ``colmap.log``, the results and ``model/``.
-    camera : CameraModel, optional
-        The starting calibration at the frames' size; RADIAL starts from f = (fx + fy) / 2,
-        its principal point, k1 and k2 (p1, p2, k3 and skew are dropped).
-    focal_px : float, optional
-        Used without ``camera`` (``camera`` wins when both are given): the focal length
-        (px, e.g. from EXIF), principal point at the centre, no distortion.
-    options : SfmOptions, optional
-    positions : (n, 3) array, optional
-        Each frame's position (GPS, metres in a local frame): spatial matching pairs
-        frames by it (COLMAP pose priors, CARTESIAN).
-    progress : callable, optional
-        ``progress(done, 3, stage)`` as the features, matching and mapping stages start,
-        and ``progress(3, 3, "done")``.
+    ``camera``: the starting calibration (RADIAL from f = (fx + fy) / 2, the principal
+    point, k1 and k2); else ``focal_px`` (EXIF), principal point at the centre.
+    ``positions`` (n, 3): each frame's GPS position, metres in a local frame: spatial
+    matching pairs frames by it; with ``gps_accuracy`` ((horizontal, vertical) m, or
+    "estimate": from the residuals after a first adjustment at :data:`GPS_START_ACCURACY`)
+    the model is adjusted in that frame with the positions as soft constraints (COLMAP's
+    pose priors). ``control``: ground control points (local ENU) with their pixels; three
+    or more seen twice are held fixed in that adjustment. Either returns the model in the
+    local frame (``frame == "enu"``). ``progress(done, 5, stage)`` as each stage starts.
 
-    Returns
-    -------
-    SfmResult
-        The largest model; frames outside it are reported unregistered.
-
-    Raises
-    ------
-    InputError
-        Fewer than two frames, a missing or unreadable frame, frames of different sizes, no
-        or a mismatched starting calibration, a bad work folder, or fewer than two frames
-        placed (the frames do not overlap).
-    ReconstructionError
-        The child process crashed, failed or ran past ``options.timeout_s``.
+    Returns the largest model (frames outside it are unregistered). Raises
+    :class:`InputError` for fewer than two frames, a missing, unreadable or odd-sized frame,
+    a bad starting calibration or work folder, or fewer than two frames placed; and
+    :class:`ReconstructionError` when the child crashed, failed or ran past the timeout.
     """
     opts = SfmOptions() if options is None else options
     if not isinstance(opts, SfmOptions):
@@ -273,13 +271,27 @@ def map_frames(images: Sequence[str | Path], work_dir: str | Path, *, camera: Ca
     paths = _check_images(images)
     size = _frame_size(paths)
     params = _starting_params(camera, focal_px, size)
+    gps = None if gps_accuracy is None or positions is None else _gps_prior(gps_accuracy)
     wd = _prepare_work_dir(work_dir, paths)
     staged = _stage_images(paths, wd / "images")
     request = _worker_request(opts, wd, images, paths, staged, params, _checked_positions(positions, len(paths)))
+    request["gps_prior"] = gps
+    request["gcps"] = [{"name": c.name, "enu": [float(v) for v in c.enu],
+                        "obs": [[staged[k], float(x) + 0.5, float(y) + 0.5] for k, x, y in c.observations]}
+                       for c in control]  # COLMAP's pixels: (0, 0) the top-left corner
     atomic_write_text(wd / "request.json", json.dumps(request, indent=1))
     log_path = wd / "colmap.log"
     _run_worker(wd, log_path, opts.timeout_s, progress)
     return _read_result(wd, [str(p) for p in images], staged, size, log_path, time.perf_counter() - t_start)
+
+
+def _gps_prior(gps_accuracy: tuple[float, float] | str) -> dict:
+    """The request's GPS prior: the accuracy given, or the start of its estimate."""
+    est = isinstance(gps_accuracy, str)
+    if est and gps_accuracy != "estimate":
+        raise InputError(f"gps_accuracy: expected (horizontal, vertical) metres or 'estimate', got {gps_accuracy!r}")
+    h, v = (check_positive(a, "gps_accuracy") for a in (GPS_START_ACCURACY if est else gps_accuracy))
+    return {"sigma_h": float(h), "sigma_v": float(v), "estimate": est}
 
 
 def _checked_positions(positions: NDArray | None, n: int) -> NDArray[np.float64] | None:
@@ -547,7 +559,10 @@ def _read_result(wd: Path, names: list[str], staged: list[str], size: tuple[int,
         points=arr["points"], colors=arr["colors"], track_length=arr["track_length"],
         reprojection_rms_px=rms, n_observations=int(len(err)), model_dir=wd / "model", seconds=seconds,
         log_path=log_path, model_names=list(staged), model_sizes=[int(v) for v in info["model_sizes"]],
-        camera_model=model, camera_choice=dict(info.get("camera_choice") or {}))
+        camera_model=model, camera_choice=dict(info.get("camera_choice") or {}),
+        frame=str((info.get("georeferencing") or {}).get("frame", "model")),
+        georeferencing=dict(info.get("georeferencing") or {}),
+        self_calibration=dict(info.get("self_calibration") or {}))
 
 
 def _intrinsics(model: str, params: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

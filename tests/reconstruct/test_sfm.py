@@ -131,8 +131,8 @@ def test_synthetic_strip_poses_and_focal(strip, tmp_path):
     res = map_frames(paths, tmp_path / "sfm", camera=CameraModel(K=K0, dist=np.zeros(5), size=(W, H)),
                      options=SfmOptions(refine_distortion=False),
                      progress=lambda i, n, s: stages.append((i, n, s)))
-    # the camera-model stage runs only when distortion is refined
-    assert stages == [(0, 4, "features"), (1, 4, "matching"), (2, 4, "mapping"), (4, 4, "done")]
+    # the camera-model stage runs only when distortion is refined, georeferencing only with GPS or control points
+    assert stages == [(0, 5, "features"), (1, 5, "matching"), (2, 5, "mapping"), (5, 5, "done")]
     assert res.registered == [True] * 5 and res.unregistered == []
     assert res.names == [str(p) for p in paths] and res.size == (W, H)
     assert abs(res.K[0, 0] / F - 1) < 0.01 and res.K[0, 0] == res.K[1, 1]
