@@ -32,7 +32,7 @@ from prism3d.errors import InputError
 from prism3d.geo import enu_to_wgs84, wgs84_to_enu
 from prism3d.reconstruct.survey.sfm import ControlPoint
 
-__all__ = ["GcpFile", "GcpPoint", "check_points_report", "read_gcp_file", "survey_control"]
+__all__ = ["GcpFile", "GcpPoint", "check_points_report", "gps_only_accuracy", "read_gcp_file", "survey_control"]
 
 #: The fewest points a file must hold, and the fewest control points an adjustment takes.
 MIN_POINTS = 3
@@ -164,6 +164,28 @@ def survey_control(gf: GcpFile, frame_names: Sequence[str], origin_lla: NDArray 
     return control, checks
 
 
+def gps_only_accuracy(C: NDArray, ground: NDArray, sigma_h: float, sigma_v: float) -> dict[str, Any]:
+    """The 1-sigma absolute error of a block that rests on its GPS alone (no control
+    points): a least-squares fit of n positions of accuracy (``sigma_h`` per axis,
+    ``sigma_v``) leaves a shift of sigma / sqrt(n) and a tilt about each horizontal
+    principal axis of the positions of sigma_v / (sqrt(n) x their spread across it); that
+    tilt moves the ground at its farthest from the positions' centroid (``ground``:
+    sparse points, ENU). A block of one or two lines is narrow across: its roll is the
+    weak part."""
+    C = np.asarray(C, dtype=np.float64)
+    n = len(C)
+    m = C[:, :2].mean(axis=0)
+    evals, evecs = np.linalg.eigh(np.cov((C[:, :2] - m).T, bias=True))
+    G = np.asarray(ground, dtype=np.float64)[:, :2] - m
+    tilt = [sigma_v / (math.sqrt(n) * max(math.sqrt(max(ev, 0.0)), 1e-9)) for ev in evals]
+    reach = [float(np.abs(G @ evecs[:, k]).max()) if len(G) else 0.0 for k in range(2)]
+    edge = math.sqrt((sigma_v / math.sqrt(n)) ** 2 + sum((t * r) ** 2 for t, r in zip(tilt, reach)))
+    return {"control": "none: position, scale and tilt rest on the GPS", "gps_accuracy_m": [sigma_h, sigma_v],
+            "horizontal_m": round(sigma_h / math.sqrt(n), 3), "vertical_m": round(sigma_v / math.sqrt(n), 3),
+            "tilt_deg": round(math.degrees(max(tilt)), 3), "vertical_at_edges_m": round(edge, 3),
+            "measured": False, "how_to_measure": "give check points (--gcp FILE --gcp-check NAMES)"}
+
+
 def _triangulate(obs: Sequence[tuple[int, float, float]], T_enu: dict[int, NDArray], K: NDArray, dist: NDArray
                  ) -> tuple[NDArray[np.float64] | None, int]:
     """A point (ENU) from its pixels in placed frames (undistorted, linear least squares,
@@ -196,8 +218,9 @@ def check_points_report(gf: GcpFile, control: Sequence[ControlPoint], checks: Se
                         T_enu: dict[int, NDArray], K: NDArray, dist: NDArray, origin_lla: NDArray,
                         gsd_m: float, adjusted: str) -> dict[str, Any]:
     """``gcp_check.json``: each point triangulated from the final poses and compared with
-    its map coordinates in the file's CRS (no alignment): residual per point (x, y, z in
-    the CRS's units, m; horizontal, vertical), and the RMS per role, in m and in GSD."""
+    its map coordinates in the file's CRS (no alignment): residual per point (dx, dy, dz,
+    m: the CRS's axes, or east, north, up for a geographic CRS; horizontal, vertical), and
+    the RMS per role, in m and in GSD."""
     given = {pt.name: np.array(pt.xyz) for pt in gf.points}
     rows = []
     for role, pts in (("control", control), ("check", checks)):
@@ -208,11 +231,8 @@ def check_points_report(gf: GcpFile, control: Sequence[ControlPoint], checks: Se
                 row["why"] = "seen in fewer than two placed frames"
             else:
                 got = gf.from_lla(enu_to_wgs84(X[None], origin_lla))[0]
-                if gf.crs.is_geographic:  # degrees -> metres on the ground
-                    d_enu = X - np.asarray(cp.enu)
-                    d = d_enu
-                else:
-                    d = got - given[cp.name]
+                # metres: map units of a projected CRS; a geographic CRS's degrees measured in ENU
+                d = X - np.asarray(cp.enu) if gf.crs.is_geographic else got - given[cp.name]
                 row.update(estimated=[round(float(v), 4) for v in got], dx_m=round(float(d[0]), 4),
                            dy_m=round(float(d[1]), 4), dz_m=round(float(d[2]), 4),
                            horizontal_m=round(float(math.hypot(d[0], d[1])), 4), vertical_m=round(abs(float(d[2])), 4))

@@ -33,7 +33,13 @@ from prism3d.io.images import read_image
 from prism3d.reconstruct.stereo.flatness import ransac_plane
 from prism3d.reconstruct.stereo.match_options import MatchOptions
 from prism3d.reconstruct.survey.dsm import MAX_CELLS, grid_points
-from prism3d.reconstruct.survey.gcp import GcpFile, check_points_report, read_gcp_file, survey_control
+from prism3d.reconstruct.survey.gcp import (
+    GcpFile,
+    check_points_report,
+    gps_only_accuracy,
+    read_gcp_file,
+    survey_control,
+)
 from prism3d.reconstruct.survey.inputs import (
     VIDEO_SUFFIXES,
     check_frames,
@@ -473,7 +479,8 @@ def run_survey(images: Sequence[str | Path], out_dir: str | Path, *, calib: str 
             summary = _stages(stage, out, [str(p) for p in images], frames, o, bool(videos), free, cache, run_pairs,
                               progress)
             summary["seconds"]["total"] = round(time.perf_counter() - t_all, 2)
-            _record(stage / "poses.json", {"seconds": summary["seconds"], "resumed": summary["resumed"]})
+            _record(stage / "poses.json", {"seconds": summary["seconds"], "resumed": summary["resumed"],
+                                           "absolute_accuracy": summary["absolute_accuracy"]})
         except Exception:
             cache.remove()  # a failure on the input: nothing there is worth keeping
             raise
@@ -509,6 +516,7 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
     gcp_line = None if frames.gcp is None else _gcp_check(stage, frames.gcp, control, checks, sfm, T_enu, points_enu,
                                                            origin, geo)
+    absolute = _absolute_accuracy(sfm, geo, T_enu, points_enu, gps_enu, len(control), len(checks))
     factor = _dense_scale(frames.size, o.dense_max_pixels)
     t0 = time.perf_counter()
     reqs = _pair_requests(frames, sfm, T_enu, points_enu, factor, o)
@@ -536,6 +544,7 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     seconds["products"] = time.perf_counter() - t0
     if gcp_line is not None:
         summary["gcp_check"] = gcp_line
+    summary["absolute_accuracy"] = absolute
     summary["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
     summary["resumed"] = {"poses": reused_poses, "pairs_reused": len(reqs) - len(todo), "pairs_matched": len(todo)}
     return summary
@@ -578,6 +587,26 @@ def _gcp_check(stage: Path, gf: GcpFile, control: list, checks: list, sfm: Any, 
     return "; ".join(f"{r} points RMS {report[r]['rms_horizontal_m']:.3f} m horizontal, "
                      f"{report[r]['rms_vertical_m']:.3f} m vertical" for r in ("control", "check") if r in report
                      ) + " (gcp_check.json)"
+
+
+def _absolute_accuracy(sfm: Any, geo: Georef, T_enu: dict[int, NDArray], points_enu: NDArray,
+                       gps_enu: NDArray | None, n_control: int, n_checks: int) -> dict[str, Any]:
+    """What the products' absolute placement rests on, and without control points its
+    expected error from the GPS (:func:`gps_only_accuracy`; the accuracy the adjustment
+    used or estimated, else the positions' residual RMS after the similarity)."""
+    if n_control:
+        return {"control": f"{n_control} ground control points", "measured": True, "report": "gcp_check.json"}
+    if gps_enu is None:
+        return {"control": "none and no GPS: scale and position unknown", "measured": False}
+    acc = getattr(sfm, "georeferencing", {}).get("gps_accuracy_m")
+    if acc is None:
+        r = float(geo.residual_rms_m or 0.0)
+        acc = [r / math.sqrt(3.0), r / math.sqrt(3.0)]
+    C = np.array([T[:3, 3] for T in T_enu.values()])
+    out = gps_only_accuracy(C, points_enu, float(acc[0]), float(acc[1]))
+    if n_checks:
+        out.update(measured=True, report=f"gcp_check.json ({n_checks} check points)")
+    return out
 
 
 def _warn_self_calibration(sc: dict) -> None:

@@ -80,6 +80,8 @@ def test_survey_with_control_points_meets_the_check_point_bounds(flight: Path, t
     assert 0.15 <= sh <= 0.6 and 0.3 <= sv <= 1.2
     sc = doc["camera"]["self_calibration"]
     assert sc["anchored_by"] and sc["geometry"]["one_direction"] and sc["geometry"]["one_altitude"]
+    assert doc["absolute_accuracy"] == {"control": "5 ground control points", "measured": True,
+                                        "report": "gcp_check.json"}
 
 
 def test_gps_only_survey_reports_its_absolute_error_and_an_undetermined_focal_length(flight: Path, tmp_path: Path,
@@ -98,8 +100,12 @@ def test_gps_only_survey_reports_its_absolute_error_and_an_undetermined_focal_le
     rep = json.loads((out / "gcp_check.json").read_text())
     assert "control" not in rep and rep["check"]["points"] == 8
     assert "GPS positions" in rep["adjusted_with"]
-    sc = json.loads((out / "poses.json").read_text())["camera"]["self_calibration"]
+    doc = json.loads((out / "poses.json").read_text())
+    sc = doc["camera"]["self_calibration"]
     assert sc["determined"] is False and sc["anchored_by"] is None
+    ab = doc["absolute_accuracy"]  # the GPS-only expectation, beside the measured check points
+    assert ab["control"].startswith("none") and ab["measured"] and ab["report"].startswith("gcp_check.json")
+    assert 0 < ab["vertical_m"] < ab["vertical_at_edges_m"] and ab["tilt_deg"] > 0
     assert 0.8 <= sc["height_change_per_focal_change"] <= 1.2  # a longer focal length is a higher flight
     assert any("not determined" in r.getMessage() for r in caplog.records)
 
