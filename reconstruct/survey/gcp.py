@@ -36,6 +36,8 @@ __all__ = ["GcpFile", "GcpPoint", "check_points_report", "gps_only_accuracy", "r
 
 #: The fewest points a file must hold, and the fewest control points an adjustment takes.
 MIN_POINTS = 3
+#: Positions whose spread across is below this share of their spread along lie on one line.
+ONE_LINE_SPREAD = 0.05
 #: ODM's short CRS form.
 _ODM_UTM = re.compile(r"^\s*WGS\s*84\s+UTM\s+(\d{1,2})\s*([NS])\s*$", re.IGNORECASE)
 
@@ -177,13 +179,20 @@ def gps_only_accuracy(C: NDArray, ground: NDArray, sigma_h: float, sigma_v: floa
     m = C[:, :2].mean(axis=0)
     evals, evecs = np.linalg.eigh(np.cov((C[:, :2] - m).T, bias=True))
     G = np.asarray(ground, dtype=np.float64)[:, :2] - m
-    tilt = [sigma_v / (math.sqrt(n) * max(math.sqrt(max(ev, 0.0)), 1e-9)) for ev in evals]
+    out: dict[str, Any] = {
+        "control": "none: position, scale and tilt rest on the GPS", "gps_accuracy_m": [sigma_h, sigma_v],
+        "horizontal_m": round(sigma_h / math.sqrt(n), 3), "vertical_m": round(sigma_v / math.sqrt(n), 3),
+        "measured": False, "how_to_measure": "give check points (--gcp FILE --gcp-check NAMES)"}
+    spread = np.sqrt(np.maximum(evals, 0.0))
+    if n < 3 or spread[0] <= ONE_LINE_SPREAD * spread[1]:  # the roll about the line: from the ground, not the GPS
+        out.update(tilt_deg=None, vertical_at_edges_m=None,
+                   tilt="the positions lie on one line: the roll about it comes from the ground's plane")
+        return out
+    tilt = [sigma_v / (math.sqrt(n) * sd) for sd in spread]
     reach = [float(np.abs(G @ evecs[:, k]).max()) if len(G) else 0.0 for k in range(2)]
     edge = math.sqrt((sigma_v / math.sqrt(n)) ** 2 + sum((t * r) ** 2 for t, r in zip(tilt, reach)))
-    return {"control": "none: position, scale and tilt rest on the GPS", "gps_accuracy_m": [sigma_h, sigma_v],
-            "horizontal_m": round(sigma_h / math.sqrt(n), 3), "vertical_m": round(sigma_v / math.sqrt(n), 3),
-            "tilt_deg": round(math.degrees(max(tilt)), 3), "vertical_at_edges_m": round(edge, 3),
-            "measured": False, "how_to_measure": "give check points (--gcp FILE --gcp-check NAMES)"}
+    out.update(tilt_deg=round(math.degrees(max(tilt)), 3), vertical_at_edges_m=round(edge, 3))
+    return out
 
 
 def _triangulate(obs: Sequence[tuple[int, float, float]], T_enu: dict[int, NDArray], K: NDArray, dist: NDArray

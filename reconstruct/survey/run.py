@@ -619,12 +619,11 @@ def _warn_self_calibration(sc: dict) -> None:
         return
     g = sc["geometry"]
     sig = sc["focal_sigma_pct"]
-    _log.warning(
-        "survey: the focal length (%.1f px, formal +-%s) is not determined by this block: %s; a 1 %% longer focal "
-        "length is a %.2f %% higher flight. Give ground control points (--gcp) with GPS, a calibration (--calib), "
-        "or fly oblique or at a second altitude", sc["focal_px"], "inf" if sig is None else f"{sig:.2f} %",
-        "nadir frames at one altitude" if g["one_direction"] and g["one_altitude"] else "too few constraints",
-        sc["height_change_per_focal_change"])
+    why = ("nadir frames at one altitude tie it to the flying height, and its formal uncertainty understates that"
+           if g["one_direction"] and g["one_altitude"] else "its uncertainty is above 0.5 %")
+    _log.warning("survey: the focal length (%.1f px, formal +-%s) is not determined by this block: %s. Give ground "
+                 "control points (--gcp) with GPS, a calibration (--calib), or fly oblique or at a second altitude",
+                 sc["focal_px"], "inf" if sig is None else f"{sig:.2f} %", why)
 
 
 def _refined(sfm: Any, free: bool, o: SurveyOptions) -> list[str]:

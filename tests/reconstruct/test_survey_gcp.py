@@ -174,3 +174,24 @@ def test_odm_crs_forms_and_geographic_coordinates(tmp_path: Path) -> None:
     p.write_text("EPSG:32654\n" + "\n".join(rows) + "\n" + rows[0].replace("149.6", "150.6") + "\n")
     with pytest.raises(InputError, match="two positions"):
         read_gcp_file(p)
+
+
+def test_gps_only_accuracy_follows_the_block_geometry() -> None:
+    """Two lines 40 m apart, 6 frames 20 m apart each: the positions' spread across is
+    20 m, so the roll's 1-sigma is sigma_v / (sqrt(12) x 20 m); the ground's edge 60 m out
+    moves by that times 60 m (with the shift). One straight line: no tilt from the GPS."""
+    import math
+
+    from prism3d.reconstruct.survey.gcp import gps_only_accuracy
+
+    C = np.array([[x, y, 100.0] for y in (-20.0, 20.0) for x in np.arange(6) * 20.0 - 50.0])
+    ground = np.array([[0.0, 60.0, 0.0], [0.0, -60.0, 0.0], [55.0, 0.0, 0.0]])
+    r = gps_only_accuracy(C, ground, 0.3, 0.6)
+    roll = 0.6 / (math.sqrt(12) * 20.0)
+    assert r["tilt_deg"] == pytest.approx(math.degrees(roll), abs=1e-3)
+    along = 0.6 / (math.sqrt(12) * float(np.std(np.arange(6) * 20.0)))
+    edge = math.sqrt((0.6 / math.sqrt(12)) ** 2 + (roll * 60.0) ** 2 + (along * 55.0) ** 2)
+    assert r["vertical_at_edges_m"] == pytest.approx(edge, abs=1e-3)
+    assert r["horizontal_m"] == pytest.approx(0.3 / math.sqrt(12), abs=1e-3)
+    line = gps_only_accuracy(C[:6], ground, 0.3, 0.6)
+    assert line["tilt_deg"] is None and "one line" in line["tilt"]
