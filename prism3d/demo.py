@@ -627,8 +627,8 @@ def _stage_survey(ctx: DemoContext) -> Section:
     s.paragraphs.append(
         f"{len(doc['frames'])} frames on two flight lines (from 35 m, GSD {r['gsd_m'] * 100:.1f} cm) over a car park: "
         "rows of parked cars of every body colour, vans, pickups, kei trucks, buses and box trucks, trees over the "
-        "edge rows, people and light poles, with noisy GPS. 'prism3d survey' found the poses (pycolmap), put them "
-        "on the GPS, matched neighbouring frames (our matcher), fused the heights and made a true orthophoto at the "
+        "edge rows, people and light poles, with noisy GPS. 'prism3d survey' found the poses (pycolmap), adjusted "
+        "them with the GPS positions as constraints, matched neighbouring frames (our matcher), fused the heights and made a true orthophoto at the "
         "photographs' ground sample distance; 'prism3d survey-detect' found and named the vehicles from the "
         "orthophoto's appearance and the nDSM's height with a recogniser trained on our procedural vehicles "
         f"rendered from above ({'cached' if info['cached'] else 'trained now'}). Figures at size: docs/atr.md.")

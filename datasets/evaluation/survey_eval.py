@@ -129,13 +129,37 @@ def _dsm_scores(dsm: NDArray, meta: dict, tz: Any, truth: dict, fr: _Frames, fra
     e = (est - tdsm)[open_ground & np.isfinite(est)]
     if not len(e):
         raise InputError("evaluate: no open ground of the truth has an estimated height")
+    detrended = _without_shift_and_plane(est, tdsm, open_ground & np.isfinite(est), west, north, cell)
     return {
         "open_ground_cells": int(open_ground.sum()), "scored_cells": int(len(e)),
         "median_abs_error_m": float(np.median(np.abs(e))), "rms_error_m": float(np.sqrt(np.mean(e**2))),
         "median_abs_error_gsd": float(np.median(np.abs(e)) / gsd), "rms_error_gsd": float(np.sqrt(np.mean(e**2)) / gsd),
         "bias_m": float(np.median(e)), "overlap_cells": int(overlap.sum()),
         "overlap_filled_fraction": float(np.isfinite(est[overlap]).mean()) if overlap.any() else 0.0,
+        "after_shift_and_plane": {**detrended, "median_abs_error_gsd": detrended["median_abs_error_m"] / gsd,
+                                  "rms_error_gsd": detrended["rms_error_m"] / gsd},
     }
+
+
+def _without_shift_and_plane(est: NDArray, tdsm: NDArray, ok: NDArray, west: float, north: float, cell: float
+                             ) -> dict[str, Any]:
+    """The open-ground error once a horizontal shift and a plane are removed (what an
+    absolute placement error leaves out: a survey without control is off by a shift, a
+    tilt and a height): ``est - true ~ c + a x + b y - grad(true) . (dx, dy)``, linear
+    least squares (the shift linearised on the true surface's gradient), then the
+    residuals' median |e| and RMS. ``shift_m`` (east, north) is d in est(p) ~ true(p + d)."""
+    gy, gx = np.gradient(tdsm.astype(np.float64), cell)
+    r, c = np.nonzero(ok)
+    x = (c + 0.5) * cell
+    y = -(r + 0.5) * cell
+    A = np.c_[np.ones(len(r)), x - x.mean(), y - y.mean(), gx[r, c], -gy[r, c]]  # y grows north, rows south
+    b = (est - tdsm)[r, c]
+    fin = np.isfinite(A).all(axis=1)
+    p = np.linalg.lstsq(A[fin], b[fin], rcond=None)[0]
+    res = b[fin] - A[fin] @ p
+    return {"median_abs_error_m": float(np.median(np.abs(res))), "rms_error_m": float(np.sqrt(np.mean(res**2))),
+            "shift_m": [float(p[3]), float(p[4])], "height_m": float(p[0]),
+            "tilt_deg": float(np.degrees(np.arctan(np.hypot(p[1], p[2]))))}
 
 
 def _open_ground(tid: NDArray, cell: float) -> NDArray[np.bool_]:
