@@ -572,6 +572,11 @@ def _poses(stage: Path, images: list[str], frames: _Frames, o: SurveyOptions, fr
             raise _without_staged_log(exc, work / "colmap.log") from None
         cache.save_sfm(sfm)
     _warn_self_calibration(sfm.self_calibration)
+    used = int(sfm.georeferencing.get("control_points", 0))
+    if control and used < len(control):
+        _log.warning("survey: %d of %d control points held in the adjustment (the rest are seen in fewer than two "
+                     "placed frames%s); gcp_check.json measures them all", used, len(control),
+                     "; fewer than 3 left, so none is held" if used == 0 else "")
     return sfm, reused, control, checks
 
 
