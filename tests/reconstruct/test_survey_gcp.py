@@ -195,3 +195,14 @@ def test_gps_only_accuracy_follows_the_block_geometry() -> None:
     assert r["horizontal_m"] == pytest.approx(0.3 / math.sqrt(12), abs=1e-3)
     line = gps_only_accuracy(C[:6], ground, 0.3, 0.6)
     assert line["tilt_deg"] is None and "one line" in line["tilt"]
+
+
+@pytest.mark.parametrize("argv, want", [(["--gcp", "-1"], "gcp"), (["--gcp", "51"], "gcp"),
+                                        (["--gcp", "3", "--gcp-pixel-sigma", "-0.5"], "gcp_pixel_sigma")])
+def test_simulate_flight_refuses_bad_control_point_options(argv: list[str], want: str, tmp_path: Path,
+                                                             capsys) -> None:
+    out = tmp_path / "f"
+    rc = main(["simulate", "flight", str(out), "--size", "320x240", "--frames", "4", *argv])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and want in err
+    assert not out.exists()
