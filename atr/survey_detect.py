@@ -38,6 +38,7 @@ from prism3d.checks import check_outputs_not_inputs
 from prism3d.errors import InputError
 from prism3d.geo import MapFrame, enu_to_wgs84
 from prism3d.io.atomic import atomic_paths, atomic_write_text
+from prism3d.reconstruct.survey.model import METRIC_SCALES
 from prism3d.io.geo import read_geotiff
 
 __all__ = ["NadirTemplate", "SurveyScene", "check_survey_request", "detect_in_survey", "draw_survey_detections", "find_vehicles",
@@ -454,7 +455,7 @@ def check_survey_request(survey_dir: str | Path, out_path: str | Path, *, thresh
         raise InputError(f"{d / 'poses.json'}: unreadable ({type(exc).__name__}: {exc})") from None
     if not isinstance(doc, dict):
         raise InputError(f"{d / 'poses.json'}: expected a JSON object, got {type(doc).__name__}")
-    if doc.get("scale") != "gps" or doc.get("origin_lla") is None:
+    if doc.get("scale") not in METRIC_SCALES or doc.get("origin_lla") is None:
         raise InputError(f"{d}: the survey's scale is unknown (no GPS); vehicle sizes cannot be compared")
     for name in ("ndsm.tif", "ortho.tif"):
         if not (d / name).is_file():

@@ -1030,7 +1030,7 @@ def _cmd_survey(args: argparse.Namespace) -> int:
     s = run_survey(args.images, args.output, calib=args.calib, gps_table=args.gps, options=opts,
                    progress=_progress(args, "survey", stage_lines=True), run_pairs=run_pairs, video_step_s=args.video_step,
                    resume=args.resume)
-    unit = "m" if s["scale"] == "gps" else "units (scale unknown: no GPS)"
+    unit = "m" if s["scale"] != "unknown" else "units (scale unknown: no GPS)"
     r = s["resumed"]
     if r["poses"] or r["pairs_reused"]:
         _say(args, f"survey: resumed: poses {'kept' if r['poses'] else 'computed'}, {r['pairs_reused']} pairs kept, "
@@ -1107,7 +1107,7 @@ def _add_survey(sub: Any) -> None:
                    "do not determine it)")
     p.add_argument("--gcp", type=Path, metavar="GCP_LIST", help="ground control points in OpenDroneMap's "
                    "gcp_list.txt format (a CRS line, then x y z pixel_x pixel_y image name): held fixed in the bundle "
-                   "adjustment; every point's residual goes to OUT/gcp_check.json")
+                   "adjustment (they place frames without GPS too); every point's residual goes to OUT/gcp_check.json")
     p.add_argument("--gcp-check", nargs="+", default=[], metavar="NAME",
                    help="names in the --gcp file kept out of the adjustment and only measured (check points; all of "
                    "them: the GPS-only survey's absolute error is measured)")

@@ -25,6 +25,7 @@ from prism3d.errors import InputError
 from prism3d.geo import MapFrame, enu_to_wgs84, wgs84_to_enu
 from prism3d.geometry import rotation_angle_deg
 from prism3d.io.geo import read_geotiff
+from prism3d.reconstruct.survey.model import METRIC_SCALES
 from prism3d.reconstruct.survey.sfm import similarity_align
 
 __all__ = ["evaluate_survey", "ground_roughness"]
@@ -254,7 +255,7 @@ def evaluate_survey(survey_dir: str | Path, flight_dir: str | Path, *, detection
     sd, fd = Path(survey_dir), Path(flight_dir)
     poses = json.loads((sd / "poses.json").read_text())
     truth = json.loads((fd / "truth.json").read_text())
-    if poses.get("scale") != "gps":
+    if poses.get("scale") not in METRIC_SCALES:
         raise InputError(f"{sd}: the survey has no GPS scale; nothing to compare in metres")
     out, fr = _pose_scores(poses, truth)
     dsm, meta = read_geotiff(sd / "dsm.tif")

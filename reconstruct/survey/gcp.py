@@ -138,11 +138,13 @@ def read_gcp_file(path: str | Path) -> GcpFile:
 def survey_control(gf: GcpFile, frame_names: Sequence[str], origin_lla: NDArray | None,
                    check: Sequence[str] = ()) -> tuple[list[ControlPoint], list[ControlPoint]]:
     """The file's points in the survey's local ENU frame (``origin_lla``) with their pixels
-    by frame index: (control, check). Errors: no GPS origin, an image not among the frames,
+    by frame index: (control, check). Errors: no origin (neither GPS nor control points), an
+    image not among the frames,
     a ``check`` name not in the file, or 1-2 control points left (0 checks only)."""
     where = str(gf.path)
     if origin_lla is None:
-        raise InputError(f"{where}: control points need the frames' GPS positions for the survey's local frame")
+        raise InputError(f"{where}: only check points and no GPS: nothing places the survey (give control points "
+                         "or the frames' GPS)")
     index = {Path(n).name: k for k, n in enumerate(frame_names)}
     missing = sorted({im for pt in gf.points for im, _, _ in pt.observations if im not in index})
     if missing:

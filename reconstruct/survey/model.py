@@ -154,6 +154,9 @@ class SurveyOptions:
             raise InputError(f"refine_intrinsics: expected auto, focal+distortion or none, got {self.refine_intrinsics!r}")
 
 
+#: ``poses.json`` ``scale`` of a survey in metres: placed by its GPS, or (no GPS) by its
+#: ground control points; "unknown" otherwise.
+METRIC_SCALES = ("gps", "control points")
 #: Largest DSM or orthophoto cell, m: a kilometre cell maps no drone survey (a larger value
 #: is a unit mistake; the products' grids would be one cell, or overflow).
 MAX_CELL_M = 1000.0
@@ -297,5 +300,10 @@ class SurveyState:
 
     @property
     def scaled(self) -> bool:
-        """Metres in a local ENU frame (GPS), or model units."""
+        """Metres in a local ENU frame (GPS or control points), or model units."""
         return self.origin is not None
+
+    @property
+    def scale(self) -> str:
+        """What placed the survey in metres (:data:`METRIC_SCALES`), or "unknown"."""
+        return "gps" if self.gps_enu is not None else "control points" if self.origin is not None else "unknown"

@@ -66,7 +66,7 @@ def _write_rasters(stage: Path, fused: FusedSurface, st: SurveyState, frame: Map
     """dsm, ground, ndsm, ortho and ortho_quality GeoTIFFs on the map grid; returns ground
     and nDSM on the survey's ENU grid, the orthophoto and the map grids written."""
     scaled = frame is not None
-    tags = {"SCALE": "gps" if scaled else "unknown", "SOFTWARE": "prism3d survey",
+    tags = {"SCALE": st.scale, "SOFTWARE": "prism3d survey",
             "HEIGHTS": "metres above the WGS84 ellipsoid" if scaled else "model units, frame levelled on the ground",
             "VERTICAL_DATUM": "WGS84 ellipsoid" if scaled else "none"}
     cell = fused.cell
@@ -178,7 +178,7 @@ def _poses_doc(stage: Path, fused: FusedSurface, st: SurveyState, ground: NDArra
         "reprojection_rms_px": float(sfm.reprojection_rms_px),
         "n_observations": int(sfm.n_observations),
         "n_sparse_points": int(len(sfm.points)),
-        "scale": "gps" if st.scaled else "unknown",
+        "scale": st.scale,
         "units": "m" if st.scaled else "model units (scale unknown)",
         "frame": ("local east-north-up at the origin (x east, y north, z up; heights above the WGS84 "
                   "ellipsoid); T_enu_cam maps OpenCV camera coordinates (x right, y down, z forward)")

@@ -514,6 +514,11 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     sfm, reused_poses, control, checks = _poses(stage, images, frames, o, free, cache, progress)
     seconds["poses"] = time.perf_counter() - t0
     geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
+    if origin is None and frames.origin is not None:  # no GPS: placed by the control points, or not at all
+        if sfm.frame != "enu":
+            raise InputError("survey: no GPS, and fewer than 3 control points are seen in two placed frames; "
+                             "the survey cannot be placed (give GPS, or control points seen in more frames)")
+        origin = frames.origin
     gcp_line = None if frames.gcp is None else _gcp_check(stage, frames.gcp, control, checks, sfm, T_enu, points_enu,
                                                            origin, geo)
     absolute = _absolute_accuracy(sfm, geo, T_enu, points_enu, gps_enu, len(control), len(checks))
@@ -556,8 +561,9 @@ def _poses(stage: Path, images: list[str], frames: _Frames, o: SurveyOptions, fr
     control points), whether it was kept, and the control and check points (local ENU)."""
     sfm = cache.load_sfm(stage / "sfm_work" / "colmap.log")
     reused = sfm is not None
-    origin, positions = _gps_enu(frames.tags)  # GPS: spatial matching above 40 frames, and priors
-    control, checks = ([], []) if frames.gcp is None else survey_control(frames.gcp, images, origin, o.gcp_check)
+    positions = _gps_enu(frames.tags)[1]  # GPS: spatial matching above 40 frames, and priors
+    control, checks = ([], []) if frames.gcp is None else survey_control(frames.gcp, images, frames.origin,
+                                                                        o.gcp_check)
     if sfm is None:
         work = stage / "sfm_work"
         try:
@@ -659,6 +665,7 @@ class _Frames:
     camera: Any
     calib_source: str
     gcp: GcpFile | None = None
+    origin: NDArray | None = None  # the local frame's (lat, lon, 0): the first frame's GPS, else the first control point
 
     @classmethod
     def of(cls, images: Sequence[str | Path], gps_table: str | Path | None, calib: str | Path | None,
@@ -667,14 +674,16 @@ class _Frames:
         points (their file, images and check names)."""
         paths, size = check_frames(images)
         tags, gps_source = gps_positions(paths, gps_table)
-        origin = None if tags is None else [tags[0].lat_deg, tags[0].lon_deg, 0.0]
+        gf = None if gcp is None else read_gcp_file(gcp)
+        origin = None if tags is None else np.array([tags[0].lat_deg, tags[0].lon_deg, 0.0])
+        if origin is None and gf is not None and len(gf.points) > len(set(gcp_check)):
+            lla = gf.to_lla(np.array([gf.points[0].xyz]))[0]
+            origin = np.array([lla[0], lla[1], 0.0])
         MapFrame.for_site(crs, origin)
-        gf = None
-        if gcp is not None:
-            gf = read_gcp_file(gcp)
-            survey_control(gf, [str(p) for p in paths], None if origin is None else np.asarray(origin), gcp_check)
+        if gf is not None:
+            survey_control(gf, [str(p) for p in paths], origin, gcp_check)
         camera, calib_source = starting_camera(paths, size, calib)
-        return cls(list(paths), size, tags, gps_source, camera, calib_source, gf)
+        return cls(list(paths), size, tags, gps_source, camera, calib_source, gf, origin)
 
 
 def _pair_requests(frames: _Frames, sfm: Any, T_enu: dict[int, NDArray], points_enu: NDArray, factor: int,

@@ -206,3 +206,36 @@ def test_simulate_flight_refuses_bad_control_point_options(argv: list[str], want
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and want in err
     assert not out.exists()
+
+
+def test_control_points_place_a_survey_without_gps(flight: Path, tmp_path: Path, capsys) -> None:
+    """Frames with no GPS at all (EXIF dropped), the calibration given: the control points
+    alone place the survey in the map frame (``scale: "control points"``, UTM products);
+    the check points stay within the issue's bounds and the evaluation against the truth
+    takes the survey. Check points alone cannot place it: one line, exit 2, nothing written."""
+    import cv2
+
+    from prism3d.datasets.evaluation.survey_eval import evaluate_survey
+
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for p in sorted(flight.glob("IMG_*.JPG")):
+        cv2.imwrite(str(bare / p.name), cv2.imread(str(p)), [cv2.IMWRITE_JPEG_QUALITY, 97])
+    frames = sorted(str(p) for p in bare.glob("IMG_*.JPG"))
+    out = tmp_path / "s"
+    rc = main(["-q", "survey", *frames, "--calib", str(flight / "camera.yaml"), "--gcp", str(flight / "gcp_list.txt"),
+               "--gcp-check", "gcp06", "gcp07", "gcp08", "-o", str(out)])
+    assert rc == 0
+    doc = json.loads((out / "poses.json").read_text())
+    assert doc["scale"] == "control points" and doc["gps_source"] == "none" and doc["map_frame"]["epsg"] == 32654
+    gsd = json.loads((flight / "truth.json").read_text())["gsd_m"]
+    rep = json.loads((out / "gcp_check.json").read_text())
+    assert rep["check"]["rms_horizontal_m"] <= 1.0 * gsd and rep["check"]["rms_vertical_m"] <= 1.5 * gsd
+    r = evaluate_survey(out, flight)
+    assert r["position_error_gsd"]["max"] <= 0.5 and r["absolute_placement_m"]["max"] < 0.5
+    capsys.readouterr()
+    rc = main(["survey", *frames, "--calib", str(flight / "camera.yaml"), "--gcp", str(flight / "gcp_list.txt"),
+               "--gcp-check", *[f"gcp{k:02d}" for k in range(1, 9)], "-o", str(tmp_path / "t")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "nothing places the survey" in err
+    assert not (tmp_path / "t").exists()
