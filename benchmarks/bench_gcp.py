@@ -36,6 +36,9 @@ import sys
 import time
 from pathlib import Path
 
+from prism3d.cli import main as cli
+from prism3d.datasets.evaluation.survey_eval import evaluate_survey
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "bench_gcp.json"
 SIZE = "1600x1200"
@@ -50,25 +53,21 @@ RUNS = (
 
 
 def _flight(work: Path, frames: int, seed: int) -> Path:
-    from prism3d.cli import main
-
     d = work / f"flight_{frames}_{seed}"
     if not (d / "truth.json").is_file():
         lines = 2 if frames <= 24 else 4
-        rc = main(["-q", "simulate", "flight", str(d), "--frames", str(frames), "--lines", str(lines), "--size", SIZE,
+        rc = cli(["-q", "simulate", "flight", str(d), "--frames", str(frames), "--lines", str(lines), "--size", SIZE,
                    "--seed", str(seed), "--gcp", str(N_GCP), "--no-depth"])
         assert rc == 0, rc
     return d
 
 
 def _survey(flight: Path, out: Path, extra: list[str], control: bool) -> float:
-    from prism3d.cli import main
-
     names = [p["name"] for p in json.loads((flight / "truth.json").read_text())["gcps"]["points"]]
     checks = list(CHECKS) if control else names
     frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))
     t0 = time.perf_counter()
-    rc = main(["-q", "survey", *frames, "--gps", str(flight / "geoinfo.txt"), "--gcp", str(flight / "gcp_list.txt"),
+    rc = cli(["-q", "survey", *frames, "--gps", str(flight / "geoinfo.txt"), "--gcp", str(flight / "gcp_list.txt"),
                "--gcp-check", *checks, "-o", str(out), *extra])
     if rc != 0:
         raise SystemExit(f"survey {out} failed ({rc})")
@@ -76,8 +75,6 @@ def _survey(flight: Path, out: Path, extra: list[str], control: bool) -> float:
 
 
 def _score(flight: Path, out: Path) -> dict:
-    from prism3d.datasets.evaluation.survey_eval import evaluate_survey
-
     truth = json.loads((flight / "truth.json").read_text())
     r = evaluate_survey(out, flight)
     poses = json.loads((out / "poses.json").read_text())

@@ -145,19 +145,10 @@ def _held_out_sq(np, rec, held: dict):
     out = []
     for obs in held.values():
         res = []
-        rows, P, xy = [], [], []
-        for iid, xy_i in obs:
-            if iid not in rec.images or not rec.images[iid].has_pose:
-                continue
-            M = np.asarray(rec.images[iid].cam_from_world().matrix(), dtype=np.float64)
-            n = np.asarray(cam.cam_from_img(np.asarray(xy_i, dtype=np.float64)), dtype=np.float64).ravel()[:2]
-            rows += [n[0] * M[2] - M[0], n[1] * M[2] - M[1]]
-            P.append(M)
-            xy.append(xy_i)
-        _, _, vt = np.linalg.svd(np.asarray(rows)) if len(P) >= 2 else (None, None, None)
-        if vt is not None and abs(vt[-1][3]) > 1e-12:
-            X = vt[-1][:3] / vt[-1][3]
-            for M, xy_i in zip(P, xy):
+        posed = [(iid, xy_i) for iid, xy_i in obs if iid in rec.images and rec.images[iid].has_pose]
+        X, P = _dlt(np, rec, posed) if len(posed) >= 2 else (None, [])
+        if X is not None:
+            for M, (_, xy_i) in zip(P, posed):
                 pc = M[:, :3] @ X + M[:, 3]
                 if pc[2] > 0:
                     uv = np.asarray(cam.img_from_cam(pc), dtype=np.float64).ravel()[:2]
@@ -240,9 +231,10 @@ def umeyama(np, src, dst):
     return s, R, mb - s * R @ ma
 
 
-def _triangulate(np, rec, obs):
-    """A point (linear, in normalised coordinates) from ``[(image_id, xy COLMAP px)]`` of
-    posed images of ``rec``'s one camera; None when it falls behind a camera."""
+def _dlt(np, rec, obs):
+    """The linear triangulation (in normalised coordinates) of ``[(image_id, xy COLMAP px)]``
+    in two posed images or more of ``rec``'s one camera: the point (None at infinity) and
+    each image's 3 x 4 ``cam_from_world``."""
     cam = next(iter(rec.cameras.values()))
     rows, Ms = [], []
     for iid, xy in obs:
@@ -251,10 +243,13 @@ def _triangulate(np, rec, obs):
         rows += [n[0] * M[2] - M[0], n[1] * M[2] - M[1]]
         Ms.append(M)
     vt = np.linalg.svd(np.asarray(rows))[2]
-    if abs(vt[-1][3]) < 1e-12:
-        return None
-    X = vt[-1][:3] / vt[-1][3]
-    return X if all((M[:, :3] @ X + M[:, 3])[2] > 0 for M in Ms) else None
+    return (None if abs(vt[-1][3]) <= 1e-12 else vt[-1][:3] / vt[-1][3]), Ms
+
+
+def _triangulate(np, rec, obs):
+    """:func:`_dlt`'s point, or None when it falls behind a camera."""
+    X, Ms = _dlt(np, rec, obs)
+    return X if X is not None and all((M[:, :3] @ X + M[:, 3])[2] > 0 for M in Ms) else None
 
 
 def _control(np, rec, req):
@@ -372,13 +367,13 @@ def _georeferenced(pycolmap, np, rec, req, free_pp: bool):
     pos = dict(zip(req["image_names"], req.get("positions") or []))
     control = _control(np, rec, req)
     reg = sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name)
-    gps = gps if gps and _spread(np, [pos[rec.images[i].name] for i in reg if rec.images[i].name in pos]) else None
+    named = [i for i in reg if rec.images[i].name in pos]  # image ids: the same in the copy below
+    gps = gps if gps and _spread(np, [pos[rec.images[i].name] for i in named]) else None
     if len(control) >= 3 and not gps:
         src = np.array([X for _, _, X in control])
         dst = np.array([g["enu"] for g, _, _ in control], dtype=np.float64)
         how = f"{len(control)} ground control points"
     elif gps:
-        named = [i for i in reg if rec.images[i].name in pos]
         src = np.array([rec.images[i].projection_center() for i in named])
         dst = np.array([pos[rec.images[i].name] for i in named], dtype=np.float64)
         how = "the GPS positions" + (f" and {len(control)} ground control points" if len(control) >= 3 else "")
@@ -396,7 +391,7 @@ def _georeferenced(pycolmap, np, rec, req, free_pp: bool):
             pts.append(pycolmap.Point2D(np.asarray(xy, dtype=np.float64)))
             track.add_element(iid, len(pts) - 1)
         control_ids.append(out.add_point3D(np.asarray(g["enu"], dtype=np.float64), track))
-    named = [i for i in reg if out.images[i].name in pos] if gps else []
+    named = named if gps else []
     priors = _priors(pycolmap, np, out, named, pos, gps["sigma_h"], gps["sigma_v"]) if gps else []
     out.update_point_3d_errors()
     before = float(out.compute_mean_reprojection_error())

@@ -20,6 +20,7 @@ import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -30,14 +31,14 @@ from numpy.typing import NDArray
 
 from prism3d.errors import InputError
 from prism3d.geo import enu_to_wgs84, wgs84_to_enu
+from prism3d.reconstruct.survey._sfm_worker import MIN_SPREAD
 from prism3d.reconstruct.survey.sfm import ControlPoint
 
 __all__ = ["GcpFile", "GcpPoint", "check_points_report", "gps_only_accuracy", "read_gcp_file", "survey_control"]
 
 #: The fewest points a file must hold, and the fewest control points an adjustment takes.
 MIN_POINTS = 3
-#: Positions whose spread across is below this share of their spread along lie on one line.
-ONE_LINE_SPREAD = 0.05
+_WGS84 = pyproj.CRS.from_epsg(4326)
 #: ODM's short CRS form.
 _ODM_UTM = re.compile(r"^\s*WGS\s*84\s+UTM\s+(\d{1,2})\s*([NS])\s*$", re.IGNORECASE)
 
@@ -63,14 +64,20 @@ class GcpFile:
     def to_lla(self, xyz: NDArray) -> NDArray[np.float64]:
         """(n, 3) file coordinates -> (latitude, longitude, ellipsoidal height)."""
         P = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
-        lon, lat = pyproj.Transformer.from_crs(self.crs, 4326, always_xy=True).transform(P[:, 0], P[:, 1])
+        lon, lat = _transformer(self.crs, _WGS84).transform(P[:, 0], P[:, 1])
         return np.stack([lat, lon, P[:, 2]], axis=1)
 
     def from_lla(self, lla: NDArray) -> NDArray[np.float64]:
         """The inverse of :meth:`to_lla`."""
         A = np.atleast_2d(np.asarray(lla, dtype=np.float64))
-        x, y = pyproj.Transformer.from_crs(4326, self.crs, always_xy=True).transform(A[:, 1], A[:, 0])
+        x, y = _transformer(_WGS84, self.crs).transform(A[:, 1], A[:, 0])
         return np.stack([x, y, A[:, 2]], axis=1)
+
+
+@lru_cache(maxsize=16)
+def _transformer(src: pyproj.CRS, dst: pyproj.CRS) -> pyproj.Transformer:
+    """PROJ's transformation between two CRSs, x y in (easting, northing) / (lon, lat) order."""
+    return pyproj.Transformer.from_crs(src, dst, always_xy=True)
 
 
 def _parse_crs(text: str, where: str) -> pyproj.CRS:
@@ -186,7 +193,7 @@ def gps_only_accuracy(C: NDArray, ground: NDArray, sigma_h: float, sigma_v: floa
         "horizontal_m": round(sigma_h / math.sqrt(n), 3), "vertical_m": round(sigma_v / math.sqrt(n), 3),
         "measured": False, "how_to_measure": "give check points (--gcp FILE --gcp-check NAMES)"}
     spread = np.sqrt(np.maximum(evals, 0.0))
-    if n < 3 or spread[0] <= ONE_LINE_SPREAD * spread[1]:  # the roll about the line: from the ground, not the GPS
+    if n < 3 or spread[0] <= MIN_SPREAD * spread[1]:  # the roll about the line: from the ground, not the GPS
         out.update(tilt_deg=None, vertical_at_edges_m=None,
                    tilt="the positions lie on one line: the roll about it comes from the ground's plane")
         return out
@@ -206,9 +213,9 @@ def _triangulate(obs: Sequence[tuple[int, float, float]], T_enu: dict[int, NDArr
         return None, len(use)
     uv = np.array([[x, y] for _, x, y in use], dtype=np.float64)
     n = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
+    Ms = [np.linalg.inv(T_enu[k])[:3] for k, _, _ in use]
     rows = []
-    for (k, _, _), (a, b) in zip(use, n):
-        M = np.linalg.inv(T_enu[k])[:3]
+    for M, (a, b) in zip(Ms, n):
         rows += [a * M[2] - M[0], b * M[2] - M[1]]
     vt = np.linalg.svd(np.asarray(rows))[2]
     if abs(vt[-1][3]) < 1e-12:
@@ -216,8 +223,7 @@ def _triangulate(obs: Sequence[tuple[int, float, float]], T_enu: dict[int, NDArr
     X = vt[-1][:3] / vt[-1][3]
     for _ in range(2):  # minimise the normalised reprojection error (the linear one weights by depth)
         J, r = [], []
-        for (k, _, _), (a, b) in zip(use, n):
-            M = np.linalg.inv(T_enu[k])[:3]
+        for M, (a, b) in zip(Ms, n):
             p = M[:, :3] @ X + M[:, 3]
             r += [p[0] / p[2] - a, p[1] / p[2] - b]
             J += [(M[0, :3] - p[0] / p[2] * M[2, :3]) / p[2], (M[1, :3] - p[1] / p[2] * M[2, :3]) / p[2]]

@@ -32,6 +32,7 @@ from prism3d.io.atomic import atomic_write_text, staged_folder
 from prism3d.io.images import read_image
 from prism3d.reconstruct.stereo.flatness import ransac_plane
 from prism3d.reconstruct.stereo.match_options import MatchOptions
+from prism3d.reconstruct.survey._sfm_worker import MIN_SPREAD
 from prism3d.reconstruct.survey.dsm import MAX_CELLS, grid_points
 from prism3d.reconstruct.survey.gcp import (
     GcpFile,
@@ -116,7 +117,7 @@ def georeference(centres: NDArray, gps_enu: NDArray | None, points: NDArray) -> 
     if G.shape != C.shape:
         raise InputError(f"GPS: {len(G)} positions for {len(C)} cameras")
     sv = np.linalg.svd(G - G.mean(axis=0), compute_uv=False)
-    if len(C) >= 3 and sv[1] > 0.05 * sv[0]:
+    if len(C) >= 3 and sv[1] > MIN_SPREAD * sv[0]:
         keep = np.ones(len(C), bool)
         for _ in range(2):
             s, R, t = similarity_align(C[keep], G[keep])
@@ -511,7 +512,8 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
     ``stage`` (:func:`run_survey`)."""
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
-    sfm, reused_poses, control, checks = _poses(stage, images, frames, o, free, cache, progress)
+    sfm, reused_poses = _poses(stage, images, frames, o, free, cache, progress)
+    control, checks = list(frames.control), list(frames.checks)
     seconds["poses"] = time.perf_counter() - t0
     geo, T_enu, points_enu, origin, gps_enu = _georeference_model(sfm, frames.tags)
     if origin is None and frames.origin is not None:  # no GPS: placed by the control points, or not at all
@@ -556,14 +558,13 @@ def _stages(stage: Path, out: Path, images: list[str], frames: _Frames, o: Surve
 
 
 def _poses(stage: Path, images: list[str], frames: _Frames, o: SurveyOptions, free: bool, cache: ResumeFolder,
-           progress: Callable[[int, int, str], None] | None) -> tuple[Any, bool, list, list]:
+           progress: Callable[[int, int, str], None] | None) -> tuple[Any, bool]:
     """The SfM result (kept from an interrupted run, or computed with the GPS priors and
-    control points), whether it was kept, and the control and check points (local ENU)."""
+    control points) and whether it was kept."""
     sfm = cache.load_sfm(stage / "sfm_work" / "colmap.log")
     reused = sfm is not None
     positions = _gps_enu(frames.tags)[1]  # GPS: spatial matching above 40 frames, and priors
-    control, checks = ([], []) if frames.gcp is None else survey_control(frames.gcp, images, frames.origin,
-                                                                        o.gcp_check)
+    control = list(frames.control)
     if sfm is None:
         work = stage / "sfm_work"
         try:
@@ -583,7 +584,7 @@ def _poses(stage: Path, images: list[str], frames: _Frames, o: SurveyOptions, fr
         _log.warning("survey: %d of %d control points held in the adjustment (the rest are seen in fewer than two "
                      "placed frames%s); gcp_check.json measures them all", used, len(control),
                      "; fewer than 3 left, so none is held" if used == 0 else "")
-    return sfm, reused, control, checks
+    return sfm, reused
 
 
 def _gcp_check(stage: Path, gf: GcpFile, control: list, checks: list, sfm: Any, T_enu: dict[int, NDArray],
@@ -666,6 +667,8 @@ class _Frames:
     calib_source: str
     gcp: GcpFile | None = None
     origin: NDArray | None = None  # the local frame's (lat, lon, 0): the first frame's GPS, else the first control point
+    control: tuple = ()  # the control and check points in that frame (ControlPoint)
+    checks: tuple = ()
 
     @classmethod
     def of(cls, images: Sequence[str | Path], gps_table: str | Path | None, calib: str | Path | None,
@@ -680,10 +683,10 @@ class _Frames:
             lla = gf.to_lla(np.array([gf.points[0].xyz]))[0]
             origin = np.array([lla[0], lla[1], 0.0])
         MapFrame.for_site(crs, origin)
-        if gf is not None:
-            survey_control(gf, [str(p) for p in paths], origin, gcp_check)
+        control, checks = ([], []) if gf is None else survey_control(gf, [str(p) for p in paths], origin, gcp_check)
         camera, calib_source = starting_camera(paths, size, calib)
-        return cls(list(paths), size, tags, gps_source, camera, calib_source, gf, origin)
+        return cls(list(paths), size, tags, gps_source, camera, calib_source, gf, origin, tuple(control),
+                   tuple(checks))
 
 
 def _pair_requests(frames: _Frames, sfm: Any, T_enu: dict[int, NDArray], points_enu: NDArray, factor: int,

@@ -7,21 +7,27 @@ exit 2, nothing written. The issue's figures at full size are in benchmarks/RESU
 from __future__ import annotations
 
 import json
+import logging
+import math
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pyproj
 import pytest
 
+from prism3d.capture.rig import CameraModel
 from prism3d.cli import main
+from prism3d.datasets.evaluation.survey_eval import evaluate_survey
+from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 from prism3d.errors import InputError
+from prism3d.reconstruct.survey.gcp import gps_only_accuracy, read_gcp_file
 
 SIZE = (800, 600)
 
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory) -> Path:
-    from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
-
     d = tmp_path_factory.mktemp("gflight") / "f"
     simulate_flight(d, FlightOptions(size=SIZE, altitude_m=40.0, seed=7, targets=2, confusers=0, gcp=8, depth=False))
     return d
@@ -31,11 +37,6 @@ def test_the_gcp_list_is_odm_format_and_the_pixels_are_the_truth_within_the_nois
     """Every line's pixel is the projection of the marker's true centre (through the true
     camera, distortion included) plus the set noise (0.5 px): none beyond 5 sigma, the
     spread about 0.5 px; the coordinates are the truth's, in the site's UTM zone."""
-    import pyproj
-
-    from prism3d.capture.rig import CameraModel
-    from prism3d.reconstruct.survey.gcp import read_gcp_file
-
     truth = json.loads((flight / "truth.json").read_text())
     gt = truth["gcps"]
     gf = read_gcp_file(flight / "gcp_list.txt")
@@ -89,8 +90,6 @@ def test_gps_only_survey_reports_its_absolute_error_and_an_undetermined_focal_le
     """Every marker a check point: the GPS-only survey's absolute error is measured (and
     is larger than with control); the nadir block at one altitude cannot determine the
     focal length from EXIF, and the survey says so (poses.json and a warning)."""
-    import logging
-
     frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))
     out = tmp_path / "s"
     with caplog.at_level(logging.WARNING):
@@ -157,8 +156,6 @@ def test_bad_gcp_file_is_one_line_exit_2_and_nothing_written(case: str, flight: 
 def test_odm_crs_forms_and_geographic_coordinates(tmp_path: Path) -> None:
     """ODM's ``WGS84 UTM 54N`` is EPSG:32654; a geographic CRS reads x as longitude; a
     name given two positions is refused."""
-    from prism3d.reconstruct.survey.gcp import read_gcp_file
-
     rows = ["327010.0 4157086.0 149.6 10 20 IMG_0000.JPG a", "327110.0 4157086.0 149.6 30 20 IMG_0001.JPG b",
             "327010.0 4157186.0 149.6 10 40 IMG_0002.JPG c"]
     p = tmp_path / "g.txt"
@@ -180,10 +177,6 @@ def test_gps_only_accuracy_follows_the_block_geometry() -> None:
     """Two lines 40 m apart, 6 frames 20 m apart each: the positions' spread across is
     20 m, so the roll's 1-sigma is sigma_v / (sqrt(12) x 20 m); the ground's edge 60 m out
     moves by that times 60 m (with the shift). One straight line: no tilt from the GPS."""
-    import math
-
-    from prism3d.reconstruct.survey.gcp import gps_only_accuracy
-
     C = np.array([[x, y, 100.0] for y in (-20.0, 20.0) for x in np.arange(6) * 20.0 - 50.0])
     ground = np.array([[0.0, 60.0, 0.0], [0.0, -60.0, 0.0], [55.0, 0.0, 0.0]])
     r = gps_only_accuracy(C, ground, 0.3, 0.6)
@@ -213,10 +206,6 @@ def test_control_points_place_a_survey_without_gps(flight: Path, tmp_path: Path,
     alone place the survey in the map frame (``scale: "control points"``, UTM products);
     the check points stay within the issue's bounds and the evaluation against the truth
     takes the survey. Check points alone cannot place it: one line, exit 2, nothing written."""
-    import cv2
-
-    from prism3d.datasets.evaluation.survey_eval import evaluate_survey
-
     bare = tmp_path / "bare"
     bare.mkdir()
     for p in sorted(flight.glob("IMG_*.JPG")):
