@@ -51,7 +51,8 @@ from prism3d.reconstruct.stereo.pipeline import (
     reconstruct_shot,
 )
 
-__all__ = ["MINING_SEED_BASE", "MiningOptions", "default_rejects", "mine_scene", "train_scene_recogniser"]
+__all__ = ["MINING_SEED_BASE", "MinedRows", "MiningOptions", "default_rejects", "fit_recogniser", "mine_rows", "mine_scene",
+           "recogniser_banks", "train_scene_recogniser"]
 
 #: Seeds of the mining scenes start here (benchmarks score scenes 100-119; tests 0-99).
 MINING_SEED_BASE = 1_000_000
@@ -179,6 +180,69 @@ class MiningOptions:
     """Inverse L2 strength of the verifier's logistic regression."""
 
 
+@dataclass(frozen=True)
+class MinedRows:
+    """The verifier's labelled feature rows from the mining scenes, and what each scene gave."""
+
+    X: NDArray[np.float64]
+    y: list[str]
+    per_scene: list[dict]
+
+
+def recogniser_banks(targets: Sequence[tuple[str, SceneMesh]], *, rejects: Sequence[tuple[str, SceneMesh]] | None = None,
+                     options: MiningOptions | None = None) -> tuple[tuple, list[str], list[tuple[str, SceneMesh]]]:
+    """The filter banks over ``targets`` + ``rejects`` (default :func:`default_rejects`), one
+    per channel of the options, the target classes and the refused items."""
+    o = MiningOptions() if options is None else options
+    if not targets:
+        raise InputError("bank train: no targets")
+    rej = default_rejects(targets) if rejects is None else list(rejects)
+    classes = sorted({c for c, _ in targets})
+    clash = sorted({c for c, _ in rej} & set(classes))
+    if clash:
+        raise InputError(f"bank train: {', '.join(clash)} is both a target class and a class to refuse")
+    items = list(targets) + list(rej)
+    banks = tuple(train_bank(items, channel=ch, chip_spec=o.chip_spec, **(o.bank_options or {})) for ch in o.channels)
+    return banks, classes, rej
+
+
+def mine_rows(banks: Sequence, classes: Sequence[str], specs: Sequence[str], *, options: MiningOptions | None = None,
+              run: RunOptions | None = None, progress: Callable[[int, int, str], None] | None = None) -> MinedRows:
+    """The verifier's rows of the options' ``scenes`` mining scenes (seeds from
+    :data:`MINING_SEED_BASE`), every bank's responses included, scenes as jobs-runner units."""
+    o = MiningOptions() if options is None else options
+    classes = list(classes)
+    placeholder = SceneRecogniser(tuple(banks), tuple(classes),
+                                  train_verifier(np.zeros((2, 1)), [classes[0], NONE], classes), {})
+    run = RunOptions() if run is None else run
+    with tempfile.TemporaryDirectory(prefix="prism3d-mining-") as work:
+        rpath = Path(work) / "banks.npz"
+        placeholder.save(rpath)
+        opts = asdict(FieldOptions(**{"classes": tuple(specs), "targets": MINING_TARGETS,
+                                      "confusers": MINING_CONFUSERS, **(o.field_options or {})}))
+        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in opts.items() if k != "seed"}
+        tasks = [(f"scene {MINING_SEED_BASE + k}", "mining scene", _mine_unit,
+                  (work, MINING_SEED_BASE + k, opts, str(rpath))) for k in range(int(o.scenes))]
+        report = run_tasks("mining", tasks, replace(run, progress=run.progress or progress))
+    if not report.ok:
+        raise InputError(f"bank train: mining failed ({report.failure_line()})")
+    rows = sorted(report.stats, key=lambda r: r["seed"])
+    X = np.vstack([np.asarray(r["X"], dtype=np.float64).reshape(len(r["y"]), -1) for r in rows if r["y"]])
+    y = [lab for r in rows for lab in r["y"]]
+    per_scene = [{"seed": r["seed"], **r["counts"], "seconds": round(r["seconds"], 1)} for r in rows]
+    return MinedRows(X, y, per_scene)
+
+
+def fit_recogniser(banks: Sequence, classes: Sequence[str], mined: MinedRows, *, C: float = 0.1,
+                   metadata: dict | None = None) -> SceneRecogniser:
+    """The recogniser of ``banks`` with its verifier and the cascade's prefilter fitted on
+    ``mined`` (whose rows hold these banks' responses, in this order)."""
+    classes = list(classes)
+    verifier = train_verifier(mined.X, mined.y, classes, C=C)
+    prefilter, threshold = train_prefilter(mined.X[:, :n_size_features(len(classes))], mined.y)
+    return SceneRecogniser(tuple(banks), tuple(classes), verifier, dict(metadata or {}), prefilter, threshold)
+
+
 def train_scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], specs: Sequence[str], *,
                            rejects: Sequence[tuple[str, SceneMesh]] | None = None,
                            options: MiningOptions | None = None, run: RunOptions | None = None,
@@ -188,48 +252,20 @@ def train_scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], specs: Sequ
     whose bank classes are ``specs`` (the targets as ``simulate field --classes`` takes
     them: built-in names or ``FILE=CLASS:UNITS:UP:FORWARD`` at full size)."""
     o = MiningOptions() if options is None else options
-    scenes, channels, chip_spec, bank_options, C = o.scenes, o.channels, o.chip_spec, o.bank_options, o.C
-    field_options = o.field_options
+    scenes = o.scenes
     if isinstance(scenes, bool) or int(scenes) != scenes or not 1 <= int(scenes) <= 10_000:
         raise InputError(f"scenes: expected 1-10000 mining scenes, got {scenes!r}")
-    if not targets:
-        raise InputError("bank train: no targets")
     t0 = time.perf_counter()
-    rej = default_rejects(targets) if rejects is None else list(rejects)
-    classes = sorted({c for c, _ in targets})
-    clash = sorted({c for c, _ in rej} & set(classes))
-    if clash:
-        raise InputError(f"bank train: {', '.join(clash)} is both a target class and a class to refuse")
-    items = list(targets) + list(rej)
-    banks = tuple(train_bank(items, channel=ch, chip_spec=chip_spec, **(bank_options or {})) for ch in channels)
+    banks, classes, rej = recogniser_banks(targets, rejects=rejects, options=o)
     if progress:
         progress(0, int(scenes) + 1, "filter banks trained")
-    placeholder = SceneRecogniser(banks, tuple(classes), train_verifier(np.zeros((2, 1)), [classes[0], NONE], classes),
-                                  {})
-    run = RunOptions() if run is None else run
-    with tempfile.TemporaryDirectory(prefix="prism3d-mining-") as work:
-        rpath = Path(work) / "banks.npz"
-        placeholder.save(rpath)
-        opts = asdict(FieldOptions(**{"classes": tuple(specs), "targets": MINING_TARGETS,
-                                      "confusers": MINING_CONFUSERS, **(field_options or {})}))
-        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in opts.items() if k != "seed"}
-        tasks = [(f"scene {MINING_SEED_BASE + k}", "mining scene", _mine_unit,
-                  (work, MINING_SEED_BASE + k, opts, str(rpath))) for k in range(int(scenes))]
-        report = run_tasks("mining", tasks, replace(run, progress=run.progress or progress))
-    if not report.ok:
-        raise InputError(f"bank train: mining failed ({report.failure_line()})")
-    rows = sorted(report.stats, key=lambda r: r["seed"])
-    X = np.vstack([np.asarray(r["X"], dtype=np.float64).reshape(len(r["y"]), -1) for r in rows if r["y"]])
-    y = [lab for r in rows for lab in r["y"]]
-    verifier = train_verifier(X, y, classes, C=C)
-    n_size = n_size_features(len(classes))
-    prefilter, threshold = train_prefilter(X[:, :n_size], y)
+    mined = mine_rows(banks, classes, specs, options=o, run=run, progress=progress)
+    y = mined.y
     meta = {"targets": [[c, m.name] for c, m in targets], "rejects": [[c, m.name] for c, m in rej],
-            "channels": list(channels), "mining": {"scenes": int(scenes), "seed_base": MINING_SEED_BASE,
-                                                   "field_classes": list(specs),
-                                                   "rows": {"positive": sum(v != NONE for v in y),
-                                                            "negative": sum(v == NONE for v in y)},
-                                                   "per_scene": [{"seed": r["seed"], **r["counts"],
-                                                                  "seconds": round(r["seconds"], 1)} for r in rows]},
-            "verifier_C": C, "seconds": round(time.perf_counter() - t0, 1)}
-    return SceneRecogniser(banks, tuple(classes), verifier, meta, prefilter, threshold)
+            "channels": list(o.channels), "mining": {"scenes": int(scenes), "seed_base": MINING_SEED_BASE,
+                                                     "field_classes": list(specs),
+                                                     "rows": {"positive": sum(v != NONE for v in y),
+                                                              "negative": sum(v == NONE for v in y)},
+                                                     "per_scene": mined.per_scene},
+            "verifier_C": o.C, "seconds": round(time.perf_counter() - t0, 1)}
+    return fit_recogniser(banks, classes, mined, C=o.C, metadata=meta)
