@@ -69,6 +69,16 @@ def survey(frames: list[Path], out: Path, *extra: str) -> float:
     return time.perf_counter() - t0
 
 
+def cloud_row(name: str, r: dict) -> str:
+    """The cloud beside its anchor, the DSM of the same survey: points per filled DSM cell
+    and, on the simulator, the open ground's median |height error| of each."""
+    pts, cells = r["read_back"]["cloud"]["points"], r["dsm_filled_cells"]
+    ce = f"{r['cloud']['open_ground_median_abs_error_m'] * 100:.2f}" if "cloud" in r else "-"
+    de = f"{r['dsm']['median_abs_error_m'] * 100:.2f}" if "dsm" in r else "-"
+    ppm = f"{r['cloud']['points_per_m2']:.0f}" if "cloud" in r else "-"
+    return f"| {name} | {pts:,} | {cells:,} | {pts / cells:.2f} | {ppm} | {ce} | {de} |"
+
+
 def main_(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, help="scratch folder (default: a temporary one, removed)")
@@ -88,7 +98,9 @@ def main_(argv: list[str] | None = None) -> int:
             ev = evaluate_survey(work / f"sim_{crs}", flight)
             res[f"sim_{crs}"] = {"seconds": round(s, 1), "photo_gsd_m": truth_gsd, "read_back": read_back(work / f"sim_{crs}"),
                                  "dsm": ev["dsm"], "cloud": ev["cloud"], "position_error_gsd": ev["position_error_gsd"],
-                                 "vehicle_height_max_error": ev["vehicles"]["max_relative_height_error"]}
+                                 "vehicle_height_max_error": ev["vehicles"]["max_relative_height_error"],
+                                 "dsm_filled_cells": json.loads((work / f"sim_{crs}" / "poses.json").read_text())[
+                                     "dsm"]["filled_cells"]}
         if all((REAL_DIR / n).is_file() for n in ("IMG_2188.JPG", "IMG_2189.JPG", "geoinfo.txt")):
             real = [REAL_DIR / "IMG_2188.JPG", REAL_DIR / "IMG_2189.JPG"]
             for crs in ("utm", "enu"):
@@ -96,7 +108,8 @@ def main_(argv: list[str] | None = None) -> int:
                 doc = json.loads((work / f"real_{crs}" / "poses.json").read_text())
                 res[f"real_{crs}"] = {"seconds": round(s, 1), "photo_gsd_m": REAL_GSD_M,
                                       "reprojection_rms_px": doc["reprojection_rms_px"],
-                                      "camera": doc["camera"]["model"], "read_back": read_back(work / f"real_{crs}")}
+                                      "camera": doc["camera"]["model"], "read_back": read_back(work / f"real_{crs}"),
+                                      "dsm_filled_cells": doc["dsm"]["filled_cells"]}
         else:
             print(f"real pair skipped: {REAL_DIR} is absent", file=sys.stderr)
     finally:
@@ -116,6 +129,11 @@ def main_(argv: list[str] | None = None) -> int:
         g = f"{r['cloud']['open_ground_class_2_fraction']:.4f}" if "cloud" in r else "-"
         print(f"| {k} | {'/'.join(eps)} / {rb['cloud']['epsg']} | {cog} | {an} | {ratio:.3f} | "
               f"{rb['rasters']['ortho.tif']['nodata_inside_coverage']:.4%} | {dsm} | {g} | {r['seconds']} |")
+    print("\n| survey | cloud points | DSM cells (anchor) | points / cell | points / m2 | cloud open-ground "
+          "error cm | DSM open-ground error cm |")
+    print("|---|---|---|---|---|---|---|")
+    for k, r in res.items():
+        print(cloud_row(k, r))
     if a.json:
         a.json.write_text(json.dumps(res, indent=1, default=str))
     return 0

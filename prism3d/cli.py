@@ -1015,6 +1015,7 @@ def _cmd_survey(args: argparse.Namespace) -> int:
     opts = SurveyOptions(max_image_size=args.max_image_size, dense_max_pixels=args.dense_max_pixels,
                          pair_steps=tuple(args.pair_steps), cross_pairs=args.cross_pairs, cell_m=args.cell,
                          ortho_gsd_m=args.ortho_gsd, crs=args.crs, laz=args.laz, matching=args.matching,
+                         cloud_spacing_m=args.cloud_spacing,
                          refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point,
                          gps_prior=args.gps_prior, gps_accuracy=_gps_accuracy(args.gps_accuracy),
                          gcp_file=None if args.gcp is None else str(args.gcp),
@@ -1084,6 +1085,8 @@ def _add_survey(sub: Any) -> None:
                    help="the products' coordinate system: utm (the site's zone, the default with GPS), enu (the "
                    "local east-north-up frame at the first frame) or a projected EPSG code in metres")
     p.add_argument("--laz", action="store_true", help="write the point cloud LASzip-compressed (cloud.laz)")
+    p.add_argument("--cloud-spacing", type=float, metavar="M",
+                   help="thin the point cloud to one point per cube of this side, metres (default: every matched pixel)")
     p.add_argument("--matching", choices=["auto", "exhaustive", "spatial", "sequential"], default="auto",
                    help="frame pairs matched for the poses (default auto: all up to 40 frames; above, each frame's 20 "
                    "nearest by GPS, or the next 6 without GPS)")

@@ -171,9 +171,10 @@ def _open_ground(tid: NDArray, cell: float) -> NDArray[np.bool_]:
 
 
 def _cloud_scores(path: Path, tz: Any, truth: dict, fr: _Frames, frame: MapFrame) -> dict[str, Any]:
-    """The LAS/LAZ cloud's classes against the truth: the share of its points over open
-    ground (:func:`_open_ground`) that are ASPRS class 2, and of its points on a vehicle
-    (inside a counted target's footprint, above half its height) that are not."""
+    """The LAS/LAZ cloud against the truth: its points per m2 of the truth cells they fall
+    in, the median |height error| of its points over open ground (:func:`_open_ground`),
+    the share of those that are ASPRS class 2, and of its points on a vehicle (inside a
+    counted target's footprint, above half its height) that are not."""
     las = laspy.read(path)
     P = fr.to_truth(frame.map_to_enu(np.c_[las.x, las.y, las.z]))
     cls = np.asarray(las.classification)
@@ -192,7 +193,11 @@ def _cloud_scores(path: Path, tz: Any, truth: dict, fr: _Frames, frame: MapFrame
         local = (P - np.asarray(tg["xyz_enu"], dtype=np.float64)) @ R
         on_vehicle |= (np.abs(local[:, 0]) <= tg["length_m"] / 2) & (np.abs(local[:, 1]) <= tg["width_m"] / 2) & \
             (local[:, 2] >= tg["height_m"] / 2)
+    ez = P[og, 2] - tz["dsm"][r[og], c[og]]  # open ground is flat at the cell's scale
+    ez = ez[np.isfinite(ez)]
     return {"points": int(len(P)), "open_ground_points": int(og.sum()),
+            "points_per_m2": float(len(P) / max(1.0, len(np.unique(r[inside] * tid.shape[1] + c[inside])) * cell**2)),
+            "open_ground_median_abs_error_m": float(np.median(np.abs(ez))) if len(ez) else None,
             "open_ground_class_2_fraction": float((cls[og] == 2).mean()) if og.any() else None,
             "vehicle_points": int(on_vehicle.sum()),
             "vehicle_not_ground_fraction": float((cls[on_vehicle] != 2).mean()) if on_vehicle.any() else None}

@@ -13,14 +13,15 @@ from typing import Any
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from prism3d.capture.calib_formats import load_camera_calibration
 from prism3d.capture.geotag import exif_focal_px, exif_geotag, read_position_table
 from prism3d.capture.rig import CameraModel
 from prism3d.errors import InputError
-from prism3d.io.images import check_image_size
+from prism3d.io.images import check_image_size, read_image
 
-__all__ = ["VIDEO_SUFFIXES", "check_frames", "gps_positions", "starting_camera", "video_frames"]
+__all__ = ["VIDEO_SUFFIXES", "check_frames", "gps_positions", "load_frame", "starting_camera", "video_frames"]
 
 
 def _image_sizes(paths: Sequence[Path]) -> list[tuple[int, int]]:
@@ -140,3 +141,22 @@ def starting_camera(paths: Sequence[Path], size: tuple[int, int], calib: str | P
     w, h = size
     K = np.array([[f, 0, (w - 1) / 2.0], [0, f, (h - 1) / 2.0], [0, 0, 1.0]])
     return CameraModel(K, np.zeros(5), size), "EXIF focal length"
+
+
+def load_frame(path: str, K: NDArray, dist: NDArray, factor: int) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
+    """A frame undistorted onto ``K`` and area-downscaled by ``factor``: the image and its K
+    (what dense matching sees, and what the dense cloud takes its colours from)."""
+    img = read_image(path)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    img = np.ascontiguousarray(img[..., :3])
+    if np.any(np.asarray(dist) != 0):
+        img = cv2.undistort(img, K, np.asarray(dist, dtype=np.float64))
+    Ks = np.asarray(K, dtype=np.float64).copy()
+    if factor > 1:
+        h, w = img.shape[:2]
+        img = cv2.resize(img, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+        Ks[:2] /= factor
+        Ks[0, 2] = (K[0, 2] + 0.5) / factor - 0.5
+        Ks[1, 2] = (K[1, 2] + 0.5) / factor - 0.5
+    return img, Ks

@@ -98,6 +98,9 @@ class SurveyOptions:
     products have no CRS and asking for one is an error."""
     laz: bool = False
     """Write the point cloud compressed (cloud.laz) instead of cloud.las."""
+    cloud_spacing_m: float | None = None
+    """Thin the point cloud to one point per cube of this side, m; None: every matched pixel
+    (each DSM cell from its best pair; :mod:`~prism3d.reconstruct.survey.cloud`)."""
     lk_window: int = 9
     """Our matcher's sub-pixel (Lucas-Kanade) window, px, with 3 iterations: nadir pairs
     see ground that is flat at the window's scale, and a wider window than the stereo
@@ -127,6 +130,9 @@ class SurveyOptions:
         object.__setattr__(self, "pair_steps", steps)
         if self.cell_m is not None and not (math.isfinite(self.cell_m) and 0 < self.cell_m <= MAX_CELL_M):
             raise InputError(f"cell: expected a DSM cell size > 0 and <= {MAX_CELL_M:g} m, got {self.cell_m!r}")
+        if self.cloud_spacing_m is not None and not (math.isfinite(self.cloud_spacing_m)
+                                                     and 0 < self.cloud_spacing_m <= MAX_CELL_M):
+            raise InputError(f"cloud_spacing: expected a spacing > 0 and <= {MAX_CELL_M:g} m, got {self.cloud_spacing_m!r}")
         if self.ortho_gsd_m is not None and not (math.isfinite(self.ortho_gsd_m) and 0 < self.ortho_gsd_m <= MAX_CELL_M):
             raise InputError(f"ortho-gsd: expected an orthophoto cell > 0 and <= {MAX_CELL_M:g} m, "
                              f"got {self.ortho_gsd_m!r}")

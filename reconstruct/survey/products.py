@@ -20,6 +20,7 @@ from prism3d.geo import MapFrame
 from prism3d.io.atomic import atomic_path, atomic_write_text
 from prism3d.io.geo import write_geotiff, write_las
 from prism3d.io.ply import write_ply
+from prism3d.reconstruct.survey.cloud import DenseCloud, dense_cloud
 from prism3d.reconstruct.survey.dsm import MAX_CELLS, normalised_dsm
 from prism3d.reconstruct.survey.mapgrid import Grid, GridWarp, map_grid, resample
 from prism3d.reconstruct.survey.model import (
@@ -49,8 +50,10 @@ def write_products(stage: Path, fused: FusedSurface, st: SurveyState,
     ground, ndsm, ortho, grids = _write_rasters(stage, fused, st, frame, progress)
     if progress:
         progress(0, 1, "cloud")
-    _write_clouds(stage, fused, ground, frame, laz=st.options.laz)
+    cloud = _write_clouds(stage, fused, ground, frame, st, progress)
     doc = _poses_doc(stage, fused, st, ground, ortho, frame, grids)
+    doc["cloud"] = {"points": int(len(cloud.xyz)), "source": cloud.source, "spacing": cloud.spacing,
+                    "pairs_used": cloud.pairs_used}
     atomic_write_text(stage / "poses.json", json.dumps(doc, indent=1))
     draw_survey(stage / "survey.png", fused, ndsm, st.T_enu, st.scaled)
     n_ok = sum(r.ok for r in st.pairs)
@@ -108,27 +111,34 @@ def _write_rasters(stage: Path, fused: FusedSurface, st: SurveyState, frame: Map
     return ground, ndsm, ortho, {"dsm": mg, "ortho": og}
 
 
-def _write_clouds(stage: Path, fused: FusedSurface, ground: NDArray, frame: MapFrame | None, *, laz: bool) -> None:
-    """cloud.ply (local frame) and cloud.las / cloud.laz (map frame): one point per filled
-    DSM cell, with its colour; in the LAS, ASPRS class 2 (ground) within
-    :data:`GROUND_CLASS_M` of the ground surface, else 1 (unclassified; all of them
-    without GPS)."""
-    cell = fused.cell
-    rr, cc = np.nonzero(np.isfinite(fused.dsm))
-    xyz = np.c_[fused.west + (cc + 0.5) * cell, fused.north - (rr + 0.5) * cell, fused.dsm[rr, cc]]
-    col = fused.rgb[rr, cc]
+def _write_clouds(stage: Path, fused: FusedSurface, ground: NDArray, frame: MapFrame | None, st: SurveyState,
+                  progress: Callable[[int, int, str], None] | None) -> DenseCloud:
+    """cloud.ply (local frame) and cloud.las / cloud.laz (map frame) at the matching's density
+    (:func:`~prism3d.reconstruct.survey.cloud.dense_cloud`), with colour; in the LAS, ASPRS
+    class 2 (ground) within :data:`GROUND_CLASS_M` of the ground surface, else 1
+    (unclassified; all of them without GPS)."""
+    o = st.options
+    cloud = dense_cloud(st.pairs, st.T_enu, [str(p) for p in st.paths], np.asarray(st.sfm.K, dtype=np.float64),
+                        np.asarray(st.sfm.dist, dtype=np.float64), st.factor, fused, spacing=o.cloud_spacing_m,
+                        progress=progress)
+    xyz, col, cell = cloud.xyz, cloud.rgb, fused.cell
     scaled = frame is not None
+    what = f"one point per {cell:g} cell" if cloud.source == "dsm cells" else \
+        "every matched pixel" if cloud.spacing is None else f"one point per {cloud.spacing:.3g} cube"
     write_ply(stage / "cloud.ply", xyz, colors=col, double=True,
-              comments=[f"prism3d survey: fused surface, one point per {cell:g} cell",
+              comments=[f"prism3d survey: dense cloud, {what}",
                         "frame: local east-north-up, metres (poses.json)" if scaled else "frame: model, scale unknown"])
     cls = np.ones(len(xyz), dtype=np.uint8)
     if scaled:  # without GPS there is no metre to measure the tolerance in: all unclassified
-        above = fused.dsm[rr, cc] - ground[rr, cc]
+        rr = np.clip(np.floor((fused.north - xyz[:, 1]) / cell).astype(np.int64), 0, fused.dsm.shape[0] - 1)
+        cc = np.clip(np.floor((xyz[:, 0] - fused.west) / cell).astype(np.int64), 0, fused.dsm.shape[1] - 1)
+        above = xyz[:, 2] - ground[rr, cc]
         cls[np.isfinite(above) & (above <= GROUND_CLASS_M)] = 2
     pts = xyz if frame is None else frame.enu_to_map(xyz)
-    write_las(stage / ("cloud.laz" if laz else "cloud.las"), pts, col, crs_wkt=None if frame is None else frame.crs_wkt,
+    write_las(stage / ("cloud.laz" if o.laz else "cloud.las"), pts, col, crs_wkt=None if frame is None else frame.crs_wkt,
               scale_m=min(0.001, cell / 100.0), classification=cls,
               system_identifier="prism3d survey" if scaled else "prism3d survey: scale unknown")
+    return cloud
 
 
 def _pair_entries(stage: Path, fused: FusedSurface, st: SurveyState, ground: NDArray) -> tuple[list[dict], float]:

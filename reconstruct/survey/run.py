@@ -22,14 +22,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geo import MapFrame, wgs84_to_enu
 from prism3d.io.atomic import atomic_write_text, staged_folder
-from prism3d.io.images import read_image
 from prism3d.reconstruct.stereo.flatness import ransac_plane
 from prism3d.reconstruct.stereo.match_options import MatchOptions
 from prism3d.reconstruct.survey._sfm_worker import MIN_SPREAD
@@ -45,6 +43,7 @@ from prism3d.reconstruct.survey.inputs import (
     VIDEO_SUFFIXES,
     check_frames,
     gps_positions,
+    load_frame,
     starting_camera,
     video_frames,
 )
@@ -160,25 +159,6 @@ def _dense_scale(size: tuple[int, int], max_pixels: float) -> int:
     return max(1, math.ceil(math.sqrt(w * h / max_pixels) - 1e-9))
 
 
-def _load_frame(path: str, K: NDArray, dist: NDArray, factor: int) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
-    """A frame undistorted onto ``K`` and area-downscaled by ``factor``: the image and its K."""
-
-    img = read_image(path)
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=2)
-    img = np.ascontiguousarray(img[..., :3])
-    if np.any(np.asarray(dist) != 0):
-        img = cv2.undistort(img, K, np.asarray(dist, dtype=np.float64))
-    Ks = np.asarray(K, dtype=np.float64).copy()
-    if factor > 1:
-        h, w = img.shape[:2]
-        img = cv2.resize(img, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
-        Ks[:2] /= factor
-        Ks[0, 2] = (K[0, 2] + 0.5) / factor - 0.5
-        Ks[1, 2] = (K[1, 2] + 0.5) / factor - 0.5
-    return img, Ks
-
-
 def _project(T_cam_enu: NDArray, K: NDArray, P: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Pixels (n, 2) and depths (n,) of ENU points in a camera (no distortion)."""
     pc = P @ T_cam_enu[:3, :3].T + T_cam_enu[:3, 3]
@@ -224,8 +204,8 @@ def match_pair(req: PairRequest) -> PairResult:
         return res
     Tci, Tcj = np.linalg.inv(Ti), np.linalg.inv(Tj)
     K, dist, factor = np.asarray(req.K, dtype=np.float64), np.asarray(req.dist, dtype=np.float64), int(req.factor)
-    img_i, Ks = _load_frame(req.path_i, K, dist, factor)
-    img_j, _ = _load_frame(req.path_j, K, dist, factor)
+    img_i, Ks = load_frame(req.path_i, K, dist, factor)
+    img_j, _ = load_frame(req.path_j, K, dist, factor)
     q1, zi = _project(Tci, Ks, P)
     q2, _ = _project(Tcj, Ks, P)
     zmed = float(np.median(zi))
