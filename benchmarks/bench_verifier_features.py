@@ -130,11 +130,17 @@ def evaluate(a: argparse.Namespace) -> None:
         name = f"{'+'.join(channels)} / {scenes} scenes"
         r = _score(_variant(all_banks, z, channels, scenes, a.C), folders)
         out["variants"][name] = r
-        v1, v10 = r["at_fppi"]["0.1"], r["at_fppi"]["1"]
-        print(f"{name:36s} Pd@0.1 {v1['pd']:.3f} id {v1['id_accuracy']} conf {v1['confusers_called']:.3f} | "
-              f"Pd@1 {v10['pd']:.3f} | {r['detect_s_median']:.2f} s/shot", flush=True)
+        _say(name, r)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(out, indent=1, default=float))
+
+
+def _say(name: str, r: dict) -> None:
+    """One line of a variant's scores."""
+    v1, v10 = r["at_fppi"]["0.1"], r["at_fppi"]["1"]
+    fit = f" | fit {r['fit_s']:.1f} s" if "fit_s" in r else ""
+    print(f"{name:36s} Pd@0.1 {v1['pd']:.3f} id {v1['id_accuracy']:.3f} conf {v1['confusers_called']:.3f} | "
+          f"Pd@1 {v10['pd']:.3f}{fit} | {r['detect_s_median']:.2f} s/shot", flush=True)
 
 
 class _Wrapped:
@@ -217,9 +223,7 @@ def compare_models(a: argparse.Namespace) -> None:
         r = _score(model, folders)
         r["fit_s"] = fit_s
         out["models"][name] = r
-        v1, v10 = r["at_fppi"]["0.1"], r["at_fppi"]["1"]
-        print(f"{name:28s} Pd@0.1 {v1['pd']:.3f} id {v1['id_accuracy']:.3f} conf {v1['confusers_called']:.3f} | "
-              f"Pd@1 {v10['pd']:.3f} | fit {fit_s:.1f} s | {r['detect_s_median']:.2f} s/shot", flush=True)
+        _say(name, r)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(out, indent=1, default=float))
 

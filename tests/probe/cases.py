@@ -926,6 +926,7 @@ def _survey_and_atr_cases(b: _Builder, F: str) -> None:
     CELLS = {**NAN_INF, **ZERO_NEG, "tiny": "1e-9", "0.1mm": "1e-4", "huge": "1e300", "1000km": "1e6"}
     b.numbers("survey", base, "--cell", CELLS, outs, ok={"huge", "1000km"})
     b.numbers("survey", base, "--ortho-gsd", CELLS, outs, ok={"huge", "1000km"})
+    b.numbers("survey", base, "--cloud-spacing", {k: v for k, v in CELLS.items() if k not in ("tiny", "0.1mm")}, outs)
     b.numbers("survey", base, "--pair-steps", {**ZERO_NEG, "11": "11", "huge": "99999999999999999999",
                                                "garbage": "a"}, outs)
     b.add("survey/--pair-steps/duplicate", base + ["--pair-steps", "1", "1"], "2", outs)

@@ -148,7 +148,7 @@ def test_frames_whose_headers_declare_too_many_pixels_are_refused_before_decodin
 
 
 def test_a_cell_beyond_a_kilometre_is_refused() -> None:
-    for name in ("cell_m", "ortho_gsd_m"):
+    for name in ("cell_m", "ortho_gsd_m", "cloud_spacing_m"):
         with pytest.raises(InputError, match="<= 1000 m"):
             SurveyOptions(**{name: 1e300})
     assert SurveyOptions(cell_m=1000.0).cell_m == 1000.0
