@@ -32,6 +32,9 @@ from prism3d.reconstruct.survey.sfm import SfmResult
 __all__ = ["ResumeFolder", "load_pair", "resume_dir", "save_pair"]
 
 RESUME_SCHEMA_VERSION = 1
+#: Options that only shape the products written from the poses and pairs: a rerun that
+#: changes them still resumes (the products are always made again).
+PRODUCT_ONLY_OPTIONS = ("crs", "laz", "cloud_spacing_m", "ortho_gsd_m")
 
 
 def resume_dir(out: Path) -> Path:
@@ -47,7 +50,8 @@ def _fingerprint(images: list[Path], gps_table: Path | None, calib: Path | None,
         h.update(f"{p.resolve()} {st.st_size} {st.st_mtime_ns}\n".encode())
     for f in (gps_table, calib, options.gcp_file):
         h.update(b"-" if f is None else Path(f).read_bytes())
-    h.update(json.dumps(asdict(options), sort_keys=True, default=str).encode())
+    kept = {k: v for k, v in asdict(options).items() if k not in PRODUCT_ONLY_OPTIONS}
+    h.update(json.dumps(kept, sort_keys=True, default=str).encode())
     return h.hexdigest()
 
 

@@ -161,3 +161,16 @@ def test_a_resume_leftover_that_is_a_file_is_refused(tmp_path) -> None:
     resume_dir(out).write_text("not a folder")
     with pytest.raises(InputError, match="exists and is not a folder"):
         ResumeFolder(out, [], None, None, SurveyOptions(), resume=True)
+
+
+def test_resume_ignores_what_only_shapes_the_products(tmp_path) -> None:
+    """A rerun that only changes the products' CRS, format, cloud spacing or orthophoto GSD
+    keeps the poses and pairs; one that changes the DSM cell does not."""
+    from prism3d.reconstruct.survey.resume import _fingerprint
+
+    img = tmp_path / "a.jpg"
+    img.write_bytes(b"x")
+    base = _fingerprint([img], None, None, SurveyOptions())
+    for change in ({"crs": "enu"}, {"laz": True}, {"cloud_spacing_m": 0.1}, {"ortho_gsd_m": 0.05}):
+        assert _fingerprint([img], None, None, SurveyOptions(**change)) == base, change
+    assert _fingerprint([img], None, None, SurveyOptions(cell_m=0.3)) != base
