@@ -120,10 +120,11 @@ def _estimate(pairs: Sequence[PairResult], owner: NDArray, fused: FusedSurface) 
     """Points the cloud will hold: each used pair's matched pixels times the share of its
     tile's cells it owns."""
     n = 0.0
+    owned_cells = np.bincount(owner[owner >= 0].ravel(), minlength=len(pairs))
     for k, r in enumerate(pairs):
         if not r.ok or r.depth is None or r.tile is None:
             continue
-        owned = int((owner == k).sum())
+        owned = int(owned_cells[k])
         cells = max(1, int(np.isfinite(r.tile.dsm).sum()))
         n += float(np.isfinite(r.depth).sum()) * min(1.0, owned / cells)
     return n
