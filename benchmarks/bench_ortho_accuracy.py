@@ -110,10 +110,14 @@ def seams(survey: Path, truth: dict) -> list[dict]:
     frames = [(f["image"], np.asarray(f["T_enu_cam"])) for f in doc["frames"] if f["T_enu_cam"] is not None]
     gsd = float(truth["gsd_m"])
     out = []
-    for (pa, Ta), (pb, Tb) in zip(frames, frames[1:]):
-        og = float(doc["ortho"]["gsd"])
-        oa = true_orthophoto(dsm, meta["west"], meta["north"], meta["gsd"], [(pa, Ta)], K, dist, size, gsd=og)
-        ob = true_orthophoto(dsm, meta["west"], meta["north"], meta["gsd"], [(pb, Tb)], K, dist, size, gsd=og)
+    og = float(doc["ortho"]["gsd"])
+
+    def alone(f: tuple[str, np.ndarray]):
+        return true_orthophoto(dsm, meta["west"], meta["north"], meta["gsd"], [f], K, dist, size, gsd=og)
+
+    ob = alone(frames[0]) if frames else None
+    for (pa, _), (pb, Tb) in zip(frames, frames[1:]):
+        oa, ob = ob, alone((pb, Tb))  # each frame orthorectified once
         both = (oa.rgba[..., 3] > 0) & (ob.rgba[..., 3] > 0) & (oa.quality == 1) & (ob.quality == 1)
         ga = cv2.cvtColor(oa.rgba[..., :3], cv2.COLOR_RGB2GRAY).astype(np.float64)
         gb = cv2.cvtColor(ob.rgba[..., :3], cv2.COLOR_RGB2GRAY).astype(np.float64)

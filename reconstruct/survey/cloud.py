@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from prism3d.reconstruct.survey.inputs import load_frame
 from prism3d.reconstruct.survey.model import FusedSurface, PairResult
 
-__all__ = ["MAX_CLOUD_POINTS", "DenseCloud", "dense_cloud", "pair_owners"]
+__all__ = ["MAX_CLOUD_POINTS", "DenseCloud", "cells_of", "dense_cloud", "pair_owners"]
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +77,12 @@ def pair_owners(fused: FusedSurface, pairs: Sequence[PairResult]) -> NDArray[np.
     return owner
 
 
+def cells_of(fused: FusedSurface, P: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The DSM row and column of ENU points (n, 3), unclipped."""
+    return (np.floor((fused.north - P[:, 1]) / fused.cell).astype(np.int64),
+            np.floor((P[:, 0] - fused.west) / fused.cell).astype(np.int64))
+
+
 def _envelope(dsm: NDArray) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """The lowest and highest fused height over each cell's 3 x 3 neighbours (NaN: none)."""
     fin = np.isfinite(dsm)
@@ -98,8 +104,7 @@ def _pair_points(r: PairResult, T: NDArray, fused: FusedSurface, owner: NDArray,
     Xc = np.c_[(u - Ks[0, 2]) / Ks[0, 0] * z, (v - Ks[1, 2]) / Ks[1, 1] * z, z]
     P = Xc @ T[:3, :3].T + T[:3, 3]
     H, W = fused.dsm.shape
-    col = np.floor((P[:, 0] - fused.west) / fused.cell).astype(np.int64)
-    row = np.floor((fused.north - P[:, 1]) / fused.cell).astype(np.int64)
+    row, col = cells_of(fused, P)
     inside = (row >= 0) & (row < H) & (col >= 0) & (col < W)
     P, v, u, row, col = P[inside], v[inside], u[inside], row[inside], col[inside]
     tol = 3.0 * float(r.sigma_z if r.sigma_z is not None else fused.cell) + 0.5 * fused.cell

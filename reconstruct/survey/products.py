@@ -20,7 +20,7 @@ from prism3d.geo import MapFrame
 from prism3d.io.atomic import atomic_path, atomic_write_text
 from prism3d.io.geo import write_geotiff, write_las
 from prism3d.io.ply import write_ply
-from prism3d.reconstruct.survey.cloud import DenseCloud, dense_cloud
+from prism3d.reconstruct.survey.cloud import DenseCloud, cells_of, dense_cloud
 from prism3d.reconstruct.survey.dsm import MAX_CELLS, normalised_dsm
 from prism3d.reconstruct.survey.mapgrid import Grid, GridWarp, map_grid, resample
 from prism3d.reconstruct.survey.model import (
@@ -130,8 +130,8 @@ def _write_clouds(stage: Path, fused: FusedSurface, ground: NDArray, frame: MapF
                         "frame: local east-north-up, metres (poses.json)" if scaled else "frame: model, scale unknown"])
     cls = np.ones(len(xyz), dtype=np.uint8)
     if scaled:  # without GPS there is no metre to measure the tolerance in: all unclassified
-        rr = np.clip(np.floor((fused.north - xyz[:, 1]) / cell).astype(np.int64), 0, fused.dsm.shape[0] - 1)
-        cc = np.clip(np.floor((xyz[:, 0] - fused.west) / cell).astype(np.int64), 0, fused.dsm.shape[1] - 1)
+        rr, cc = cells_of(fused, xyz)
+        rr, cc = np.clip(rr, 0, fused.dsm.shape[0] - 1), np.clip(cc, 0, fused.dsm.shape[1] - 1)
         above = xyz[:, 2] - ground[rr, cc]
         cls[np.isfinite(above) & (above <= GROUND_CLASS_M)] = 2
     pts = xyz if frame is None else frame.enu_to_map(xyz)

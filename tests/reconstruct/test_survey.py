@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from prism3d.cli import main
+from prism3d.datasets.evaluation.survey_eval import evaluate_survey
 
 SIZE = (800, 600)
 
@@ -85,10 +86,7 @@ def test_survey_writes_the_contract(survey: Path, flight: Path) -> None:
     assert om["gsd"] == pytest.approx(truth["gsd_m"], rel=0.10)
     # the cloud at the matching's density (several points per DSM cell), each point as close
     # to the true open ground as the fused DSM, and on the DSM up to the pairs' noise
-    from prism3d.datasets.evaluation.survey_eval import evaluate_survey
-
     ev = evaluate_survey(survey, flight)
-    print("cloud", ev["cloud"], "dsm", ev["dsm"]["median_abs_error_m"], doc["cloud"])
     assert doc["cloud"]["source"] == "matched pixels" and doc["cloud"]["points"] == len(ply.points)
     assert len(ply.points) > 3 * doc["dsm"]["filled_cells"]
     assert ev["cloud"]["open_ground_median_abs_error_m"] < 1.5 * ev["dsm"]["median_abs_error_m"]
@@ -98,7 +96,6 @@ def test_survey_writes_the_contract(survey: Path, flight: Path) -> None:
     r = np.floor((meta["north"] - q[:, 1]) / meta["gsd"]).astype(int)
     e = np.abs(dsm[r, c] - q[:, 2])
     e = e[np.isfinite(e)]
-    print("cloud vs dsm", np.median(e), np.percentile(e, 90))
     assert len(e) > 0.95 * len(q) and np.median(e) < 0.05 and np.percentile(e, 90) < 0.3
     model = survey / "colmap"
     assert {"cameras.txt", "images.txt", "points3D.txt"} <= {p.name for p in model.iterdir()}
