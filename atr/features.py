@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from prism3d.atr.geometry import (
     UP_AXES,
     as_camera,
+    GravityBox,
     gravity_box,
     min_oriented_box,
     surface_axis,
@@ -44,7 +45,7 @@ from prism3d.io.mesh import UNITS_MM, read_mesh
 from prism3d.io.pcd import read_pcd
 from prism3d.io.ply import read_ply
 from prism3d.io.units import FORWARD_AXES, declared_units
-from prism3d.reconstruct.scan.fusion import poisson_mesh
+from prism3d.reconstruct.scan.surface import surface_extents, surface_points
 
 __all__ = [
     "FEATURES_SCHEMA_VERSION",
@@ -55,7 +56,6 @@ __all__ = [
     "model_features",
     "read_units_sidecar",
     "scan_features",
-    "surface_near_data",
     "view_features",
 ]
 
@@ -76,8 +76,6 @@ FPFH_RADIUS = 0.1  # FPFH support radius, fraction of the box diagonal
 FPFH_MAX_NN = 64  # neighbours per FPFH support (bounds the cost on dense samples)
 N_NORMAL_NEIGHBOURS = 20  # Open3D normal estimation for scans without normals
 N_OUTLINE = 64  # outline resampled to 64 points for the Fourier descriptors
-SPACING_SUBSAMPLE = 20000  # the median spacing is taken over at most ~20000 points
-NEAR_CELLS = 2.0  # surface vertices within 2 spacings (one octree cell) of a point are kept
 MIN_POINTS = 10  # fewer points (or supported surface vertices) give no meaningful box
 
 ProgressFn = Callable[[int, int, str], None]
@@ -292,10 +290,16 @@ def _hull_volume(P: NDArray) -> float:
         return 0.0
 
 
-def _common(P_all: NDArray, S: NDArray, SN: NDArray, axis: NDArray | None = None) -> tuple[dict[str, float], Any]:
+def _common(P_all: NDArray, S: NDArray, SN: NDArray, axis: NDArray | None = None, *,
+            measured: bool = False) -> tuple[dict[str, float], Any]:
     """Box, OBB, profiles and surface features from all points ``P_all`` (z up; the
-    boxes enclose them) and surface samples ``S`` with normals ``SN``."""
+    boxes enclose them) and surface samples ``S`` with normals ``SN``. ``measured``: the
+    box's sides read from a scan's surface (:func:`surface_extents`, as the object frame's)."""
     box = gravity_box(P_all, axis_points=S, axis=axis)
+    if measured:
+        lo, hi = surface_extents(P_all, box.axes)
+        box = GravityBox(float(hi[0] - lo[0]), float(hi[1] - lo[1]), float(hi[2] - lo[2]), box.axes,
+                         box.axes.T @ ((lo + hi) / 2))
     L, W, H = box.length_mm, box.width_mm, box.height_mm
     ext, _ = min_oriented_box(P_all)
     diag = float(np.sqrt(L * L + W * W + H * H))
@@ -358,40 +362,6 @@ def model_features(vertices: NDArray, faces: NDArray, *, up: str = "z") -> dict[
     return _order(out, "model")
 
 
-def _spacing(P: NDArray, tree: Any = None) -> float:
-    """Median nearest-neighbour distance of (up to ~SPACING_SUBSAMPLE of) the points."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(P) if tree is None else tree
-    return float(np.median(tree.query(P[:: max(1, len(P) // SPACING_SUBSAMPLE)], k=2)[0][:, 1]))
-
-
-#: ``box="auto"`` fits the surface only to clouds at least this many point spacings
-#: across (the surface's cells are ~2 spacings; on a sparse cloud it is no better
-#: than the points and bulges by up to 2 spacings beyond them).
-DENSE_SPACINGS = 200.0
-
-
-def surface_near_data(points: NDArray, normals: NDArray, *, spacing: float | None = None) -> NDArray[np.float64]:
-    """Vertices of the screened Poisson surface of an oriented cloud that lie within two
-    point spacings (one octree cell) of a point: boxes on it ignore the depth-error tails
-    (docs/features.md). ``spacing``: the median nearest-neighbour distance, if known.
-    """
-    from scipy.spatial import cKDTree
-
-    P = np.asarray(points, dtype=np.float64)
-    N = np.asarray(normals, dtype=np.float64)
-    tree = cKDTree(P)
-    spacing = _spacing(P, tree) if spacing is None else float(spacing)
-    if not spacing > 0:
-        raise InputError("points: no point spacing (all points coincide?)")
-    V, _, _ = poisson_mesh(P, N, spacing=spacing)
-    near = tree.query(V, distance_upper_bound=NEAR_CELLS * spacing)[0] <= NEAR_CELLS * spacing
-    if near.sum() < MIN_POINTS:
-        raise InputError("points: the fitted surface does not follow the points (are the normals oriented?)")
-    return V[near]
-
-
 def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = "z",
                   box: str = "auto") -> dict[str, float]:
     """Features of a point cloud (a scan) in millimetres.
@@ -399,7 +369,8 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
     ``points`` (N, 3) mm, NaN rows dropped, >= 10 finite; ``normals`` (N, 3) (sign
     irrelevant; estimated from 20 neighbours when absent); ``up`` as for
     :func:`model_features`. ``box``: what the boxes enclose: "points" (every point),
-    "surface" (:func:`surface_near_data`, needs outward normals) or "auto" (surface when
+    "surface" (the points near their fitted surface, sides read as the object frame's:
+    :mod:`prism3d.reconstruct.scan.surface`; needs outward normals) or "auto" (surface when
     normals are given and the cloud spans >= ``DENSE_SPACINGS`` spacings; why:
     docs/features.md). Raises InputError on bad shapes, < 10 points, bad ``up``.
     """
@@ -430,13 +401,10 @@ def scan_features(points: NDArray, normals: NDArray | None = None, *, up: str = 
         sel = np.sort(np.random.default_rng(_SEED).choice(len(P), N_SAMPLES, replace=False))
     else:
         sel = np.arange(len(P))
-    # "surface" without normals was refused above
-    spacing = _spacing(P) if box != "points" and normals is not None else None
-    use_surface = box == "surface" or (
-        spacing is not None and float(np.ptp(P, axis=0).max()) >= DENSE_SPACINGS * spacing
-    )
-    P_box = surface_near_data(P, N, spacing=spacing) if use_surface else P
-    out, _ = _common(P_box, P[sel], N[sel])
+    # "surface" without normals was refused above; "auto" sorts dense clouds given normals
+    surface = box == "surface" or (box == "auto" and normals is not None)
+    P_box, measured = surface_points(P, N, sparse=box == "surface") if surface else (P, False)
+    out, _ = _common(P_box, P[sel], N[sel], measured=measured)
     hull_v = _hull_volume(P)
     out.update(volume_mm3=hull_v, volume_is_hull=1.0, hull_volume_mm3=hull_v,
                surface_area_mm2=math.nan, n_points=float(len(P)))

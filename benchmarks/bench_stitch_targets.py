@@ -64,9 +64,9 @@ def frame_errors(res, poses, V) -> dict:
     whether x points forward when the view that faced the front is named."""
     from prism3d.reconstruct.scan.object_frame import object_frame
 
-    fr = object_frame(res.points, res.T_model_scan)
+    fr = object_frame(res.points, res.T_model_scan, normals=res.normals)
     front = int(np.argmax([T[0, 3] / max(np.hypot(T[0, 3], T[1, 3]), 1e-300) for T in poses]))
-    fr_front = object_frame(res.points, res.T_model_scan, front_view=front)
+    fr_front = object_frame(res.points, res.T_model_scan, front_view=front, normals=res.normals)
     x_right = bool((fr_front.T_object_model @ np.linalg.inv(poses[0]))[0, 0] > 0)
     T = fr.T_object_model @ np.linalg.inv(poses[0])
     R = T[:3, :3]

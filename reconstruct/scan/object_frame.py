@@ -5,9 +5,10 @@ support plane the object stands on; ``x`` forward: an axis of the smallest recta
 when it is also a mirror axis (box-like hulls), else the footprint's mirror axis (swept
 wings), else the rectangle's; of it and the axis across, the longer (the longest
 horizontal extent); ``y = z x x``; origin:
-the footprint's centre on the support (the lowest surface point along ``z``). Extents
-are measured on the surface, not on the noisiest points (each extreme point projected on
-the plane of its neighbourhood). Which end of ``x`` is the front cannot be told from
+the footprint's centre on the support (the lowest surface point along ``z``). Footprint and
+extents are measured on the points near the surface fitted to them, each extreme point
+projected on the plane of its neighbourhood (reconstruct/scan/surface.py; the scan
+features' boxes use the same), not on the noisiest points. Which end of ``x`` is the front cannot be told from
 shape alone (measured: the end where the points tail off is the front on 8 of 21
 Quaternius CAD vehicles and 9 of the 12 built-in targets): unless the scan that faced the front is named, the choice is stated as a guess
 (``forward_ambiguous``), not hidden.
@@ -25,6 +26,7 @@ from prism3d.checks import check_array
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import rotvec_from_matrix
 from prism3d.reconstruct.scan.registration import point_spacing
+from prism3d.reconstruct.scan.surface import surface_extents, surface_points
 
 __all__ = ["ObjectFrame", "object_frame"]
 
@@ -61,15 +63,6 @@ MIRROR_MAX_RATIO = 0.6
 RECT_MIRROR_TOL_CELLS = 0.5
 #: Footprint cells reflected per trial axis (an even subsample of them).
 MIRROR_SAMPLES = 20000
-#: Extreme points are projected on the plane of their neighbourhood before extents are
-#: taken (moving least squares; the extremes of raw points are the noise's): points within
-#: EXTREME_BAND_SPACINGS of an extreme, neighbourhoods of MLS_NEIGHBOURS points of a
-#: 1-in-MLS_STRIDE subsample (about 9 point spacings across, far wider than the noise).
-EXTREME_BAND_SPACINGS = 10.0
-MLS_NEIGHBOURS = 64
-MLS_STRIDE = 4
-#: At most this many of the points near the extremes are projected (an even subsample).
-MLS_CANDIDATES = 100_000
 #: A front view must look at the object within this angle of its long axis (horizontally).
 FRONT_VIEW_MAX_DEG = 60.0
 
@@ -97,17 +90,15 @@ class ObjectFrame:
 
 
 def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None, *,
-                 front_view: int | None = None) -> ObjectFrame:
+                 front_view: int | None = None, normals: NDArray | None = None) -> ObjectFrame:
     """The object frame of a model's ``points`` (N, 3) mm given the poses of the scans it was
     stitched from (``T_model_scan``, camera frames in OpenCV convention; None: one scan in
     the model frame). ``front_view``: the index of the scan that looked at the object's
     front (x then points at that camera); without it front and back are a stated guess
-    (``forward_ambiguous``). ReconstructionError when neither a turntable nor a support
-    plane gives the up direction (the message names what is missing)."""
-    P = check_array(points, "points", shape=(None, 3), dtype_kind="fiu").astype(np.float64)
-    P = P[np.all(np.isfinite(P), axis=1)]
-    if len(P) < 100:
-        raise ReconstructionError(f"object frame: {len(P)} points are too few to find the object's frame")
+    (``forward_ambiguous``). ``normals`` (N, 3): the points' outward normals (default:
+    estimated, facing the scans' sensors). ReconstructionError when neither a turntable
+    nor a support plane gives the up direction (the message names what is missing)."""
+    P, N = _finite_points(points, normals)
     poses = [np.eye(4)] if not T_model_scan else [np.asarray(T, np.float64) for T in T_model_scan]
     if front_view is not None and (isinstance(front_view, bool) or not isinstance(front_view, (int, np.integer))
                                    or not 0 <= front_view < len(poses)):
@@ -121,9 +112,11 @@ def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None,
     else:
         up, plane, tol = _support_up(P, upright)
         up_from = "support plane"
-        P = P[P @ up > plane + tol]  # the support itself is no part of the object
+        above = P @ up > plane + tol  # the support itself is no part of the object
+        P, N = P[above], None if N is None else N[above]
         if len(P) < 100:
             raise ReconstructionError("object frame: almost nothing stands on the support plane")
+    P = surface_points(P, N, viewpoints=[T[:3, 3] for T in poses])[0]
     e1, e2 = _basis(up)
     uv = np.stack([P @ e1, P @ e2], axis=1)
     x2, symmetric = _footprint_axis(uv)
@@ -132,7 +125,7 @@ def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None,
                      "rectangle around it")
     x = x2[0] * e1 + x2[1] * e2
     y0 = np.cross(up, x)
-    lo3, hi3 = _surface_extents(P, np.stack([x, y0, up]))
+    lo3, hi3 = surface_extents(P, np.stack([x, y0, up]))
     if hi3[1] - lo3[1] > hi3[0] - lo3[0]:  # x is the longer horizontal extent
         x, y0 = y0, -x
         lo3, hi3 = np.array([lo3[1], -hi3[0], lo3[2]]), np.array([hi3[1], -lo3[0], hi3[2]])
@@ -152,6 +145,21 @@ def object_frame(points: NDArray, T_model_scan: Sequence[NDArray] | None = None,
     T[:3, 3] = -R @ origin
     return ObjectFrame(T, up_from, np.array([length, width, hi - lo]), ambiguous, notes,
                        None if front_view is None else int(front_view))
+
+
+def _finite_points(points: NDArray, normals: NDArray | None) -> tuple[NDArray, NDArray | None]:
+    """The finite points (and their normals), at least 100 of them."""
+    P = check_array(points, "points", shape=(None, 3), dtype_kind="fiu").astype(np.float64)
+    ok = np.all(np.isfinite(P), axis=1)
+    N = None
+    if normals is not None:
+        N = check_array(normals, "normals", shape=(len(P), 3), dtype_kind="fiu").astype(np.float64)
+        ok &= np.all(np.isfinite(N), axis=1)
+        N = N[ok]
+    P = P[ok]
+    if len(P) < 100:
+        raise ReconstructionError(f"object frame: {len(P)} points are too few to find the object's frame")
+    return P, N
 
 
 def _orient_front(x: NDArray, up: NDArray, origin: NDArray, poses: list[NDArray], front_view: int | None,
@@ -295,35 +303,6 @@ def _footprint_axis(uv: NDArray) -> tuple[NDArray[np.float64], bool]:
     if best <= MIRROR_MAX_RATIO * float(np.median(scores)):
         return np.array([np.cos(th), np.sin(th)]), True
     return np.array([np.cos(a), np.sin(a)]), False
-
-
-def _surface_extents(P: NDArray, R: NDArray) -> tuple[NDArray, NDArray]:
-    """Lowest and highest surface coordinates (3,) along the rows of ``R``: the points
-    within EXTREME_BAND_SPACINGS of each extreme, projected on the plane of their
-    neighbourhood (moving least squares), then their extremes."""
-    from scipy.spatial import cKDTree
-
-    Q = P @ R.T
-    band = EXTREME_BAND_SPACINGS * point_spacing(P)
-    near = np.zeros(len(P), bool)
-    for a in range(3):
-        near |= (Q[:, a] < Q[:, a].min() + band) | (Q[:, a] > Q[:, a].max() - band)
-    idx = np.flatnonzero(near)
-    idx = idx[:: max(1, len(idx) // MLS_CANDIDATES)]
-    sub = Q[::MLS_STRIDE] if len(Q) >= MLS_STRIDE * MLS_NEIGHBOURS else Q
-    k = min(MLS_NEIGHBOURS, len(sub))
-    tree = cKDTree(sub)
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for s in range(0, len(idx), 4096):  # (4096, k, 3) at a time
-        q = Q[idx[s : s + 4096]]
-        _, nb = tree.query(q, k=k, workers=-1)
-        N = sub[nb]
-        cen = N.mean(axis=1)
-        D = N - cen[:, None]
-        n = np.linalg.eigh(np.einsum("mki,mkj->mij", D, D))[1][:, :, 0]
-        proj = q - np.sum((q - cen) * n, axis=1)[:, None] * n
-        lo, hi = np.minimum(lo, proj.min(axis=0)), np.maximum(hi, proj.max(axis=0))
-    return lo, hi
 
 
 def _skewness(s: NDArray) -> float:

@@ -771,7 +771,8 @@ def _stitch_and_write(paths: list[str], opts: StitchOptions, out: Path, mesh_out
     }
     T_out, where = np.eye(4), ["frame of the first scan"]
     if frame == "object":
-        of = object_frame(res.points, res.T_model_scan, front_view=front_view)  # before anything is written
+        of = object_frame(res.points, res.T_model_scan, front_view=front_view,  # before anything is written
+                          normals=res.normals)
         T_out, doc["object_frame"] = of.T_object_model, of.to_dict()
         where = [f"object frame: z up (from the {of.up_from}), x forward, origin on the support", "up z"]
         res.diagnostics["object_frame"] = of.to_dict()

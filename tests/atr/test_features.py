@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
+from scipy.spatial import cKDTree
 from prism3d.atr.features import (
-    surface_near_data,
     FEATURE_INFO,
     FEATURES_SCHEMA_VERSION,
     features_table,
@@ -21,6 +21,7 @@ from prism3d.atr.features import (
 )
 from prism3d.atr.geometry import depth_to_points, gravity_box, normals_from_depth, up_rotation
 from prism3d.capture.render import RaycastRenderer
+from prism3d.reconstruct.scan.surface import surface_points
 from prism3d.capture.rig import CameraModel, look_at
 from prism3d.datasets.models.targets import builtin_target, list_builtin_targets
 
@@ -145,7 +146,7 @@ def test_scan_box_from_surface_ignores_error_tails() -> None:
     """A scan's depth errors have long tails, and min/max picks them: 0.3 % of the
     points of a 200 x 70 x 90 mm box pushed 1-1.5 mm outwards along their normals
     (as the stereo scans' worst points are) widen the box of the points by ~4 %
-    (2-3 mm on 70); the box of the fitted surface near the data stays within 1 %."""
+    (2-3 mm on 70); the box of the points near their fitted surface stays within 1 %."""
     rng = np.random.default_rng(2)
     L, W, H = 200.0, 70.0, 90.0
     P, N = _open_box_cloud(L, W, H, 0.3, rng)
@@ -157,8 +158,9 @@ def test_scan_box_from_surface_ignores_error_tails() -> None:
     for k, v in (("length_mm", L), ("width_mm", W), ("height_mm", H)):
         assert fs[k] == pytest.approx(v, rel=0.01), (k, fs[k], v)
     assert scan_features(P, N, up="z")["width_mm"] == fs["width_mm"]  # auto: normals given -> surface
-    V = surface_near_data(P, N)
-    assert len(V) > 1000 and V[:, 2].min() > -1.5  # nothing invented below the open bottom (2 spacings + noise)
+    kept, sorted_ = surface_points(P, N)
+    assert sorted_ and len(kept) > 0.95 * len(P)  # the surface keeps the bulk ...
+    assert np.mean(cKDTree(kept).query(P[tail])[0] == 0) < 0.05  # ... and drops the tails
     # a sparse cloud (fewer than 200 spacings across): auto keeps the points' box
     Ps, Ns = _open_box_cloud(L, W, H, 5.0, rng)
     assert scan_features(Ps, Ns, up="z")["width_mm"] == scan_features(Ps, Ns, up="z", box="points")["width_mm"]

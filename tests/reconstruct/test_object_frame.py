@@ -83,6 +83,66 @@ def test_a_support_plane_gives_up_without_a_turntable():
     assert up < 0.2 and fwd < 2.0 and origin < 1.0 and np.all(np.abs(rel) < 0.01), (up, fwd, origin, rel)
 
 
+def _grazing_turntable_views(rng, tail_mm=(0.5, 1.5)):
+    """Eight turntable views (45 deg steps, 15 deg above) of an open 200 x 70 x 90 mm box
+    turned 20 deg: each view's points of the faces it sees, 0.1 mm noise along its rays,
+    and where it sees a face at over 60 deg incidence, patches 6 mm across (a third of that
+    face) pushed ``tail_mm`` toward the camera, as the stereo matcher does to walls it sees
+    nearly edge-on. Returns points (model = world frame), normals, poses, the true box."""
+    from prism3d.geometry import rotation_about
+
+    L, W, H = 200.0, 70.0, 90.0
+    faces = [(0, 1, L / 2), (0, -1, -L / 2), (1, 1, W / 2), (1, -1, -W / 2), (2, 1, H)]
+    turn = rotation_about([0, 0, 1], np.radians(20.0))
+    pts, nrm, poses = [], [], []
+    for k in range(8):
+        az = np.radians(45.0 * k)
+        C = 1200.0 * np.array([np.cos(az) * np.cos(np.radians(15)), np.sin(az) * np.cos(np.radians(15)),
+                               np.sin(np.radians(15))]) + [0, 0, H / 2]
+        z = -C / np.linalg.norm(C)
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+        T[:3, 3] = C
+        poses.append(T)
+        for axis, sign, at in faces:
+            n = turn @ np.eye(3)[axis] * sign
+            q = rng.uniform([-L / 2, -W / 2, 0], [L / 2, W / 2, H], (20000, 3))
+            q[:, axis] = at
+            q = q @ turn.T
+            ray = (q - C) / np.linalg.norm(q - C, axis=1, keepdims=True)
+            cos_inc = -ray @ n
+            if cos_inc.mean() <= 0.02:
+                continue  # the face is turned away
+            q += ray * rng.normal(0, 0.1, (len(q), 1))
+            if cos_inc.mean() < np.cos(np.radians(60)):
+                cells = np.floor(q / 6.0).astype(np.int64)
+                pushed = (np.abs(cells @ [73856093, 19349663, 83492791]) % 3) == 0
+                q[pushed] -= ray[pushed] * rng.uniform(*tail_mm, (pushed.sum(), 1))
+            pts.append(q)
+            nrm.append(np.tile(n, (len(q), 1)))
+    box = np.array([[sx * L / 2, sy * W / 2, sz * H] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 1)])
+    T_world_box = np.eye(4)
+    T_world_box[:3, :3] = turn
+    return np.vstack(pts), np.vstack(nrm), poses, box, T_world_box
+
+
+def test_noise_tails_neither_tilt_nor_widen_the_frame():
+    """Walls seen nearly edge-on come out of a stereo scan in patches 0.5-1.5 mm outside
+    them (up to ~2 mm on the simulator's trucks, docs/stitching.md): the frame measured on
+    the points near their fitted surface keeps sizes within 1 % (+0.8 %; MLS extremes of all
+    the points +2.0 %) and the axis within 0.2 deg. Patches of 1-2.5 mm give +2.0 % (+5.0 %)."""
+    rng = np.random.default_rng(3)
+    P, N, poses, box, T_world_box = _grazing_turntable_views(rng)
+    fr = object_frame(P, poses, normals=N)
+    assert fr.up_from == "turntable"
+    up, fwd, origin, rel = _truth_errors(fr, np.linalg.inv(T_world_box), box)
+    Q = P @ T_world_box[:3, :3]
+    assert np.ptp(Q[:, 1]) > 70.0 + 1.0  # what the points' extremes would give
+    assert up < 0.2 and fwd < 0.2 and origin < 1.0 and np.all(np.abs(rel) < 0.01), (up, fwd, origin, rel)
+
+
 def test_no_turntable_and_no_support_is_refused(stitched_tank):
     res, _, _ = stitched_tank
     one_view = res.points[::5]  # a floating object in one scan: no common axis, no plane
