@@ -66,8 +66,13 @@ def frame_errors(res, poses, V) -> dict:
 
     fr = object_frame(res.points, res.T_model_scan, normals=res.normals)
     front = int(np.argmax([T[0, 3] / max(np.hypot(T[0, 3], T[1, 3]), 1e-300) for T in poses]))
-    fr_front = object_frame(res.points, res.T_model_scan, front_view=front, normals=res.normals)
-    x_right = bool((fr_front.T_object_model @ np.linalg.inv(poses[0]))[0, 0] > 0)
+    # x turned toward the front camera, as object_frame(front_view=front) turns it (one
+    # surface fit per case, not two)
+    x_model, up_model = fr.T_object_model[0, :3], fr.T_object_model[2, :3]
+    look = res.T_model_scan[front][:3, 3] - np.linalg.inv(fr.T_object_model)[:3, 3]
+    look -= (look @ up_model) * up_model
+    x_front = x_model if look @ x_model >= 0 else -x_model
+    x_right = bool((poses[0][:3, :3] @ x_front)[0] > 0)
     T = fr.T_object_model @ np.linalg.inv(poses[0])
     R = T[:3, :3]
     lo, hi = V.min(0), V.max(0)
