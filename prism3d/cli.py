@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -24,6 +25,7 @@ from typing import Any
 
 from prism3d import __version__
 from prism3d.errors import DatasetError, InputError, Prism3dError
+from prism3d.options_cli import field_option, given_fields
 
 Handler = Callable[[argparse.Namespace], int | None]
 
@@ -1012,14 +1014,7 @@ def _add_detect(sub: Any) -> None:
 def _cmd_survey(args: argparse.Namespace) -> int:
     from prism3d.reconstruct.survey.run import SurveyOptions, run_survey
 
-    opts = SurveyOptions(max_image_size=args.max_image_size, dense_max_pixels=args.dense_max_pixels,
-                         pair_steps=tuple(args.pair_steps), cross_pairs=args.cross_pairs, cell_m=args.cell,
-                         ortho_gsd_m=args.ortho_gsd, crs=args.crs, laz=args.laz, matching=args.matching,
-                         cloud_spacing_m=args.cloud_spacing,
-                         refine_intrinsics=args.refine, refine_principal_point=args.refine_principal_point,
-                         gps_prior=args.gps_prior, gps_accuracy=_gps_accuracy(args.gps_accuracy),
-                         gcp_file=None if args.gcp is None else str(args.gcp),
-                         gcp_check=tuple(c for a in args.gcp_check for c in a.split(",") if c))
+    opts = SurveyOptions(**given_fields(args, _SURVEY_OPTIONS))
     run_pairs = None
     if args.workers or args.scheduler:
         from prism3d.datasets.runner import RunOptions, run_survey_pairs
@@ -1044,17 +1039,19 @@ def _cmd_survey(args: argparse.Namespace) -> int:
     return 0
 
 
-def _gps_accuracy(text: str | None) -> tuple[float, float] | None:
-    """``--gps-accuracy H[,V]`` (m; V defaults to 2 H) as (horizontal, vertical); None: estimated."""
-    if text is None:
-        return None
+def _gps_accuracy(text: str) -> tuple[float, float]:
+    """``--gps-accuracy H[,V]`` (m; V defaults to 2 H) as (horizontal, vertical)."""
     try:
         v = [float(a) for a in text.split(",")]
     except ValueError:
-        raise InputError(f"--gps-accuracy: expected H or H,V in metres, got {text!r}") from None
+        v = []
     if len(v) not in (1, 2):
-        raise InputError(f"--gps-accuracy: expected H or H,V in metres, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected H or H,V in metres, got {text!r}")
     return (v[0], v[1] if len(v) == 2 else 2.0 * v[0])
+
+
+#: The survey's options dataclass: its fields give `prism3d survey` its defaults and help.
+_SURVEY_OPTIONS = ("prism3d.reconstruct.survey.model", "SurveyOptions")
 
 
 def _add_survey(sub: Any) -> None:
@@ -1078,48 +1075,26 @@ def _add_survey(sub: Any) -> None:
                    "default: the EXIF focal length, principal point at the centre)")
     p.add_argument("--gps", type=Path, metavar="TABLE", help="positions table (senseFly geoinfo.txt or CSV "
                    "with fileName, latitude, longitude, altitude; default: the frames' EXIF GPS)")
-    p.add_argument("--cell", type=float, metavar="M", help="DSM cell, metres (default: twice the matched frames' ground sample distance)")
-    p.add_argument("--ortho-gsd", type=float, metavar="M",
-                   help="orthophoto cell, metres (default: the photographs' own ground sample distance)")
-    p.add_argument("--crs", metavar="utm|enu|EPSG:CODE",
-                   help="the products' coordinate system: utm (the site's zone, the default with GPS), enu (the "
-                   "local east-north-up frame at the first frame) or a projected EPSG code in metres")
-    p.add_argument("--laz", action="store_true", help="write the point cloud LASzip-compressed (cloud.laz)")
-    p.add_argument("--cloud-spacing", type=float, metavar="M",
-                   help="thin the point cloud to one point per cube of this side, metres (default: every matched pixel)")
-    p.add_argument("--matching", choices=["auto", "exhaustive", "spatial", "sequential"], default="auto",
-                   help="frame pairs matched for the poses (default auto: all up to 40 frames; above, each frame's 20 "
-                   "nearest by GPS, or the next 6 without GPS)")
+    opt = functools.partial(field_option, p, _SURVEY_OPTIONS)
+    opt("cell_m", "--cell", type=float, metavar="M")
+    opt("ortho_gsd_m", "--ortho-gsd", type=float, metavar="M")
+    opt("crs", "--crs", metavar="utm|enu|EPSG:CODE")
+    opt("laz", "--laz", action="store_true")
+    opt("cloud_spacing_m", "--cloud-spacing", type=float, metavar="M")
+    opt("matching", "--matching", choices=["auto", "exhaustive", "spatial", "sequential"])
     p.add_argument("--resume", action="store_true",
                    help="reuse the poses and finished pairs an interrupted run of this same command kept "
                    "(in .OUT.resume beside OUT; frames, not a video); without it such leftovers are removed")
-    p.add_argument("--pair-steps", type=int, nargs="+", default=[1, 2], metavar="K",
-                   help="pair each frame with the one K later (default 1 2: the next and the next-but-one)")
-    p.add_argument("--cross-pairs", action=argparse.BooleanOptionalAction, default=True,
-                   help="also pair each frame with the later frame sharing most of its view, e.g. on the next "
-                   "flight line (default on)")
-    p.add_argument("--max-image-size", type=int, default=2000, metavar="PX",
-                   help="longest side for the pose features (default 2000)")
-    p.add_argument("--dense-max-pixels", type=float, default=3.2e6, metavar="N",
-                   help="frames are matched downscaled 1/2, 1/3... to stay under N pixels (default 3.2e6)")
-    p.add_argument("--refine", choices=["auto", "focal+distortion", "none"], default="auto",
-                   help="intrinsics the bundle adjustment refines (default auto: none with --calib, f k1 k2 "
-                   "from EXIF; nadir frames over gentle relief barely separate the focal length from the height)")
-    p.add_argument("--refine-principal-point", action="store_true",
-                   help="free the principal point in the bundle adjustment (default fixed: few nadir frames "
-                   "do not determine it)")
-    p.add_argument("--gcp", type=Path, metavar="GCP_LIST", help="ground control points in OpenDroneMap's "
-                   "gcp_list.txt format (a CRS line, then x y z pixel_x pixel_y image name): held fixed in the bundle "
-                   "adjustment (they place frames without GPS too); every point's residual goes to OUT/gcp_check.json")
-    p.add_argument("--gcp-check", nargs="+", default=[], metavar="NAME",
-                   help="names in the --gcp file kept out of the adjustment and only measured (check points; all of "
-                   "them: the GPS-only survey's absolute error is measured)")
-    p.add_argument("--gps-accuracy", metavar="H[,V]", help="the GPS positions' standard deviation, m, horizontal "
-                   "and vertical; they weigh the positions in the adjustment (default: estimated from their residuals "
-                   "after a first adjustment at 1 m / 2 m, a consumer drone's GNSS)")
-    p.add_argument("--gps-prior", action=argparse.BooleanOptionalAction, default=True,
-                   help="the GPS positions as constraints in the bundle adjustment (default); --no-gps-prior: a "
-                   "similarity onto them after it")
+    opt("pair_steps", "--pair-steps", type=int, nargs="+", metavar="K")
+    opt("cross_pairs", "--cross-pairs", action=argparse.BooleanOptionalAction)
+    opt("max_image_size", "--max-image-size", type=int, metavar="PX")
+    opt("dense_max_pixels", "--dense-max-pixels", type=float, metavar="N")
+    opt("refine_intrinsics", "--refine", choices=["auto", "focal+distortion", "none"])
+    opt("refine_principal_point", "--refine-principal-point", action="store_true")
+    opt("gcp_file", "--gcp", metavar="GCP_LIST")
+    opt("gcp_check", "--gcp-check", nargs="+", metavar="NAME")
+    opt("gps_accuracy", "--gps-accuracy", type=_gps_accuracy, metavar="H[,V]")
+    opt("gps_prior", "--gps-prior", action=argparse.BooleanOptionalAction)
     p.add_argument("--workers", type=int, default=0, help="dense pairs on a local Dask cluster of W processes")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="dense pairs on an existing Dask scheduler")
 

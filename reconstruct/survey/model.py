@@ -117,7 +117,9 @@ class SurveyOptions:
     gcp_file: str | None = None
     """Ground control points, OpenDroneMap's ``gcp_list.txt`` (:mod:`~prism3d.reconstruct.survey.gcp`)."""
     gcp_check: tuple[str, ...] = ()
-    """Names in ``gcp_file`` kept out of the adjustment and only measured (``gcp_check.json``)."""
+    """Names in ``gcp_file`` (each may be a comma-separated list) kept out of the adjustment
+    and only measured, in ``gcp_check.json``: check points (all of them: the GPS-only
+    survey's absolute error is measured)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.max_image_size, bool) or not 320 <= int(self.max_image_size) <= 20000:
@@ -153,7 +155,8 @@ class SurveyOptions:
                 raise InputError(f"gps_accuracy: expected (horizontal, vertical) in 0.005-1000 m, "
                                  f"got {self.gps_accuracy!r}")
             object.__setattr__(self, "gps_accuracy", (float(acc[0]), float(acc[1])))
-        object.__setattr__(self, "gcp_check", tuple(str(c) for c in self.gcp_check))
+        names = (self.gcp_check,) if isinstance(self.gcp_check, str) else self.gcp_check
+        object.__setattr__(self, "gcp_check", tuple(c for a in names for c in str(a).split(",") if c))
         if self.gcp_check and self.gcp_file is None:
             raise InputError("gcp_check: check points need a control point file (gcp_file)")
         if self.refine_intrinsics not in ("auto", "focal+distortion", "none"):

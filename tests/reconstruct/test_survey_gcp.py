@@ -141,7 +141,10 @@ def test_bad_gcp_file_is_one_line_exit_2_and_nothing_written(case: str, flight: 
     frames = sorted(str(p) for p in flight.glob("IMG_*.JPG"))
     out = tmp_path / "out"
     capsys.readouterr()
-    rc = main(["survey", *frames, "--gps", str(flight / "geoinfo.txt"), "--gcp", str(gcp), *extra, "-o", str(out)])
+    try:  # an option argparse refuses exits from the parser, as on the command line
+        rc = main(["survey", *frames, "--gps", str(flight / "geoinfo.txt"), "--gcp", str(gcp), *extra, "-o", str(out)])
+    except SystemExit as e:
+        rc = e.code
     err = capsys.readouterr().err.strip()
     assert rc == 2
     assert len(err.splitlines()) == 1 and err.startswith("prism3d survey: error:"), err

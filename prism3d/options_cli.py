@@ -1,0 +1,83 @@
+"""Command-line options drawn from the options dataclasses: each default lives once, in
+its dataclass field, and an option's help is the field's docstring.
+
+The fields are read from the dataclass's source (``ast``), not by importing its module,
+so building the parser stays instant (``prism3d --help`` loads no command). An option
+left off the command line is absent from the parsed namespace, and the dataclass's own
+default applies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import functools
+import importlib.util
+import re
+from pathlib import Path
+from typing import Any
+
+__all__ = ["field_default", "field_option", "given_fields"]
+
+#: A dataclass as (module, class name), e.g. ("prism3d.reconstruct.survey.model", "SurveyOptions").
+Where = tuple[str, str]
+
+
+@functools.cache
+def _fields(where: Where) -> dict[str, tuple[Any, str]]:
+    """Field name -> (default, docstring on one line) of the dataclass ``where``, read from
+    its source; a field without a literal default or without a docstring is a bug here."""
+    module, name = where
+    spec = importlib.util.find_spec(module)
+    if spec is None or spec.origin is None:
+        raise RuntimeError(f"options: no source for {module}")
+    tree = ast.parse(Path(spec.origin).read_text(encoding="utf-8"))
+    node = next((n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == name), None)
+    if node is None:
+        raise RuntimeError(f"options: no class {name} in {module}")
+    out: dict[str, tuple[Any, str]] = {}
+    for st, nxt in zip(node.body, [*node.body[1:], None], strict=True):
+        if not (isinstance(st, ast.AnnAssign) and isinstance(st.target, ast.Name) and st.value is not None):
+            continue
+        doc = nxt.value.value if isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant) \
+            and isinstance(nxt.value.value, str) else ""
+        out[st.target.id] = (ast.literal_eval(st.value), " ".join(doc.split()))
+    return out
+
+
+def field_default(where: Where, name: str) -> Any:
+    """The default of field ``name`` of the dataclass ``where``, as its source states it."""
+    return _fields(where)[name][0]
+
+
+def _plain(doc: str) -> str:
+    """A docstring as terminal help: Sphinx roles and literals as plain words, and a None
+    default described as the default."""
+    doc = re.sub(r":\w+:`~?(?:[\w.]*\.)?([^`.]+)`", r"\1", doc)
+    doc = doc.replace("``", "")
+    return re.sub(r"\bNone: ", "default: ", doc)
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if isinstance(value, (tuple, list)):
+        return " ".join(str(v) for v in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def field_option(p: argparse.ArgumentParser, where: Where, name: str, *flags: str, **kw: Any) -> None:
+    """Add ``flags`` setting the field ``name`` of the dataclass ``where``: help from the
+    field's docstring with its default appended (a None default is explained by the
+    docstring itself), no argparse default (the dataclass's applies); ``kw`` as for
+    ``add_argument`` (type, choices, nargs, action, metavar)."""
+    default, doc = _fields(where)[name]
+    if not doc:
+        raise RuntimeError(f"options: {where[1]}.{name} has no docstring to show as help")
+    text = _plain(doc) if default is None or default == () else f"{_plain(doc)} (default: {_shown(default)})"
+    p.add_argument(*flags, dest=name, default=argparse.SUPPRESS, help=text.replace("%", "%%"), **kw)
+
+
+def given_fields(args: argparse.Namespace, where: Where) -> dict[str, Any]:
+    """The fields of the dataclass ``where`` given on the command line, by name."""
+    return {k: getattr(args, k) for k in _fields(where) if hasattr(args, k)}

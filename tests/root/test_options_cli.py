@@ -1,0 +1,61 @@
+"""Options drawn from the options dataclasses: the CLI reads each field's default and help
+from the source without importing the module, and what it reads is what the dataclass
+holds; a command given no option builds the dataclass's defaults, and each flag lands on
+its field."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from prism3d.cli import _SURVEY_OPTIONS, build_parser
+from prism3d.options_cli import _fields, field_default, given_fields
+from prism3d.reconstruct.survey.model import SurveyOptions
+
+
+def test_defaults_read_from_the_source_are_the_dataclass_defaults():
+    real = {f.name: f.default for f in dataclasses.fields(SurveyOptions)}
+    read = _fields(_SURVEY_OPTIONS)
+    assert set(read) == set(real)
+    for name, (default, doc) in read.items():
+        assert default == real[name], name
+        assert doc, f"{name} has no docstring"
+    assert field_default(_SURVEY_OPTIONS, "pair_steps") == (1, 2)
+
+
+def _survey_options(*argv: str) -> SurveyOptions:
+    args = build_parser().parse_args(["survey", "a.jpg", "b.jpg", "-o", "out", *argv])
+    return SurveyOptions(**given_fields(args, _SURVEY_OPTIONS))
+
+
+def test_survey_without_options_is_the_dataclass_default():
+    assert _survey_options() == SurveyOptions()
+
+
+def test_survey_flags_land_on_their_fields():
+    o = _survey_options("--cell", "0.5", "--ortho-gsd", "0.04", "--crs", "enu", "--laz", "--cloud-spacing", "0.2",
+                        "--matching", "sequential", "--pair-steps", "1", "3", "--no-cross-pairs",
+                        "--max-image-size", "1500", "--dense-max-pixels", "2e6", "--refine", "none",
+                        "--refine-principal-point", "--gcp", "g.txt", "--gcp-check", "a,b", "c",
+                        "--gps-accuracy", "0.5", "--no-gps-prior")
+    assert o == SurveyOptions(cell_m=0.5, ortho_gsd_m=0.04, crs="enu", laz=True, cloud_spacing_m=0.2,
+                              matching="sequential", pair_steps=(1, 3), cross_pairs=False, max_image_size=1500,
+                              dense_max_pixels=2e6, refine_intrinsics="none", refine_principal_point=True,
+                              gcp_file="g.txt", gcp_check=("a", "b", "c"), gps_accuracy=(0.5, 1.0),
+                              gps_prior=False)
+
+
+def test_the_help_is_the_field_docstring(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["survey", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "Pairs: each frame with the next (1)" in out and "twice the baseline). (default: 1 2)" in out
+    assert ":mod:" not in out and "``" not in out
+
+
+def test_a_bad_gps_accuracy_is_one_line(capsys):
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(["survey", "a.jpg", "-o", "out", "--gps-accuracy", "1,2,3"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "--gps-accuracy" in err[0] and "H or H,V" in err[0]
