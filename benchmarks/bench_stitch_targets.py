@@ -202,27 +202,26 @@ def sweep(a: argparse.Namespace, options: dict, tag: str, hints: tuple) -> None:
           f"s |  camera {tag}")
     print("|---|---:|---|---|---:|---:|---:|---:|---:|---|---:|")
     rows = []
-    for name in a.targets:
-        for seed in seeds:
-            folder = a.cache / tag / f"{name}_s{seed}"
-            done = folder / "result.json"
-            t0 = time.perf_counter()
-            if done.exists():
-                r = json.loads(done.read_text())
-            else:
-                render(name, folder, ideal=a.ideal_camera, supersample=a.supersample, seed=seed)
-                r = run(name, folder, options, True, hints)
-                r["seed"], r["wall_s"] = seed, time.perf_counter() - t0
-                done.write_text(json.dumps(r, default=float))
-            rows.append(r)
-            h, f = r["hint"], r.get("frame")
-            stitched = np.isfinite(h["worst_deg"])
-            fb = ", ".join(sorted(set(h.get("fallbacks", [])))) or "-"
-            fr = (f"{f['up_deg']:.3f} | {f['forward_deg']:.2f}{' (amb.)' if f['ambiguous'] else ''} | "
-                  f"{f['origin_mm']:.2f} | {100 * max(abs(v) for v in f['size_rel']):.2f}") if f else "- | - | - | -"
-            print(f"| {name} | {seed} | {'yes' if stitched else 'NO: ' + '; '.join(h['warnings'])[:60]} | {fb} | "
-                  f"{h['worst_deg']:.3f} | {fr} | {'yes' if frame_ok(f) else 'NO'} | {r.get('wall_s', 0):.0f} |",
-                  flush=True)
+    for seed, name in ((s, n) for s in seeds for n in a.targets):  # seed by seed: a cut sweep covers every target
+        folder = a.cache / tag / f"{name}_s{seed}"
+        done = folder / "result.json"
+        t0 = time.perf_counter()
+        if done.exists():
+            r = json.loads(done.read_text())
+        else:
+            render(name, folder, ideal=a.ideal_camera, supersample=a.supersample, seed=seed)
+            r = run(name, folder, options, True, hints)
+            r["seed"], r["wall_s"] = seed, time.perf_counter() - t0
+            done.write_text(json.dumps(r, default=float))
+        rows.append(r)
+        h, f = r["hint"], r.get("frame")
+        stitched = np.isfinite(h["worst_deg"])
+        fb = ", ".join(sorted(set(h.get("fallbacks", [])))) or "-"
+        fr = (f"{f['up_deg']:.3f} | {f['forward_deg']:.2f}{' (amb.)' if f['ambiguous'] else ''} | "
+              f"{f['origin_mm']:.2f} | {100 * max(abs(v) for v in f['size_rel']):.2f}") if f else "- | - | - | -"
+        print(f"| {name} | {seed} | {'yes' if stitched else 'NO: ' + '; '.join(h['warnings'])[:60]} | {fb} | "
+              f"{h['worst_deg']:.3f} | {fr} | {'yes' if frame_ok(f) else 'NO'} | {r.get('wall_s', 0):.0f} |",
+              flush=True)
     print("\n| target | cases | stitched | with a fallback | frame within bounds | worst deg (max) |\n|---|---:|---:|---:|---:|---:|")
     for name in a.targets:
         rs = [r for r in rows if r["target"] == name]
