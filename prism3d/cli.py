@@ -639,16 +639,7 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
 
     if len(args.scans) < 2:
         raise InputError("stitch needs at least 2 scans")
-    opts: dict[str, Any] = {"turntable_step_deg": args.turntable_step}
-    if args.voxel is not None:
-        opts["voxel"] = args.voxel
-    if args.smooth:
-        opts["smooth_iterations"] = args.smooth
-    if args.min_confidence is not None:
-        opts["min_confidence"] = args.min_confidence
-    if args.mesh_max_distance is not None:
-        opts["mesh_max_spacings"] = args.mesh_max_distance
-    res = stitch_to_files(args.scans, args.output, StitchOptions(**opts), mesh_out=args.mesh,
+    res = stitch_to_files(args.scans, args.output, StitchOptions(**given_fields(args, _STITCH_OPTIONS)), mesh_out=args.mesh,
                           progress=_progress(args, "stitch"), frame=args.frame, front_view=args.front_view)
     _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
                + (f", mesh {args.mesh}" if args.mesh else ""))
@@ -672,6 +663,10 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
     return 0
 
 
+#: The stitcher's options dataclass: its fields give `prism3d stitch` its defaults and help.
+_STITCH_OPTIONS = ("prism3d.reconstruct.scan.stitch_options", "StitchOptions")
+
+
 def _add_stitch(sub: Any) -> None:
     p = _command(sub, "stitch", _cmd_stitch,
                  help="register and fuse scans of several views into one 360-degree model",
@@ -682,14 +677,12 @@ def _add_stitch(sub: Any) -> None:
     p.add_argument("scans", nargs="+", type=Path, metavar="SCANS", help="PLY or PCD scans in acquisition order")
     _output_option(p, "MODEL_PLY")
     p.add_argument("--mesh", type=Path, metavar="MESH_PLY", help="also write a watertight mesh")
-    p.add_argument("--turntable-step", type=float, metavar="DEG", help="known rotation between views")
-    p.add_argument("--voxel", type=float, help="fusion voxel size in the scans' units (default: from spacing)")
-    p.add_argument("--smooth", type=int, default=0, metavar="N", help="mesh smoothing iterations (default 0)")
-    p.add_argument("--min-confidence", type=float, metavar="C", help="use the scans' points whose confidence "
-                   "property reaches this (default 0.9: disparity within 1 px with 90 %% chance; 0 = all)")
-    p.add_argument("--mesh-max-distance", type=float, metavar="SPACINGS",
-                   help="drop the mesh farther than this many point spacings from the data (default: keep "
-                   "the closed surface; 2 for a training target: the closed one balloons where nothing was seen)")
+    opt = functools.partial(field_option, p, _STITCH_OPTIONS)
+    opt("turntable_step_deg", "--turntable-step", type=float, metavar="DEG")
+    opt("voxel", "--voxel", type=float)
+    opt("smooth_iterations", "--smooth", type=int, metavar="N")
+    opt("min_confidence", "--min-confidence", type=float, metavar="C")
+    opt("mesh_max_spacings", "--mesh-max-distance", type=float, metavar="SPACINGS")
     p.add_argument("--frame", choices=["scan", "object"], default="scan",
                    help="scan: the first scan's camera frame (default); object: z up (turntable axis or "
                    "support plane), x along the longest horizontal extent, origin on the support")

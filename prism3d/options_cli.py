@@ -21,12 +21,15 @@ __all__ = ["field_default", "field_option", "given_fields"]
 
 #: A dataclass as (module, class name), e.g. ("prism3d.reconstruct.survey.model", "SurveyOptions").
 Where = tuple[str, str]
+#: The fields each dataclass has flags for (a command's other arguments may share a field's
+#: name without setting it: `stitch --mesh FILE` is no StitchOptions.mesh).
+_DECLARED: dict[Where, set[str]] = {}
 
 
 @functools.cache
 def _fields(where: Where) -> dict[str, tuple[Any, str]]:
     """Field name -> (default, docstring on one line) of the dataclass ``where``, read from
-    its source; a field without a literal default or without a docstring is a bug here."""
+    its source (a default is a literal or a module constant holding one)."""
     module, name = where
     spec = importlib.util.find_spec(module)
     if spec is None or spec.origin is None:
@@ -35,13 +38,16 @@ def _fields(where: Where) -> dict[str, tuple[Any, str]]:
     node = next((n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == name), None)
     if node is None:
         raise RuntimeError(f"options: no class {name} in {module}")
+    consts = {t.id: st.value for st in tree.body if isinstance(st, ast.Assign)
+              for t in st.targets if isinstance(t, ast.Name)}  # module constants a default may name
     out: dict[str, tuple[Any, str]] = {}
     for st, nxt in zip(node.body, [*node.body[1:], None], strict=True):
         if not (isinstance(st, ast.AnnAssign) and isinstance(st.target, ast.Name) and st.value is not None):
             continue
         doc = nxt.value.value if isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant) \
             and isinstance(nxt.value.value, str) else ""
-        out[st.target.id] = (ast.literal_eval(st.value), " ".join(doc.split()))
+        value = consts.get(st.value.id, st.value) if isinstance(st.value, ast.Name) else st.value
+        out[st.target.id] = (ast.literal_eval(value), " ".join(doc.split()))
     return out
 
 
@@ -76,8 +82,10 @@ def field_option(p: argparse.ArgumentParser, where: Where, name: str, *flags: st
         raise RuntimeError(f"options: {where[1]}.{name} has no docstring to show as help")
     text = _plain(doc) if default is None or default == () else f"{_plain(doc)} (default: {_shown(default)})"
     p.add_argument(*flags, dest=name, default=argparse.SUPPRESS, help=text.replace("%", "%%"), **kw)
+    _DECLARED.setdefault(where, set()).add(name)
 
 
 def given_fields(args: argparse.Namespace, where: Where) -> dict[str, Any]:
-    """The fields of the dataclass ``where`` given on the command line, by name."""
-    return {k: getattr(args, k) for k in _fields(where) if hasattr(args, k)}
+    """The fields of the dataclass ``where`` given on the command line (by their
+    :func:`field_option` flags), by name."""
+    return {k: getattr(args, k) for k in _DECLARED.get(where, ()) if hasattr(args, k)}

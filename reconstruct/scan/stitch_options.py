@@ -42,7 +42,7 @@ class StitchOptions:
     mesh_max_spacings: float | None = None
     """Drop the mesh farther than this many point spacings from the fused points (None:
     keep the closed surface, guessed where nothing was seen; a scanned training target
-    wants 3: docs/stitching.md, "Object frame")."""
+    wants 2: docs/stitching.md, "Object frame")."""
     smooth_iterations: int = 0
     """Taubin smoothing passes on the mesh."""
     min_fitness: float = 0.2

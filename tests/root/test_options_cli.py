@@ -9,19 +9,34 @@ import dataclasses
 
 import pytest
 
-from prism3d.cli import _SURVEY_OPTIONS, build_parser
+from prism3d.cli import _STITCH_OPTIONS, _SURVEY_OPTIONS, build_parser
 from prism3d.options_cli import _fields, field_default, given_fields
+from prism3d.reconstruct.scan.stitch_options import StitchOptions
 from prism3d.reconstruct.survey.model import SurveyOptions
 
 
-def test_defaults_read_from_the_source_are_the_dataclass_defaults():
-    real = {f.name: f.default for f in dataclasses.fields(SurveyOptions)}
-    read = _fields(_SURVEY_OPTIONS)
+@pytest.mark.parametrize(("where", "cls"), [(_SURVEY_OPTIONS, SurveyOptions), (_STITCH_OPTIONS, StitchOptions)])
+def test_defaults_read_from_the_source_are_the_dataclass_defaults(where, cls):
+    real = {f.name: f.default for f in dataclasses.fields(cls)}
+    read = _fields(where)
     assert set(read) == set(real)
     for name, (default, doc) in read.items():
         assert default == real[name], name
         assert doc, f"{name} has no docstring"
     assert field_default(_SURVEY_OPTIONS, "pair_steps") == (1, 2)
+    assert field_default(_STITCH_OPTIONS, "min_confidence") == 0.9  # a module constant
+
+
+def _stitch_options(*argv: str) -> StitchOptions:
+    args = build_parser().parse_args(["stitch", "a.ply", "b.ply", "-o", "m.ply", *argv])
+    return StitchOptions(**given_fields(args, _STITCH_OPTIONS))
+
+
+def test_stitch_flags_land_on_their_fields():
+    assert _stitch_options() == StitchOptions()
+    assert _stitch_options("--turntable-step", "45", "--voxel", "0.5", "--smooth", "3", "--min-confidence", "0.5",
+                           "--mesh-max-distance", "2") == StitchOptions(
+        turntable_step_deg=45.0, voxel=0.5, smooth_iterations=3, min_confidence=0.5, mesh_max_spacings=2.0)
 
 
 def _survey_options(*argv: str) -> SurveyOptions:
