@@ -16,6 +16,7 @@ import functools
 import json
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -150,21 +151,12 @@ def _virtual_resolver(name: str) -> Any:
 
 # --- simulate ------------------------------------------------------------------------------
 def _cmd_simulate_flight(args: argparse.Namespace) -> int:
-    import re
-
     from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 
-    given = {"frames": args.frames, "lines": args.lines, "altitude_m": args.altitude, "overlap": args.overlap,
-             "side_overlap": args.side_overlap, "heading_deg": args.heading, "targets": args.targets,
-             "confusers": args.confusers, "supersample": args.supersample, "scene": args.scene, "gcp": args.gcp,
-             "gcp_pixel_sigma": args.gcp_pixel_sigma}
-    if args.size is not None:
-        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", args.size)
-        if m is None:
-            raise InputError(f"--size: expected WIDTHxHEIGHT in pixels (e.g. 4000x3000), got {args.size!r}")
-        given["size"] = (int(m.group(1)), int(m.group(2)))
-    fo = FlightOptions(seed=args.seed, noise=args.noise, depth=args.depth,
-                       **{k: v for k, v in given.items() if v is not None})
+    common = {"seed": args.seed, "noise": args.noise}
+    if args.supersample is not None:
+        common["supersample"] = args.supersample
+    fo = FlightOptions(**common, **given_fields(args, _FLIGHT_OPTIONS))
     summary = simulate_flight(args.out_dir, fo, progress=_progress(args, "simulate flight"))
     _say(args, f"wrote a {summary['n_frames']}-frame flight over {fo.scene} ({summary['n_targets']} vehicles, "
                f"GSD {100 * summary['gsd_m']:.1f} cm) to {args.out_dir} in {summary['seconds']:.1f} s")
@@ -302,27 +294,33 @@ def _add_simulate(sub: Any) -> None:
     q = kind("flight", _cmd_simulate_flight, "a nadir drone survey (lawnmower lines, 12 MP) over hills, roads, "
              "clutter and ground vehicles (IMG_0000.JPG..., geoinfo.txt, camera.yaml, truth.json, truth.npz "
              "with the true DSM, depth/); lengths in metres", "1")
-    q.add_argument("--targets", type=int, help="ground vehicles (default 5-10)")
-    q.add_argument("--confusers", type=int, help="crates and fuel tanks (default 0-3)")
-    q.add_argument("--frames", type=int, help="photographs in all, split evenly between the lines (default 12)")
-    q.add_argument("--lines", type=int, help="parallel flight lines, flown back and forth (default 2)")
-    q.add_argument("--scene", choices=["field", "carpark"], default=None,
-                   help="camouflaged military vehicles on open ground (field, default) or a car park of "
-                   "parked civilian vehicles in rows, trees, people and poles (carpark)")
-    q.add_argument("--altitude", type=float, metavar="M", help="height above the mean ground, m "
-                   "(default 100: GSD 3.6 cm)")
-    q.add_argument("--overlap", type=float, metavar="F", help="forward overlap (default 0.70)")
-    q.add_argument("--side-overlap", type=float, metavar="F", help="side overlap of the lines (default 0.60)")
-    q.add_argument("--size", metavar="WxH", help="image size, px (default 4000x3000)")
-    q.add_argument("--heading", type=float, metavar="DEG", help="direction of the first line, deg clockwise "
-                   "from north (default: drawn from the seed)")
-    q.add_argument("--depth", action=argparse.BooleanOptionalAction, default=True,
-                   help="write each frame's true depth and object ids in depth/ (default)")
-    q.add_argument("--gcp", type=int, metavar="N", help="lay N painted ground control points (chequer boards) "
-                   "over the block and write gcp_list.txt (OpenDroneMap's format: the site's UTM zone, ellipsoidal "
-                   "heights; the markers' pixels in every frame that sees them); default none")
-    q.add_argument("--gcp-pixel-sigma", type=float, metavar="PX",
-                   help="noise of the control points' pixels in gcp_list.txt, px per axis (default 0.5)")
+    opt = functools.partial(field_option, q, _FLIGHT_OPTIONS)
+    opt("targets", "--targets", type=int)
+    opt("confusers", "--confusers", type=int)
+    opt("frames", "--frames", type=int)
+    opt("lines", "--lines", type=int)
+    opt("scene", "--scene", choices=["field", "carpark"])
+    opt("altitude_m", "--altitude", type=float, metavar="M")
+    opt("overlap", "--overlap", type=float, metavar="F")
+    opt("side_overlap", "--side-overlap", type=float, metavar="F")
+    opt("size", "--size", type=_size_wxh, metavar="WxH")
+    opt("heading_deg", "--heading", type=float, metavar="DEG")
+    opt("depth", "--depth", action=argparse.BooleanOptionalAction)
+    opt("gcp", "--gcp", type=int, metavar="N")
+    opt("gcp_pixel_sigma", "--gcp-pixel-sigma", type=float, metavar="PX")
+
+
+#: The drone flight simulator's options dataclass: its fields give `simulate flight` its
+#: defaults and help.
+_FLIGHT_OPTIONS = ("prism3d.datasets.simulation.flight_plan", "FlightOptions")
+
+
+def _size_wxh(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` in pixels."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if m is None:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels (e.g. 4000x3000), got {text!r}")
+    return (int(m.group(1)), int(m.group(2)))
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:

@@ -9,13 +9,15 @@ import dataclasses
 
 import pytest
 
-from prism3d.cli import _STITCH_OPTIONS, _SURVEY_OPTIONS, build_parser
+from prism3d.cli import _FLIGHT_OPTIONS, _STITCH_OPTIONS, _SURVEY_OPTIONS, build_parser
+from prism3d.datasets.simulation.flight import FlightOptions
 from prism3d.options_cli import _fields, field_default, given_fields
 from prism3d.reconstruct.scan.stitch_options import StitchOptions
 from prism3d.reconstruct.survey.model import SurveyOptions
 
 
-@pytest.mark.parametrize(("where", "cls"), [(_SURVEY_OPTIONS, SurveyOptions), (_STITCH_OPTIONS, StitchOptions)])
+@pytest.mark.parametrize(("where", "cls"), [(_SURVEY_OPTIONS, SurveyOptions), (_STITCH_OPTIONS, StitchOptions),
+                                           (_FLIGHT_OPTIONS, FlightOptions)])
 def test_defaults_read_from_the_source_are_the_dataclass_defaults(where, cls):
     real = {f.name: f.default for f in dataclasses.fields(cls)}
     read = _fields(where)
@@ -74,3 +76,19 @@ def test_a_bad_gps_accuracy_is_one_line(capsys):
         build_parser().parse_args(["survey", "a.jpg", "-o", "out", "--gps-accuracy", "1,2,3"])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "--gps-accuracy" in err[0] and "H or H,V" in err[0]
+
+
+def _flight_options(*argv: str) -> FlightOptions:
+    args = build_parser().parse_args(["simulate", "flight", "out", *argv])
+    assert args.supersample is None  # the simulator's own default
+    return FlightOptions(seed=args.seed, noise=args.noise, **given_fields(args, _FLIGHT_OPTIONS))
+
+
+def test_simulate_flight_flags_land_on_their_fields():
+    assert _flight_options() == FlightOptions()
+    assert _flight_options("--targets", "3", "--confusers", "1", "--frames", "8", "--lines", "1", "--scene", "carpark",
+                           "--altitude", "60", "--overlap", "0.8", "--side-overlap", "0.5", "--size", "800x600",
+                           "--heading", "30", "--no-depth", "--gcp", "5", "--gcp-pixel-sigma", "0.2", "--seed", "4",
+                           "--no-noise") == FlightOptions(
+        targets=3, confusers=1, frames=8, lines=1, scene="carpark", altitude_m=60.0, overlap=0.8, side_overlap=0.5,
+        size=(800, 600), heading_deg=30.0, depth=False, gcp=5, gcp_pixel_sigma=0.2, seed=4, noise=False)
