@@ -166,9 +166,10 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
 def _cmd_simulate_field(args: argparse.Namespace) -> int:
     from prism3d.datasets.simulation.field import FieldOptions, simulate_field
 
-    fo = FieldOptions(targets=args.targets, confusers=args.confusers, seed=args.seed, noise=args.noise,
-                      supersample=1 if args.supersample is None else args.supersample,
-                      **({"classes": tuple(args.classes)} if args.classes else {}))
+    common = {"seed": args.seed, "noise": args.noise}
+    if args.supersample is not None:
+        common["supersample"] = args.supersample
+    fo = FieldOptions(**common, **given_fields(args, _FIELD_OPTIONS))
     if args.count is not None:
         from prism3d.datasets.runner import RunOptions
         from prism3d.datasets.simulation.field import simulate_field_batch
@@ -283,10 +284,10 @@ def _add_simulate(sub: Any) -> None:
     q.add_argument("--target", default="tank_t1", help="built-in target name (default tank_t1)")
     q = kind("field", _cmd_simulate_field, "full-size camouflaged targets, confusers and clutter on terrain under "
              "the sun, through a 4 m baseline rig (shot.png, rig.yaml, truth.json, truth.npz)", "1")
-    q.add_argument("--targets", type=int, help="bank-class targets (default 3-6, drawn)")
-    q.add_argument("--confusers", type=int, help="confusers (default 1-3, drawn)")
-    q.add_argument("--classes", nargs="+", metavar="NAME",
-                   help="built-in targets the bank knows (default tank_t1 jet_j1 ship_s1 truck_k1)")
+    opt = functools.partial(field_option, q, _FIELD_OPTIONS)
+    opt("targets", "--targets", type=int)
+    opt("confusers", "--confusers", type=int)
+    opt("classes", "--classes", nargs="+", metavar="NAME")
     q.add_argument("--count", type=int, help="a batch of this many scenes, seeds SEED, SEED+1... in "
                    "OUT_DIR/scene_<seed> (a rerun resumes; batch.json has the scenes per minute)")
     q.add_argument("--workers", type=int, default=0, help="with --count: local Dask workers (0 = in this process)")
@@ -310,6 +311,9 @@ def _add_simulate(sub: Any) -> None:
     opt("gcp_pixel_sigma", "--gcp-pixel-sigma", type=float, metavar="PX")
 
 
+#: The field scene simulator's options dataclass: its fields give `simulate field` its
+#: defaults and help.
+_FIELD_OPTIONS = ("prism3d.datasets.simulation.field", "FieldOptions")
 #: The drone flight simulator's options dataclass: its fields give `simulate flight` its
 #: defaults and help.
 _FLIGHT_OPTIONS = ("prism3d.datasets.simulation.flight_plan", "FlightOptions")

@@ -104,6 +104,7 @@ class FieldOptions:
                 raise InputError(f"{name}: expected an integer in [{lo}, {hi}], got {v!r}")
         if isinstance(self.clutter, bool) or int(self.clutter) != self.clutter or not 0 <= self.clutter <= 500:
             raise InputError(f"clutter: expected an integer in [0, 500], got {self.clutter!r}")
+        object.__setattr__(self, "classes", tuple(self.classes))
         known = list_builtin_targets()
         if not self.classes:
             raise InputError("classes: expected at least one built-in target name")

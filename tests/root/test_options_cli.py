@@ -9,7 +9,8 @@ import dataclasses
 
 import pytest
 
-from prism3d.cli import _FLIGHT_OPTIONS, _STITCH_OPTIONS, _SURVEY_OPTIONS, build_parser
+from prism3d.cli import _FIELD_OPTIONS, _FLIGHT_OPTIONS, _STITCH_OPTIONS, _SURVEY_OPTIONS, build_parser
+from prism3d.datasets.simulation.field import FieldOptions
 from prism3d.datasets.simulation.flight import FlightOptions
 from prism3d.options_cli import _fields, field_default, given_fields
 from prism3d.reconstruct.scan.stitch_options import StitchOptions
@@ -17,7 +18,7 @@ from prism3d.reconstruct.survey.model import SurveyOptions
 
 
 @pytest.mark.parametrize(("where", "cls"), [(_SURVEY_OPTIONS, SurveyOptions), (_STITCH_OPTIONS, StitchOptions),
-                                           (_FLIGHT_OPTIONS, FlightOptions)])
+                                           (_FLIGHT_OPTIONS, FlightOptions), (_FIELD_OPTIONS, FieldOptions)])
 def test_defaults_read_from_the_source_are_the_dataclass_defaults(where, cls):
     real = {f.name: f.default for f in dataclasses.fields(cls)}
     read = _fields(where)
@@ -92,3 +93,13 @@ def test_simulate_flight_flags_land_on_their_fields():
                            "--no-noise") == FlightOptions(
         targets=3, confusers=1, frames=8, lines=1, scene="carpark", altitude_m=60.0, overlap=0.8, side_overlap=0.5,
         size=(800, 600), heading_deg=30.0, depth=False, gcp=5, gcp_pixel_sigma=0.2, seed=4, noise=False)
+
+
+def test_simulate_field_flags_land_on_their_fields():
+    def field(*argv: str) -> FieldOptions:
+        args = build_parser().parse_args(["simulate", "field", "out", *argv])
+        return FieldOptions(seed=args.seed, noise=args.noise, **given_fields(args, _FIELD_OPTIONS))
+
+    assert field() == FieldOptions()
+    assert field("--targets", "4", "--confusers", "2", "--classes", "tank_t1", "truck_k1") == FieldOptions(
+        targets=4, confusers=2, classes=("tank_t1", "truck_k1"))
