@@ -431,16 +431,6 @@ def _add_rectify(sub: Any) -> None:
 
 
 # --- match / reconstruct / flatness -------------------------------------------------------
-def _parse_range(text: str | None, what: str) -> tuple[float, float] | None:
-    if text is None:
-        return None
-    try:
-        lo, hi = (float(v) for v in text.split(":"))
-    except ValueError as exc:
-        raise InputError(f"{what}: expected NEAR:FAR in mm, got {text!r}") from exc
-    return lo, hi
-
-
 def _cmd_match(args: argparse.Namespace) -> int:
     from prism3d.reconstruct.stereo.match import match_files
 
@@ -507,11 +497,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from prism3d.reconstruct.stereo.pipeline import ReconstructOptions, reconstruct_to_files
 
     _check_views(args)
-    if args.smooth < 0:
-        raise InputError(f"--smooth: expected a sigma >= 0 px, got {args.smooth}")
-    options = ReconstructOptions(min_disp=args.min_disp, num_disp=args.num_disp,
-                                 depth_range_mm=_parse_range(args.depth_range, "--depth-range"),
-                                 smooth_sigma_px=args.smooth, min_confidence=args.min_confidence)
+    options = ReconstructOptions(**given_fields(args, _RECONSTRUCT_OPTIONS))
     rec = reconstruct_to_files(args.shot, list(args.calib), args.output, left_path=args.left,
                                right_path=args.right, disparity_out=args.disparity_out,
                                depth_out=args.depth_out, mesh_out=args.mesh,
@@ -529,9 +515,20 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_reconstruct(sub: Any) -> None:
-    from prism3d.reconstruct.stereo.defaults import DEFAULT_MIN_CONFIDENCE
+#: The shot reconstruction's options dataclass: its fields give `reconstruct` its defaults and help.
+_RECONSTRUCT_OPTIONS = ("prism3d.reconstruct.stereo.pipeline", "ReconstructOptions")
 
+
+def _near_far_mm(text: str) -> tuple[float, float]:
+    """``NEAR:FAR`` in mm."""
+    try:
+        lo, hi = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected NEAR:FAR in mm, got {text!r}") from None
+    return lo, hi
+
+
+def _add_reconstruct(sub: Any) -> None:
     p = _command(sub, "reconstruct", _cmd_reconstruct,
                  help="one prism shot (or a stereo pair) -> metric scan PLY",
                  description="Rectify the two views of a side-by-side shot (or of --left/--right "
@@ -546,16 +543,12 @@ def _add_reconstruct(sub: Any) -> None:
                    help="disparity of the kept pixels (rectified-left grid, inf elsewhere)")
     p.add_argument("--depth-out", type=Path, metavar="TIFF|NPY|NPZ", help="depth in mm (rectified-left grid)")
     p.add_argument("--mesh", type=Path, metavar="PLY", help="also write a mesh of the organised scan")
-    p.add_argument("--depth-range", metavar="NEAR:FAR", help="depth search range, mm (default: 0.85x..1.2x "
-                   "the rig's convergence distance; parallel cameras: from the images)")
-    p.add_argument("--min-disp", type=int, help="smallest disparity (instead of --depth-range)")
-    p.add_argument("--num-disp", type=int, help="disparity levels (instead of --depth-range)")
-    p.add_argument("--min-confidence", type=float, default=DEFAULT_MIN_CONFIDENCE, metavar="C",
-                   help="keep points whose disparity is within 1 px of the truth with at least this "
-                   f"chance (default {DEFAULT_MIN_CONFIDENCE}: keeps the surface; 0.5 or 0.9 trade "
-                   "density for precision)")
-    p.add_argument("--smooth", type=float, default=0.0, metavar="SIGMA_PX",
-                   help="edge-preserving depth smoothing, Gaussian sigma in pixels (default off)")
+    opt = functools.partial(field_option, p, _RECONSTRUCT_OPTIONS)
+    opt("depth_range_mm", "--depth-range", type=_near_far_mm, metavar="NEAR:FAR")
+    opt("min_disp", "--min-disp", type=int)
+    opt("num_disp", "--num-disp", type=int)
+    opt("min_confidence", "--min-confidence", type=float, metavar="C")
+    opt("smooth_sigma_px", "--smooth", type=float, metavar="SIGMA_PX")
     p.add_argument("--json", action="store_true", help="print the result (coverage, timings) as JSON")
 
 

@@ -26,28 +26,57 @@ Where = tuple[str, str]
 _DECLARED: dict[Where, set[str]] = {}
 
 
+#: A field whose default is no literal (a factory): no flag can show it.
+_NOT_LITERAL = object()
+
+
 @functools.cache
-def _fields(where: Where) -> dict[str, tuple[Any, str]]:
-    """Field name -> (default, docstring on one line) of the dataclass ``where``, read from
-    its source (a default is a literal or a module constant holding one)."""
-    module, name = where
+def _module_tree(module: str) -> ast.Module:
     spec = importlib.util.find_spec(module)
     if spec is None or spec.origin is None:
         raise RuntimeError(f"options: no source for {module}")
-    tree = ast.parse(Path(spec.origin).read_text(encoding="utf-8"))
+    return ast.parse(Path(spec.origin).read_text(encoding="utf-8"))
+
+
+def _constant(module: str, name: str) -> Any:
+    """The literal a module-level constant ``name`` of ``module`` holds, following
+    ``from M import name``; _NOT_LITERAL when it holds none."""
+    tree = _module_tree(module)
+    for st in tree.body:
+        if isinstance(st, ast.Assign) and any(isinstance(t, ast.Name) and t.id == name for t in st.targets):
+            return _literal(module, st.value)
+        if isinstance(st, ast.ImportFrom) and st.level == 0 and st.module and \
+                any((a.asname or a.name) == name for a in st.names):
+            real = next(a.name for a in st.names if (a.asname or a.name) == name)
+            return _constant(st.module, real)
+    return _NOT_LITERAL
+
+
+def _literal(module: str, node: ast.expr) -> Any:
+    if isinstance(node, ast.Name):
+        return _constant(module, node.id)
+    try:
+        return ast.literal_eval(node)
+    except ValueError:
+        return _NOT_LITERAL
+
+
+@functools.cache
+def _fields(where: Where) -> dict[str, tuple[Any, str]]:
+    """Field name -> (default, docstring on one line) of the dataclass ``where``, read from
+    its source (a default is a literal or a module constant holding one, here or imported)."""
+    module, name = where
+    tree = _module_tree(module)
     node = next((n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == name), None)
     if node is None:
         raise RuntimeError(f"options: no class {name} in {module}")
-    consts = {t.id: st.value for st in tree.body if isinstance(st, ast.Assign)
-              for t in st.targets if isinstance(t, ast.Name)}  # module constants a default may name
     out: dict[str, tuple[Any, str]] = {}
     for st, nxt in zip(node.body, [*node.body[1:], None], strict=True):
         if not (isinstance(st, ast.AnnAssign) and isinstance(st.target, ast.Name) and st.value is not None):
             continue
         doc = nxt.value.value if isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant) \
             and isinstance(nxt.value.value, str) else ""
-        value = consts.get(st.value.id, st.value) if isinstance(st.value, ast.Name) else st.value
-        out[st.target.id] = (ast.literal_eval(value), " ".join(doc.split()))
+        out[st.target.id] = (_literal(module, st.value), " ".join(doc.split()))
     return out
 
 
@@ -78,6 +107,8 @@ def field_option(p: argparse.ArgumentParser, where: Where, name: str, *flags: st
     docstring itself), no argparse default (the dataclass's applies); ``kw`` as for
     ``add_argument`` (type, choices, nargs, action, metavar)."""
     default, doc = _fields(where)[name]
+    if default is _NOT_LITERAL:
+        raise RuntimeError(f"options: {where[1]}.{name} has no literal default to show")
     if not doc:
         raise RuntimeError(f"options: {where[1]}.{name} has no docstring to show as help")
     text = _plain(doc) if default is None or default == () else f"{_plain(doc)} (default: {_shown(default)})"

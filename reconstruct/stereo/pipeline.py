@@ -100,13 +100,14 @@ class ReconstructOptions:
     num_disp: int | None = None
     """Number of disparities searched."""
     depth_range_mm: tuple[float, float] | None = None
-    """(near, far) depths (mm) the search range covers."""
+    """(near, far) depths (mm) the search range covers; None: 0.85x..1.2x the rig's
+    convergence distance (parallel cameras: from the images)."""
     max_disparity: float | None = None
     """A bound on the range estimated from the images (e.g. a calibration's ``ndisp``)."""
     alpha: float = 1.0
     """Rectification scaling; see :func:`~prism3d.capture.rig.compute_rectification`."""
     smooth_sigma_px: float = 0.0
-    """Edge-preserving depth smoothing (px, 0 = none); see :func:`~.meshing.smooth_depth`."""
+    """Edge-preserving depth smoothing, Gaussian sigma (px, 0 = none); see :func:`~.meshing.smooth_depth`."""
     min_confidence: float = DEFAULT_MIN_CONFIDENCE
     """Keep a pixel when the chance its disparity is within 1 px of the truth reaches
     this, in [0, 1); 0 keeps every pixel with an estimate."""

@@ -9,22 +9,32 @@ import dataclasses
 
 import pytest
 
-from prism3d.cli import _FIELD_OPTIONS, _FLIGHT_OPTIONS, _STITCH_OPTIONS, _SURVEY_OPTIONS, build_parser
+from prism3d.cli import (
+    _FIELD_OPTIONS,
+    _FLIGHT_OPTIONS,
+    _RECONSTRUCT_OPTIONS,
+    _STITCH_OPTIONS,
+    _SURVEY_OPTIONS,
+    build_parser,
+)
 from prism3d.datasets.simulation.field import FieldOptions
 from prism3d.datasets.simulation.flight import FlightOptions
 from prism3d.options_cli import _fields, field_default, given_fields
+from prism3d.options_cli import _NOT_LITERAL
 from prism3d.reconstruct.scan.stitch_options import StitchOptions
+from prism3d.reconstruct.stereo.pipeline import ReconstructOptions
 from prism3d.reconstruct.survey.model import SurveyOptions
 
 
 @pytest.mark.parametrize(("where", "cls"), [(_SURVEY_OPTIONS, SurveyOptions), (_STITCH_OPTIONS, StitchOptions),
-                                           (_FLIGHT_OPTIONS, FlightOptions), (_FIELD_OPTIONS, FieldOptions)])
+                                           (_FLIGHT_OPTIONS, FlightOptions), (_FIELD_OPTIONS, FieldOptions),
+                                           (_RECONSTRUCT_OPTIONS, ReconstructOptions)])
 def test_defaults_read_from_the_source_are_the_dataclass_defaults(where, cls):
     real = {f.name: f.default for f in dataclasses.fields(cls)}
     read = _fields(where)
     assert set(read) == set(real)
     for name, (default, doc) in read.items():
-        assert default == real[name], name
+        assert default == real[name] or (default is _NOT_LITERAL and real[name] is dataclasses.MISSING), name
         assert doc, f"{name} has no docstring"
     assert field_default(_SURVEY_OPTIONS, "pair_steps") == (1, 2)
     assert field_default(_STITCH_OPTIONS, "min_confidence") == 0.9  # a module constant
@@ -103,3 +113,14 @@ def test_simulate_field_flags_land_on_their_fields():
     assert field() == FieldOptions()
     assert field("--targets", "4", "--confusers", "2", "--classes", "tank_t1", "truck_k1") == FieldOptions(
         targets=4, confusers=2, classes=("tank_t1", "truck_k1"))
+
+
+def test_reconstruct_flags_land_on_their_fields():
+    def rec(*argv: str) -> ReconstructOptions:
+        args = build_parser().parse_args(["reconstruct", "shot.png", "--calib", "rig.yaml", "-o", "s.ply", *argv])
+        return ReconstructOptions(**given_fields(args, _RECONSTRUCT_OPTIONS))
+
+    assert rec() == ReconstructOptions()
+    assert rec("--depth-range", "900:1600", "--min-confidence", "0.5", "--smooth", "1.5") == ReconstructOptions(
+        depth_range_mm=(900.0, 1600.0), min_confidence=0.5, smooth_sigma_px=1.5)
+    assert rec("--min-disp", "100", "--num-disp", "64") == ReconstructOptions(min_disp=100, num_disp=64)
