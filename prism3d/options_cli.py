@@ -32,10 +32,18 @@ _NOT_LITERAL = object()
 
 @functools.cache
 def _module_tree(module: str) -> ast.Module:
-    spec = importlib.util.find_spec(module)
-    if spec is None or spec.origin is None:
+    """The parsed source of ``module``, found without running any package's ``__init__``
+    below the top two levels (``prism3d.datasets`` imports the built-in targets)."""
+    parts = module.split(".")
+    spec = importlib.util.find_spec(".".join(parts[:2]))
+    if spec is None or (spec.origin is None and not spec.submodule_search_locations):
         raise RuntimeError(f"options: no source for {module}")
-    return ast.parse(Path(spec.origin).read_text(encoding="utf-8"))
+    if not spec.submodule_search_locations:  # prism3d.<module>
+        path = Path(str(spec.origin))
+    else:
+        base = Path(next(iter(spec.submodule_search_locations))).joinpath(*parts[2:])
+        path = base / "__init__.py" if base.is_dir() else base.with_suffix(".py")
+    return ast.parse(path.read_text(encoding="utf-8"))
 
 
 def _constant(module: str, name: str) -> Any:
