@@ -6,6 +6,7 @@ scene simulator's full-resolution views."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -157,6 +158,28 @@ def test_eight_views_with_turntable_hint(tank_views):
     for p in pairs:
         assert p["final_plane_sigma"] < np.sqrt(2) * 0.15  # two raw scans' noise, unaveraged
         assert abs(p["final_fitness"] - p["fitness"]) < 0.01
+
+
+def test_the_step_motion_is_found_past_pairs_that_match_a_mirror_image(tank_views, monkeypatch):
+    """A symmetric body can match its own mirror image in the first pairs (car_suv, seed 0:
+    pairs 0-3 turned 173, 33 and 62 deg): the step motion comes from the first pair that
+    turns by the step, however late, and the stitch is as right as without the bad pairs."""
+    from prism3d.reconstruct.scan import stitch as st
+
+    scans, poses, V, F = tank_views
+    real, bad = st._global_pair, []
+
+    def mirrored_first(prep, opts, i, j):
+        r = real(prep, opts, i, j)
+        if i < 4:  # as if the first four pairs matched a mirror image: no turn by the step
+            bad.append(i)
+            return replace(r, T_target_source=np.eye(4))
+        return r
+
+    monkeypatch.setattr(st, "_global_pair", mirrored_first)
+    res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False, max_registration_points=20000))
+    assert bad[:4] == [0, 1, 2, 3]
+    _check(res, poses, V, F)
 
 
 @pytest.mark.slow  # make test-all: a variant of a fast test's behaviour (suite time)
