@@ -634,8 +634,9 @@ def _cmd_stitch(args: argparse.Namespace) -> int:
 
     if len(args.scans) < 2:
         raise InputError("stitch needs at least 2 scans")
-    res = stitch_to_files(args.scans, args.output, StitchOptions(**given_fields(args, _STITCH_OPTIONS)), mesh_out=args.mesh,
-                          progress=_progress(args, "stitch"), frame=args.frame, front_view=args.front_view)
+    opts = StitchOptions(mesh=args.mesh is not None, **given_fields(args, _STITCH_OPTIONS))  # no mesh asked: none built
+    res = stitch_to_files(args.scans, args.output, opts, mesh_out=args.mesh, progress=_progress(args, "stitch"),
+                          frame=args.frame, front_view=args.front_view)
     _say(args, f"wrote {args.output} ({len(res.points)} points) and {args.output.parent / 'poses.json'}"
                + (f", mesh {args.mesh}" if args.mesh else ""))
     of = res.diagnostics.get("object_frame")
