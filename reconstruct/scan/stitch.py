@@ -312,6 +312,9 @@ def _find_turntable_motion(prep: _Prepared, opts: StitchOptions, run: _Run,
         cand = turntable_motion(r.T_target_source, step)
         if cand is not None and r.fitness >= opts.min_fitness:
             results[(k, k + 1)] = r
+            if k > 0:  # the earlier pairs matched at other angles: the axis rests on one pair
+                run.warn(f"the turntable motion came from {prep.names[k]}-{prep.names[k + 1]}: the {k} pair(s) before "
+                         "matched at other angles (a symmetric object?); check the poses against the scans")
             return cand
         log.info("turntable axis from views %d-%d rejected (fitness %.3f)", k, k + 1, r.fitness)
     run.fail(

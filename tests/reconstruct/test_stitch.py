@@ -180,6 +180,8 @@ def test_the_step_motion_is_found_past_pairs_that_match_a_mirror_image(tank_view
     res = stitch_scans(scans, StitchOptions(turntable_step_deg=45.0, mesh=False, max_registration_points=20000))
     assert bad[:4] == [0, 1, 2, 3]
     _check(res, poses, V, F)
+    assert any("turntable motion came from scan 4-scan 5" in w for w in res.diagnostics["warnings"]), \
+        res.diagnostics["warnings"]
 
 
 @pytest.mark.slow  # make test-all: a variant of a fast test's behaviour (suite time)
