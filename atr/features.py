@@ -30,8 +30,8 @@ from numpy.typing import NDArray
 
 from prism3d.atr.geometry import (
     UP_AXES,
-    as_camera,
     GravityBox,
+    as_camera,
     gravity_box,
     min_oriented_box,
     surface_axis,

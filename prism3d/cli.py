@@ -150,13 +150,18 @@ def _virtual_resolver(name: str) -> Any:
 
 
 # --- simulate ------------------------------------------------------------------------------
-def _cmd_simulate_flight(args: argparse.Namespace) -> int:
-    from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
-
+def _simulated_common(args: argparse.Namespace) -> dict[str, Any]:
+    """The seed, noise and (when given) supersampling every simulated kind shares."""
     common = {"seed": args.seed, "noise": args.noise}
     if args.supersample is not None:
         common["supersample"] = args.supersample
-    fo = FlightOptions(**common, **given_fields(args, _FLIGHT_OPTIONS))
+    return common
+
+
+def _cmd_simulate_flight(args: argparse.Namespace) -> int:
+    from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
+
+    fo = FlightOptions(**_simulated_common(args), **given_fields(args, _FLIGHT_OPTIONS))
     summary = simulate_flight(args.out_dir, fo, progress=_progress(args, "simulate flight"))
     _say(args, f"wrote a {summary['n_frames']}-frame flight over {fo.scene} ({summary['n_targets']} vehicles, "
                f"GSD {100 * summary['gsd_m']:.1f} cm) to {args.out_dir} in {summary['seconds']:.1f} s")
@@ -166,10 +171,7 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
 def _cmd_simulate_field(args: argparse.Namespace) -> int:
     from prism3d.datasets.simulation.field import FieldOptions, simulate_field
 
-    common = {"seed": args.seed, "noise": args.noise}
-    if args.supersample is not None:
-        common["supersample"] = args.supersample
-    fo = FieldOptions(**common, **given_fields(args, _FIELD_OPTIONS))
+    fo = FieldOptions(**_simulated_common(args), **given_fields(args, _FIELD_OPTIONS))
     if args.count is not None:
         from prism3d.datasets.runner import RunOptions
         from prism3d.datasets.simulation.field import simulate_field_batch

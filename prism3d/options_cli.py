@@ -17,7 +17,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-__all__ = ["field_default", "field_option", "given_fields"]
+__all__ = ["field_option", "given_fields"]
 
 #: A dataclass as (module, class name), e.g. ("prism3d.reconstruct.survey.model", "SurveyOptions").
 Where = tuple[str, str]
@@ -86,11 +86,6 @@ def _fields(where: Where) -> dict[str, tuple[Any, str]]:
             and isinstance(nxt.value.value, str) else ""
         out[st.target.id] = (_literal(module, st.value), " ".join(doc.split()))
     return out
-
-
-def field_default(where: Where, name: str) -> Any:
-    """The default of field ``name`` of the dataclass ``where``, as its source states it."""
-    return _fields(where)[name][0]
 
 
 def _plain(doc: str) -> str:

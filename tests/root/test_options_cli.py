@@ -19,7 +19,7 @@ from prism3d.cli import (
 )
 from prism3d.datasets.simulation.field import FieldOptions
 from prism3d.datasets.simulation.flight import FlightOptions
-from prism3d.options_cli import _fields, field_default, given_fields
+from prism3d.options_cli import _fields, given_fields
 from prism3d.options_cli import _NOT_LITERAL
 from prism3d.reconstruct.scan.stitch_options import StitchOptions
 from prism3d.reconstruct.stereo.pipeline import ReconstructOptions
@@ -36,8 +36,8 @@ def test_defaults_read_from_the_source_are_the_dataclass_defaults(where, cls):
     for name, (default, doc) in read.items():
         assert default == real[name] or (default is _NOT_LITERAL and real[name] is dataclasses.MISSING), name
         assert doc, f"{name} has no docstring"
-    assert field_default(_SURVEY_OPTIONS, "pair_steps") == (1, 2)
-    assert field_default(_STITCH_OPTIONS, "min_confidence") == 0.9  # a module constant
+    assert _fields(_SURVEY_OPTIONS)["pair_steps"][0] == (1, 2)
+    assert _fields(_STITCH_OPTIONS)["min_confidence"][0] == 0.9  # a module constant
 
 
 def _stitch_options(*argv: str) -> StitchOptions:
