@@ -45,6 +45,26 @@ def test_fit_recovers_a_known_gain_field() -> None:
     assert np.abs(corrected[:, :w - d] - np.clip(left[:, d:], 0, 255)).mean() < 1.5
 
 
+def test_fit_ignores_wrong_matches_in_one_channel_only() -> None:
+    """A quarter of the matches wrong in the red channel alone (a saturated highlight, a
+    coloured reflection): the robust weights are each channel's own, so red is still
+    recovered to 1 % and green and blue exactly as without the outliers."""
+    h, w, d = 200, 260, 12
+    scene = _scene(h, w + d, 4)
+    left = np.clip(scene[:, :w], 0, 255).astype(np.uint8)
+    true_gain = 0.8 * _vignetting(h, w, 0.7)[..., None] * np.array([0.9, 1.0, 1.1])
+    right = np.clip(scene[:, d:d + w] * true_gain, 0, 255).astype(np.uint8)
+    disp, valid = np.full((h, w), float(d)), np.ones((h, w), bool)
+    clean = fit_gain_field(left, right, disp, valid).evaluate()
+    # wrong values that stay usable (neither near black nor near white): the same samples
+    wrong = (np.random.default_rng(7).random((h, w)) < 0.25) & (left[..., 0] > 20) & (left[..., 0] < 150)
+    hurt = left.copy()
+    hurt[..., 0][wrong] += 80
+    g = fit_gain_field(hurt, right, disp, valid).evaluate()
+    np.testing.assert_allclose(g[:, :w - d, 0], 1.0 / true_gain[:, :w - d, 0], rtol=0.01)
+    np.testing.assert_allclose(g[..., 1:], clean[..., 1:], rtol=1e-12)
+
+
 def test_identity_and_negligible_fields() -> None:
     img = np.full((10, 12, 3), 100, np.uint8)
     f = GainField.identity(3, (12, 10))
