@@ -32,6 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import prism3d  # noqa: F401,I001  (first: the thread pools' idle policy, before numpy loads OpenBLAS)
 import cv2
 import numpy as np
 
@@ -222,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
                  f"{repeat} after warm-up.")
     lines.append("")
     lines.append(f"Load average at start {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; "
-                 f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}; numba "
+                 f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}; "
+                 f"OPENBLAS_THREAD_TIMEOUT={os.environ.get('OPENBLAS_THREAD_TIMEOUT', '(unset)')}; numba "
                  f"threading layer {os.environ.get('NUMBA_THREADING_LAYER', '(default)')}.")
     lines.append("")
     root = _data_dir()

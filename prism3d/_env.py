@@ -28,13 +28,20 @@ def configured_threads() -> int:
 
 
 def configure_environment() -> None:
-    """Set ``PYOPENGL_PLATFORM`` and ``NUMBA_THREADING_LAYER`` unless already set."""
+    """Set ``PYOPENGL_PLATFORM``, ``NUMBA_THREADING_LAYER`` and the thread pools' idle
+    policy (OpenMP, OpenBLAS) unless already set."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
     os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
     # OpenMP threads sleep between parallel regions instead of spinning: with many
     # short numba kernels on a shared 2-core machine, spinning made each launch cost
     # 5-10 ms (measured); sleeping costs microseconds.
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+    # OpenBLAS's idle threads spin 2^n cycles (n = OPENBLAS_THREAD_TIMEOUT, 4..30, default
+    # 28: about 0.1 s) after each call, taking the cores from the numba kernels that run
+    # next: the matcher's small gain-fit products made its kernels up to 5x slower
+    # (measured, docs/performance.md). 4 is the shortest spin; it must be set before
+    # numpy loads OpenBLAS, which importing prism3d first does.
+    os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
     # numba reads the variable once, when it is first imported; if something (a test
     # runner, a notebook) imported it before us, set its config directly.
     numba = sys.modules.get("numba")
