@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -73,27 +74,27 @@ class GainField:
         """The gain (H, W, C) float32 (or rows ``rows`` of it), evaluated every ``_GRID`` px
         and interpolated bilinearly (linear to ~1e-5 over that step).
         """
-        import cv2
-
         w, h = self.size
         r0, r1, _ = (rows if rows is not None else slice(None)).indices(h)
         nrows = max(r1 - r0, 0)
+        nc = self.coef.shape[0]
+        if not nrows:
+            return np.empty((0, w, nc), np.float32)
         gx = np.arange(0.0, w - 1.0 + _GRID, _GRID)
         gy = np.arange(float(r0), r0 + nrows - 1.0 + _GRID, _GRID)
         xn, yn = _normalised(gx, w), _normalised(gy, h)
-        # output pixel (x, y) reads the grid at (x / _GRID, y / _GRID)
-        M = np.array([[1.0 / _GRID, 0.0, 0.0], [0.0, 1.0 / _GRID, 0.0]])
-        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        out = np.empty((nrows, w, self.coef.shape[0]), np.float32)
+        acc = np.zeros((len(gy), len(gx), nc))
         for c, coef in enumerate(self.coef):
-            acc = np.zeros((len(gy), len(gx)))
             for t, (i, j) in enumerate(_terms(self.degree)):
                 if coef[t] != 0.0:
-                    acc += coef[t] * np.outer(yn**j, xn**i)
-            grid = np.exp(acc).astype(np.float32)
-            if nrows:
-                out[..., c] = cv2.warpAffine(grid, M, (w, nrows), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        return out
+                    acc[..., c] += coef[t] * np.outer(yn**j, xn**i)
+        # output pixel (x, y) reads the grid at (x / _GRID, y / _GRID); every channel
+        # in one warp
+        M = np.array([[1.0 / _GRID, 0.0, 0.0], [0.0, 1.0 / _GRID, 0.0]])
+        out = cv2.warpAffine(np.exp(acc).astype(np.float32), M, (w, nrows),
+                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                             borderMode=cv2.BORDER_REPLICATE)
+        return out.reshape(nrows, w, nc)
 
     def apply(self, image: NDArray, *, row0: int = 0) -> NDArray:
         """``image * gain`` in the image's own dtype (uint8 rounded and saturated);
@@ -102,10 +103,10 @@ class GainField:
         if self.negligible():
             return img
         g = self.evaluate(slice(row0, row0 + img.shape[0]))
-        f = img.astype(np.float32) * (g if img.ndim == 3 else g[..., 0])
-        if img.dtype == np.uint8:
-            return np.clip(np.rint(f), 0, 255).astype(np.uint8)
-        return f.astype(img.dtype)
+        g = g if img.ndim == 3 else g[..., 0]
+        if img.dtype == np.uint8:  # the float product rounded half to even and saturated
+            return cv2.multiply(img, g, dtype=cv2.CV_8U).reshape(img.shape)
+        return (img.astype(np.float32) * g).astype(img.dtype)
 
     def gains_on_grid(self, n: int = 5) -> NDArray[np.float64]:
         """``(C, n, n)`` gains on an ``n x n`` grid spanning the image (corners included),
