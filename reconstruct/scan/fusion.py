@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array, check_in_range, check_positive
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.reconstruct.scan.neighbours import query_tree
 
 __all__ = ["fuse_clouds", "mesh_is_closed", "poisson_mesh"]
 
@@ -79,7 +80,7 @@ def _keep_supported(all_p: list[NDArray], all_v: list[NDArray], all_c: list[NDAr
                 todo = ~ok
                 if not todo.any():
                     break
-                dd, _ = tree.query(all_p[k][todo], distance_upper_bound=tau, workers=-1)
+                dd, _ = query_tree(tree, all_p[k][todo], distance_upper_bound=tau)
                 ok[np.flatnonzero(todo)[np.isfinite(dd)]] = True
         all_p[k], all_v[k] = all_p[k][ok], all_v[k][ok]
         if use_col:
@@ -239,7 +240,7 @@ def _trim_far(V: NDArray, F: NDArray, C: NDArray | None, P: NDArray, d: float
     that used them), reindexed."""
     from scipy.spatial import cKDTree
 
-    near = cKDTree(P).query(V, k=1, distance_upper_bound=d)[0] <= d
+    near = query_tree(cKDTree(P), V, distance_upper_bound=d)[0] <= d
     F = F[near[F].all(axis=1)]
     used = np.zeros(len(V), bool)
     used[F.ravel()] = True

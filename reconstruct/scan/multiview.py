@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from prism3d.checks import check_array, check_positive
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import rotation_angle_deg, rotvec_from_matrix
+from prism3d.reconstruct.scan.neighbours import query_tree
 
 __all__ = ["fit_turntable", "overlapping_pairs", "refine_multiview", "refine_turntable"]
 
@@ -92,7 +93,7 @@ class _Problem:
             for a, b in ((i, j), (j, i)):
                 M = np.linalg.solve(T[b], T[a])  # a's frame -> b's frame
                 pa = Q[a] @ M[:3, :3].T + M[:3, 3]
-                dd, idx = trees[b].query(pa, distance_upper_bound=dist, workers=-1)
+                dd, idx = query_tree(trees[b], pa, distance_upper_bound=dist)
                 ok = np.isfinite(dd)
                 if not ok.any():
                     continue
@@ -180,7 +181,7 @@ def overlapping_pairs(
                 st = max(1, -(-len(P[a]) // int(sample)))
                 M = np.linalg.solve(T[b], T[a])
                 q = P[a][::st] @ M[:3, :3].T + M[:3, 3]
-                d, idx = tree.query(q, distance_upper_bound=dist, workers=-1)
+                d, idx = query_tree(tree, q, distance_upper_bound=dist)
                 hit = np.isfinite(d)
                 if hit.any():
                     na = N[a][::st][hit] @ M[:3, :3].T

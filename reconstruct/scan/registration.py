@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from prism3d.checks import check_array, check_choice, check_positive
 from prism3d.errors import InputError, ReconstructionError
 from prism3d.geometry import invert_transform, rotation_about, rotation_angle_deg, rotvec_from_matrix
+from prism3d.reconstruct.scan.neighbours import query_tree
 
 __all__ = [
     "RegistrationResult",
@@ -524,7 +525,7 @@ def evaluate_pyramids(
         x = x[np.sort(np.random.default_rng(seed).choice(len(x), int(sample), replace=False))]
     y = x @ T[:3, :3].T + T[:3, 3]
     q, n, tree = target._level_arrays(level)
-    d, j = tree.query(y, distance_upper_bound=float(max_distance))
+    d, j = query_tree(tree, y, distance_upper_bound=float(max_distance))
     ok = np.isfinite(d)
     if not ok.any():
         return 0.0, 0.0, 0.0

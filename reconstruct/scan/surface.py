@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from prism3d.errors import InputError
 from prism3d.reconstruct.scan.fusion import poisson_mesh
+from prism3d.reconstruct.scan.neighbours import query_tree
 
 __all__ = ["DENSE_SPACINGS", "cloud_spacing", "surface_extents", "surface_points"]
 
@@ -96,7 +97,7 @@ def surface_extents(points: NDArray, R: NDArray) -> tuple[NDArray[np.float64], N
     lo, hi = np.full(Q.shape[1], np.inf), np.full(Q.shape[1], -np.inf)
     for s in range(0, len(idx), 4096):  # (4096, k, 3) at a time
         q = Q[idx[s : s + 4096]]
-        _, nb = tree.query(q, k=k, workers=-1)
+        _, nb = query_tree(tree, q, k=k)
         N = sub[nb]
         cen = N.mean(axis=1)
         D = N - cen[:, None]
@@ -131,7 +132,7 @@ def _normals_facing(P: NDArray, viewpoints: NDArray) -> NDArray[np.float64]:
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
     N = np.asarray(pc.normals).copy()
-    nearest = cKDTree(viewpoints).query(P)[1]
+    nearest = query_tree(cKDTree(viewpoints), P)[1]
     flip = np.sum(N * (viewpoints[nearest] - P), axis=1) < 0
     N[flip] *= -1
     return N
