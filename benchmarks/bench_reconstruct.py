@@ -25,10 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
+import prism3d  # noqa: F401,I001  (first: the thread pools' idle policy, before numpy loads OpenBLAS)
 import cv2
 import numpy as np
 
-import prism3d  # noqa: F401
 
 PRISM3D = Path(sys.executable).parent / "prism3d"
 
