@@ -64,11 +64,12 @@ from typing import Any
 import numpy as np
 
 from prism3d.atr.scene_eval import match_map_detections
-from prism3d.atr.survey_detect import DEFAULT_VEHICLES, detect_in_survey
+from prism3d.atr.survey_detect import detect_in_survey
 from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 from prism3d.datasets.runner import RunOptions, run_survey_pairs
 from prism3d.datasets.evaluation.survey_eval import evaluate_survey, ground_roughness
-from prism3d.datasets.models.targets import builtin_target
+from prism3d.datasets.database.resolve import resolve_targets
+from prism3d.datasets.jobs.recognisers import aerial_recogniser
 from prism3d.errors import InputError
 from prism3d.geo import MapFrame
 from prism3d.geometry import rotation_angle_deg
@@ -84,6 +85,8 @@ DET_SEEDS = (11, 12, 13, 14, 15, 16)
 DET_SIZE = (1600, 1200)
 DET_ALTITUDE_M = 45.0
 WORKERS = (1, 2)
+#: The field flights' vehicles (simulate_flight's default scene), searched for in section 4.
+FIELD_VEHICLES = ("tank_t1", "tank_t2", "tank_t3", "truck_k1", "truck_k2", "truck_k3")
 
 
 def _stamp() -> str:
@@ -351,8 +354,10 @@ def dense_anchor(flight: Path, work: Path, ours: dict[str, Any], ev_ours: dict[s
 
 # --- 4. targets from the air ----------------------------------------------------------------
 def _detect(survey_dir: Path, out: Path) -> dict[str, Any]:
-    items = [(n, builtin_target(n, scale="full")) for n in DEFAULT_VEHICLES]
-    return detect_in_survey(survey_dir, out, items)
+    """``survey-detect`` of the field flights' vehicles: the aerial recogniser of their
+    built-in targets (trained once, then cached like any target list)."""
+    model, _ = aerial_recogniser(resolve_targets(list(FIELD_VEHICLES), scale="full"))
+    return detect_in_survey(survey_dir, out, model)
 
 
 def _ground_z(ground: np.ndarray, meta: dict, x: float, y: float) -> float:
