@@ -69,18 +69,21 @@ def _to_model_frame(points: list[NDArray], T_model_scan: list[NDArray], colors: 
 
 def _keep_supported(all_p: list[NDArray], all_v: list[NDArray], all_c: list[NDArray], tau: float,
                     use_col: bool) -> None:
-    """Drop (in place) the points no other scan's surface passes within ``tau`` of."""
+    """Drop (in place) the points no other scan's surface passes within ``tau`` of. The
+    other scans are asked nearest first (by their centroids): they support most points, so
+    the farther ones are asked about the few left (the kept set is the same in any order)."""
     from scipy.spatial import cKDTree
 
     trees = [cKDTree(q) for q in all_p]
+    centres = np.array([q.mean(axis=0) if len(q) else np.full(3, np.inf) for q in all_p])
     for k in range(len(all_p)):
         ok = np.zeros(len(all_p[k]), bool)
-        for j, tree in enumerate(trees):
+        for j in np.argsort(np.linalg.norm(centres - centres[k], axis=1), kind="stable"):
             if j != k:
                 todo = ~ok
                 if not todo.any():
                     break
-                dd, _ = query_tree(tree, all_p[k][todo], distance_upper_bound=tau)
+                dd, _ = query_tree(trees[j], all_p[k][todo], distance_upper_bound=tau)
                 ok[np.flatnonzero(todo)[np.isfinite(dd)]] = True
         all_p[k], all_v[k] = all_p[k][ok], all_v[k][ok]
         if use_col:
