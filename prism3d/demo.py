@@ -9,6 +9,8 @@ broken install is visible rather than hidden.
 from __future__ import annotations
 
 import logging
+import os
+import shutil
 import time
 import traceback
 from collections.abc import Callable
@@ -83,7 +85,6 @@ class DemoContext:
 def _stage_environment(ctx: DemoContext) -> Section:
     """Check that every heavy dependency imports and the headless renderer works."""
     import importlib
-    import os
 
     s = Section("Installation check")
     rows = []
@@ -325,6 +326,8 @@ def _stage_model360(ctx: DemoContext) -> Section:
     target = builtin_target("tank_t1", seed=ctx.seed)
     simulate_to_folder("scene", out, SimulateOptions(views=8, seed=ctx.seed, supersample=1), rig=true,
                        target=target)
+    # the scanned-targets stage shoots tank_t1 with these very settings: it reuses the shots
+    ctx.results["turntable_shots"] = ("tank_t1", true, out)
     poses = json.loads((out / "poses.json").read_text())
     T_world_cam = [np.asarray(v["T_world_cam"], dtype=np.float64) for v in poses["views"]]
     scans = _scan_views(ctx, out, cal.rig if cal is not None else true, 8)
@@ -504,6 +507,7 @@ def _stage_scanned_bank(ctx: DemoContext) -> Section:
         dbm.init_db(path)
     notes = {}
     for n in names:
+        _reuse_turntable_shots(ctx, n, true_rig, ctx.path("scanned", n, "shots"))
         st = scan_builtin_target(n, ctx.path("scanned", n), seed=ctx.seed, rig=true_rig,
                                  calib_rig=cal.rig if cal is not None else None)
         notes[n] = st.notes
@@ -543,6 +547,23 @@ def _stage_scanned_bank(ctx: DemoContext) -> Section:
     )
     s.link("targets_db/", "scanned/targets_db/db.yaml")
     return s
+
+
+def _reuse_turntable_shots(ctx: DemoContext, name: str, rig: Any, dest: Path) -> None:
+    """Link the 360-degree stage's shots into ``dest`` when they are the ones the scan of
+    ``name`` would simulate (same target, rig object and seed; 8 views, no supersampling):
+    the simulation is deterministic, so the files are the same bytes (15 s saved)."""
+    done = ctx.results.get("turntable_shots")
+    if done is None or done[0] != name or done[1] is not rig or dest.exists():
+        return
+
+    def link(src: str, dst: str) -> None:
+        try:
+            os.link(src, dst)
+        except OSError:  # another file system: a copy
+            shutil.copy2(src, dst)
+
+    shutil.copytree(done[2], dest, copy_function=link)
 
 
 Stage = Callable[[DemoContext], Section]
