@@ -26,6 +26,7 @@ __all__ = ["query_tree"]
 MIN_CHUNK = 2000
 
 _pool: ThreadPoolExecutor | None = None
+_pool_size = 0
 _pool_lock = threading.Lock()
 
 
@@ -39,10 +40,11 @@ def _threads() -> int:
 
 
 def _executor(threads: int) -> ThreadPoolExecutor:
-    global _pool
+    """The process's pool, grown to ``threads`` when it has fewer."""
+    global _pool, _pool_size
     with _pool_lock:
-        if _pool is None or _pool._max_workers < threads:
-            _pool = ThreadPoolExecutor(threads, thread_name_prefix="prism3d-kdtree")
+        if _pool is None or _pool_size < threads:
+            _pool, _pool_size = ThreadPoolExecutor(threads, thread_name_prefix="prism3d-kdtree"), threads
         return _pool
 
 
@@ -54,7 +56,8 @@ def query_tree(tree: Any, points: NDArray, *, k: int = 1,
     threads = min(_threads(), len(pts) // MIN_CHUNK)
     if threads < 2:
         return tree.query(pts, k=k, distance_upper_bound=distance_upper_bound)
-    futures = [_executor(threads).submit(tree.query, part, k, 0.0, 2.0, distance_upper_bound)
+    pool = _executor(threads)
+    futures = [pool.submit(tree.query, part, k, 0.0, 2.0, distance_upper_bound)
                for part in np.array_split(pts, threads)]
     parts = [f.result() for f in futures]
     return np.concatenate([d for d, _ in parts]), np.concatenate([i for _, i in parts])
