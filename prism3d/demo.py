@@ -503,8 +503,8 @@ def _stage_scanned_bank(ctx: DemoContext) -> Section:
     cal = ctx.results.get("calibration")
     names = ["tank_t1", "jet_j1", "ship_s1", "truck_k1"]
     path = ctx.path("scanned", "targets_db")
-    if not (path / "db.yaml").exists():
-        dbm.init_db(path)
+    shutil.rmtree(path, ignore_errors=True)  # a rerun into the same folder must not add the scans twice
+    dbm.init_db(path)
     notes = {}
     for n in names:
         _reuse_turntable_shots(ctx, n, true_rig, ctx.path("scanned", n, "shots"))
