@@ -19,7 +19,7 @@ import json
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ from prism3d.io.images import check_npy_header
 __all__ = [
     "BANK_CHIP_SPEC",
     "BANK_SCHEMA_VERSION",
+    "BankOptions",
     "DEFAULT_PARAM_GRID",
     "Detection",
     "FilterBank",
@@ -199,6 +200,29 @@ class Detection:
     target_class: str
     aspect_deg: float
     psr: float
+
+
+@dataclass(frozen=True)
+class BankOptions:
+    """How a bank is trained: chips rendered at every azimuth x elevation, one filter per
+    class and aspect bin, with the OT-MACH weights searched or given."""
+
+    azimuth: str = "0:360:10"
+    """Training azimuths, degrees (A0:A1:STEP or a list)."""
+    elevation: str = "20"
+    """Training elevations, degrees (E0:E1:STEP or a list)."""
+    bin_deg: float = 10.0
+    """Aspect bin width, degrees (360 / bin_deg an integer)."""
+    params: str | tuple[float, float, float] = "auto"
+    """OT-MACH weights (alpha, beta, gamma), or "auto": searched on held-out views."""
+
+    def changed(self) -> dict[str, str | float]:
+        """The fields that differ from the defaults, by name (what a cache key needs)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) != f.default}
+
+    def train_kwargs(self) -> dict[str, str | float | tuple[float, float, float]]:
+        """The options as :func:`train_bank` keywords."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @dataclass(eq=False)
@@ -670,12 +694,12 @@ def train_bank(
     targets: Sequence[tuple[str, SceneMesh]],
     *,
     channel: str = "depth",
-    azimuth: str | Sequence[float] = "0:360:10",
-    elevation: str | Sequence[float] = "20",
+    azimuth: str | Sequence[float] = BankOptions.azimuth,
+    elevation: str | Sequence[float] = BankOptions.elevation,
     range_mm: str | float | Sequence[float] | None = None,
-    bin_deg: float = 10.0,
+    bin_deg: float = BankOptions.bin_deg,
     metric: str = "pce",
-    params: str | tuple[float, float, float] = "auto",
+    params: str | tuple[float, float, float] = BankOptions.params,
     chip_spec: ChipSpec | None = None,
 ) -> FilterBank:
     """Train an OT-MACH filter bank from ``[(class_name, SceneMesh), ...]`` (>= 2 classes).

@@ -840,7 +840,8 @@ def _cmd_bank(args: argparse.Namespace) -> int:
         targets = [(m.name if m.name in bank.classes and c not in bank.classes else c, m) for c, m in targets]
     spec = replace(EVAL_CHIP_SPEC, camouflage=args.camouflage, noise_sigma=args.noise,
                    depth_noise_mm=relief_noise_mm(targets, args.noise), clutter="noise" if args.clutter else None)
-    res = evaluate_bank(bank, targets, azimuth=args.azimuth, elevation=args.elevation, chip_spec=spec,
+    scored = given_fields(args, _BANK_OPTIONS)
+    res = evaluate_bank(bank, targets, azimuth=scored.get("azimuth"), elevation=scored.get("elevation"), chip_spec=spec,
                         out_json=args.json)
     _say(args, format_results(res))
     return 0
@@ -852,15 +853,14 @@ def _bank_train(args: argparse.Namespace) -> int:
     an aerial recogniser."""
     from dataclasses import replace
 
-    from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
+    from prism3d.atr.bank import BANK_CHIP_SPEC, BankOptions, train_bank
     from prism3d.datasets.runner import RunOptions, check_scheduler
-    from prism3d.datasets.jobs.mining import DEFAULT_SCENES
+    from prism3d.datasets.jobs.mining import DEFAULT_SCENES, MiningOptions
     from prism3d.datasets.jobs.recognisers import aerial_recogniser, scene_recogniser
 
-    grid = {k: v for k, v in (("azimuth", args.azimuth), ("elevation", args.elevation), ("bin_deg", args.bin_deg))
-            if v is not None}
+    given = given_fields(args, _BANK_OPTIONS)
     if args.view == "nadir":
-        if grid or args.scenes_n is not None or args.channel is not None:
+        if given or args.scenes_n is not None or args.channel is not None:
             raise InputError("bank train --view nadir: the aerial recogniser takes no --azimuth, --elevation, "
                              "--bin-deg, --scenes or --channel")
         model, _ = aerial_recogniser(_targets_for(args, scale="full"), cache=False,
@@ -871,8 +871,9 @@ def _bank_train(args: argparse.Namespace) -> int:
     targets = _targets_for(args)
     spec = replace(BANK_CHIP_SPEC, size=args.size, camouflage=args.camouflage)
     scenes = DEFAULT_SCENES if args.scenes_n is None else args.scenes_n
+    how = BankOptions(**given)
     if scenes == 0:
-        bank = train_bank(targets, channel=args.channel or "depth", chip_spec=spec, **grid)
+        bank = train_bank(targets, channel=args.channel or "depth", chip_spec=spec, **how.train_kwargs())
         bank.save(args.output)
         _say(args, f"wrote {args.output}: {len(bank.classes)} classes, channel {bank.channel} (filters only)")
         return 0
@@ -880,14 +881,18 @@ def _bank_train(args: argparse.Namespace) -> int:
         raise InputError("bank train: --channel is for the filters alone (--scenes 0); a recogniser uses --channels")
     run = RunOptions(workers=args.workers, scheduler=args.scheduler)
     check_scheduler(args.scheduler)  # reached before the banks are trained, not only when mining starts
-    model, _ = scene_recogniser(targets, scenes=scenes, channels=args.channels, chip_spec=spec, bank_options=grid,
-                                run=run, cache=False, progress=_progress(args, "bank train"))
+    mining = MiningOptions(scenes=scenes, channels=tuple(args.channels), chip_spec=spec, bank=how)
+    model, _ = scene_recogniser(targets, mining, run=run, cache=False, progress=_progress(args, "bank train"))
     model.save(args.output)
     rows = model.metadata["mining"]["rows"]
     _say(args, f"wrote {args.output}: recogniser of {', '.join(model.targets)} refusing "
                f"{len(model.banks[0].classes) - len(model.targets)} classes; channels {', '.join(model.channels)}; "
                f"verifier from {scenes} scenes ({rows['positive']} target and {rows['negative']} other objects)")
     return 0
+
+
+#: A bank's training views: `bank train --azimuth --elevation --bin-deg`.
+_BANK_OPTIONS = ("prism3d.atr.bank", "BankOptions")
 
 
 def _add_bank(sub: Any) -> None:
@@ -914,10 +919,11 @@ def _add_bank(sub: Any) -> None:
                    help="train: a recogniser's filter channels (default shape depth)")
     p.add_argument("--channel", choices=["intensity", "depth", "shape"], default=None,
                    help="train --scenes 0: the filters' channel (default depth)")
-    p.add_argument("--azimuth", default=None, metavar="A0:A1:STEP",
-                   help="train default 0:360:10; eval default: between the training azimuths")
-    p.add_argument("--elevation", default=None, metavar="E0:E1:STEP", help="train default 20")
-    p.add_argument("--bin-deg", type=float, default=None, help="aspect bin width, degrees (default 10)")
+    grid = functools.partial(field_option, p, _BANK_OPTIONS)
+    grid("azimuth", "--azimuth", metavar="A0:A1:STEP",
+         note="eval: the azimuths scored (default: half-way between the training azimuths)")
+    grid("elevation", "--elevation", metavar="E0:E1:STEP", note="eval: the elevations scored (default: the same)")
+    grid("bin_deg", "--bin-deg", type=float, metavar="DEG")
     p.add_argument("--size", type=int, default=64, help="chip side, px (default 64)")
     p.add_argument("--camouflage", dest="camouflage", action="store_true", default=True)
     p.add_argument("--no-camouflage", dest="camouflage", action="store_false")
@@ -964,12 +970,11 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         model, how = load_scene_model(args.targets[0]), args.targets[0]
     else:
         from prism3d.atr.bank import BANK_CHIP_SPEC
-        from prism3d.datasets.jobs.mining import DEFAULT_SCENES
+        from prism3d.datasets.jobs.mining import MiningOptions
         from prism3d.datasets.jobs.recognisers import scene_recogniser
 
-        model, info = scene_recogniser(_targets_for(args), scenes=DEFAULT_SCENES, channels=("shape", "depth"),
-                                       chip_spec=BANK_CHIP_SPEC, cache=not args.no_cache,
-                                       progress=_progress(args, "training the recogniser"))
+        model, info = scene_recogniser(_targets_for(args), MiningOptions(chip_spec=BANK_CHIP_SPEC),
+                                       cache=not args.no_cache, progress=_progress(args, "training the recogniser"))
         how = "cached recogniser" if info["cached"] else "recogniser trained now"
     doc = detect_to_file(model, args.output, src, depth_range_mm=depth_range, draw=args.draw, source_name=how)
     t = doc["timings_s"]

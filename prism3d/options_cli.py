@@ -104,17 +104,20 @@ def _shown(value: Any) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
-def field_option(p: argparse.ArgumentParser, where: Where, name: str, *flags: str, **kw: Any) -> None:
+def field_option(p: argparse.ArgumentParser, where: Where, name: str, *flags: str, note: str = "",
+                 **kw: Any) -> None:
     """Add ``flags`` setting the field ``name`` of the dataclass ``where``: help from the
     field's docstring with its default appended (a None default is explained by the
-    docstring itself), no argparse default (the dataclass's applies); ``kw`` as for
-    ``add_argument`` (type, choices, nargs, action, metavar)."""
+    docstring itself) and then ``note`` (what the flag means elsewhere in the command), no
+    argparse default (the dataclass's applies); ``kw`` as for ``add_argument`` (type,
+    choices, nargs, action, metavar)."""
     default, doc = _fields(where)[name]
     if default is _NOT_LITERAL:
         raise RuntimeError(f"options: {where[1]}.{name} has no literal default to show")
     if not doc:
         raise RuntimeError(f"options: {where[1]}.{name} has no docstring to show as help")
     text = _plain(doc) if default is None or default == () else f"{_plain(doc)} (default: {_shown(default)})"
+    text = f"{text}; {note}" if note else text
     p.add_argument(*flags, dest=name, default=argparse.SUPPRESS, help=text.replace("%", "%%"), **kw)
     _DECLARED.setdefault(where, set()).add(name)
 

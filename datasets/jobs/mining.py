@@ -19,14 +19,14 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.atr.bank import train_bank
+from prism3d.atr.bank import BankOptions, train_bank
 from prism3d.atr.chips import ChipSpec
 from prism3d.atr.scene import scene_channels
 from prism3d.atr.verifier import (
@@ -147,14 +147,13 @@ def mine_scene(folder: str | Path, recogniser: SceneRecogniser) -> tuple[NDArray
     return np.asarray(X, dtype=np.float64).reshape(len(X), -1), y, counts
 
 
-def _mine_unit(work: str, seed: int, options: dict[str, Any], recogniser_path: str) -> dict[str, Any]:
+def _mine_unit(work: str, seed: int, options: FieldOptions, recogniser_path: str) -> dict[str, Any]:
     """One mining scene (a jobs-runner unit): simulate, mine, delete; features back."""
     t0 = time.perf_counter()
     d = Path(work) / f"scene_{seed}"
     shutil.rmtree(d, ignore_errors=True)
-    opts = FieldOptions(**{**{k: (tuple(v) if isinstance(v, list) else v) for k, v in options.items()}, "seed": seed})
     try:
-        simulate_field(d, opts)
+        simulate_field(d, replace(options, seed=seed))
         X, y, counts = mine_scene(d, SceneRecogniser.load(recogniser_path))
     finally:
         shutil.rmtree(d, ignore_errors=True)
@@ -171,11 +170,11 @@ class MiningOptions:
     """Filter channels (one bank each)."""
     chip_spec: ChipSpec | None = None
     """Training chips of the banks (None: the bank's default)."""
-    bank_options: dict[str, Any] = field(default_factory=dict)
-    """Other :func:`~prism3d.atr.bank.train_bank` arguments (azimuth, elevation, bin_deg)."""
-    field_options: dict[str, Any] = field(default_factory=dict)
-    """Overrides of the mining scenes' :class:`~prism3d.datasets.simulation.field.FieldOptions` (a smaller
-    sensor in tests)."""
+    bank: BankOptions = BankOptions()
+    """How each channel's bank is trained."""
+    simulation: FieldOptions = FieldOptions(targets=MINING_TARGETS, confusers=MINING_CONFUSERS)
+    """The mining scenes (their ``classes`` are the targets', their seeds from
+    :data:`MINING_SEED_BASE`): denser than the scenes scored."""
     C: float = 0.1
     """Inverse L2 strength of the verifier's logistic regression."""
 
@@ -202,7 +201,7 @@ def recogniser_banks(targets: Sequence[tuple[str, SceneMesh]], *, rejects: Seque
     if clash:
         raise InputError(f"bank train: {', '.join(clash)} is both a target class and a class to refuse")
     items = list(targets) + list(rej)
-    banks = tuple(train_bank(items, channel=ch, chip_spec=o.chip_spec, **(o.bank_options or {})) for ch in o.channels)
+    banks = tuple(train_bank(items, channel=ch, chip_spec=o.chip_spec, **o.bank.train_kwargs()) for ch in o.channels)
     return banks, classes, rej
 
 
@@ -218,9 +217,7 @@ def mine_rows(banks: Sequence, classes: Sequence[str], specs: Sequence[str], *, 
     with tempfile.TemporaryDirectory(prefix="prism3d-mining-") as work:
         rpath = Path(work) / "banks.npz"
         placeholder.save(rpath)
-        opts = asdict(FieldOptions(**{"classes": tuple(specs), "targets": MINING_TARGETS,
-                                      "confusers": MINING_CONFUSERS, **(o.field_options or {})}))
-        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in opts.items() if k != "seed"}
+        opts = replace(o.simulation, classes=tuple(specs))
         tasks = [(f"scene {MINING_SEED_BASE + k}", "mining scene", _mine_unit,
                   (work, MINING_SEED_BASE + k, opts, str(rpath))) for k in range(int(o.scenes))]
         report = run_tasks("mining", tasks, replace(run, progress=run.progress or progress))

@@ -153,18 +153,28 @@ def field_specs(targets: Sequence[tuple[str, SceneMesh]]) -> list[str]:
     return out
 
 
-def scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], *, scenes: int, channels: Sequence[str],
-                     chip_spec: Any = None, bank_options: dict | None = None, run: Any = None, cache: bool = True,
+def _mining_key(o: MiningOptions, specs: list[str]) -> dict[str, Any]:
+    """What a scene recogniser's cache key holds of its training options: the defaults'
+    keys as they always were, and any other field only when changed."""
+    key: dict[str, Any] = {"scenes": int(o.scenes), "channels": list(o.channels), "specs": specs,
+                           "chip_spec": None if o.chip_spec is None else asdict(o.chip_spec), "bank": o.bank.changed()}
+    default = MiningOptions()
+    for name in ("simulation", "C"):
+        if getattr(o, name) != getattr(default, name):
+            key[name] = asdict(getattr(o, name)) if name == "simulation" else getattr(o, name)
+    return key
+
+
+def scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], options: MiningOptions | None = None, *,
+                     run: Any = None, cache: bool = True,
                      progress: Callable[[int, int, str], None] | None = None) -> tuple[Any, dict]:
     """The scene recogniser of ``targets`` (:func:`prism3d.datasets.jobs.mining.train_scene_recogniser`),
     from the cache when this exact training was done before. Returns it and
     ``{"cached": bool, "path": str | None}``."""
-
+    o = MiningOptions() if options is None else options
     specs = field_specs(targets)
     rejects = default_rejects(targets)
-    h = hashlib.sha256(json.dumps({"scenes": int(scenes), "channels": list(channels), "specs": specs,
-                                   "chip_spec": None if chip_spec is None else asdict(chip_spec),
-                                   "bank": bank_options or {}}, sort_keys=True, default=str).encode())
+    h = hashlib.sha256(json.dumps(_mining_key(o, specs), sort_keys=True, default=str).encode())
     for label, items in (("t", targets), ("r", rejects)):
         for cls, m in items:
             h.update(f"{label}:{cls}".encode())
@@ -176,8 +186,7 @@ def scene_recogniser(targets: Sequence[tuple[str, SceneMesh]], *, scenes: int, c
             return SceneRecogniser.load(path), {"cached": True, "path": str(path)}
         except InputError:
             pass
-    model = train_scene_recogniser(targets, specs, rejects=rejects, run=run, progress=progress, options=MiningOptions(
-        scenes=scenes, channels=tuple(channels), chip_spec=chip_spec, bank_options=dict(bank_options or {})))
+    model = train_scene_recogniser(targets, specs, rejects=rejects, run=run, progress=progress, options=o)
     if cache:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -5,10 +5,12 @@ judgement of a scene it never saw."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from prism3d.atr.bank import BankOptions
 from prism3d.atr.detect import detect_scene, scene_channels
 from prism3d.atr.verifier import NONE, SceneRecogniser, train_verifier
 from prism3d.datasets.simulation.field import FieldOptions, simulate_field
@@ -23,7 +25,7 @@ NAMES = ["tank_t1", "truck_k1"]
 @pytest.fixture(scope="module")
 def recogniser() -> SceneRecogniser:
     return train_scene_recogniser(resolve_targets(NAMES), NAMES, options=MiningOptions(
-        scenes=3, field_options=SMALL, bank_options={"azimuth": "0:360:30", "bin_deg": 30.0}))
+        scenes=3, simulation=replace(MiningOptions().simulation, **SMALL), bank=BankOptions(azimuth="0:360:30", bin_deg=30.0)))
 
 
 def test_what_it_refuses() -> None:
@@ -106,8 +108,8 @@ def test_sigterm_while_mining_leaves_no_temp_folder(tmp_path, monkeypatch) -> No
         with pytest.raises(KeyboardInterrupt):
             train_scene_recogniser(resolve_targets(["tank_t1"]), ["tank_t1"],
                                    rejects=[("crate", prop_mesh("crate", np.random.default_rng(0), 0))],
-                                   options=MiningOptions(scenes=2, channels=("depth",), bank_options={
-                                       "azimuth": "0:360:90", "bin_deg": 90.0, "params": (1.0, 0.0, 0.0)}))
+                                   options=MiningOptions(scenes=2, channels=("depth",), bank=BankOptions(
+                                       azimuth="0:360:90", bin_deg=90.0, params=(1.0, 0.0, 0.0))))
     finally:
         signal.signal(signal.SIGTERM, old)
     assert seen and seen[0][0].startswith("prism3d-mining-")  # it was mining in $TMPDIR

@@ -9,7 +9,9 @@ import dataclasses
 
 import pytest
 
+from prism3d.atr.bank import BankOptions
 from prism3d.cli import (
+    _BANK_OPTIONS,
     _FIELD_OPTIONS,
     _FLIGHT_OPTIONS,
     _RECONSTRUCT_OPTIONS,
@@ -28,7 +30,7 @@ from prism3d.reconstruct.survey.model import SurveyOptions
 
 @pytest.mark.parametrize(("where", "cls"), [(_SURVEY_OPTIONS, SurveyOptions), (_STITCH_OPTIONS, StitchOptions),
                                            (_FLIGHT_OPTIONS, FlightOptions), (_FIELD_OPTIONS, FieldOptions),
-                                           (_RECONSTRUCT_OPTIONS, ReconstructOptions)])
+                                           (_RECONSTRUCT_OPTIONS, ReconstructOptions), (_BANK_OPTIONS, BankOptions)])
 def test_defaults_read_from_the_source_are_the_dataclass_defaults(where, cls):
     real = {f.name: f.default for f in dataclasses.fields(cls)}
     read = _fields(where)
@@ -124,3 +126,14 @@ def test_reconstruct_flags_land_on_their_fields():
     assert rec("--depth-range", "900:1600", "--min-confidence", "0.5", "--smooth", "1.5") == ReconstructOptions(
         depth_range_mm=(900.0, 1600.0), min_confidence=0.5, smooth_sigma_px=1.5)
     assert rec("--min-disp", "100", "--num-disp", "64") == ReconstructOptions(min_disp=100, num_disp=64)
+
+
+def test_bank_flags_land_on_their_fields_and_eval_keeps_its_own_default():
+    parse = build_parser().parse_args
+    assert BankOptions(**given_fields(parse(["bank", "train", "-o", "m.npz"]), _BANK_OPTIONS)) == BankOptions()
+    args = parse(["bank", "train", "-o", "m.npz", "--azimuth", "0:360:30", "--elevation", "15:35:20",
+                  "--bin-deg", "30"])
+    assert BankOptions(**given_fields(args, _BANK_OPTIONS)) == BankOptions(azimuth="0:360:30", elevation="15:35:20",
+                                                                            bin_deg=30.0)
+    # eval scores between the training azimuths unless told: no flag, no value
+    assert given_fields(parse(["bank", "eval", "m.npz"]), _BANK_OPTIONS) == {}
