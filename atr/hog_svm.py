@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -48,18 +48,11 @@ from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_path
 from prism3d.io.images import check_npy_header
 
-__all__ = ["HOG_CHANNELS", "HOG_DEFAULTS", "HOG_SVM_SCHEMA_VERSION", "HogSvm", "chip_units"]
+__all__ = ["HOG_CHANNELS", "HOG_SVM_SCHEMA_VERSION", "HogParams", "HogSvm", "chip_units"]
 
 HOG_SVM_SCHEMA_VERSION = 1
 #: Channels a HOG + SVM model scores (the mask has no texture worth a gradient histogram).
 HOG_CHANNELS = ("intensity", "depth", "shape")
-#: HOG settings for 64-px chips: 8 x 8 cells (an 8 x 8 grid, 7 x 7 blocks, 1764 values).
-HOG_DEFAULTS: dict = {
-    "orientations": 9,
-    "pixels_per_cell": [8, 8],
-    "cells_per_block": [2, 2],
-    "block_norm": "L2-Hys",
-}
 #: SVM regularisation. The training set is small (tens of chips per class) against a
 #: 1764-value feature and separable, so C sets the margin. On azimuths between the training
 #: ones (4 built-in targets, 30 deg grid) C = 1 fits each view (depth 0.96 correct, 88 % of
@@ -95,53 +88,70 @@ def chip_units(
     return np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def _check_hog(params: dict | None) -> dict:
-    """HOG settings (defaults filled in) as a JSON-ready dict; InputError when malformed."""
-    if params is not None and not isinstance(params, dict):
-        raise InputError(f"hog: expected a dict of HOG settings, got {type(params).__name__}")
-    extra = set(params or {}) - set(HOG_DEFAULTS)
-    if extra:
-        raise InputError(f"hog: unknown settings {sorted(extra)}; expected {sorted(HOG_DEFAULTS)}")
-    p = {**HOG_DEFAULTS, **(params or {})}
-    try:
-        out = {
-            "orientations": int(p["orientations"]),
-            "pixels_per_cell": [int(v) for v in p["pixels_per_cell"]],
-            "cells_per_block": [int(v) for v in p["cells_per_block"]],
-            "block_norm": str(p["block_norm"]),
-        }
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"hog: malformed settings {p!r} ({exc})") from None
-    check_choice(out["block_norm"], "hog block_norm", ("L1", "L1-sqrt", "L2", "L2-Hys"))
-    ppc, cpb = out["pixels_per_cell"], out["cells_per_block"]
-    if len(ppc) != 2 or ppc[0] != ppc[1] or ppc[0] < 1:
-        raise InputError(
-            f"hog pixels_per_cell: expected square cells [p, p] with p >= 1, got {ppc}"
-        )
-    if len(cpb) != 2 or min(cpb) < 1:
-        raise InputError(f"hog cells_per_block: expected [r, c] with r, c >= 1, got {cpb}")
-    if out["orientations"] < 1:
-        raise InputError(f"hog orientations: expected >= 1, got {out['orientations']}")
-    return out
+@dataclass(frozen=True)
+class HogParams:
+    """HOG settings of a window, as :func:`skimage.feature.hog` takes them; the defaults
+    suit 64-px chips: 8 x 8 cells (7 x 7 blocks, 1764 values)."""
+
+    orientations: int = 9
+    """Gradient orientation bins."""
+    pixels_per_cell: tuple[int, int] = (8, 8)
+    """Cell side, px (square cells)."""
+    cells_per_block: tuple[int, int] = (2, 2)
+    """Cells per normalisation block (rows, columns)."""
+    block_norm: str = "L2-Hys"
+    """Block normalisation: L1, L1-sqrt, L2 or L2-Hys."""
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "orientations", int(self.orientations))
+            object.__setattr__(self, "pixels_per_cell", tuple(int(v) for v in self.pixels_per_cell))
+            object.__setattr__(self, "cells_per_block", tuple(int(v) for v in self.cells_per_block))
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"hog: malformed settings {self!r} ({exc})") from None
+        check_choice(self.block_norm, "hog block_norm", ("L1", "L1-sqrt", "L2", "L2-Hys"))
+        ppc, cpb = self.pixels_per_cell, self.cells_per_block
+        if len(ppc) != 2 or ppc[0] != ppc[1] or ppc[0] < 1:
+            raise InputError(f"hog pixels_per_cell: expected square cells [p, p] with p >= 1, got {list(ppc)}")
+        if len(cpb) != 2 or min(cpb) < 1:
+            raise InputError(f"hog cells_per_block: expected [r, c] with r, c >= 1, got {list(cpb)}")
+        if self.orientations < 1:
+            raise InputError(f"hog orientations: expected >= 1, got {self.orientations}")
+
+    @classmethod
+    def from_json(cls, doc: object) -> HogParams:
+        """The settings a model file holds (:meth:`to_json`); InputError when malformed."""
+        if not isinstance(doc, dict):
+            raise InputError(f"hog: expected a dict of HOG settings, got {type(doc).__name__}")
+        known = {f.name for f in fields(cls)}
+        extra = set(doc) - known
+        if extra:
+            raise InputError(f"hog: unknown settings {sorted(extra)}; expected {sorted(known)}")
+        return cls(**doc)
+
+    def to_json(self) -> dict[str, int | str | list[int]]:
+        """The settings as JSON (tuples as lists)."""
+        return {"orientations": self.orientations, "pixels_per_cell": list(self.pixels_per_cell),
+                "cells_per_block": list(self.cells_per_block), "block_norm": self.block_norm}
 
 
-def _block_grid(size: int, hog: dict) -> tuple[int, int, int]:
+def _block_grid(size: int, hog: HogParams) -> tuple[int, int, int]:
     """Blocks per window side (rows, cols) and values per block for an ``S x S`` window."""
-    p = hog["pixels_per_cell"][0]
-    br, bc = hog["cells_per_block"]
+    p = hog.pixels_per_cell[0]
+    br, bc = hog.cells_per_block
     nr, nc = size // p - br + 1, size // p - bc + 1
-    return nr, nc, br * bc * hog["orientations"]
+    return nr, nc, br * bc * hog.orientations
 
 
-def _hog(image: NDArray[np.float64], hog: dict, *, vector: bool) -> NDArray[np.float64]:
+def _hog(image: NDArray[np.float64], hog: HogParams, *, vector: bool) -> NDArray[np.float64]:
     from skimage.feature import hog as sk_hog
 
     return sk_hog(
         image,
-        orientations=hog["orientations"],
-        pixels_per_cell=tuple(hog["pixels_per_cell"]),
-        cells_per_block=tuple(hog["cells_per_block"]),
-        block_norm=hog["block_norm"],
+        orientations=hog.orientations,
+        pixels_per_cell=hog.pixels_per_cell,
+        cells_per_block=hog.cells_per_block,
+        block_norm=hog.block_norm,
         feature_vector=vector,
         channel_axis=None,
     )
@@ -162,7 +172,7 @@ class HogSvm:
     size: int
     weights: NDArray[np.float64]
     bias: NDArray[np.float64]
-    hog: dict = field(default_factory=lambda: dict(HOG_DEFAULTS))
+    hog: HogParams = HogParams()
     metadata: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -170,14 +180,15 @@ class HogSvm:
         self.classes = [str(c) for c in self.classes]
         if len(self.classes) < 2 or len(set(self.classes)) != len(self.classes):
             raise InputError(f"classes: expected at least 2 distinct classes, got {self.classes}")
-        self.hog = _check_hog(self.hog)
+        if not isinstance(self.hog, HogParams):
+            raise InputError(f"hog: expected HogParams, got {type(self.hog).__name__}")
         self.size = int(self.size)
         nr, nc, per = _block_grid(self.size, self.hog)
         if nr < 1 or nc < 1:
             raise InputError(
                 f"size: a {self.size}-px window holds no HOG block of "
-                f"{self.hog['cells_per_block']} "
-                f"cells of {self.hog['pixels_per_cell'][0]} px"
+                f"{list(self.hog.cells_per_block)} "
+                f"cells of {self.hog.pixels_per_cell[0]} px"
             )
         n = len(self.classes)
         w = check_array(self.weights, "weights", shape=(n, nr * nc * per), dtype_kind="fiu")
@@ -199,7 +210,7 @@ class HogSvm:
         chip_spec: ChipSpec | None = None,
         seed: int = 0,
         C: float = DEFAULT_C,
-        hog_params: dict | None = None,
+        hog: HogParams | None = None,
     ) -> HogSvm:
         """Train on ``[(class_name, SceneMesh), ...]`` (>= 2 classes) at the bank's chips.
 
@@ -207,13 +218,13 @@ class HogSvm:
         :data:`~prism3d.atr.bank.BANK_CHIP_SPEC`) are as in
         :func:`~prism3d.atr.bank.train_bank`; ``seed`` draws the background negatives
         and seeds the SVM solver; ``C``: SVM regularisation (:data:`DEFAULT_C`);
-        ``hog_params``: HOG settings overriding :data:`HOG_DEFAULTS`.
+        ``hog``: HOG settings (None: :class:`HogParams`' defaults).
         """
         t0 = time.perf_counter()
         check_choice(channel, "channel", HOG_CHANNELS)
         seed = check_seed(seed)
         C = check_positive(C, "C")
-        hog = _check_hog(hog_params)
+        hog = HogParams() if hog is None else hog
         spec = as_chip_spec(chip_spec, BANK_CHIP_SPEC)
         items = check_targets(targets)
         S = int(spec.size)
@@ -237,7 +248,7 @@ class HogSvm:
             **_chip_facts(spec),
             "seed": seed,
             "C": C,
-            "hog": hog,
+            "hog": hog.to_json(),
             "augmentation": None,
             **_fit_facts(feats @ weights.T + bias, lab, len(pos), n_kind, classes),
             "train_seconds": round(time.perf_counter() - t0, 3),
@@ -274,7 +285,7 @@ class HogSvm:
         if not np.all(np.isfinite(g)):
             raise InputError(f"image: {_NOT_FINITE}")
         S, n_cls = self.size, len(self.classes)
-        p = self.hog["pixels_per_cell"][0]
+        p = self.hog.pixels_per_cell[0]
         h, w = g.shape
         if h < S or w < S:
             return np.zeros((n_cls, 0, 0)), S // 2, S // 2, p
@@ -316,7 +327,7 @@ class HogSvm:
             "classes": list(self.classes),
             "channel": self.channel,
             "size": int(self.size),
-            "hog": self.hog,
+            "hog": self.hog.to_json(),
             "metadata": self.metadata,
         }
         try:
@@ -363,7 +374,7 @@ class HogSvm:
                 int(meta["size"]),
                 arrays["weights"],
                 arrays["bias"],
-                dict(meta["hog"]),
+                HogParams.from_json(meta["hog"]),
                 dict(meta.get("metadata", {})),
             )
         except InputError as exc:
@@ -372,12 +383,12 @@ class HogSvm:
             raise InputError(f"{p}: not a valid HOG + SVM model (bad or missing {exc})") from None
 
 
-def _features(windows: NDArray[np.float64], hog: dict) -> NDArray[np.float64]:
+def _features(windows: NDArray[np.float64], hog: HogParams) -> NDArray[np.float64]:
     """HOG vectors ``(N, D)`` of windows ``(N, S, S)``."""
     return np.stack([_hog(w, hog, vector=True) for w in windows]).astype(np.float64)
 
 
-def _training_classes(items: list[tuple[str, SceneMesh]], S: int, hog: dict) -> list[str]:
+def _training_classes(items: list[tuple[str, SceneMesh]], S: int, hog: HogParams) -> list[str]:
     """The classes of ``items`` in first-seen order; InputError unless there are at least 2
     and an ``S``-px chip holds one HOG block."""
     classes = list(dict.fromkeys(c for c, _ in items))

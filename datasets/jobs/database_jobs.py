@@ -155,10 +155,11 @@ class RenderSpec:
 
     @classmethod
     def create(
-        cls, name: str, targets: Sequence[str], grid: dict[str, Any], chip_spec: ChipSpec,
-        chips_per_unit: int,
+        cls, name: str, targets: Sequence[str], chip_spec: ChipSpec, chips_per_unit: int, *,
+        azimuth: str | None = None, elevation: str | None = None, range_mm: str | float | None = None,
     ) -> RenderSpec:
-        """The spec of a job rendering ``grid`` (azimuth, elevation, range_mm) with ``chip_spec``."""
+        """The spec of a job rendering ``targets`` at every azimuth x elevation x range with
+        ``chip_spec`` (None: the spec's default grid)."""
         extra = [
             f.name for f in fields(ChipSpec)
             if f.name not in JOB_CHIP_FIELDS and getattr(chip_spec, f.name) != f.default
@@ -168,13 +169,12 @@ class RenderSpec:
                 f"chip_spec: a render job stores only {', '.join(JOB_CHIP_FIELDS)}; "
                 f"leave {', '.join(extra)} at their defaults"
             )
-        rng = grid.get("range_mm")
         return cls(
             name=name,
             targets=tuple(targets),
-            azimuth=str(grid.get("azimuth", cls.azimuth)),
-            elevation=str(grid.get("elevation", cls.elevation)),
-            range_mm=None if rng is None else str(rng),
+            azimuth=str(cls.azimuth if azimuth is None else azimuth),
+            elevation=str(cls.elevation if elevation is None else elevation),
+            range_mm=None if range_mm is None else str(range_mm),
             chips_per_unit=chips_per_unit,
             **{k: getattr(chip_spec, k) for k in JOB_CHIP_FIELDS},
         )
@@ -282,7 +282,7 @@ def _rss_mb() -> float:
     return psutil.Process().memory_info().rss / 2**20
 
 
-def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str, Any]:
+def render_unit(db_path: str, spec: RenderSpec, unit: Unit) -> dict[str, Any]:
     """Render one unit: its chips, then its manifest part (worker entry point).
 
     Returns
@@ -292,7 +292,6 @@ def render_unit(db_path: str, spec_dict: dict[str, Any], unit: Unit) -> dict[str
     """
     t0 = time.perf_counter()
     db = open_db(db_path)
-    spec = RenderSpec.from_dict(spec_dict)
     check_name(unit.target_id, "target_id")
     mesh, cls = target_mesh(db, unit.target_id)
     chip_spec = replace(spec.chip_spec, seed=_unit_seed(spec.seed, unit))
@@ -458,10 +457,8 @@ def run_render_job(
     run = RunOptions() if run is None else run
     chosen = _select_targets(db, job, targets, classes)
     check_scheduler(run.scheduler)  # before anything is written
-    grid = {"azimuth": azimuth, "elevation": elevation, "range_mm": range_mm}
-    spec = RenderSpec.create(
-        job, chosen, grid, as_chip_spec(chip_spec), chips_per_unit
-    )
+    spec = RenderSpec.create(job, chosen, as_chip_spec(chip_spec), chips_per_unit, azimuth=azimuth,
+                             elevation=elevation, range_mm=range_mm)
     with _job_lock(db, job):
         _store_spec(db, spec)
         report = _run_units(db, spec, run)
@@ -498,12 +495,11 @@ def _run_units(db: TargetDB, spec: RenderSpec, run: RunOptions) -> JobReport:
     report = JobReport(job=job, total_units=len(units))
     mdir = db.job_dir(job) / "manifest"
     tasks: list[Task] = []
-    sd = spec.to_dict()
     for u in units:
         if _part_done(mdir / f"part-{u.unit_id}.parquet", "prism3d_spec_hash", spec.spec_hash):
             report.skipped_units += 1
         else:
-            tasks.append((u.unit_id, u.describe(), render_unit, (str(db.path), sd, u)))
+            tasks.append((u.unit_id, u.describe(), render_unit, (str(db.path), spec, u)))
     execute_tasks(tasks, report, run)
     return report
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from prism3d.atr.bank import BANK_CHIP_SPEC, class_scale_facts, render_class_chips
-from prism3d.atr.hog_svm import HogSvm, chip_units
+from prism3d.atr.hog_svm import HogParams, HogSvm, chip_units
 
 from prism3d.errors import InputError
 
@@ -154,7 +154,7 @@ def test_metadata(models):
     assert meta["targets"] == [[n.split("_")[0], n] for n in NAMES]
     assert meta["n_positives"] == {c: 12 for c in m.classes}
     assert sum(meta["n_background"].values()) >= 2 * sum(meta["n_positives"].values())
-    assert meta["hog"] == m.hog and m.weights.shape == (4, 7 * 7 * 36)
+    assert meta["hog"] == m.hog.to_json() and m.weights.shape == (4, 7 * 7 * 36)
     X, lab, _, _, rng_mm, fx = render_class_chips(
         _targets(), channel="depth", azimuth=TRAIN_AZ, elevation="20", chip_spec=SPEC
     )
@@ -241,3 +241,16 @@ def test_deterministic(models):
     m = HogSvm.train(_targets(), channel="depth", azimuth=TRAIN_AZ, chip_spec=SPEC)
     np.testing.assert_array_equal(m.weights, models["depth"].weights)
     np.testing.assert_array_equal(m.bias, models["depth"].bias)
+
+
+def test_hog_params_check_and_round_trip():
+    p = HogParams(orientations=12, pixels_per_cell=[4, 4], cells_per_block=(3, 2))
+    assert p.pixels_per_cell == (4, 4) and HogParams.from_json(json.loads(json.dumps(p.to_json()))) == p
+    with pytest.raises(InputError, match="unknown settings"):
+        HogParams.from_json({**HogParams().to_json(), "gamma": 1})
+    with pytest.raises(InputError, match="square cells"):
+        HogParams(pixels_per_cell=(8, 4))
+    with pytest.raises(InputError, match="block_norm"):
+        HogParams(block_norm="L3")
+    with pytest.raises(InputError, match="expected a dict"):
+        HogParams.from_json([9, 8, 2])

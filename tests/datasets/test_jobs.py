@@ -60,7 +60,7 @@ def _snapshot(folder: Path) -> dict[str, str]:
 
 def test_render_spec_from_and_into_chip_spec() -> None:
     chip = ChipSpec(size=48, channels=("depth", "mask"), camouflage=False, clutter="noise", seed=3)
-    spec = RenderSpec.create("a", ["t"], {"azimuth": "0:360:90", "range_mm": 900}, chip, 7)
+    spec = RenderSpec.create("a", ["t"], chip, 7, azimuth="0:360:90", range_mm=900)
     assert spec.chip_spec == chip and spec.range_mm == "900" and spec.elevation == "20"
     assert spec.chips_per_unit == 7
     # the defaults live in ChipSpec: a default job stores the ChipSpec defaults
