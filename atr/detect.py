@@ -35,7 +35,7 @@ import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +50,7 @@ from prism3d.atr.models import load_scene_model
 from prism3d.atr.scene import (
     DetectOptions,
     SceneChannels,
+    SceneDetection,
     bank_scale,
     chip_channel,
     class_size,
@@ -71,7 +72,7 @@ from prism3d.reconstruct.stereo.pipeline import (
 
 __all__ = [
     "DetectOptions", "SceneChannels", "SceneInput", "SceneSource", "bank_scale", "detect_scene", "detect_scene_hog", "detect_shot",
-    "detect_to_file", "draw_detections", "read_scene_source", "scene_channels",
+    "detect_to_file", "draw_detections", "in_left_view", "read_scene_source", "scene_channels",
 ]
 
 
@@ -167,7 +168,8 @@ def _band_scan(scene: SceneChannels, classes: Sequence[str], ppm: dict[str, floa
 
 
 def _finish(cands: list, scene: SceneChannels, classes: Sequence[str], ppm: dict[str, float], S: int,
-            extent: dict, gate: bool, o: DetectOptions, aspect: Any, radius: dict[str, float]) -> list[dict]:
+            extent: dict, gate: bool, o: DetectOptions, aspect: Any, radius: dict[str, float]
+            ) -> list[SceneDetection]:
     """Greedy non-maximum suppression (half a chip, at the smaller of two detections'
     scales), the 3D size gate, one detection per object placed at the object's median
     point, none within a found target's radius (``radius``: class -> mm, full size; the
@@ -175,7 +177,7 @@ def _finish(cands: list, scene: SceneChannels, classes: Sequence[str], ppm: dict
     f = float(scene.K[0, 0])
     H, W = scene.range_mm.shape
     cands = sorted(cands, key=lambda t: -t[0])
-    out: list[dict] = []
+    out: list[SceneDetection] = []
     kept: list[tuple[float, float, float]] = []
     kept_xyz: list[tuple[NDArray, float]] = []
     taken: set[int] = set()
@@ -205,18 +207,16 @@ def _finish(cands: list, scene: SceneChannels, classes: Sequence[str], ppm: dict
                 r, c = project(scene.K, p)
             taken.add(lab)
         kept.append((r, c, rad))
-        out.append({"row": float(r), "col": float(c), "class": classes[ci],
-                    "aspect_deg": aspect(k), "score": float(score),
-                    "range_mm": z, "xyz_mm": xyz})
+        out.append(SceneDetection(float(r), float(c), classes[ci], float(score), aspect(k), z,
+                                  None if xyz is None else tuple(xyz)))
         if len(out) >= o.max_detections:
             break
     return out
 
 
-def detect_scene(bank: Any, scene: SceneChannels, options: DetectOptions | None = None) -> list[dict]:
-    """Detections of ``bank`` in a prepared scene, best first (module docstring): dicts
-    with ``row``, ``col`` (pixels of the scene grid), ``class``, ``aspect_deg``,
-    ``score``, ``range_mm``, ``xyz_mm`` (scene camera frame; None without depth there)."""
+def detect_scene(bank: Any, scene: SceneChannels, options: DetectOptions | None = None) -> list[SceneDetection]:
+    """Detections of ``bank`` in a prepared scene, best first (module docstring); pixels
+    of the scene grid, points in the scene's camera frame."""
 
     if isinstance(bank, SceneRecogniser):
         return detect_objects(bank, scene, options)
@@ -252,7 +252,7 @@ def detect_scene(bank: Any, scene: SceneChannels, options: DetectOptions | None 
                    lambda k: float(bank.filter_az_deg[k]), class_size(bank.metadata, "class_radius_mm", bank.classes))
 
 
-def detect_scene_hog(model: Any, scene: SceneChannels, options: DetectOptions | None = None) -> list[dict]:
+def detect_scene_hog(model: Any, scene: SceneChannels, options: DetectOptions | None = None) -> list[SceneDetection]:
     """The HOG + linear SVM baseline (:class:`~prism3d.atr.hog_svm.HogSvm`) slid over the
     same range bands, channel images, 3D gates and suppression as :func:`detect_scene`;
     the score is the SVM's decision value (aspect unknown: NaN)."""
@@ -356,8 +356,27 @@ def _verify_threads() -> int:
 
 
 
+def in_left_view(dets: Sequence[SceneDetection], K: NDArray, R1: NDArray, rig: Any) -> list[SceneDetection]:
+    """Detections on a rectified left grid (camera matrix ``K``, rectifying rotation
+    ``R1``) moved to the left view's pixels and camera frame, as the simulator's truth is."""
+    R1 = np.asarray(R1, dtype=np.float64)
+    out = []
+    for dt in dets:
+        if dt.xyz_mm is None:
+            # no depth: map the ray only (rectified pixel -> left view pixel at unit depth)
+            y = (dt.row - K[1, 2]) / K[1, 1]
+            p = R1.T @ np.array([(dt.col - K[0, 2]) / K[0, 0], y, 1.0])
+            xyz = None
+        else:
+            p = R1.T @ np.asarray(dt.xyz_mm)
+            xyz = (float(p[0]), float(p[1]), float(p[2]))
+        uv = rig.left.project(p[None])[0]
+        out.append(replace(dt, row=float(uv[1]), col=float(uv[0]), xyz_mm=xyz))
+    return out
+
+
 def detect_shot(bank: Any, shot: NDArray, rig: Any, *, depth_range_mm: tuple[float, float] | None = None,
-                options: DetectOptions | None = None) -> tuple[list[dict], dict[str, float]]:
+                options: DetectOptions | None = None) -> tuple[list[SceneDetection], dict[str, float]]:
     """Reconstruct a prism shot, then detect; rows, cols in the LEFT VIEW's pixels and
     ``xyz_mm`` in the left camera frame (as the simulator's truth). Returns the
     detections and timings (s)."""
@@ -377,18 +396,7 @@ def detect_shot(bank: Any, shot: NDArray, rig: Any, *, depth_range_mm: tuple[flo
     t2 = time.perf_counter()
     dets = detect_scene(bank, sc, options)
     t3 = time.perf_counter()
-    R1 = np.asarray(rec.rect.R1, dtype=np.float64)
-    for dt in dets:
-        if dt["xyz_mm"] is None:
-            # no depth: map the ray only (rectified pixel -> left view pixel at unit depth)
-            y = (dt["row"] - K[1, 2]) / K[1, 1]
-            p = R1.T @ np.array([(dt["col"] - K[0, 2]) / K[0, 0], y, 1.0])
-        else:
-            p = R1.T @ np.asarray(dt["xyz_mm"])
-            dt["xyz_mm"] = [float(v) for v in p]
-        uv = rig.left.project(p[None])[0]
-        dt["col"], dt["row"] = float(uv[0]), float(uv[1])
-    return dets, {"reconstruct_s": t1 - t0, "channels_s": t2 - t1, "detect_s": t3 - t2}
+    return in_left_view(dets, K, rec.rect.R1, rig), {"reconstruct_s": t1 - t0, "channels_s": t2 - t1, "detect_s": t3 - t2}
 
 
 @dataclass(frozen=True)
@@ -503,7 +511,7 @@ def detect_to_file(model: Any, output: str | Path, source: SceneSource | SceneIn
         view = img
     channel = ",".join(model.channels) if isinstance(model, SceneRecogniser) else model.channel
     doc = {"schema_version": 1, "model": source_name, "channel": channel, "classes": list(model.classes),
-           **where, "timings_s": times, "detections": dets}
+           **where, "timings_s": times, "detections": [d.to_json() for d in dets]}
     with atomic_paths(*([out] if draw is None else [out, Path(draw)])) as tmps:
         tmps[0].write_text(json.dumps(doc, indent=1))
         if draw is not None:
@@ -515,18 +523,19 @@ def detect_to_file(model: Any, output: str | Path, source: SceneSource | SceneIn
 DRAW_TOP = 12
 
 
-def draw_detections(path: str | Path, image: NDArray, dets: Sequence[dict], *, top: int = DRAW_TOP) -> None:
+def draw_detections(path: str | Path, image: NDArray, dets: Sequence[SceneDetection], *, top: int = DRAW_TOP
+                    ) -> None:
     """The image with its best ``top`` detections marked (a ring at each, class and score),
     as PNG at ``path``; the best in red, the rest in orange."""
     img = np.ascontiguousarray(np.asarray(image)[..., :3][..., ::-1] if np.asarray(image).ndim == 3
                                else np.repeat(np.asarray(image)[..., None], 3, axis=2)).astype(np.uint8)
     h, w = img.shape[:2]
     s = max(1, int(round(max(h, w) / 1000)))
-    for k, d in enumerate(sorted(dets, key=lambda x: -x["score"])[:top]):
+    for k, d in enumerate(sorted(dets, key=lambda x: -x.score)[:top]):
         col = (40, 40, 230) if k == 0 else (40, 150, 240)
-        r, c = int(round(d["row"])), int(round(d["col"]))
+        r, c = int(round(d.row)), int(round(d.col))
         cv2.circle(img, (c, r), 18 * s, col, 2 * s, cv2.LINE_AA)
-        cv2.putText(img, f"{k + 1} {d['class']} {d['score']:.2f}", (c + 20 * s, r), cv2.FONT_HERSHEY_SIMPLEX,
+        cv2.putText(img, f"{k + 1} {d.class_name} {d.score:.2f}", (c + 20 * s, r), cv2.FONT_HERSHEY_SIMPLEX,
                     0.5 * s, col, s, cv2.LINE_AA)
     if not cv2.imwrite(str(path), img):
         raise InputError(f"{path}: could not write the drawing")

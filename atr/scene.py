@@ -25,7 +25,7 @@ from prism3d.grids import cell_quantile, nearest_valid
 from prism3d.reconstruct.stereo.flatness import ransac_plane
 from prism3d.reconstruct.survey.dsm import progressive_ground
 
-__all__ = ["DetectOptions", "SceneChannels", "bank_scale", "chip_channel", "class_size", "object_xyz", "project",
+__all__ = ["DetectOptions", "SceneChannels", "SceneDetection", "bank_scale", "chip_channel", "class_size", "object_xyz", "project",
            "scene_channels"]
 
 #: Chip light and ambient of the shape channel (atr/chips.py ``ChipSpec`` defaults).
@@ -76,6 +76,49 @@ class DetectOptions:
             raise InputError(f"nms_fraction: expected a value in (0, 2], got {self.nms_fraction}")
         if int(self.max_detections) != self.max_detections or self.max_detections < 1:
             raise InputError(f"max_detections: expected a positive integer, got {self.max_detections}")
+
+
+@dataclass(frozen=True)
+class SceneDetection:
+    """One detection in a scene, best-first lists of which :func:`detect_scene` returns and
+    ``detections.json`` holds (:meth:`to_json`; the class under the key ``class``)."""
+
+    row: float
+    """Pixel row of the detection (the object's median point where there is one)."""
+    col: float
+    """Pixel column."""
+    class_name: str
+    """The class it is called."""
+    score: float
+    """Higher is surer: a filter's peak metric, or a recogniser's 1 - P(none)."""
+    aspect_deg: float = math.nan
+    """Azimuth of the filter that matched (NaN from a recogniser)."""
+    range_mm: float | None = None
+    """Depth at the detection, mm."""
+    xyz_mm: tuple[float, float, float] | None = None
+    """Its 3D point in the camera frame, mm (None: no depth there)."""
+    p_classes: dict[str, float] | None = None
+    """A recogniser's probability of each class (and of none)."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The record as ``detections.json`` holds it."""
+        doc: dict[str, Any] = {"row": self.row, "col": self.col, "class": self.class_name,
+                               "aspect_deg": self.aspect_deg, "score": self.score, "range_mm": self.range_mm,
+                               "xyz_mm": None if self.xyz_mm is None else list(self.xyz_mm)}
+        if self.p_classes is not None:
+            doc["p_classes"] = dict(self.p_classes)
+        return doc
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any]) -> SceneDetection:
+        """A record of ``detections.json`` (:meth:`to_json`)."""
+        try:
+            xyz = doc.get("xyz_mm")
+            return cls(float(doc["row"]), float(doc["col"]), str(doc["class"]), float(doc["score"]),
+                       float(doc.get("aspect_deg", math.nan)), doc.get("range_mm"),
+                       None if xyz is None else (float(xyz[0]), float(xyz[1]), float(xyz[2])), doc.get("p_classes"))
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise InputError(f"detection: malformed record {doc!r} ({exc})") from None
 
 
 @dataclass(eq=False)

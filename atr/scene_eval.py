@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from prism3d.atr.scene import SceneDetection
 from prism3d.capture.rig import StereoRig
 from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
@@ -377,7 +378,7 @@ def plot_fppi(*results: dict, labels: Sequence[str] | None = None):  # -> matplo
     return fig
 
 
-def plot_scene(image: Any, truth: dict | None, detections: Sequence[dict], *, top: int = 8,
+def plot_scene(image: Any, truth: dict | None, detections: Sequence[SceneDetection], *, top: int = 8,
                title: str | None = None):  # -> matplotlib Figure
     """An image (the left view) with the true targets' boxes (green; confusers orange;
     dashed: difficult) when ``truth`` is given, and the ``top`` best detections (a cross,
@@ -396,8 +397,8 @@ def plot_scene(image: Any, truth: dict | None, detections: Sequence[dict], *, to
         ax.text(c0, r1 + 0.012 * h, t["class"] + (" (confuser)" if t.get("confuser") else ""), color=col,
                 fontsize=6, va="top")
     for k, d in enumerate(list(detections)[:top]):
-        ax.plot(d["col"], d["row"], "+", color="red", ms=10, mew=1.5)
-        ax.text(d["col"] + 0.01 * w, d["row"] - 0.01 * h, f"{k + 1}. {d['class']} {d['score']:.3f}", color="red",
+        ax.plot(d.col, d.row, "+", color="red", ms=10, mew=1.5)
+        ax.text(d.col + 0.01 * w, d.row - 0.01 * h, f"{k + 1}. {d.class_name} {d.score:.3f}", color="red",
                 fontsize=6)
     ax.set_xlim(0, w)
     ax.set_ylim(h, 0)

@@ -26,7 +26,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from prism3d.atr.bank import FilterBank, spectrum_metrics
-from prism3d.atr.scene import DetectOptions, SceneChannels, bank_scale, chip_channel, class_size, project
+from prism3d.atr.scene import (
+    DetectOptions,
+    SceneChannels,
+    SceneDetection,
+    bank_scale,
+    chip_channel,
+    class_size,
+    project,
+)
 from prism3d.errors import InputError
 from prism3d.io.model_file import read_model_npz, write_model_npz
 
@@ -254,9 +262,9 @@ class SceneRecogniser:
 
 
 def detect_objects(model: SceneRecogniser, scene: SceneChannels, options: DetectOptions | None = None
-                   ) -> list[dict]:
+                   ) -> list[SceneDetection]:
     """Detections of a recogniser in a prepared scene, best first: every object passing
-    :func:`object_gate` scored by the verifier (``score`` = 1 - P(none), ``class`` = the
+    :func:`object_gate` scored by the verifier (``score`` = 1 - P(none), ``class_name`` = the
     likeliest target class, ``p_classes``), placed at its median 3D point; an object within
     a better detection's class radius is a piece of it and dropped."""
     o = DetectOptions() if options is None else options
@@ -274,7 +282,7 @@ def detect_objects(model: SceneRecogniser, scene: SceneChannels, options: Detect
     k_none = model.verifier.classes.index(NONE)
     radius = class_size(model.banks[0].metadata, "class_radius_mm", list(model.targets))
     order = np.argsort(-(1.0 - P[:, k_none]))
-    out: list[dict] = []
+    out: list[SceneDetection] = []
     kept: list[tuple[NDArray, float]] = []
     for i in order:
         lab = labs[int(i)]
@@ -287,9 +295,9 @@ def detect_objects(model: SceneRecogniser, scene: SceneChannels, options: Detect
             continue
         kept.append((pt, rad))
         r, c = project(scene.K, pt)
-        out.append({"row": float(r), "col": float(c), "class": cls, "aspect_deg": float("nan"),
-                    "score": float(1.0 - P[i, k_none]), "range_mm": float(pt[2]), "xyz_mm": [float(v) for v in pt],
-                    "p_classes": {c2: round(float(p), 4) for c2, p in zip(model.verifier.classes, P[i])}})
+        out.append(SceneDetection(float(r), float(c), cls, float(1.0 - P[i, k_none]), float("nan"), float(pt[2]),
+                                  (float(pt[0]), float(pt[1]), float(pt[2])),
+                                  {c2: round(float(p), 4) for c2, p in zip(model.verifier.classes, P[i])}))
         if len(out) >= o.max_detections:
             break
     return out

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
-from prism3d.atr.detect import detect_scene, detect_scene_hog, scene_channels
+from prism3d.atr.detect import detect_scene, detect_scene_hog, in_left_view, scene_channels
 from prism3d.atr.hog_svm import HogSvm
 from prism3d.atr.scene_eval import score_scenes
 from prism3d.atr.verifier import SceneRecogniser
@@ -114,13 +114,9 @@ def main() -> None:
             else:
                 dets = detect_scene(model, sc) if kind in ("bank", "recogniser") else detect_scene_hog(model, sc)
             det_s[(c, kind)].append(time.perf_counter() - t4)
-            for dt in dets if kind != "bank-true-depth" else []:  # rectified grid -> left view, as detect_shot does
-                if dt["xyz_mm"] is not None:
-                    p = R1.T @ np.asarray(dt["xyz_mm"])
-                    dt["xyz_mm"] = [float(v) for v in p]
-                    uv = rig.left.project(p[None])[0]
-                    dt["col"], dt["row"] = float(uv[0]), float(uv[1])
-            pairs[(c, kind)].append(({"detections": dets}, truth))
+            if kind != "bank-true-depth":  # rectified grid -> left view, as detect_shot does
+                dets = in_left_view(dets, z["K"], R1, rig)
+            pairs[(c, kind)].append(({"detections": [dt.to_json() for dt in dets]}, truth))
         print(d.name, f"channels {t3 - t2:.1f} s", flush=True)
     out = {"n_scenes": a.n, "generated": made, "generation_s": gen_s, "recogniser_train_s": round(t_rec, 1),
            "recogniser": recogniser.metadata.get("mining", {}),

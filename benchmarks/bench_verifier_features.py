@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from prism3d.atr.bank import BANK_CHIP_SPEC
-from prism3d.atr.detect import detect_scene, scene_channels
+from prism3d.atr.detect import detect_scene, in_left_view, scene_channels
 from prism3d.atr.scene_eval import score_scenes
 from prism3d.atr.verifier import SceneRecogniser, n_size_features
 from prism3d.capture.rig import StereoRig
@@ -105,13 +105,8 @@ def _score(model: SceneRecogniser, folders: list[Path]) -> dict:
         t = time.perf_counter()
         dets = detect_scene(model, sc)
         ts.append(time.perf_counter() - t)
-        R1 = np.asarray(z["R1"])
-        for dt in dets:  # rectified grid -> left view, as detect_shot does
-            p = R1.T @ np.asarray(dt["xyz_mm"])
-            dt["xyz_mm"] = [float(v) for v in p]
-            uv = rig.left.project(p[None])[0]
-            dt["col"], dt["row"] = float(uv[0]), float(uv[1])
-        pairs.append(({"detections": dets}, truth))
+        dets = in_left_view(dets, z["K"], z["R1"], rig)  # rectified grid -> left view, as detect_shot does
+        pairs.append(({"detections": [dt.to_json() for dt in dets]}, truth))
     r = score_scenes(pairs)
     r["detect_s_median"] = float(np.median(ts))
     return r

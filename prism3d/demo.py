@@ -31,6 +31,7 @@ from prism3d.atr.evaluate import (
     plot_roc,
 )
 from prism3d.atr.features import model_features, scan_features
+from prism3d.atr.scene import SceneDetection
 from prism3d.atr.scene_eval import plot_scene, score_scenes
 from prism3d.atr.survey_detect import DEFAULT_CLASSES, detect_in_survey
 from prism3d.browser import check_page, find_chromium
@@ -595,9 +596,9 @@ def _stage_scene(ctx: DemoContext) -> Section:
     shot = read_image(folder / "shot.png")
     truth = json.loads((folder / "truth.json").read_text())
     dets, times = detect_shot(bank, shot, rig)
-    atomic_write_text(ctx.path("field", "detections.json"),
-                      json.dumps({"channel": bank.channel, "timings_s": times, "detections": dets}, indent=1))
-    res = score_scenes([({"detections": dets}, truth)])
+    doc = {"channel": bank.channel, "timings_s": times, "detections": [d.to_json() for d in dets]}
+    atomic_write_text(ctx.path("field", "detections.json"), json.dumps(doc, indent=1))
+    res = score_scenes([(doc, truth)])
     left = rig.split.split(shot)[0]
     s.figure("left view: true targets (green), confusers (orange), the best detections (red, rank, class, score)",
              figure_png(plot_scene(left, truth, dets, top=DEMO_SCENE_DRAWN,
@@ -607,7 +608,7 @@ def _stage_scene(ctx: DemoContext) -> Section:
         hit = next((k for k, d in enumerate(dets) if _on_target(d, t)), None)
         rows.append([t["class"] + (" (confuser)" if t["confuser"] else ""), t["range_mm"] / 1000.0,
                      t["visible_fraction"], "-" if hit is None else hit + 1,
-                     "-" if hit is None else dets[hit]["class"]])
+                     "-" if hit is None else dets[hit].class_name])
     s.table("Truth and the first detection on each target (rank in the score list, class called)",
             ["target", "range (m)", "visible fraction", "rank", "called"], rows)
     s.table("Time per stage (s)", ["reconstruction", "ground and objects", "detection"],
@@ -620,10 +621,10 @@ def _stage_scene(ctx: DemoContext) -> Section:
     return s
 
 
-def _on_target(d: dict, t: dict) -> bool:
+def _on_target(d: SceneDetection, t: dict) -> bool:
     """Whether a detection falls in a true target's box (the scoring's image rule)."""
     r0, c0, r1, c1 = t["box_rc"]
-    return r0 <= d["row"] <= r1 and c0 <= d["col"] <= c1
+    return r0 <= d.row <= r1 and c0 <= d.col <= c1
 
 def _stage_survey(ctx: DemoContext) -> Section:
     """The UAV mode: a simulated drone flight over a car park surveyed into a DSM, a true

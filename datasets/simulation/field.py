@@ -583,7 +583,7 @@ def detect_scene_folder(bank_path: str, scene: str) -> dict:
     (``scene``, ``detections``, ``timings_s``)."""
     p = Path(scene)
     dets, times = detect_shot(load_scene_model(bank_path), read_image(p / "shot.png"), StereoRig.load(p / "rig.yaml"))
-    return {"scene": str(p), "timings_s": times, "detections": dets}
+    return {"scene": str(p), "timings_s": times, "detections": [d.to_json() for d in dets]}
 
 
 def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progress=None, run=None) -> dict:

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from prism3d.atr.detect import DetectOptions, detect_scene, scene_channels
+from prism3d.atr.detect import DetectOptions, SceneDetection, detect_scene, scene_channels
 from prism3d.errors import InputError
 
 SMALL = dict(sensor_size=(720, 540), focal_px=600.0, clutter=10, supersample=1)
@@ -85,12 +85,13 @@ def test_detections_follow_the_contract(field, small_bank):
     sc = _scene(field)
     dets = detect_scene(small_bank, sc)
     assert dets, "no detections at all"
-    scores = [d["score"] for d in dets]
+    scores = [d.score for d in dets]
     assert scores == sorted(scores, reverse=True)
     for d in dets:
-        assert {"row", "col", "class", "score", "xyz_mm", "aspect_deg", "range_mm"} <= set(d)
-        assert d["class"] in small_bank.classes
-        assert 0 <= d["row"] < sc.depth_mm.shape[0] and 0 <= d["col"] < sc.depth_mm.shape[1]
+        assert {"row", "col", "class", "score", "xyz_mm", "aspect_deg", "range_mm"} <= set(d.to_json())
+        assert SceneDetection.from_json(json.loads(json.dumps(d.to_json()))) == d
+        assert d.class_name in small_bank.classes
+        assert 0 <= d.row < sc.depth_mm.shape[0] and 0 <= d.col < sc.depth_mm.shape[1]
 
 
 def test_one_detection_per_target_placed_on_it(field, small_bank):
@@ -104,13 +105,13 @@ def test_one_detection_per_target_placed_on_it(field, small_bank):
     for t in truth["targets"]:
         if t["difficult"]:
             continue
-        on = [d for d in dets if d["xyz_mm"] is not None
-              and np.linalg.norm(np.subtract(d["xyz_mm"], t["xyz_mm"])) < 0.5 * t["radius_mm"]]
+        on = [d for d in dets if d.xyz_mm is not None
+              and np.linalg.norm(np.subtract(d.xyz_mm, t["xyz_mm"])) < 0.5 * t["radius_mm"]]
         assert len(on) <= 1, (t["name"], on)
         r0, c0, r1, c1 = t["box_rc"]
         for d in on:
             near_any += 1
-            assert r0 - 2 <= d["row"] <= r1 + 2 and c0 - 2 <= d["col"] <= c1 + 2, (t["name"], d, t["box_rc"])
+            assert r0 - 2 <= d.row <= r1 + 2 and c0 - 2 <= d.col <= c1 + 2, (t["name"], d, t["box_rc"])
     assert near_any >= 1
 
 

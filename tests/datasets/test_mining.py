@@ -55,19 +55,19 @@ def test_judges_a_scene_it_never_saw(recogniser: SceneRecogniser, tmp_path) -> N
     z = np.load(out / "truth.npz")
     sc = scene_channels(np.full(z["depth_left_mm"].shape, 0.5, np.float32), z["depth_left_mm"], rig.left.K)
     dets = detect_scene(recogniser, sc)
-    assert dets and all(d["class"] in recogniser.targets for d in dets)
-    assert all(abs(sum(d["p_classes"].values()) - 1.0) < 1e-3 for d in dets)
+    assert dets and all(d.class_name in recogniser.targets for d in dets)
+    assert all(abs(sum(d.p_classes.values()) - 1.0) < 1e-3 for d in dets)
     oid = z["object_id_left"]
     target_ids = {t["object_index"]: t for t in truth["targets"] if not t["confuser"] and not t["difficult"]}
 
     def on(d):
-        r, c = int(round(d["row"])), int(round(d["col"]))
+        r, c = int(round(d.row)), int(round(d.col))
         return int(oid[min(max(r, 0), oid.shape[0] - 1), min(max(c, 0), oid.shape[1] - 1)])
 
     hits = [d for d in dets if on(d) in target_ids]
     others = [d for d in dets if on(d) not in target_ids]
     assert hits, "no target found"
-    assert np.mean([d["score"] for d in hits]) > np.mean([d["score"] for d in others] or [0.0])
+    assert np.mean([d.score for d in hits]) > np.mean([d.score for d in others] or [0.0])
 
 
 def test_verifier_refusals() -> None:
