@@ -19,7 +19,7 @@ import math
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -30,7 +30,8 @@ from prism3d.atr.aerial_features import CHANNEL_SETS, cell_features, rotate_scen
 from prism3d.errors import InputError
 from prism3d.io.model_file import read_model_npz, write_model_npz
 
-__all__ = ["AERIAL_SCHEMA_VERSION", "DEFAULT_THRESHOLD", "AerialGroup", "AerialModel", "correlate_cells", "window_features"]
+__all__ = ["AERIAL_SCHEMA_VERSION", "DEFAULT_THRESHOLD", "AerialGroup", "AerialModel", "VehicleDetection",
+           "correlate_cells", "window_features"]
 
 AERIAL_SCHEMA_VERSION = 1
 #: Calibrated score at or above which a candidate is reported as a vehicle (the share of
@@ -48,6 +49,35 @@ MAX_OUTSIDE_SHARE = 0.2
 #: linear window reads "taller" as "more like a truck"; an 11 m tree cut by a no-data hole
 #: scored 0.999 as one on a real target-free survey).
 TALL_MARGIN_M, TALL_SHARE = 1.0, 0.25
+
+
+@dataclass(frozen=True)
+class VehicleDetection:
+    """A vehicle found from the air (or, from :meth:`AerialModel.candidates`, a candidate),
+    in pixels of the grid searched."""
+
+    row: float
+    """Pixel row of the centre."""
+    col: float
+    """Pixel column of the centre."""
+    heading_rad: float
+    """Direction of the nose, counter-clockwise from the grid's +column axis (east)."""
+    group: int
+    """Index of the model's group (of similar-sized classes) that found it."""
+    raw: float
+    """The group's uncalibrated window score."""
+    score: float
+    """Calibrated score: the share of held-out detections at this score that were vehicles."""
+    class_name: str
+    """The class it is called."""
+    class_p: tuple[float, ...]
+    """The group's probability of each of its classes."""
+    length_m: float | None = None
+    """Footprint length, m (the named class's median; None on a candidate)."""
+    width_m: float | None = None
+    """Footprint width, m."""
+    corners_rc: tuple[tuple[float, float], ...] | None = None
+    """The footprint's four corners as (row, col) pixels."""
 
 
 @dataclass(frozen=True)
@@ -111,10 +141,9 @@ class AerialModel:
 
     # -- detection -------------------------------------------------------------------------
     def candidates(self, grey: NDArray, ndsm: NDArray, *, roi: NDArray | None = None,
-                   angles_rad: Sequence[float] | None = None) -> list[dict]:
+                   angles_rad: Sequence[float] | None = None) -> list[VehicleDetection]:
         """Every local maximum of every group's score over the headings, before
-        suppression: dicts with ``row``, ``col`` (pixels of the input grid), ``heading_rad``,
-        ``group``, ``raw``, ``score`` (calibrated), ``class`` and ``class_p``. ``grey`` and
+        suppression (no footprint yet), in pixels of the input grid. ``grey`` and
         ``ndsm`` (H, W) share this model's ``gsd_m`` grid (``ndsm`` NaN = no height; all NaN
         for an appearance-only search); ``roi`` (H, W) bool limits where centres may fall."""
         g = np.asarray(grey, dtype=np.float32)
@@ -130,15 +159,14 @@ class AerialModel:
             return self._candidates(g, z, None, angles_rad)
         # the search area's parts, each cut out with a window's reach around it
         reach = int(self.cell_px * (max(max(gr.cells) for gr in self.groups) // 2 + 2))
-        out: list[dict] = []
+        out: list[VehicleDetection] = []
         for r0, c0, r1, c1 in _boxes(np.asarray(roi, dtype=bool), reach):
             for d in self._candidates(g[r0:r1, c0:c1], z[r0:r1, c0:c1], np.asarray(roi)[r0:r1, c0:c1], angles_rad):
-                d["row"] += r0
-                d["col"] += c0
-                out.append(d)
+                out.append(replace(d, row=d.row + r0, col=d.col + c0))
         return out
 
-    def _candidates(self, g: NDArray, z: NDArray, roi: NDArray | None, angles_rad: Sequence[float]) -> list[dict]:
+    def _candidates(self, g: NDArray, z: NDArray, roi: NDArray | None, angles_rad: Sequence[float]
+                    ) -> list[VehicleDetection]:
         """The headings on a pool of threads (one per core, at most two: each holds a turned
         copy of the scene; OpenCV and numpy's large operations release the GIL), gathered
         in heading order."""
@@ -149,10 +177,10 @@ class AerialModel:
             parts = list(pool.map(lambda a: self._at_heading(g, z, roi, float(a)), angles_rad))
         return [d for part in parts for d in part]
 
-    def _at_heading(self, g: NDArray, z: NDArray, roi: NDArray | None, ang: float) -> list[dict]:
+    def _at_heading(self, g: NDArray, z: NDArray, roi: NDArray | None, ang: float) -> list[VehicleDetection]:
         k = self.cell_px
         pad = k * (max(max(gr.cells) for gr in self.groups) // 2 + 2)
-        out: list[dict] = []
+        out: list[VehicleDetection] = []
         gr_img, z_img, M = rotate_scene(g, z, float(ang), pad)
         F = cell_features(gr_img, z_img, k, self.channels)
         hc, wc = F.shape[:2]
@@ -194,26 +222,24 @@ class AerialModel:
                 xr, yr = (j + 0.5) * k - 0.5, (i + 0.5) * k - 0.5
                 xo, yo = Minv @ np.array([xr, yr, 1.0])
                 head = (float(ang) + (math.pi if turned[i, j] else 0.0)) % (2 * math.pi)
-                out.append({"row": float(yo), "col": float(xo), "heading_rad": head, "group": gi,
-                            "raw": float(raw[i, j]), "score": float(p[i, j]), "class": cls,
-                            "class_p": [round(float(v), 4) for v in cp]})
+                out.append(VehicleDetection(float(yo), float(xo), head, gi, float(raw[i, j]), float(p[i, j]), cls,
+                                            tuple(round(float(v), 4) for v in cp)))
         return out
 
     def detect(self, grey: NDArray, ndsm: NDArray, *, roi: NDArray | None = None,
-               min_score: float = CANDIDATE_FLOOR) -> list[dict]:
-        """Detections best first (:meth:`candidates`, then one per vehicle): each with its
-        footprint's ``length_m`` and ``width_m`` (the named class's median size) and
-        ``corners_rc`` (4, 2) in pixels of the input grid."""
-        cands = sorted(self.candidates(grey, ndsm, roi=roi), key=lambda d: -d["score"])
-        kept: list[dict] = []
+               min_score: float = CANDIDATE_FLOOR) -> list[VehicleDetection]:
+        """Detections best first (:meth:`candidates`, then one per vehicle), each with its
+        footprint (the named class's median size)."""
+        cands = sorted(self.candidates(grey, ndsm, roi=roi), key=lambda d: -d.score)
+        kept: list[VehicleDetection] = []
         for d in cands:
-            if d["score"] < min_score:
+            if d.score < min_score:
                 break
-            L, W, _ = self.groups[d["group"]].dims[d["class"]]
+            L, W, _ = self.groups[d.group].dims[d.class_name]
             if any(_overlaps(d, L, W, q, self.gsd_m) for q in kept):
                 continue
-            d = dict(d, length_m=L, width_m=W, corners_rc=_corners(d, L, W, self.gsd_m).tolist())
-            kept.append(d)
+            corners = tuple((float(r), float(c)) for r, c in _corners(d, L, W, self.gsd_m))
+            kept.append(replace(d, length_m=L, width_m=W, corners_rc=corners))
         return kept
 
     # -- files -----------------------------------------------------------------------------
@@ -388,25 +414,25 @@ def window_features(F: NDArray, i: int, j: int, cells: tuple[int, int], *, turne
     return (w[::-1, ::-1] if turned else w).reshape(-1)
 
 
-def _corners(d: dict, L: float, W: float, gsd: float) -> NDArray[np.float64]:
+def _corners(d: VehicleDetection, L: float, W: float, gsd: float) -> NDArray[np.float64]:
     """A detection's footprint corners (4, 2) as (row, col) pixels."""
-    a = d["heading_rad"]
+    a = d.heading_rad
     u = np.array([-math.sin(a), math.cos(a)])  # along the vehicle, (row, col): +x is col, up is -row
     v = np.array([-math.cos(a), -math.sin(a)])  # across
-    c = np.array([d["row"], d["col"]])
+    c = np.array([d.row, d.col])
     hl, hw = L / 2.0 / gsd, W / 2.0 / gsd
     return np.array([c + u * hl + v * hw, c - u * hl + v * hw, c - u * hl - v * hw, c + u * hl - v * hw])
 
 
-def _overlaps(d: dict, L: float, W: float, q: dict, gsd: float) -> bool:
+def _overlaps(d: VehicleDetection, L: float, W: float, q: VehicleDetection, gsd: float) -> bool:
     """Whether ``d``'s centre falls in the inner 80 % x 70 % of ``q``'s footprint or
     ``q``'s in ``d``'s (a second look at the same vehicle), or they are within 0.8 m."""
-    dist = math.hypot(d["row"] - q["row"], d["col"] - q["col"]) * gsd
+    dist = math.hypot(d.row - q.row, d.col - q.col) * gsd
     if dist < 0.8:
         return True
-    for a, b, la, wa in ((d, q, q["length_m"], q["width_m"]), (q, d, L, W)):
-        ang = b["heading_rad"]
-        dr, dc = a["row"] - b["row"], a["col"] - b["col"]
+    for a, b, la, wa in ((d, q, q.length_m, q.width_m), (q, d, L, W)):
+        ang = b.heading_rad
+        dr, dc = a.row - b.row, a.col - b.col
         along = (dc * math.cos(ang) - dr * math.sin(ang)) * gsd
         across = (-dc * math.sin(ang) - dr * math.cos(ang)) * gsd
         if abs(along) <= 0.4 * la and abs(across) <= 0.35 * wa:

@@ -329,13 +329,13 @@ def _calibrate(model: AerialModel, patches: Sequence[AerialPatch]) -> list[tuple
             for k, v in enumerate(p.vehicles):
                 if k in used or v["visible"] < 0.5:
                     continue
-                dist = math.hypot(d["row"] - v["row"], d["col"] - v["col"]) * model.gsd_m
-                if dist <= MATCH_M and _angle_diff(d["heading_rad"], v["heading_rad"]) <= math.radians(MATCH_DEG):
+                dist = math.hypot(d.row - v["row"], d.col - v["col"]) * model.gsd_m
+                if dist <= MATCH_M and _angle_diff(d.heading_rad, v["heading_rad"]) <= math.radians(MATCH_DEG):
                     hit = k
                     break
             if hit is not None:
                 used.add(hit)
-            raws[d["group"]].append((d["raw"], int(hit is not None)))
+            raws[d.group].append((d.raw, int(hit is not None)))
     out = []
     for r in raws:
         y = np.array([t[1] for t in r])

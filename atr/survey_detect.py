@@ -32,7 +32,7 @@ import numpy as np
 import pyproj
 from numpy.typing import NDArray
 
-from prism3d.atr.aerial import DEFAULT_THRESHOLD
+from prism3d.atr.aerial import DEFAULT_THRESHOLD, VehicleDetection
 from prism3d.capture.render import RaycastRenderer
 from prism3d.checks import check_outputs_not_inputs
 from prism3d.errors import InputError
@@ -410,7 +410,7 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *
     t1 = time.perf_counter()
     dets = model.detect(scene.grey, scene.ndsm, roi=scene.roi)
     t2 = time.perf_counter()
-    kept = [x for x in dets if all_candidates or x["score"] >= th]
+    kept = [x for x in dets if all_candidates or x.score >= th]
     feats = [_feature(x, scene) for x in kept]
 
     with atomic_paths(*([out] if draw is None else [out, Path(draw)])) as tmps:  # both files or neither
@@ -419,8 +419,8 @@ def detect_in_survey(survey_dir: str | Path, out_path: str | Path, model: Any, *
             draw_survey_detections(tmps[1], scene, kept, th)
     counts: dict[str, int] = {}
     for x in kept:
-        if x["score"] >= th:
-            counts[x["class"]] = counts.get(x["class"], 0) + 1
+        if x.score >= th:
+            counts[x.class_name] = counts.get(x.class_name, 0) + 1
     return {"n_vehicles": sum(counts.values()), "by_class": counts, "n_written": len(kept),
             "threshold": th, "seconds": {"read": round(t1 - t0, 2), "detect": round(t2 - t1, 2),
                                          "total": round(time.perf_counter() - t0, 2)}}
@@ -470,28 +470,28 @@ _SURVEY_NAMES = {"poses.json", "cloud.ply", "cloud.las", "cloud.laz", "dsm.tif",
                  "ortho_quality.tif", "survey.png"}
 
 
-def _feature(x: dict, scene: SurveyScene) -> dict[str, Any]:
+def _feature(x: VehicleDetection, scene: SurveyScene) -> dict[str, Any]:
     """One detection as a GeoJSON Feature: a WGS84 point at its centre, its footprint a
     WGS84 polygon, local metres kept beside."""
     g = scene.gsd
-    r, c = x["row"], x["col"]
+    r, c = x.row, x.col
     ri, ci = int(min(max(round(r), 0), scene.ground.shape[0] - 1)), int(min(max(round(c), 0), scene.ground.shape[1] - 1))
     k = max(1, int(round(2.0 / g)))
     win = scene.ground[max(ri - k, 0):ri + k + 1, max(ci - k, 0):ci + k + 1]
     z = float(np.nanmedian(win)) if np.isfinite(win).any() else float(np.nanmedian(scene.ground)) \
         if np.isfinite(scene.ground).any() else 0.0
     pts = [(scene.west + (c + 0.5) * g, scene.north - (r + 0.5) * g)]
-    pts += [(scene.west + (cc + 0.5) * g, scene.north - (rr + 0.5) * g) for rr, cc in x["corners_rc"]]
+    pts += [(scene.west + (cc + 0.5) * g, scene.north - (rr + 0.5) * g) for rr, cc in x.corners_rc]
     frame = scene.frame if scene.frame is not None else MapFrame(tuple(scene.origin_lla))
     q = np.array([[px, py, z] for px, py in pts])
     lla = frame.map_to_lla(q)
     local = frame.map_to_enu(q[:1])[0]
     lonlat = [[round(float(b), 9), round(float(a), 9)] for a, b, _ in lla]
     ring = lonlat[1:] + [lonlat[1]]
-    heading = _compass_deg(x["heading_rad"], float(frame.grid_north_deg(q[:1])[0]))
-    props = {"class": x["class"], "score": round(float(x["score"]), 4), "heading_deg": heading,
+    heading = _compass_deg(x.heading_rad, float(frame.grid_north_deg(q[:1])[0]))
+    props = {"class": x.class_name, "score": round(float(x.score), 4), "heading_deg": heading,
              "footprint": {"type": "Polygon", "coordinates": [ring]},
-             "length_m": round(float(x["length_m"]), 2), "width_m": round(float(x["width_m"]), 2),
+             "length_m": round(float(x.length_m), 2), "width_m": round(float(x.width_m), 2),
              "x_local": round(float(local[0]), 3), "y_local": round(float(local[1]), 3),
              "z_local": round(float(local[2]), 3)}
     return {"type": "Feature", "geometry": {"type": "Point", "coordinates": lonlat[0]}, "properties": props}
@@ -508,18 +508,19 @@ def _write_feature_collection(out: Path, feats: list[dict], scene: SurveyScene, 
     out.write_text(json.dumps(doc, indent=1))
 
 
-def draw_survey_detections(path: str | Path, scene: SurveyScene, dets: list[dict], threshold: float) -> None:
+def draw_survey_detections(path: str | Path, scene: SurveyScene, dets: Sequence[VehicleDetection],
+                           threshold: float) -> None:
     """The orthophoto with each detection's footprint (vehicles at or above ``threshold``
     in red with class and score; candidates below in thin blue), as PNG at ``path``."""
     img = np.ascontiguousarray(scene.rgb[..., ::-1])
     f = max(1, int(round(0.25 / max(scene.gsd, 1e-6) / 4)))
-    for x in sorted(dets, key=lambda t: t["score"]):
-        ok = x["score"] >= threshold
+    for x in sorted(dets, key=lambda t: t.score):
+        ok = x.score >= threshold
         col = (40, 40, 230) if ok else (230, 140, 40)
-        poly = np.round(np.array(x["corners_rc"])[:, ::-1]).astype(np.int32)
+        poly = np.round(np.array(x.corners_rc)[:, ::-1]).astype(np.int32)
         cv2.polylines(img, [poly], True, col, 2 if ok else 1, cv2.LINE_AA)
         if ok:
-            cv2.putText(img, f"{x['class']} {x['score']:.2f}", (int(poly[:, 0].min()), int(poly[:, 1].min()) - 3),
+            cv2.putText(img, f"{x.class_name} {x.score:.2f}", (int(poly[:, 0].min()), int(poly[:, 1].min()) - 3),
                         cv2.FONT_HERSHEY_SIMPLEX, 0.4 * f, col, 1, cv2.LINE_AA)
     if not cv2.imwrite(str(path), img):
         raise InputError(f"{path}: could not write the drawing")

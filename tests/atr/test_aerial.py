@@ -193,22 +193,22 @@ def test_finds_each_vehicle_of_a_row_at_its_heading(model: AerialModel) -> None:
     for seed in (101, 102, 103, 104, 105):
         p = compose_patch(np.random.default_rng(seed), tsp, nsp, PatchSpec(gsd_m=GSD, size_m=32.0,
                                                                            missing_dsm_share=0.0))
-        dets = [d for d in model.detect(p.rgb.mean(axis=2), p.ndsm) if d["score"] >= 0.5]
+        dets = [d for d in model.detect(p.rgb.mean(axis=2), p.ndsm) if d.score >= 0.5]
         used = set()
         for d in dets:
             best = None
             for k, v in enumerate(p.vehicles):
-                if k not in used and math.hypot(d["row"] - v["row"], d["col"] - v["col"]) * GSD <= 1.2:
+                if k not in used and math.hypot(d.row - v["row"], d.col - v["col"]) * GSD <= 1.2:
                     best = k
                     break
             if best is None:
-                fp += inner(d["row"], d["col"])
+                fp += inner(d.row, d.col)
                 continue
             used.add(best)
             v = p.vehicles[best]
-            dh = abs(d["heading_rad"] - v["heading_rad"]) % math.pi
+            dh = abs(d.heading_rad - v["heading_rad"]) % math.pi
             assert min(dh, math.pi - dh) <= math.radians(20.0)
-            right += inner(v["row"], v["col"]) and v["visible"] >= 0.8 and d["class"] == v["cls"]
+            right += inner(v["row"], v["col"]) and v["visible"] >= 0.8 and d.class_name == v["cls"]
         vis = {k for k, v in enumerate(p.vehicles) if v["visible"] >= 0.8 and inner(v["row"], v["col"])}
         total += len(vis)
         found += len(vis & used)
@@ -224,7 +224,7 @@ def test_model_file_round_trip_and_refusals(model: AerialModel, tmp_path) -> Non
     g = rng.uniform(0, 1, (300, 300)).astype(np.float32)
     z = np.zeros_like(g)
     a, b = model.candidates(g, z), back.candidates(g, z)
-    assert [round(x["raw"], 4) for x in a] == [round(x["raw"], 4) for x in b]
+    assert [round(x.raw, 4) for x in a] == [round(x.raw, 4) for x in b]
     with pytest.raises(InputError, match="one \\(H, W\\) shape"):
         model.detect(g, z[:10])
     (tmp_path / "x.npz").write_bytes(b"not a model")
