@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,7 @@ from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
 
 __all__ = [
+    "BankEvaluation",
     "EVAL_CHIP_SPEC",
     "HELDOUT_SEED_OFFSET",
     "accuracy_by",
@@ -145,6 +146,61 @@ def relief_noise_mm(targets: Sequence[tuple[str, object]], sigma: float) -> floa
     return float(sigma * 2.0 * np.median(radii) / 0.9)
 
 
+@dataclass(frozen=True)
+class BankEvaluation:
+    """A bank scored on rendered test chips (:func:`evaluate_bank`); :meth:`to_json` is the
+    results file ``bank eval --json`` writes, :meth:`from_json` reads one back."""
+
+    classes: list[str]
+    """The bank's classes, in the order of the confusion matrix."""
+    channel: str
+    """The chip channel of the bank."""
+    metric: str
+    """The peak metric that decides the class."""
+    pcc: float
+    """Probability of correct classification over the test chips."""
+    confusion: list[list[int]]
+    """Counts, rows = true class, columns = called class."""
+    per_class: dict[str, float]
+    """Accuracy per true class."""
+    per_aspect: dict[str, float]
+    """Accuracy per azimuth bin of the bank (key: the bin's centre, degrees)."""
+    per_elevation: dict[str, float]
+    """Accuracy per elevation (key: degrees)."""
+    per_range: dict[str, float]
+    """Accuracy per range (key: mm)."""
+    roc: dict[str, Any]
+    """Targets against clutter-only chips: ``thresholds``, ``pd``, ``pfa`` lists and ``auc``."""
+    pd_at_pfa: dict[str, float]
+    """Best Pd with Pfa at most 1, 5 and 10 % (keys "0.01", "0.05", "0.1")."""
+    scores_target: list[float]
+    """The best class score of each target chip."""
+    scores_clutter: list[float]
+    """The best class score of each clutter-only chip."""
+    psr_target: list[float]
+    """The best PSR of each target chip."""
+    psr_clutter: list[float]
+    """The best PSR of each clutter-only chip."""
+    n_chips: int
+    """Target chips scored."""
+    conditions: dict[str, Any]
+    """The test conditions: paint, noise, clutter, lighting, seed, azimuths."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The results as JSON, keys in field order."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_json(cls, doc: object) -> BankEvaluation:
+        """Results written by :meth:`to_json` (e.g. a ``bank eval --json`` file)."""
+        if not isinstance(doc, dict):
+            raise InputError(f"bank evaluation: expected a JSON object, got {type(doc).__name__}")
+        missing = [f.name for f in fields(cls) if f.name not in doc]
+        if missing:
+            raise InputError(f"bank evaluation: missing {', '.join(missing)} (not a 'bank eval --json' results file?)")
+        return cls(**{f.name: doc[f.name] for f in fields(cls)})
+
+
 def evaluate_bank(
     bank: FilterBank,
     targets: Sequence[tuple[str, object]],
@@ -154,7 +210,7 @@ def evaluate_bank(
     range_mm: str | float | Sequence[float] | None = None,
     chip_spec: ChipSpec | None = None,
     out_json: str | Path | None = None,
-) -> dict:
+) -> BankEvaluation:
     """Evaluate a bank on rendered test chips (module docstring).
 
     ``targets``: ``[(class, SceneMesh)]``, classes among ``bank.classes``. Default
@@ -162,11 +218,6 @@ def evaluate_bank(
     ranges: the training ones. ``chip_spec``: test conditions (None =
     :data:`EVAL_CHIP_SPEC`); its size and framing are replaced by the bank's.
     ``out_json``: also write ``<stem>_chips.parquet`` and the plots beside it.
-
-    Returns a JSON-ready dict: ``classes``, ``pcc``, ``confusion`` (rows = true),
-    ``per_class``, ``per_aspect``, ``per_elevation``, ``per_range``, ``roc`` (target vs
-    clutter-only chips), ``pd_at_pfa`` (Pfa <= 1, 5, 10 %), ``scores_target``,
-    ``scores_clutter``, ``psr_target``, ``psr_clutter``, ``n_chips``, ``conditions``.
     """
     if not isinstance(bank, FilterBank):
         raise InputError(f"bank: expected a FilterBank, got {type(bank).__name__}")
@@ -185,22 +236,22 @@ def evaluate_bank(
     cl_scores, cl_psr = _clutter_scores(bank, items, azimuth, elevation, range_mm, spec)
     cls_scores = np.array([df[f"score_{c}"].to_numpy() for c in bank.classes]).max(axis=0)
     roc = roc_curve(cls_scores, cl_scores)
-    res = {
-        "classes": list(bank.classes),
-        "channel": bank.channel,
-        "metric": bank.metric,
-        "pcc": float(correct.mean()),
-        "confusion": confusion_matrix(labels, df["pred_class"].tolist(), bank.classes).tolist(),
+    res = BankEvaluation(
+        classes=list(bank.classes),
+        channel=bank.channel,
+        metric=bank.metric,
+        pcc=float(correct.mean()),
+        confusion=confusion_matrix(labels, df["pred_class"].tolist(), bank.classes).tolist(),
         **_accuracy_by_condition(bank, labels, correct, az, el, rng_),
-        "roc": roc,
-        "pd_at_pfa": _pd_at_pfa(roc),
-        "scores_target": cls_scores.tolist(),
-        "scores_clutter": cl_scores.tolist(),
-        "psr_target": df["psr"].tolist(),
-        "psr_clutter": cl_psr.tolist(),
-        "n_chips": len(df),
-        "conditions": _conditions(spec, azimuth),
-    }
+        roc=roc,
+        pd_at_pfa=_pd_at_pfa(roc),
+        scores_target=cls_scores.tolist(),
+        scores_clutter=cl_scores.tolist(),
+        psr_target=df["psr"].tolist(),
+        psr_clutter=cl_psr.tolist(),
+        n_chips=len(df),
+        conditions=_conditions(spec, azimuth),
+    )
     if out_json is not None:
         _write_results(res, df, Path(out_json))
     return res
@@ -238,10 +289,10 @@ def _accuracy_by_condition(
     }
 
 
-def format_results(res: dict) -> str:
+def format_results(res: BankEvaluation) -> str:
     """Pcc and the confusion matrix of an :func:`evaluate_bank` result, as text lines."""
-    lines = [f"Pcc {100 * res['pcc']:.1f}% over {len(res['classes'])} classes ({', '.join(res['classes'])})"]
-    for c, row in zip(res["classes"], res["confusion"], strict=True):
+    lines = [f"Pcc {100 * res.pcc:.1f}% over {len(res.classes)} classes ({', '.join(res.classes)})"]
+    for c, row in zip(res.classes, res.confusion, strict=True):
         lines.append(f"  {c:<10} " + " ".join(f"{v:5d}" for v in row))
     return "\n".join(lines)
 
@@ -310,7 +361,7 @@ def _conditions(spec: ChipSpec, azimuth: list[float]) -> dict:
     }
 
 
-def _write_results(res: dict, df, path: Path) -> None:
+def _write_results(res: BankEvaluation, df, path: Path) -> None:
     """The results JSON, the chip table and the four plots: written under temp names,
     renamed together only when all of them were written (a failure leaves none)."""
     plt = _plt()
@@ -320,7 +371,7 @@ def _write_results(res: dict, df, path: Path) -> None:
     names = [path, Path(f"{stem}_chips.parquet"), *(Path(f"{stem}_{n}.png") for n in figs)]
     try:
         with atomic_paths(*names) as tmp:
-            tmp[0].write_text(json.dumps(res, indent=1), encoding="utf-8")
+            tmp[0].write_text(json.dumps(res.to_json(), indent=1), encoding="utf-8")
             df.to_parquet(tmp[1], index=False)
             for t, fig in zip(tmp[2:], figs.values(), strict=True):
                 fig.savefig(t, format="png", dpi=80)
@@ -337,12 +388,12 @@ def _plt():
     return plt
 
 
-def plot_confusion(res: dict, *, ax=None, title: str | None = None):  # -> matplotlib Figure
+def plot_confusion(res: BankEvaluation, *, ax=None, title: str | None = None):  # -> matplotlib Figure
     """Confusion matrix (row-normalised colours, counts printed); into ``ax`` when given
     (matrices side by side), with ``title`` before the Pcc."""
     plt = _plt()
-    m = np.asarray(res["confusion"], dtype=float)
-    cls = res["classes"]
+    m = np.asarray(res.confusion, dtype=float)
+    cls = res.classes
     if ax is None:
         fig, ax = plt.subplots(figsize=(4, 3.5))
     else:
@@ -363,30 +414,30 @@ def plot_confusion(res: dict, *, ax=None, title: str | None = None):  # -> matpl
     ax.set_yticks(range(len(cls)), cls)
     ax.set_xlabel("predicted")
     ax.set_ylabel("true")
-    ax.set_title(f"{title or res.get('channel', '')}: Pcc = {100 * res['pcc']:.1f}%")
+    ax.set_title(f"{title or res.channel}: Pcc = {100 * res.pcc:.1f}%")
     fig.tight_layout()
     return fig
 
 
-def plot_per_aspect(res: dict):  # -> matplotlib Figure
+def plot_per_aspect(res: BankEvaluation):  # -> matplotlib Figure
     """Accuracy per azimuth bin on a polar plot (0 deg = nose-on)."""
     plt = _plt()
-    az = np.array([float(k) for k in res["per_aspect"]])
-    acc = np.array(list(res["per_aspect"].values()))
+    az = np.array([float(k) for k in res.per_aspect])
+    acc = np.array(list(res.per_aspect.values()))
     order = np.argsort(az)
     fig = plt.figure(figsize=(4, 4))
     ax = fig.add_subplot(projection="polar")
     a = np.radians(np.append(az[order], az[order][0]))
     ax.plot(a, np.append(acc[order], acc[order][0]), "o-")
     ax.set_ylim(0, 1.05)
-    ax.set_title(f"{res.get('channel', '')}: accuracy per aspect")
+    ax.set_title(f"{res.channel}: accuracy per aspect")
     return fig
 
 
-def plot_roc(res: dict):  # -> matplotlib Figure
+def plot_roc(res: BankEvaluation):  # -> matplotlib Figure
     """Pd vs Pfa (target chips vs clutter-only chips)."""
     plt = _plt()
-    r = res["roc"]
+    r = res.roc
     fig, ax = plt.subplots(figsize=(4, 3.5))
     ax.plot([0] + r["pfa"] + [1], [0] + r["pd"] + [1], "-")
     ax.set_xlabel("Pfa (false alarms per clutter chip)")
@@ -397,12 +448,12 @@ def plot_roc(res: dict):  # -> matplotlib Figure
     return fig
 
 
-def plot_psr_histograms(res: dict):  # -> matplotlib Figure
+def plot_psr_histograms(res: BankEvaluation):  # -> matplotlib Figure
     """Histograms of the best PSR: target chips vs clutter chips."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(4, 3.5))
-    t = np.asarray(res["psr_target"])
-    c = np.asarray(res["psr_clutter"])
+    t = np.asarray(res.psr_target)
+    c = np.asarray(res.psr_clutter)
     bins = np.linspace(min(t.min(), c.min()), max(t.max(), c.max()), 30)
     ax.hist(t, bins, alpha=0.6, label="targets")
     ax.hist(c, bins, alpha=0.6, label="clutter")

@@ -76,13 +76,11 @@ def main() -> None:
     print("\n| channel | Pcc, bank from scans | Pcc, bank from true meshes | difference (points) | "
           "ROC AUC scans / meshes |\n|---|---:|---:|---:|---|")
     for ch, r in res.items():
-        print(f"| {ch} | {100 * r['scan']['pcc']:.1f} % | {100 * r['mesh']['pcc']:.1f} % | "
-              f"{r['difference_points']:+.1f} | {r['scan']['roc']['auc']:.3f} / {r['mesh']['roc']['auc']:.3f} |")
+        print(f"| {ch} | {100 * r.scan.pcc:.1f} % | {100 * r.mesh.pcc:.1f} % | "
+              f"{r.difference_points:+.1f} | {r.scan.roc['auc']:.3f} / {r.mesh.roc['auc']:.3f} |")
     if a.json is not None:
-        keep = ("classes", "channel", "pcc", "confusion", "per_class", "roc", "pd_at_pfa", "conditions")
         doc = {"targets": names, "mask_iou": ious, "notes": notes,
-               "channels": {ch: {k: (v if k == "difference_points" else {f: v[f] for f in keep})
-                                 for k, v in r.items()} for ch, r in res.items()}}
+               "channels": {ch: r.to_json() for ch, r in res.items()}}
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(doc, indent=1))
         print(f"wrote {a.json}")

@@ -1234,7 +1234,7 @@ def _cmd_db(args: argparse.Namespace) -> int:
         from prism3d.datasets.jobs.database_jobs import database_info
 
         info = database_info(dbm.open_db(args.db))
-        print(dbm.info_json(info) if args.json else dbm.format_info(info))
+        print(json.dumps(info.to_json(), indent=2, sort_keys=True) if args.json else info.text())
         return 0
     problems = dbm.verify_db(args.db)
     for p in problems:

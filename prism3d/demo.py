@@ -477,7 +477,7 @@ def _stage_bank(ctx: DemoContext) -> Section:
         res = evaluate_bank(bank, test, chip_spec=replace(EVAL_CHIP_SPEC, noise_sigma=0.03, clutter="noise"),
                             out_json=ctx.path("banks", f"results_{channel}.json"))
         results[channel] = res
-        rows.append([channel, 100 * res["pcc"], res["roc"].get("auc", float("nan"))])
+        rows.append([channel, 100 * res.pcc, res.roc.get("auc", float("nan"))])
     s.table("Probability of correct classification on unseen azimuths (new camouflage, noise, clutter)",
             ["chip channel", "Pcc (%)", "ROC AUC (targets vs clutter)"], rows)
     best = results["depth"]
@@ -527,12 +527,12 @@ def _stage_scanned_bank(ctx: DemoContext) -> Section:
     res = compare_scan_banks(scanned, true, test, azimuth=step, bin_deg=30 if ctx.fast else 15, seed=ctx.seed)
     s.table("Pcc on renders of the TRUE meshes at unseen azimuths (new camouflage, noise 0.03, clutter)",
             ["chip channel", "bank from scans (%)", "bank from true meshes (%)", "difference (points)"],
-            [[ch, 100 * r["scan"]["pcc"], 100 * r["mesh"]["pcc"], r["difference_points"]] for ch, r in res.items()])
+            [[ch, 100 * r.scan.pcc, 100 * r.mesh.pcc, r.difference_points] for ch, r in res.items()])
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(8, 3.5))
-    plot_confusion(res["depth"]["scan"], ax=axes[0], title="depth, scans")
-    plot_confusion(res["depth"]["mesh"], ax=axes[1], title="depth, true meshes")
+    plot_confusion(res["depth"].scan, ax=axes[0], title="depth, scans")
+    plot_confusion(res["depth"].mesh, ax=axes[1], title="depth, true meshes")
     s.figure("confusion matrices, depth chips: bank from scans (left), from the true meshes (right)",
              figure_png(fig))
     for n in names:

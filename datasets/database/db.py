@@ -14,6 +14,7 @@ import json
 import logging
 import os
 from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +37,8 @@ __all__ = [
     "as_db",
     "check_add_request",
     "check_name",
-    "format_info",
+    "DbInfo",
+    "JobStatus",
     "init_db",
     "open_db",
     "read_table",
@@ -206,6 +208,52 @@ def _safe_rel(root: Path, rel: str, what: str) -> Path:
     if not full.is_relative_to(root.resolve()):
         raise DatasetError(f"{what}: path {rel!r} escapes the database folder {root}")
     return root / p
+
+
+@dataclass(frozen=True)
+class JobStatus:
+    """How far a render job is."""
+
+    units: int
+    """Units the job is split into."""
+    done_units: int
+    """Units finished (their manifest part matches the job's spec)."""
+    chips: int
+    """Chips in the finished units."""
+    features: bool
+    """Whether the job's features table has been written."""
+
+
+@dataclass(frozen=True)
+class DbInfo:
+    """What ``prism3d db info`` shows: the targets by class and the render jobs."""
+
+    path: str
+    """The database folder."""
+    schema_version: int | None
+    """The folder's schema version (db.yaml)."""
+    targets: int
+    """Targets in targets.parquet."""
+    targets_per_class: dict[str, int]
+    """Targets per class, classes sorted."""
+    jobs: dict[str, JobStatus | None] = field(default_factory=dict)
+    """Render jobs by name, with their completion when asked for (None: not asked)."""
+
+    def to_json(self) -> dict[str, Any]:
+        """As ``db info --json`` prints it (a job without status as {})."""
+        return {"path": self.path, "schema_version": self.schema_version, "targets": self.targets,
+                "targets_per_class": dict(self.targets_per_class),
+                "jobs": {k: {} if v is None else asdict(v) for k, v in self.jobs.items()}}
+
+    def text(self) -> str:
+        """Human-readable lines (``db info``)."""
+        lines = [f"database {self.path} (schema {self.schema_version})", f"targets: {self.targets}"]
+        lines += [f"  {c}: {n}" for c, n in self.targets_per_class.items()]
+        lines.append(f"render jobs: {len(self.jobs)}")
+        for job, st in self.jobs.items():
+            lines.append(f"  {job}: {st.done_units}/{st.units} units done, {st.chips} chips, "
+                         f"features {'yes' if st.features else 'no'}" if st else f"  {job}")
+        return "\n".join(lines)
 
 
 class TargetDB:
@@ -382,22 +430,13 @@ class TargetDB:
         return Path(out_npz)
 
     # -- summary / checks ------------------------------------------------------------
-    def info(self) -> dict[str, Any]:
-        """Counts per table and class, and the render jobs by name (a JSON-able dict;
-        :func:`prism3d.datasets.jobs.database_jobs.database_info` adds each job's completion)."""
+    def info(self) -> DbInfo:
+        """Counts per table and class, and the render jobs by name
+        (:func:`prism3d.datasets.jobs.database_jobs.database_info` adds each job's completion)."""
         t = self.targets()
-        out: dict[str, Any] = {
-            "path": str(self.path),
-            "schema_version": self.meta.get("schema_version"),
-            "targets": len(t),
-            "targets_per_class": {
-                str(k): int(v) for k, v in t["class"].value_counts().sort_index().items()
-            }
-            if len(t)
-            else {},
-            "jobs": {job: {} for job in self.jobs()},
-        }
-        return out
+        per_class = {str(k): int(v) for k, v in t["class"].value_counts().sort_index().items()} if len(t) else {}
+        return DbInfo(str(self.path), self.meta.get("schema_version"), len(t), per_class,
+                      {job: None for job in self.jobs()})
 
     def verify(self) -> list[str]:
         """Problems found (empty list = healthy); see :func:`verify_db`."""
@@ -621,29 +660,6 @@ def _job_yaml_problems(db: TargetDB, job: str) -> list[str]:
     if not isinstance(d, dict) or "schema_version" not in d or "spec_hash" not in d:
         return [f"job {job}: {f.name} is not a render job spec (no schema_version / spec_hash)"]
     return []
-
-
-def format_info(info: dict[str, Any]) -> str:
-    """Human-readable text of :meth:`TargetDB.info` or of
-    :func:`~prism3d.datasets.jobs.database_jobs.database_info` (for ``prism3d db info``)."""
-    lines = [
-        f"database {info['path']} (schema {info['schema_version']})",
-        f"targets: {info['targets']}",
-    ]
-    for c, n in info["targets_per_class"].items():
-        lines.append(f"  {c}: {n}")
-    lines.append(f"render jobs: {len(info['jobs'])}")
-    for job, st in info["jobs"].items():
-        lines.append(
-            f"  {job}: {st['done_units']}/{st['units']} units done, {st['chips']} chips, "
-            f"features {'yes' if st['features'] else 'no'}" if st else f"  {job}"
-        )
-    return "\n".join(lines)
-
-
-def info_json(info: dict[str, Any]) -> str:
-    """:meth:`TargetDB.info` as JSON text."""
-    return json.dumps(info, indent=2, sort_keys=True)
 
 
 def target_mesh(db: TargetDB, tid: str) -> tuple[SceneMesh, str]:

@@ -35,6 +35,8 @@ from prism3d.atr.chips import (
 from prism3d.atr.features import model_features, view_features
 from prism3d.atr.poses import parse_range
 from prism3d.datasets.database.db import (
+    DbInfo,
+    JobStatus,
     TargetDB,
     as_db,
     check_name,
@@ -607,8 +609,8 @@ def run_features_job(
     return report
 
 
-def job_status(db: TargetDB, job: str) -> dict[str, Any]:
-    """``units``, ``done_units``, ``chips`` (rows of finished parts), ``features`` (bool)."""
+def job_status(db: TargetDB, job: str) -> JobStatus:
+    """How far render job ``job`` is."""
     import pyarrow.parquet as pq
 
     spec = load_spec(db, job)
@@ -621,20 +623,14 @@ def job_status(db: TargetDB, job: str) -> dict[str, Any]:
             done += 1
             chips += pq.read_metadata(str(p)).num_rows
     fdir = db.path / "features" / job
-    return {
-        "units": len(units),
-        "done_units": done,
-        "chips": chips,
-        "features": fdir.is_dir() and any(fdir.glob("part-*.parquet")),
-    }
+    return JobStatus(len(units), done, chips, fdir.is_dir() and any(fdir.glob("part-*.parquet")))
 
 
-def database_info(db: TargetDB | str | Path) -> dict[str, Any]:
+def database_info(db: TargetDB | str | Path) -> DbInfo:
     """:meth:`TargetDB.info` with each render job's completion (:func:`job_status`)."""
     db = as_db(db)
     info = db.info()
-    info["jobs"] = {job: job_status(db, job) for job in info["jobs"]}
-    return info
+    return replace(info, jobs={job: job_status(db, job) for job in info.jobs})
 
 
 def unit_stats(db: TargetDB | str | Path, job: str) -> Any:

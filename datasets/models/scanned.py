@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from prism3d.atr.bank import BANK_CHIP_SPEC, train_bank
-from prism3d.atr.evaluate import EVAL_CHIP_SPEC, evaluate_bank, heldout_seed
+from prism3d.atr.evaluate import EVAL_CHIP_SPEC, BankEvaluation, evaluate_bank, heldout_seed
 from prism3d.capture.simulate import SimulateOptions, simulate_to_folder
 from prism3d.datasets.models.targets import builtin_target
 from prism3d.errors import InputError, ReconstructionError
@@ -24,7 +24,7 @@ from prism3d.progress import ProgressFn, null_progress
 from prism3d.reconstruct.stereo.pipeline import reconstruct_to_files
 from prism3d.reconstruct.scan.stitch import StitchOptions, stitch_to_files
 
-__all__ = ["ScannedTarget", "compare_scan_banks", "scan_builtin_target", "SCAN_RETRY_CONFIDENCE"]
+__all__ = ["ScanBankComparison", "ScannedTarget", "compare_scan_banks", "scan_builtin_target", "SCAN_RETRY_CONFIDENCE"]
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +121,24 @@ def _front_view(poses_json: Path) -> int:
     return int(np.argmax(horiz[:, 0]))
 
 
+@dataclass(frozen=True)
+class ScanBankComparison:
+    """One channel's banks, from scans and from the true meshes, scored on the same test chips."""
+
+    scan: BankEvaluation
+    """The bank trained on the scans."""
+    mesh: BankEvaluation
+    """The bank trained on the true meshes."""
+
+    @property
+    def difference_points(self) -> float:
+        """Pcc of the scans' bank less the meshes', percentage points."""
+        return 100.0 * (self.scan.pcc - self.mesh.pcc)
+
+    def to_json(self) -> dict:
+        return {"scan": self.scan.to_json(), "mesh": self.mesh.to_json(), "difference_points": self.difference_points}
+
+
 def compare_scan_banks(
     scanned: Sequence[tuple[str, object]],
     true: Sequence[tuple[str, object]],
@@ -133,19 +151,18 @@ def compare_scan_banks(
     noise_sigma: float = 0.03,
     clutter: str | None = "noise",
     seed: int = 0,
-) -> dict:
+) -> dict[str, ScanBankComparison]:
     """Banks trained on ``scanned`` ``[(class, SceneMesh)]`` and on ``true`` (the same
     classes), both evaluated on ``test`` (renders of the true meshes in a new paint) at
     azimuths between the training ones, with ``noise_sigma`` and ``clutter``. Each mesh
-    keeps its own paint in training (a scan's is what the camera saw). Returns
-    ``{channel: {"scan": result, "mesh": result, "difference_points": float}}`` (results
-    as :func:`~prism3d.atr.evaluate.evaluate_bank` gives them)."""
+    keeps its own paint in training (a scan's is what the camera saw). Returns the
+    comparison of each channel."""
     if sorted(c for c, _ in scanned) != sorted(c for c, _ in true):
         raise InputError("scanned and true targets must name the same classes")
     train_spec = dataclasses.replace(BANK_CHIP_SPEC, seed=seed)  # camouflage on: the meshes' own paint
     test_spec = dataclasses.replace(EVAL_CHIP_SPEC, noise_sigma=noise_sigma, clutter=clutter,
                                     seed=heldout_seed(seed))
-    out: dict = {}
+    out: dict[str, ScanBankComparison] = {}
     for ch in channels:
         row = {}
         for key, items in (("scan", scanned), ("mesh", true)):
@@ -153,6 +170,5 @@ def compare_scan_banks(
             bank = train_bank(list(items), channel=ch, azimuth=azimuth, elevation=elevation, bin_deg=bin_deg,
                               chip_spec=train_spec)
             row[key] = evaluate_bank(bank, list(test), chip_spec=test_spec)
-        row["difference_points"] = 100.0 * (row["scan"]["pcc"] - row["mesh"]["pcc"])
-        out[ch] = row
+        out[ch] = ScanBankComparison(row["scan"], row["mesh"])
     return out

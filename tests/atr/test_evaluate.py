@@ -11,6 +11,7 @@ from prism3d.atr.chips import ChipSpec
 from prism3d.atr.evaluate import (
     EVAL_CHIP_SPEC,
     HELDOUT_SEED_OFFSET,
+    BankEvaluation,
     accuracy_by,
     confusion_matrix,
     evaluate_bank,
@@ -75,22 +76,24 @@ def bank():
 def test_evaluate_bank_writes_results(tmp_path, bank):
     spec = ChipSpec(noise_sigma=0.02, seed=heldout_seed(0), size=200)  # size: the bank's wins
     res = evaluate_bank(bank, _targets(), chip_spec=spec, out_json=tmp_path / "res.json")
-    assert res["classes"] == ["tank", "jet", "ship"]
-    assert res["n_chips"] == 36
-    assert 0.0 <= res["pcc"] <= 1.0 and res["pcc"] >= 0.8
-    assert np.sum(res["confusion"]) == 36
-    assert res["conditions"]["azimuth"][0] == pytest.approx(7.5)  # quarter step: unseen
-    assert set(res["per_aspect"]) and set(res["per_range"])
-    assert 0.0 <= res["roc"]["auc"] <= 1.0
+    assert res.classes == ["tank", "jet", "ship"]
+    assert res.n_chips == 36
+    assert 0.0 <= res.pcc <= 1.0 and res.pcc >= 0.8
+    assert np.sum(res.confusion) == 36
+    assert res.conditions["azimuth"][0] == pytest.approx(7.5)  # quarter step: unseen
+    assert set(res.per_aspect) and set(res.per_range)
+    assert 0.0 <= res.roc["auc"] <= 1.0
     on_disk = json.loads((tmp_path / "res.json").read_text())
-    assert on_disk["pcc"] == res["pcc"]
+    assert on_disk == json.loads(json.dumps(res.to_json())) and BankEvaluation.from_json(on_disk) == res
+    with pytest.raises(InputError, match="missing pcc"):
+        BankEvaluation.from_json({k: v for k, v in on_disk.items() if k != "pcc"})
     for suffix in ("_chips.parquet", "_confusion.png", "_aspect.png", "_roc.png", "_psr.png"):
         assert (tmp_path / f"res{suffix}").stat().st_size > 0
     fig = plot_confusion(res)
     assert fig.axes
-    assert res["conditions"]["seed"] == 1 and res["conditions"]["noise_sigma"] == 0.02
+    assert res.conditions["seed"] == 1 and res.conditions["noise_sigma"] == 0.02
     text = format_results(res)
-    assert text.startswith(f"Pcc {100 * res['pcc']:.1f}% over 3 classes (tank, jet, ship)")
+    assert text.startswith(f"Pcc {100 * res.pcc:.1f}% over 3 classes (tank, jet, ship)")
     assert len(text.splitlines()) == 4
 
 
@@ -157,4 +160,4 @@ def test_intensity_bank_separates_targets_from_unseen_background():
     assert b.intensity_prep == "gradient"
     test = [(c, builtin_target(m.name, camouflage=True, seed=17)) for c, m in _targets()]
     res = evaluate_bank(b, test, chip_spec=ChipSpec(seed=heldout_seed(0), noise_sigma=0.03, clutter="noise"))
-    assert res["roc"]["auc"] > 0.75
+    assert res.roc["auc"] > 0.75

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from prism3d.datasets.database.db import init_db, open_db, verify_db
+from prism3d.datasets.database.db import JobStatus, init_db, open_db, verify_db
 from prism3d.datasets.database.ingest import add_builtin
 from prism3d.atr.chips import ChipSpec
 from prism3d.datasets.jobs.database_jobs import (
@@ -210,10 +210,12 @@ def test_export_split(small_db, tmp_path: Path) -> None:
 
 
 def test_info_and_stats(small_db) -> None:
-    assert small_db.info()["jobs"] == {"j": {}}  # the folder alone: names only
+    assert small_db.info().jobs == {"j": None}  # the folder alone: names only
     info = database_info(small_db)
-    assert info["targets"] == 2 and info["targets_per_class"] == {"jet": 1, "tank": 1}
-    assert info["jobs"]["j"] == {"units": 6, "done_units": 6, "chips": 48, "features": True}
+    assert info.targets == 2 and info.targets_per_class == {"jet": 1, "tank": 1}
+    assert info.jobs["j"] == JobStatus(units=6, done_units=6, chips=48, features=True)
+    assert info.to_json()["jobs"]["j"] == {"units": 6, "done_units": 6, "chips": 48, "features": True}
+    assert info.text().splitlines()[-1] == "  j: 6/6 units done, 48 chips, features yes"
     st = unit_stats(small_db, "j")
     assert len(st) == 6 and (st["rss_mb"] > 0).all() and st["chips"].sum() == 48
 
@@ -298,7 +300,7 @@ def test_failing_unit_is_reported_others_finish(tmp_path: Path) -> None:
     assert rep.done_units == 2 and len(rep.failed) == 2
     assert all("target box poses" in f["what"] for f in rep.failed)
     assert "FAILED box-000000 (target box poses 0..1)" in rep.summary()
-    assert job_status(db, "f")["done_units"] == 2
+    assert job_status(db, "f").done_units == 2
 
 
 _KILL_SCRIPT = """
@@ -340,7 +342,7 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
     total = 2 * 144 // 8
     assert proc.returncode == -signal.SIGKILL, err.decode()[-2000:]
     assert 0 < n_parts < total
-    assert job_status(killed, "k")["done_units"] == n_parts
+    assert job_status(killed, "k").done_units == n_parts
     rep = run_render_job(
         killed, "k", azimuth="0:360:5", elevation="10,30", chip_spec=ChipSpec(size=48), chips_per_unit=8
     )

@@ -62,7 +62,7 @@ def test_bank_from_scans_classifies_the_true_meshes(scanned):
     res = compare_scan_banks([("tank", scanned["tank_t1"]), ("truck", scanned["truck_k1"])], true, test,
                              channels=("depth",), azimuth="0:360:30", bin_deg=30)
     r = res["depth"]
-    assert r["mesh"]["pcc"] > 0.9
-    assert abs(r["difference_points"]) <= 5.0, r["difference_points"]
+    assert r.mesh.pcc > 0.9
+    assert abs(r.difference_points) <= 5.0, r.difference_points
     with pytest.raises(Exception, match="same classes"):
         compare_scan_banks([("tank", scanned["tank_t1"])], true, test)
