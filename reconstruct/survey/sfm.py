@@ -47,7 +47,7 @@ from prism3d.io.atomic import atomic_write_text
 from prism3d.io.images import check_image_size
 from prism3d.reconstruct.survey import _sfm_worker
 
-__all__ = ["ControlPoint", "SfmOptions", "SfmResult", "map_frames", "similarity_align", "why_not_placed"]
+__all__ = ["ControlPoint", "SfmOptions", "SfmResult", "map_frames", "similarity_align"]
 
 log = logging.getLogger(__name__)
 
@@ -553,7 +553,7 @@ def _read_result(wd: Path, names: list[str], staged: list[str], size: tuple[int,
     unreg = [i for i in range(n) if not registered[i]]
     if unreg:
         log.warning("%d of %d frames not placed: %s", len(unreg), n,
-                    "; ".join(f"{names[i]} ({why_not_placed(staged[i], info, by_staged, names)})" for i in unreg))
+                    "; ".join(f"{names[i]} ({_why_not_placed(staged[i], info, by_staged, names)})" for i in unreg))
     return SfmResult(
         names=names, registered=registered, cam_from_world=poses, K=K, dist=dist, size=(int(size[0]), int(size[1])),
         points=arr["points"], colors=arr["colors"], track_length=arr["track_length"],
@@ -584,7 +584,7 @@ def _intrinsics(model: str, params: NDArray) -> tuple[NDArray[np.float64], NDArr
 FEW_FEATURES = 200
 
 
-def why_not_placed(staged_name: str, info: dict, by_staged: dict[str, int], names: Sequence[str]) -> str:
+def _why_not_placed(staged_name: str, info: dict, by_staged: dict[str, int], names: Sequence[str]) -> str:
     """Why COLMAP left a frame out, from its worker's counts: too few features, no frame
     verified with it, or the frames it matched and their inlier counts."""
     k = int((info.get("keypoints") or {}).get(staged_name, 0))

@@ -361,7 +361,7 @@ def test_a_frame_left_out_says_why(strip, tmp_path, caplog):
 
 
 def test_why_not_placed_reads_the_counts():
-    from prism3d.reconstruct.survey.sfm import why_not_placed
+    from prism3d.reconstruct.survey.sfm import _why_not_placed as why_not_placed
 
     info = {"keypoints": {"0000_a.jpg": 50, "0001_b.jpg": 4000, "0002_c.jpg": 4000},
             "pair_inliers": {"0002_c.jpg": {"0003_d.jpg": 31}, "0003_d.jpg": {"0002_c.jpg": 31}}}
