@@ -100,7 +100,7 @@ def _add_demo(sub: Any) -> None:
                  "calibration, reconstruction, ATR) and write OUT_DIR/report.html.")
     p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     p.add_argument("--seed", type=int, default=0, help="random seed for simulated data (default 0)")
-    p.add_argument("--fast", action="store_true", help="smaller images and fewer views (for tests)")
+    p.add_argument("--fast", action="store_true", help="smaller images, fewer views, two scanned targets instead of four (for tests)")
     p.add_argument("--only", nargs="+", metavar="STAGE", help="run only these stages")
 
 
