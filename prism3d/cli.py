@@ -753,20 +753,22 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from prism3d.datasets.database.resolve import resolve_model
 
     if Path(args.model).is_file():
-        model: Any = resolve_model(args.model, units=args.units, up=args.up, forward=args.forward, seed=args.seed,
-                                   length_mm=args.length_mm)[1]  # flags, sidecar, PLY header; rescaled
+        model: Any = resolve_model(args.model, units=args.units, up=args.up, forward=args.forward,
+                                   seed=getattr(args, "seed", 0), length_mm=args.length_mm)[1]  # flags, sidecar, PLY header; rescaled
     else:
         if args.length_mm is not None:
             raise InputError(f"--length-mm: {args.model} is a built-in target (its length is fixed); "
                              "the flag rescales mesh files")
-        model = resolve_model(args.model, seed=args.seed)[1]  # painted; ChipSpec.camouflage decides
-    spec = ChipSpec(size=args.size, framing=args.framing, pixels_per_m=args.pixels_per_m, channels=args.channels,
-                    camouflage=args.camouflage, clutter=args.clutter, noise_sigma=args.noise, seed=args.seed,
-                    backend=args.backend)
+        model = resolve_model(args.model, seed=getattr(args, "seed", 0))[1]  # painted; ChipSpec.camouflage decides
+    spec = ChipSpec(**given_fields(args, _CHIP_SPEC))
     manifest = render_to_folder(model, args.output, azimuth=args.azimuth, elevation=args.elevation,
                                 range_mm=args.range, chip_spec=spec, fmt=args.format)
     _say(args, f"wrote chips and {manifest}")
     return 0
+
+
+#: The chip settings: `render --size --framing --channels --no-camouflage --clutter --noise --seed --backend`.
+_CHIP_SPEC = ("prism3d.atr.chips", "ChipSpec")
 
 
 def _add_render(sub: Any) -> None:
@@ -780,11 +782,11 @@ def _add_render(sub: Any) -> None:
     p.add_argument("--azimuth", default="0:360:10", metavar="A0:A1:STEP", help="degrees (default 0:360:10)")
     p.add_argument("--elevation", default="10:60:25", metavar="E0:E1:STEP", help="degrees (default 10:60:25)")
     p.add_argument("--range", metavar="R1,R2,...", help="camera distances, mm (default: 4 bounding radii)")
-    p.add_argument("--size", type=int, default=128, help="chip side, px (default 128)")
-    p.add_argument("--framing", choices=["fit", "range"], default="fit",
-                   help="fit: fill the chip; range: fixed pixels per metre (size follows range)")
-    p.add_argument("--pixels-per-m", type=float, help="with --framing range")
-    p.add_argument("--channels", nargs="+", default=list(_CHANNELS), choices=_CHANNELS)
+    chip = functools.partial(field_option, p, _CHIP_SPEC)
+    chip("size", "--size", type=int, metavar="PX")
+    chip("framing", "--framing", choices=["fit", "range"])
+    chip("pixels_per_m", "--pixels-per-m", type=float, metavar="PX")
+    chip("channels", "--channels", nargs="+", choices=_CHANNELS, metavar="CHANNEL")
     p.add_argument("--units", choices=_UNITS, help="units of a mesh file")
     p.add_argument("--up", choices=_UP_AXES, help="up axis of a mesh file that does not declare it")
     p.add_argument("--forward", choices=["x", "-x", "y", "-y", "z", "-z"],
@@ -792,11 +794,11 @@ def _add_render(sub: Any) -> None:
     p.add_argument("--length-mm", type=float, metavar="MM",
                    help="rescale a mesh file to this length (longest horizontal extent); its units then do not matter")
     p.add_argument("--format", choices=["npz", "png"], default="npz", help="chip files (default npz)")
-    p.add_argument("--no-camouflage", dest="camouflage", action="store_false", help="uniform grey paint")
-    p.add_argument("--clutter", choices=["ground", "noise"], help="background clutter")
-    p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA", help="intensity noise std in [0, 1]")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--backend", choices=["raycast", "pyrender"], default="raycast")
+    chip("camouflage", "--no-camouflage", action="store_false", note="given: one uniform grey")
+    chip("clutter", "--clutter", choices=["ground", "noise"])
+    chip("noise_sigma", "--noise", type=float, metavar="SIGMA")
+    chip("seed", "--seed", type=int, note="also the seed of a built-in target's paint")
+    chip("backend", "--backend", choices=["raycast", "pyrender"])
 
 
 def _cmd_bank(args: argparse.Namespace) -> int:

@@ -10,8 +10,10 @@ import dataclasses
 import pytest
 
 from prism3d.atr.bank import BankOptions
+from prism3d.atr.chips import ChipSpec
 from prism3d.cli import (
     _BANK_OPTIONS,
+    _CHIP_SPEC,
     _FIELD_OPTIONS,
     _FLIGHT_OPTIONS,
     _RECONSTRUCT_OPTIONS,
@@ -30,7 +32,8 @@ from prism3d.reconstruct.survey.model import SurveyOptions
 
 @pytest.mark.parametrize(("where", "cls"), [(_SURVEY_OPTIONS, SurveyOptions), (_STITCH_OPTIONS, StitchOptions),
                                            (_FLIGHT_OPTIONS, FlightOptions), (_FIELD_OPTIONS, FieldOptions),
-                                           (_RECONSTRUCT_OPTIONS, ReconstructOptions), (_BANK_OPTIONS, BankOptions)])
+                                           (_RECONSTRUCT_OPTIONS, ReconstructOptions), (_BANK_OPTIONS, BankOptions),
+                                           (_CHIP_SPEC, ChipSpec)])
 def test_defaults_read_from_the_source_are_the_dataclass_defaults(where, cls):
     real = {f.name: f.default for f in dataclasses.fields(cls)}
     read = _fields(where)
@@ -137,3 +140,14 @@ def test_bank_flags_land_on_their_fields_and_eval_keeps_its_own_default():
                                                                             bin_deg=30.0)
     # eval scores between the training azimuths unless told: no flag, no value
     assert given_fields(parse(["bank", "eval", "m.npz"]), _BANK_OPTIONS) == {}
+
+
+def test_render_flags_land_on_the_chip_spec():
+    parse = build_parser().parse_args
+    assert ChipSpec(**given_fields(parse(["render", "tank_t1", "-o", "out"]), _CHIP_SPEC)) == ChipSpec()
+    args = parse(["render", "tank_t1", "-o", "out", "--size", "64", "--framing", "range", "--pixels-per-m", "40",
+                  "--channels", "depth", "mask", "--no-camouflage", "--clutter", "noise", "--noise", "0.02",
+                  "--seed", "3", "--backend", "pyrender"])
+    assert ChipSpec(**given_fields(args, _CHIP_SPEC)) == ChipSpec(
+        size=64, framing="range", pixels_per_m=40.0, channels=("depth", "mask"), camouflage=False, clutter="noise",
+        noise_sigma=0.02, seed=3, backend="pyrender")
