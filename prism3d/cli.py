@@ -954,7 +954,7 @@ def _parse_depth_range(text: str | None) -> tuple[float, float] | None:
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
-    from prism3d.atr.detect import SceneSource, detect_to_file, read_scene_source
+    from prism3d.atr.detect import DetectOptions, SceneSource, detect_to_file, read_scene_source
     from prism3d.atr.models import load_scene_model, model_kind
 
     _finish_targets(args)
@@ -978,11 +978,16 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         model, info = scene_recogniser(_targets_for(args), MiningOptions(chip_spec=BANK_CHIP_SPEC),
                                        cache=not args.no_cache, progress=_progress(args, "training the recogniser"))
         how = "cached recogniser" if info["cached"] else "recogniser trained now"
-    doc = detect_to_file(model, args.output, src, depth_range_mm=depth_range, draw=args.draw, source_name=how)
+    doc = detect_to_file(model, args.output, src, depth_range_mm=depth_range, draw=args.draw, source_name=how,
+                         options=DetectOptions(**given_fields(args, _DETECT_OPTIONS)))
     t = doc["timings_s"]
     _say(args, f"wrote {args.output}: {len(doc['detections'])} detections ({how}; "
                + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in t.items()) + ")")
     return 0
+
+
+#: How detect searches a scene: `detect --min-height --ground-cell --max-detections --band-scan`.
+_DETECT_OPTIONS = ("prism3d.atr.scene", "DetectOptions")
 
 
 def _add_detect(sub: Any) -> None:
@@ -1005,6 +1010,11 @@ def _add_detect(sub: Any) -> None:
     p.add_argument("--depth-range", metavar="NEAR:FAR",
                    help="shot: depths searched, metres (default 0.3x to 10x the rig's convergence distance)")
     p.add_argument("--draw", type=Path, metavar="PNG", help="also draw the detections on the image")
+    search = functools.partial(field_option, p, _DETECT_OPTIONS)
+    search("min_height_mm", "--min-height", type=float, metavar="MM")
+    search("ground_cell_mm", "--ground-cell", type=float, metavar="MM")
+    search("max_detections", "--max-detections", type=int, metavar="N")
+    search("band_scan", "--band-scan", action="store_true")
     _output_option(p, "DETECTIONS_JSON")
 
 

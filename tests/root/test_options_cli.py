@@ -11,9 +11,11 @@ import pytest
 
 from prism3d.atr.bank import BankOptions
 from prism3d.atr.chips import ChipSpec
+from prism3d.atr.scene import DetectOptions
 from prism3d.cli import (
     _BANK_OPTIONS,
     _CHIP_SPEC,
+    _DETECT_OPTIONS,
     _FIELD_OPTIONS,
     _FLIGHT_OPTIONS,
     _RECONSTRUCT_OPTIONS,
@@ -33,7 +35,7 @@ from prism3d.reconstruct.survey.model import SurveyOptions
 @pytest.mark.parametrize(("where", "cls"), [(_SURVEY_OPTIONS, SurveyOptions), (_STITCH_OPTIONS, StitchOptions),
                                            (_FLIGHT_OPTIONS, FlightOptions), (_FIELD_OPTIONS, FieldOptions),
                                            (_RECONSTRUCT_OPTIONS, ReconstructOptions), (_BANK_OPTIONS, BankOptions),
-                                           (_CHIP_SPEC, ChipSpec)])
+                                           (_CHIP_SPEC, ChipSpec), (_DETECT_OPTIONS, DetectOptions)])
 def test_defaults_read_from_the_source_are_the_dataclass_defaults(where, cls):
     real = {f.name: f.default for f in dataclasses.fields(cls)}
     read = _fields(where)
@@ -151,3 +153,12 @@ def test_render_flags_land_on_the_chip_spec():
     assert ChipSpec(**given_fields(args, _CHIP_SPEC)) == ChipSpec(
         size=64, framing="range", pixels_per_m=40.0, channels=("depth", "mask"), camouflage=False, clutter="noise",
         noise_sigma=0.02, seed=3, backend="pyrender")
+
+
+def test_detect_flags_land_on_the_detect_options():
+    parse = build_parser().parse_args
+    base = ["detect", "--image", "a.png", "--depth", "d.npy", "--fx", "500", "--bank", "b.npz", "-o", "d.json"]
+    assert DetectOptions(**given_fields(parse(base), _DETECT_OPTIONS)) == DetectOptions()
+    args = parse([*base, "--min-height", "300", "--ground-cell", "1500", "--max-detections", "5", "--band-scan"])
+    assert DetectOptions(**given_fields(args, _DETECT_OPTIONS)) == DetectOptions(
+        min_height_mm=300.0, ground_cell_mm=1500.0, max_detections=5, band_scan=True)
