@@ -1230,10 +1230,9 @@ def _cmd_db(args: argparse.Namespace) -> int:
         from prism3d.atr.chips import ChipSpec
         from prism3d.datasets.jobs.database_jobs import RunOptions, run_render_job
 
-        spec = ChipSpec(size=args.size, channels=args.channels, framing=args.framing, camouflage=args.camouflage,
-                        seed=args.seed)
+        spec = ChipSpec(**given_fields(args, _CHIP_SPEC))
         run = RunOptions(workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "render"))
-        rep = run_render_job(args.db, args.job, azimuth=args.azimuth, elevation=args.elevation, range_mm=args.range,
+        rep = run_render_job(args.db, args.job, **given_fields(args, _RENDER_SPEC), range_mm=args.range,
                              chip_spec=spec, targets=args.targets, classes=args.classes, run=run)
         return _job_result(args, rep)
     if a == "features":
@@ -1261,6 +1260,10 @@ def _job_result(args: argparse.Namespace, rep: Any) -> int:
     if not rep.ok:
         raise DatasetError(rep.failure_line())
     return 0
+
+
+#: A render job's grid: `db render --azimuth --elevation` (its chips: `_CHIP_SPEC`).
+_RENDER_SPEC = ("prism3d.datasets.jobs.database_jobs", "RenderSpec")
 
 
 def _add_db(sub: Any) -> None:
@@ -1299,16 +1302,18 @@ def _add_db(sub: Any) -> None:
                "manifest parts. Re-running resumes; --workers N uses a local Dask cluster, "
                "--scheduler an existing one.")
     q.add_argument("--job", required=True, metavar="NAME")
-    q.add_argument("--azimuth", default="0:360:30", metavar="A0:A1:STEP")
-    q.add_argument("--elevation", default="20", metavar="E0:E1:STEP")
+    job = functools.partial(field_option, q, _RENDER_SPEC)
+    job("azimuth", "--azimuth", metavar="A0:A1:STEP")
+    job("elevation", "--elevation", metavar="E0:E1:STEP")
     q.add_argument("--range", metavar="R1,R2,...", help="camera distances, mm")
-    q.add_argument("--size", type=int, default=128)
-    q.add_argument("--channels", nargs="+", default=list(_CHANNELS), choices=_CHANNELS)
+    chip = functools.partial(field_option, q, _CHIP_SPEC)
+    chip("size", "--size", type=int, metavar="PX")
+    chip("channels", "--channels", nargs="+", choices=_CHANNELS, metavar="CHANNEL")
     q.add_argument("--targets", nargs="+", metavar="ID", help="only these target ids")
     q.add_argument("--classes", nargs="+", metavar="C", help="only these classes")
-    q.add_argument("--framing", choices=["fit", "range"], default="fit")
-    q.add_argument("--no-camouflage", dest="camouflage", action="store_false")
-    q.add_argument("--seed", type=int, default=0)
+    chip("framing", "--framing", choices=["fit", "range"])
+    chip("camouflage", "--no-camouflage", action="store_false", note="given: one uniform grey")
+    chip("seed", "--seed", type=int, note="the job's seed: each unit derives its own")
     q.add_argument("--workers", type=int, default=0, help="local Dask workers (0 = in this process)")
     q.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler")
     q = action("features", "features job over a render job's chips and the models",

@@ -16,6 +16,7 @@ from prism3d.cli import (
     _BANK_OPTIONS,
     _CHIP_SPEC,
     _DETECT_OPTIONS,
+    _RENDER_SPEC,
     _FIELD_OPTIONS,
     _FLIGHT_OPTIONS,
     _RECONSTRUCT_OPTIONS,
@@ -162,3 +163,14 @@ def test_detect_flags_land_on_the_detect_options():
     args = parse([*base, "--min-height", "300", "--ground-cell", "1500", "--max-detections", "5", "--band-scan"])
     assert DetectOptions(**given_fields(args, _DETECT_OPTIONS)) == DetectOptions(
         min_height_mm=300.0, ground_cell_mm=1500.0, max_detections=5, band_scan=True)
+
+
+def test_db_render_flags_land_on_the_job_and_chip_fields():
+    parse = build_parser().parse_args
+    args = parse(["db", "render", "db", "--job", "j"])
+    assert given_fields(args, _RENDER_SPEC) == {} and ChipSpec(**given_fields(args, _CHIP_SPEC)) == ChipSpec()
+    args = parse(["db", "render", "db", "--job", "j", "--azimuth", "0:90:90", "--elevation", "20:20:1", "--size", "32",
+                  "--channels", "depth", "--framing", "range", "--no-camouflage", "--seed", "4"])
+    assert given_fields(args, _RENDER_SPEC) == {"azimuth": "0:90:90", "elevation": "20:20:1"}
+    assert ChipSpec(**given_fields(args, _CHIP_SPEC)) == ChipSpec(size=32, channels=("depth",), framing="range",
+                                                                   camouflage=False, seed=4)
