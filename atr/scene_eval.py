@@ -1,7 +1,7 @@
 """Detection scores, one scorer for images and maps: probability of detection against
 false positives per image or frame (FPPI), as JPL's OT-MACH work reports detection, with
 identification among the hits (MSTAR-style). Both walk the detections best first through
-:func:`match_best_first`, each target taken at most once; they differ only in how a
+``_match_best_first``, each target taken at most once; they differ only in how a
 detection finds its target (a box or 3D radius in an image; a radius on the map for a
 survey, :func:`score_detections`) and in what a confuser is (a false positive in an image
 scene; neither hit nor miss on a map, where it is only an uncounted target).
@@ -34,7 +34,7 @@ from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
 from prism3d.io.images import check_image_size
 
-__all__ = ["FPPI_POINTS", "Match", "check_scene_folders", "match_best_first", "match_map_detections", "plot_fppi", "plot_scene",
+__all__ = ["FPPI_POINTS", "MapDetection", "MapTarget", "Match", "check_scene_folders", "match_map_detections", "plot_fppi", "plot_scene",
            "read_scene_truth", "score_detections", "score_scenes", "write_scene_results"]
 
 #: FPPI operating points reported (Pd and identification accuracy at each).
@@ -55,7 +55,7 @@ class Match:
     class_right: bool
 
 
-def match_best_first(dets: Sequence[dict], targets: Sequence[dict],
+def _match_best_first(dets: Sequence[dict], targets: Sequence[dict],
                      find: Callable[[dict, list[bool]], tuple[int | None, bool]], *,
                      confusers_are_fp: bool) -> list[Match]:
     """Walk ``dets`` (each with ``score`` and ``class``) in descending score; ``find(det,
@@ -103,7 +103,7 @@ def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
         dets, targets = _detections(pair[0], k), _targets(pair[1], k)
         n_targets += sum(not t["confuser"] and not t["difficult"] for t in targets)
         n_confusers += sum(t["confuser"] and not t["difficult"] for t in targets)
-        for m in match_best_first(dets, targets, lambda d, taken: (_match(d, targets, taken), False),
+        for m in _match_best_first(dets, targets, lambda d, taken: (_match(d, targets, taken), False),
                                   confusers_are_fp=True):
             if m.kind != "ignored":  # a difficult target: neither found nor missed, nor a false alarm
                 events.append((m.score, m.kind, m.class_right))
@@ -131,13 +131,39 @@ def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
     }
 
 
-def match_map_detections(dets: Sequence[dict], targets: Sequence[dict], *, radius_m: float | None = None
-                         ) -> list[Match]:
+@dataclass(frozen=True)
+class MapDetection:
+    """A detection on a map (metres, one frame with the targets')."""
+
+    x: float
+    y: float
+    score: float
+    """Higher is surer; -1 or below: not a detection (no class fits)."""
+    class_name: str | None = None
+    """The class it is called (None: none)."""
+
+
+@dataclass(frozen=True)
+class MapTarget:
+    """A true object on a map (metres)."""
+
+    x: float
+    y: float
+    length_m: float
+    """Its length: half of it (at least 2 m) is the default hit radius."""
+    counted: bool = True
+    """False for a confuser: neither found nor missed, and a detection near it is no false positive."""
+    class_name: str | None = None
+    """Its class."""
+
+
+def match_map_detections(dets: Sequence[MapDetection], targets: Sequence[MapTarget], *,
+                         radius_m: float | None = None) -> list[Match]:
     """The map rules of :func:`score_detections`, one :class:`Match` per detection scoring
     above -1 (``index`` into ``dets``), best first."""
-    tx = np.array([[t["x"], t["y"]] for t in targets]) if targets else np.zeros((0, 2))
-    counted = np.array([bool(t.get("counted", True)) for t in targets], bool)
-    radius = np.array([radius_m if radius_m is not None else max(0.5 * t["length_m"], 2.0) for t in targets])
+    tx = np.array([[t.x, t.y] for t in targets]) if targets else np.zeros((0, 2))
+    counted = np.array([bool(t.counted) for t in targets], bool)
+    radius = np.array([radius_m if radius_m is not None else max(0.5 * t.length_m, 2.0) for t in targets])
 
     def find(d: dict, taken: list[bool]) -> tuple[int | None, bool]:
         dist = np.hypot(tx[:, 0] - d["x"], tx[:, 1] - d["y"]) if len(tx) else np.zeros(0)
@@ -146,22 +172,23 @@ def match_map_detections(dets: Sequence[dict], targets: Sequence[dict], *, radiu
             return int(hit[np.argmin(dist[hit])]), False
         return None, bool(len(dist) and np.any((dist <= radius) & ~counted))
 
-    live = [i for i, d in enumerate(dets) if d["score"] > -1]
-    ms = match_best_first([dets[i] for i in live], targets, find, confusers_are_fp=False)
+    live = [i for i, d in enumerate(dets) if d.score > -1]
+    docs = [{"x": dets[i].x, "y": dets[i].y, "score": dets[i].score, "class": dets[i].class_name} for i in live]
+    ms = _match_best_first(docs, [{"counted": t.counted, "class": t.class_name} for t in targets], find,
+                           confusers_are_fp=False)
     return [Match(live[m.index], m.score, m.kind, m.target, m.class_right) for m in ms]
 
 
-def score_detections(dets: Sequence[dict], targets: Sequence[dict], n_frames: int, *, radius_m: float | None = None,
-                     threshold: float | None = None) -> dict[str, Any]:
-    """Map detections (``x``, ``y`` in metres, ``score``, ``class``) against map targets
-    (``x``, ``y``, ``length_m``, ``counted``, ``class``): Pd against false positives per
+def score_detections(dets: Sequence[MapDetection], targets: Sequence[MapTarget], n_frames: int, *,
+                     radius_m: float | None = None, threshold: float | None = None) -> dict[str, Any]:
+    """Map detections against map targets: Pd against false positives per
     frame over the score threshold. A detection is a hit when within ``radius_m`` (default:
     half the target's length, at least 2 m) of a target's centre not yet found, the nearest
     first; uncounted targets (confusers) are neither hits nor misses, and a detection near
     one is not a false positive; scores <= -1 (no class fits) are not detections. With
-    ``threshold``: Pd, false positives and the share of hits whose ``class`` is the
+    ``threshold``: Pd, false positives and the share of hits whose class is the
     target's at that score too. ``curve``: one entry per detection, best first."""
-    counted = np.array([bool(t.get("counted", True)) for t in targets], bool)
+    counted = np.array([bool(t.counted) for t in targets], bool)
     curve = []
     tp = fp = right = 0
     for m in match_map_detections(dets, targets, radius_m=radius_m):

@@ -187,8 +187,8 @@ def main() -> None:
 
 
 def _curve_of(out: Path, sd: Path, fd: Path) -> list[dict]:
-    from prism3d.atr.scene_eval import score_detections
-    from prism3d.datasets.evaluation.survey_eval import _pose_scores
+    from prism3d.atr.scene_eval import MapDetection, score_detections
+    from prism3d.datasets.evaluation.survey_eval import _pose_scores, map_targets
 
     truth = json.loads((fd / "truth.json").read_text())
     _, fr = _pose_scores(json.loads((sd / "poses.json").read_text()), truth)
@@ -196,10 +196,8 @@ def _curve_of(out: Path, sd: Path, fd: Path) -> list[dict]:
     for f in json.loads(out.read_text())["features"]:
         p = f["properties"]
         q = fr.to_truth(np.array([[p["x_local"], p["y_local"], p["z_local"]]]))
-        dets.append({"x": float(q[0, 0]), "y": float(q[0, 1]), "score": p["score"], "class": p.get("class")})
-    tg = [{"x": x["xyz_enu"][0], "y": x["xyz_enu"][1], "length_m": x["length_m"], "counted": not x["confuser"],
-           "class": x["class"]} for x in truth["targets"]]
-    return score_detections(dets, tg, len(truth["frames"]), radius_m=RADIUS_M)["curve"]
+        dets.append(MapDetection(float(q[0, 0]), float(q[0, 1]), float(p["score"]), p.get("class")))
+    return score_detections(dets, map_targets(truth), len(truth["frames"]), radius_m=RADIUS_M)["curve"]
 
 
 if __name__ == "__main__":

@@ -63,11 +63,11 @@ from typing import Any
 
 import numpy as np
 
-from prism3d.atr.scene_eval import match_map_detections
+from prism3d.atr.scene_eval import MapDetection, match_map_detections
 from prism3d.atr.survey_detect import detect_in_survey
 from prism3d.datasets.simulation.flight import FlightOptions, simulate_flight
 from prism3d.datasets.runner import RunOptions, run_survey_pairs
-from prism3d.datasets.evaluation.survey_eval import evaluate_survey, ground_roughness
+from prism3d.datasets.evaluation.survey_eval import evaluate_survey, ground_roughness, map_targets
 from prism3d.datasets.database.resolve import resolve_targets
 from prism3d.datasets.jobs.recognisers import aerial_recogniser
 from prism3d.errors import InputError
@@ -400,11 +400,10 @@ def _matched(survey_dir: Path, flight: Path, geojson: Path) -> tuple[list[dict],
     counted = np.array([not t["confuser"] for t in tg], bool)
     radius = np.array([max(0.5 * t["length_m"], 2.0) for t in tg])
     # walked by the library's own scorer, so the kinds are the figures' kinds
-    pts = [{"x": t["xyz_enu"][0], "y": t["xyz_enu"][1], "length_m": t["length_m"], "counted": not t["confuser"],
-            "class": t["class"]} for t in tg]
     for d in dets:
         d["kind"], d["target"] = None, None
-    for m in match_map_detections(dets, pts):
+    points = [MapDetection(d["x"], d["y"], float(d["score"]), d["class"]) for d in dets]
+    for m in match_map_detections(points, map_targets(truth)):
         dets[m.index]["kind"], dets[m.index]["target"] = ("tp" if m.kind == "hit" else m.kind), m.target
     targets = []
     for k, t in enumerate(tg):

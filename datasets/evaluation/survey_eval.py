@@ -20,7 +20,7 @@ import laspy
 import numpy as np
 from numpy.typing import NDArray
 
-from prism3d.atr.scene_eval import score_detections
+from prism3d.atr.scene_eval import MapDetection, MapTarget, score_detections
 from prism3d.errors import InputError
 from prism3d.geo import MapFrame, enu_to_wgs84, wgs84_to_enu
 from prism3d.geometry import rotation_angle_deg
@@ -28,7 +28,7 @@ from prism3d.io.geo import read_geotiff
 from prism3d.reconstruct.survey.model import METRIC_SCALES
 from prism3d.reconstruct.survey.sfm import similarity_align
 
-__all__ = ["evaluate_survey", "ground_roughness"]
+__all__ = ["evaluate_survey", "ground_roughness", "map_targets"]
 
 #: Open ground for the DSM score: ground or road cells at least this far (m) from any object.
 OPEN_MARGIN_M = 1.5
@@ -230,6 +230,13 @@ def _vehicle_scores(dsm: NDArray, ndsm: NDArray, meta: dict, truth: dict, fr: _F
             "within_5_percent": sum(e <= 0.05 for e in errs), "each": each}
 
 
+def map_targets(truth: dict) -> list[MapTarget]:
+    """A simulated flight's vehicles and confusers (its ``truth.json``) as the map scorer's
+    targets, in the truth's local frame."""
+    return [MapTarget(float(x["xyz_enu"][0]), float(x["xyz_enu"][1]), float(x["length_m"]), not x["confuser"],
+                      x["class"]) for x in truth["targets"]]
+
+
 def _detection_scores(path: str | Path, truth: dict, fr: _Frames, radius_m: float | None = None,
                       threshold: float | None = None) -> dict[str, Any]:
     gj = json.loads(Path(path).read_text())
@@ -240,10 +247,8 @@ def _detection_scores(path: str | Path, truth: dict, fr: _Frames, radius_m: floa
         if z is None:
             raise InputError(f"{path}: a detection without its ground height (z_local); rerun survey-detect")
         q = fr.to_truth(np.array([[p["x_local"], p["y_local"], z]]))
-        dets.append({"x": float(q[0, 0]), "y": float(q[0, 1]), "score": p["score"], "class": p.get("class")})
-    tg = [{"x": x["xyz_enu"][0], "y": x["xyz_enu"][1], "length_m": x["length_m"], "counted": not x["confuser"],
-           "class": x["class"]} for x in truth["targets"]]
-    sc = score_detections(dets, tg, len(truth["frames"]), radius_m=radius_m, threshold=threshold)
+        dets.append(MapDetection(float(q[0, 0]), float(q[0, 1]), float(p["score"]), p.get("class")))
+    sc = score_detections(dets, map_targets(truth), len(truth["frames"]), radius_m=radius_m, threshold=threshold)
     sc.pop("curve")
     return sc
 

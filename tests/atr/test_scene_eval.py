@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from prism3d.atr.scene_eval import score_scenes
+from prism3d.atr.scene_eval import MapDetection, MapTarget, match_map_detections, score_detections, score_scenes
 from prism3d.errors import InputError
 
 
@@ -91,18 +91,15 @@ def test_difficult_targets_are_neither_found_nor_missed():
 def test_map_detections_known_counts():
     """The map rules on a hand-counted case: a confuser is neither hit nor miss and a
     detection near it is no false alarm; a second detection on a found vehicle is one."""
-    from prism3d.atr.scene_eval import match_map_detections, score_detections
-
-    targets = [{"x": 0.0, "y": 0.0, "length_m": 4.0, "class": "car"},
-               {"x": 20.0, "y": 0.0, "length_m": 10.0, "class": "bus"},
-               {"x": 40.0, "y": 0.0, "length_m": 6.0, "class": "truck", "counted": False}]
-    dets = [{"x": 0.5, "y": 0.0, "score": 0.9, "class": "car"},  # hit, class right
-            {"x": 41.0, "y": 0.0, "score": 0.8, "class": "car"},  # on the confuser: ignored
-            {"x": 19.0, "y": 1.0, "score": 0.7, "class": "truck"},  # hit, class wrong
-            {"x": 0.0, "y": 1.0, "score": 0.6, "class": "car"},  # the car again: a false positive
-            {"x": 40.5, "y": 0.5, "score": 0.5, "class": "car"},  # near the confuser: ignored
-            {"x": 80.0, "y": 0.0, "score": 0.4, "class": "car"},  # nothing there
-            {"x": 80.0, "y": 9.0, "score": -1.0, "class": None}]  # no class fits: not a detection
+    targets = [MapTarget(0.0, 0.0, 4.0, class_name="car"), MapTarget(20.0, 0.0, 10.0, class_name="bus"),
+               MapTarget(40.0, 0.0, 6.0, counted=False, class_name="truck")]
+    dets = [MapDetection(0.5, 0.0, 0.9, "car"),  # hit, class right
+            MapDetection(41.0, 0.0, 0.8, "car"),  # on the confuser: ignored
+            MapDetection(19.0, 1.0, 0.7, "truck"),  # hit, class wrong
+            MapDetection(0.0, 1.0, 0.6, "car"),  # the car again: a false positive
+            MapDetection(40.5, 0.5, 0.5, "car"),  # near the confuser: ignored
+            MapDetection(80.0, 0.0, 0.4, "car"),  # nothing there
+            MapDetection(80.0, 9.0, -1.0, None)]  # no class fits: not a detection
     kinds = [(m.index, m.kind, m.target) for m in match_map_detections(dets, targets)]
     assert kinds == [(0, "hit", 0), (1, "ignored", 2), (2, "hit", 1), (3, "fp", None), (4, "ignored", None),
                      (5, "fp", None)]

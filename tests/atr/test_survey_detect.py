@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from prism3d.atr.scene_eval import score_detections
+from prism3d.atr.scene_eval import MapDetection, MapTarget, score_detections
 from prism3d.atr.survey_detect import (
     find_vehicles,
     nadir_templates,
@@ -73,7 +73,8 @@ def test_vehicles_found_at_their_place_and_told_from_clutter(templates) -> None:
     crate = [d for d in dets if abs(d["x"] - 74.0) < 3 and abs(d["y"] + 61.7) < 3]
     assert crate and crate[0]["score"] < min(d["score"] for d in top)
     assert not any(d["score"] > -1 and d["height_m"] > 5 for d in dets)  # building, trees: no class fits
-    s = score_detections(dets, [{"x": t["x"], "y": t["y"], "length_m": t["length_m"]} for t in truth], n_frames=10)
+    s = score_detections([MapDetection(d["x"], d["y"], d["score"], d["class"]) for d in dets],
+                         [MapTarget(t["x"], t["y"], t["length_m"]) for t in truth], n_frames=10)
     assert s["pd_at_0.1_fppf"] == 1.0
 
 
