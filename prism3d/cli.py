@@ -752,15 +752,15 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from prism3d.atr.chips import ChipSpec, render_to_folder
     from prism3d.datasets.database.resolve import resolve_model
 
+    spec = ChipSpec(**given_fields(args, _CHIP_SPEC))  # its seed paints a built-in target too
     if Path(args.model).is_file():
         model: Any = resolve_model(args.model, units=args.units, up=args.up, forward=args.forward,
-                                   seed=getattr(args, "seed", 0), length_mm=args.length_mm)[1]  # flags, sidecar, PLY header; rescaled
+                                   seed=spec.seed, length_mm=args.length_mm)[1]  # flags, sidecar, PLY header; rescaled
     else:
         if args.length_mm is not None:
             raise InputError(f"--length-mm: {args.model} is a built-in target (its length is fixed); "
                              "the flag rescales mesh files")
-        model = resolve_model(args.model, seed=getattr(args, "seed", 0))[1]  # painted; ChipSpec.camouflage decides
-    spec = ChipSpec(**given_fields(args, _CHIP_SPEC))
+        model = resolve_model(args.model, seed=spec.seed)[1]  # painted; ChipSpec.camouflage decides
     manifest = render_to_folder(model, args.output, azimuth=args.azimuth, elevation=args.elevation,
                                 range_mm=args.range, chip_spec=spec, fmt=args.format)
     _say(args, f"wrote chips and {manifest}")

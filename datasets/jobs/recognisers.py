@@ -159,9 +159,10 @@ def _mining_key(o: MiningOptions, specs: list[str]) -> dict[str, Any]:
     key: dict[str, Any] = {"scenes": int(o.scenes), "channels": list(o.channels), "specs": specs,
                            "chip_spec": None if o.chip_spec is None else asdict(o.chip_spec), "bank": o.bank.changed()}
     default = MiningOptions()
-    for name in ("simulation", "C"):
-        if getattr(o, name) != getattr(default, name):
-            key[name] = asdict(getattr(o, name)) if name == "simulation" else getattr(o, name)
+    if o.simulation != default.simulation:
+        key["simulation"] = asdict(o.simulation)
+    if o.C != default.C:
+        key["C"] = o.C
     return key
 
 
