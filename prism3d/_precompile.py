@@ -156,6 +156,16 @@ def _group_io() -> None:
         read_pcd(p)
 
 
+def _group_grids() -> None:
+    """Voxel averaging (``stitch``'s fusion and mesh, ``features``)."""
+    import numpy as np
+
+    from prism3d.grids import voxel_mean
+
+    pts = np.random.default_rng(0).random((50, 3))
+    voxel_mean(pts, 0.1, pts.astype(np.float32), None)
+
+
 #: ``(name, function)`` in the order they run; each compiles (or loads) its kernels.
 GROUPS: tuple[tuple[str, Callable[[], None]], ...] = (
     ("match", _group_match),
@@ -163,6 +173,7 @@ GROUPS: tuple[tuple[str, Callable[[], None]], ...] = (
     ("simulate", _group_simulate),
     ("chips", _group_chips),
     ("io", _group_io),
+    ("grids", _group_grids),
 )
 
 
@@ -288,7 +299,7 @@ def _count_compiles() -> Iterator[dict[str, float]]:
 #: compile the same kernel at once: numba's cache index of a kernel is rewritten
 #: whole on each save, and concurrent saves could pair a signature with another's
 #: machine code.
-_WORKER_GROUPS = ("simulate", "chips", "io")
+_WORKER_GROUPS = ("simulate", "chips", "io", "grids")
 _AFTER_BARRIER = ("reconstruct",)
 
 

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from prism3d.checks import check_array, check_in_range, check_positive
 from prism3d.errors import InputError, ReconstructionError
+from prism3d.grids import voxel_mean
 from prism3d.reconstruct.scan.neighbours import query_tree
 
 __all__ = ["fuse_clouds", "mesh_is_closed", "poisson_mesh"]
@@ -74,7 +75,7 @@ def _keep_supported(all_p: list[NDArray], all_v: list[NDArray], all_c: list[NDAr
     the farther ones are asked about the few left (the kept set is the same in any order)."""
     from scipy.spatial import cKDTree
 
-    trees = [cKDTree(q) for q in all_p]
+    trees = [cKDTree(q, balanced_tree=False) for q in all_p]  # faster to build, the same answers
     centres = np.array([q.mean(axis=0) if len(q) else np.full(3, np.inf) for q in all_p])
     for k in range(len(all_p)):
         ok = np.zeros(len(all_p[k]), bool)
@@ -104,7 +105,6 @@ def fuse_clouds(
     ``(M, 3)`` float64 in the model frame, colours ``(M, 3)`` uint8 (when every scan has
     them) and unit normals ``(M, 3)`` float32 facing the sensors. ``min_views=2`` keeps
     only points another scan passes within ``support_distance`` (default 2 voxels) of."""
-    o3d = _o3d()
     check_positive(voxel, "voxel")
     if len(points) != len(T_model_scan) or not points:
         raise InputError(f"points/T_model_scan: expected equal non-zero lengths, got {len(points)} and {len(T_model_scan)}")
@@ -116,21 +116,18 @@ def fuse_clouds(
         tau = _SUPPORT_VOXELS * voxel if support_distance is None else \
             float(check_positive(support_distance, "support_distance"))
         _keep_supported(all_p, all_v, all_c, tau, use_col)
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(all_p)))
-    pc.normals = o3d.utility.Vector3dVector(np.concatenate(all_v))
-    if use_col:
-        pc.colors = o3d.utility.Vector3dVector(np.concatenate(all_c))
-    down = pc.voxel_down_sample(voxel)
-    if len(down.points) < 3:
+    if sum(len(q) for q in all_p) == 0:
         raise ReconstructionError("fusion: fewer than 3 points remain after voxel averaging")
-    view = np.asarray(down.normals).copy()
-    out_p = np.asarray(down.points, dtype=np.float64).copy()
+    out_p, (view, mean_c), _ = voxel_mean(np.concatenate(all_p), voxel, np.concatenate(all_v),
+                                          np.concatenate(all_c) if use_col else None)
+    if len(out_p) < 3:
+        raise ReconstructionError("fusion: fewer than 3 points remain after voxel averaging")
     nrm = _cell_normals(out_p, _NORMAL_CELL_VOXELS * voxel)
     flip = np.sum(nrm * view, axis=1) < 0
     nrm[flip] *= -1
     out_c = None
-    if use_col:
-        out_c = np.clip(np.round(np.asarray(down.colors) * 255.0), 0, 255).astype(np.uint8)
+    if mean_c is not None:
+        out_c = np.clip(np.round(mean_c * 255.0), 0, 255).astype(np.uint8)
     return out_p, out_c, nrm.astype(np.float32)
 
 
@@ -138,37 +135,32 @@ def _cell_normals(points: NDArray, cell: float) -> NDArray[np.float64]:
     """Unoriented normals: PCA normals of the cloud averaged per ``cell`` voxel, given to
     every point of the voxel (several times cheaper than per point, as smooth)."""
     o3d = _o3d()
-    key3 = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
-    dims = key3.max(axis=0) + 1
-    key = (key3[:, 0] * dims[1] + key3[:, 1]) * dims[2] + key3[:, 2]
-    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
-    centres = np.stack([np.bincount(inv, weights=points[:, i]) for i in range(3)], axis=1) / counts[:, None]
+    centres, _, inv = voxel_mean(points, cell, origin=points.min(axis=0))
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centres))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=_NORMAL_RADIUS_CELLS * cell,
                                                              max_nn=_NORMAL_MAX_NN))
     return np.asarray(pc.normals, dtype=np.float64)[inv]
 
 
-def _oriented_cloud(o3d: Any, P: NDArray, N: NDArray, colors: NDArray | None) -> Any:
-    # an Open3D cloud of the points with usable normals (and colours)
+def _oriented_cloud(o3d: Any, P: NDArray, N: NDArray, colors: NDArray | None, cell: float | None) -> Any:
+    """An Open3D cloud of the points with usable normals (and colours); with ``cell``, points
+    much denser than the octree cells (they only cost time) averaged to half a cell first,
+    and averaged normals that cancelled (both sides of a thin wall) dropped."""
     good = np.isfinite(N).all(axis=1) & (np.linalg.norm(N, axis=1) > _MIN_NORMAL_LENGTH)
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P[good]))
-    pc.normals = o3d.utility.Vector3dVector(N[good])
+    P, N = P[good], N[good]
+    C = None
     if colors is not None:
-        C = check_array(colors, "colors", shape=(len(P), 3), dtype_kind="u")
-        pc.colors = o3d.utility.Vector3dVector(np.asarray(C, dtype=np.float64)[good] / 255.0)
-    return pc
-
-
-def _thin_to_cells(o3d: Any, pc: Any, cell: float) -> Any:
-    """Points much denser than the octree cells only cost time: averaged to half a cell;
-    averaged normals that cancelled (both sides of a thin wall) are dropped."""
-    pc = pc.voxel_down_sample(cell / 2.0)
-    n = np.asarray(pc.normals)
-    ln = np.linalg.norm(n, axis=1)
-    ok = ln > _MIN_NORMAL_LENGTH
-    pc = pc.select_by_index(np.nonzero(ok)[0])
-    pc.normals = o3d.utility.Vector3dVector(n[ok] / ln[ok, None])
+        C = np.asarray(check_array(colors, "colors", shape=(len(good), 3), dtype_kind="u"), dtype=np.float64)[good]
+        C /= 255.0
+    if cell is not None:
+        P, (N, C), _ = voxel_mean(P, cell / 2.0, N, C)
+        ln = np.linalg.norm(N, axis=1)
+        ok = ln > _MIN_NORMAL_LENGTH
+        P, N, C = P[ok], N[ok] / ln[ok, None], None if C is None else C[ok]
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    pc.normals = o3d.utility.Vector3dVector(N)
+    if C is not None:
+        pc.colors = o3d.utility.Vector3dVector(C)
     return pc
 
 
@@ -223,10 +215,8 @@ def poisson_mesh(
         depth = int(np.clip(np.ceil(np.log2(max(extent * _OCTREE_MARGIN / (_CELL_SPACINGS * spacing), 2.0))),
                             *_DEPTH_RANGE))
     check_in_range(depth, "depth", 1, 12)
-    pc = _oriented_cloud(o3d, P, N, colors)
     cell = extent * _OCTREE_MARGIN / 2.0**depth
-    if cell / 2.0 > spacing:
-        pc = _thin_to_cells(o3d, pc, cell)
+    pc = _oriented_cloud(o3d, P, N, colors, cell if cell / 2.0 > spacing else None)
     # One thread: the multi-threaded solver's sums vary in the last digits from run
     # to run, and features computed from the surface must repeat exactly (~6 % slower).
     mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=int(depth), linear_fit=False,

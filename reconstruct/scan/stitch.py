@@ -93,6 +93,10 @@ _LOOP_SCALE = 2.0
 # A neighbour's motion replaces a global match that passes min_fitness only when it fits
 # clearly better (by this much fitness).
 _BETTER_FIT_MARGIN = 0.05
+# A neighbour's motion this close (registration voxels, at the scan's radius) to a pair's own
+# starts ICP inside the pair's own basin: half the first level's search distance
+# (_PREDICTED_FIRST_SCALE voxels, searched within twice that).
+_REFIT_SKIP_VOXELS = 4.0
 # Inliers lie within the correspondence distance, so an RMSE above this multiple of it
 # means a broken registration.
 _MAX_RMSE_RATIO = 1.5
@@ -376,12 +380,18 @@ def _same_motion(prep: _Prepared, T_a: NDArray, T_b: NDArray, k: int) -> bool:
 
 def _refit_from_neighbours(prep: _Prepared, opts: StitchOptions, results: dict[Pair, RegistrationResult]) -> None:
     """Each pair is also registered from its neighbours' motions; a clearly better fit replaces
-    its global match (any better fit, when the match fails min_fitness)."""
+    its global match (any better fit, when the match fails min_fitness). A neighbour's motion
+    within _REFIT_SKIP_VOXELS of the pair's own is not tried: ICP from there lands where the
+    pair already is (on a turntable every pair moves alike, so none is registered twice)."""
     n = prep.n
     for k in range(n - 1):
         cur = results[(k, k + 1)]
         for m in (k - 1, k + 1):
             if not (0 <= m < n - 1):
+                continue
+            near = _residual(cur.T_target_source, results[(m, m + 1)].T_target_source, prep.radius,
+                             prep.centres[k + 1])[1]
+            if near <= _REFIT_SKIP_VOXELS * prep.rsp:
                 continue
             r = prep.icp(k, k + 1, results[(m, m + 1)].T_target_source, first_scale=_PREDICTED_FIRST_SCALE)
             margin = _BETTER_FIT_MARGIN if cur.fitness >= opts.min_fitness else 0.0
