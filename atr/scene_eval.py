@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -34,8 +34,9 @@ from prism3d.errors import InputError
 from prism3d.io.atomic import atomic_paths
 from prism3d.io.images import check_image_size
 
-__all__ = ["FPPI_POINTS", "MapDetection", "MapTarget", "Match", "check_scene_folders", "match_map_detections", "plot_fppi", "plot_scene",
-           "read_scene_truth", "score_detections", "score_scenes", "write_scene_results"]
+__all__ = ["FPPI_POINTS", "FppiPoint", "MapDetection", "MapTarget", "Match", "PdCurve", "SceneEvaluation", "SceneScore",
+           "check_scene_folders", "match_map_detections", "plot_fppi", "plot_scene", "read_scene_truth",
+           "score_detections", "score_scenes", "write_scene_results"]
 
 #: FPPI operating points reported (Pd and identification accuracy at each).
 FPPI_POINTS = (0.1, 1.0)
@@ -53,6 +54,77 @@ class Match:
     kind: str
     target: int | None
     class_right: bool
+
+
+@dataclass(frozen=True)
+class PdCurve:
+    """Pd-FPPI curve at each distinct detection score, descending: ``threshold``, ``pd``,
+    ``fppi`` and ``id_accuracy`` (identification among the hits), one value each."""
+
+    threshold: list[float]
+    pd: list[float]
+    fppi: list[float]
+    id_accuracy: list[float]
+
+
+@dataclass(frozen=True)
+class FppiPoint:
+    """The curve at an operating point: the best ``pd`` with at most that many false
+    positives per image, its ``id_accuracy``, its ``threshold`` (None: not reached), and
+    ``confusers_called``, the share of confusers with a detection at or above it."""
+
+    pd: float
+    id_accuracy: float
+    threshold: float | None
+    confusers_called: float
+
+
+@dataclass(frozen=True)
+class SceneScore:
+    """:func:`score_scenes`' result: image, target (bank classes, not confusers) and
+    confuser counts, the curve, the operating points of :data:`FPPI_POINTS` (keyed
+    ``"0.1"``, ``"1"``) and the highest Pd at any threshold. ``to_json`` / ``from_json``:
+    the results file's keys."""
+
+    n_images: int
+    n_targets: int
+    n_confusers: int
+    curve: PdCurve
+    at_fppi: dict[str, FppiPoint]
+    pd_max: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"n_images": self.n_images, "n_targets": self.n_targets, "n_confusers": self.n_confusers,
+                "curve": asdict(self.curve), "at_fppi": {k: asdict(v) for k, v in self.at_fppi.items()},
+                "pd_max": self.pd_max}
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any]) -> SceneScore:
+        try:
+            return cls(int(doc["n_images"]), int(doc["n_targets"]), int(doc["n_confusers"]), PdCurve(**doc["curve"]),
+                       {k: FppiPoint(**v) for k, v in doc["at_fppi"].items()}, float(doc["pd_max"]))
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise InputError(f"scene scores: not a scores document ({type(exc).__name__}: {exc})") from None
+
+
+@dataclass(frozen=True)
+class SceneEvaluation:
+    """``prism3d bank eval-scenes``' result: the ``score`` and what produced it (the
+    ``bank`` file, its ``channel`` (channels joined by commas) and ``classes``, the
+    ``seconds`` and ``workers`` of the run, and ``scenes``: each scene's folder, timings
+    and detections as ``detect`` writes them). ``to_json``: the score's keys and these."""
+
+    score: SceneScore
+    bank: str
+    channel: str
+    classes: list[str]
+    seconds: float
+    workers: int | None
+    scenes: list[dict[str, Any]]
+
+    def to_json(self) -> dict[str, Any]:
+        return {**self.score.to_json(), "bank": self.bank, "channel": self.channel, "classes": self.classes,
+                "seconds": self.seconds, "workers": self.workers, "scenes": self.scenes}
 
 
 def _match_best_first(dets: Sequence[dict], targets: Sequence[dict],
@@ -84,15 +156,10 @@ def _match_best_first(dets: Sequence[dict], targets: Sequence[dict],
     return out
 
 
-def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
-    """Score ``[(detections_doc, truth_doc), ...]`` (one pair per image).
-
-    Returns a JSON-ready dict: ``n_images``, ``n_targets`` (bank targets, not confusers),
-    ``curve`` (``threshold``, ``pd``, ``fppi``, ``id_accuracy`` lists, descending
-    threshold), ``at_fppi`` (per :data:`FPPI_POINTS`: ``pd``, ``id_accuracy``,
-    ``threshold``, ``confusers_called``: the share of confusers with a detection at or
-    above that threshold, each carrying a bank class), ``n_confusers`` and ``pd_max``.
-    """
+def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> SceneScore:
+    """Score ``[(detections_doc, truth_doc), ...]`` (one pair per image; the documents as
+    ``detect --json`` and ``simulate field`` write them, module docstring): Pd,
+    identification and confusers called against false positives per image."""
     if not isinstance(scenes, Sequence) or isinstance(scenes, (str, bytes)) or not scenes:
         raise InputError("scenes: expected a non-empty list of (detections, truth) pairs")
     events = []  # (score, kind, correct_id): kind "hit", "fp", "confuser"
@@ -116,19 +183,10 @@ def score_scenes(scenes: Sequence[tuple[dict, dict]]) -> dict:
         if ok:
             i = max(ok, key=lambda i: (pd[i], -i))
             called = sum(e[1] == "confuser" and e[0] >= th[i] for e in events)
-            at[f"{x:g}"] = {"pd": pd[i], "id_accuracy": ida[i], "threshold": th[i],
-                            "confusers_called": called / n_confusers if n_confusers else float("nan")}
+            at[f"{x:g}"] = FppiPoint(pd[i], ida[i], th[i], called / n_confusers if n_confusers else float("nan"))
         else:
-            at[f"{x:g}"] = {"pd": 0.0, "id_accuracy": float("nan"), "threshold": None,
-                            "confusers_called": 0.0 if n_confusers else float("nan")}
-    return {
-        "n_images": n_images,
-        "n_targets": n_targets,
-        "n_confusers": n_confusers,
-        "curve": {"threshold": th, "pd": pd, "fppi": fppi, "id_accuracy": ida},
-        "at_fppi": at,
-        "pd_max": pd[-1] if pd else 0.0,
-    }
+            at[f"{x:g}"] = FppiPoint(0.0, float("nan"), None, 0.0 if n_confusers else float("nan"))
+    return SceneScore(n_images, n_targets, n_confusers, PdCurve(th, pd, fppi, ida), at, pd[-1] if pd else 0.0)
 
 
 @dataclass(frozen=True)
@@ -380,18 +438,19 @@ def check_scene_folders(scenes: Sequence[str]) -> list:
     return out
 
 
-def plot_fppi(*results: dict, labels: Sequence[str] | None = None):  # -> matplotlib Figure
+def plot_fppi(*results: SceneScore | SceneEvaluation, labels: Sequence[str] | None = None):  # -> matplotlib Figure
     """Pd (and identification among hits, dashed) against false positives per image, one
-    curve per result of :func:`score_scenes`, FPPI on a log axis with 0.1 and 1 marked."""
+    curve per :class:`SceneScore` or :class:`SceneEvaluation` (labelled by its channel
+    unless ``labels``), FPPI on a log axis with 0.1 and 1 marked."""
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5, 3.6))
     for k, res in enumerate(results):
-        cv = res["curve"]
-        lab = labels[k] if labels else res.get("channel", f"run {k + 1}")
-        x = np.maximum(np.asarray(cv["fppi"], dtype=float), 1e-3)
-        line, = ax.step(x, cv["pd"], where="post", label=f"{lab}: Pd")
-        ax.step(x, cv["id_accuracy"], where="post", ls="--", lw=0.8, color=line.get_color(),
+        cv = res.score.curve if isinstance(res, SceneEvaluation) else res.curve
+        lab = labels[k] if labels else (res.channel if isinstance(res, SceneEvaluation) else f"run {k + 1}")
+        x = np.maximum(np.asarray(cv.fppi, dtype=float), 1e-3)
+        line, = ax.step(x, cv.pd, where="post", label=f"{lab}: Pd")
+        ax.step(x, cv.id_accuracy, where="post", ls="--", lw=0.8, color=line.get_color(),
                 label=f"{lab}: identified")
     for v in FPPI_POINTS:
         ax.axvline(v, color="0.7", lw=0.6)
@@ -436,8 +495,9 @@ def plot_scene(image: Any, truth: dict | None, detections: Sequence[SceneDetecti
     return fig
 
 
-def write_scene_results(res: dict, path) -> None:
-    """The results JSON and its Pd-FPPI plot (``<stem>_fppi.png``), renamed together."""
+def write_scene_results(res: SceneScore | SceneEvaluation, path) -> None:
+    """The results JSON (``res.to_json()``) and its Pd-FPPI plot (``<stem>_fppi.png``),
+    renamed together."""
     import json
     from pathlib import Path
 
@@ -446,7 +506,7 @@ def write_scene_results(res: dict, path) -> None:
     fig = plot_fppi(res)
     try:
         with atomic_paths(path, Path(f"{path.with_suffix('')}_fppi.png")) as tmp:
-            tmp[0].write_text(json.dumps(res, indent=1, default=float), encoding="utf-8")
+            tmp[0].write_text(json.dumps(res.to_json(), indent=1, default=float), encoding="utf-8")
             fig.savefig(tmp[1], format="png", dpi=80)
     finally:
         plt.close(fig)

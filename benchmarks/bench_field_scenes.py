@@ -124,7 +124,7 @@ def main() -> None:
            "reconstruct_s_median": float(np.median(rec_s)) if rec_s else None,
            "channels_s_median": float(np.median(ch_s)), "runs": {}}
     for (c, kind), pr in pairs.items():
-        r = score_scenes(pr)
+        r = score_scenes(pr).to_json()  # the results document, with this run's figures added
         r["detect_s_median"] = float(np.median(det_s[(c, kind)]))
         out["runs"][f"{kind}:{c}"] = r
         for x, v in r["at_fppi"].items():

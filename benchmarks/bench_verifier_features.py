@@ -107,7 +107,7 @@ def _score(model: SceneRecogniser, folders: list[Path]) -> dict:
         ts.append(time.perf_counter() - t)
         dets = in_left_view(dets, z["K"], z["R1"], rig)  # rectified grid -> left view, as detect_shot does
         pairs.append(({"detections": [dt.to_json() for dt in dets]}, truth))
-    r = score_scenes(pairs)
+    r = score_scenes(pairs).to_json()  # the results document, with this run's figures added
     r["detect_s_median"] = float(np.median(ts))
     return r
 

@@ -815,11 +815,12 @@ def _cmd_bank(args: argparse.Namespace) -> int:
 
         res = eval_scene_folders(args.bank, args.scenes, out_json=args.json, run=RunOptions(
             workers=args.workers, scheduler=args.scheduler, progress=_progress(args, "bank eval-scenes")))
-        for x, v in res["at_fppi"].items():
-            _say(args, f"at {x} false positives per image: Pd {v['pd']:.3f}, identification "
-                       f"{v['id_accuracy']:.3f}, confusers called {v['confusers_called']:.3f}")
-        _say(args, f"{res['n_images']} scenes, {res['n_targets']} targets, {res['n_confusers']} confusers; "
-                   f"highest Pd {res['pd_max']:.3f}")
+        sc = res.score
+        for x, v in sc.at_fppi.items():
+            _say(args, f"at {x} false positives per image: Pd {v.pd:.3f}, identification "
+                       f"{v.id_accuracy:.3f}, confusers called {v.confusers_called:.3f}")
+        _say(args, f"{sc.n_images} scenes, {sc.n_targets} targets, {sc.n_confusers} confusers; "
+                   f"highest Pd {sc.pd_max:.3f}")
         return 0
     if args.scenes:
         raise InputError(f"bank {args.action}: unexpected arguments {' '.join(args.scenes)}")

@@ -620,7 +620,7 @@ def _stage_scene(ctx: DemoContext) -> Section:
     s.table("Time per stage (s)", ["reconstruction", "ground and objects", "detection"],
             [[times["reconstruct_s"], times["channels_s"], times["detect_s"]]])
     s.paragraphs.append(
-        f"Highest Pd on this scene {res['pd_max']:.2f} ({res['n_targets']} counted targets). One scene says "
+        f"Highest Pd on this scene {res.pd_max:.2f} ({res.n_targets} counted targets). One scene says "
         "little: benchmarks/RESULTS.md 'Whole-scene ATR on field scenes' gives Pd against false positives per "
         "image over 20 scenes, and 'prism3d bank eval-scenes' measures it on yours.")
     s.link("detections.json", "field/detections.json")

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from prism3d.atr.detect import detect_shot
 from prism3d.atr.models import load_scene_model
-from prism3d.atr.scene_eval import check_scene_folders, score_scenes, write_scene_results
+from prism3d.atr.scene_eval import SceneEvaluation, check_scene_folders, score_scenes, write_scene_results
 from prism3d.capture.camera_effects import CameraEffects
 from prism3d.capture.camouflage import CamouflageField
 from prism3d.capture.mesh import SceneMesh, UniformAlbedo
@@ -586,7 +586,8 @@ def detect_scene_folder(bank_path: str, scene: str) -> dict:
     return {"scene": str(p), "timings_s": times, "detections": [d.to_json() for d in dets]}
 
 
-def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progress=None, run=None) -> dict:
+def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progress=None,
+                       run=None) -> SceneEvaluation:
     """``prism3d bank eval-scenes``: detect with the bank in every scene folder and score
     (:func:`~prism3d.atr.scene_eval.score_scenes`); scenes are independent units run in
     this process or on Dask (``run``: :class:`~prism3d.datasets.jobs.database_jobs.RunOptions`; its
@@ -615,10 +616,9 @@ def eval_scene_folders(bank_path, scenes: Sequence[str], *, out_json=None, progr
     by_scene = {r["scene"]: r for r in report.stats}
     per_scene = [by_scene[str(p)] for p in folders]
     pairs = [({"detections": r["detections"]}, truth) for r, truth in zip(per_scene, truths)]
-    res = score_scenes(pairs)
-    res.update({"bank": str(bank_path), "channel": ",".join(getattr(bank, "channels", [getattr(bank, "channel", "")])),
-                "classes": list(bank.classes),
-                "seconds": time.perf_counter() - t0, "workers": run.workers, "scenes": per_scene})
+    res = SceneEvaluation(score_scenes(pairs), str(bank_path),
+                          ",".join(getattr(bank, "channels", [getattr(bank, "channel", "")])), list(bank.classes),
+                          time.perf_counter() - t0, run.workers, per_scene)
     if out_json is not None:
         write_scene_results(res, Path(out_json))
     return res

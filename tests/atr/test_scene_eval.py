@@ -3,11 +3,13 @@ duplicates and confusers as false positives, Pd and identification at an FPPI, b
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 
-from prism3d.atr.scene_eval import MapDetection, MapTarget, match_map_detections, score_detections, score_scenes
+from prism3d.atr.scene_eval import (MapDetection, MapTarget, SceneScore, match_map_detections, score_detections,
+                                    score_scenes)
 from prism3d.errors import InputError
 
 
@@ -32,26 +34,34 @@ def test_known_counts():
     truth2 = {"targets": [_t("ship", [0, 0, 10, 10], xyz=[0, 0, 20000], radius=3000)]}
     dets2 = {"detections": [_d(300, 300, "ship", 8.5, xyz=[1000, 0, 21000])]}  # outside the box, near in 3D
     r = score_scenes([(dets1, truth1), (dets2, truth2)])
-    assert (r["n_images"], r["n_targets"], r["n_confusers"]) == (2, 3, 1)
-    c = r["curve"]
-    assert c["threshold"] == [9.0, 8.5, 8.0, 7.0, 6.0, 5.0]
-    assert c["pd"] == pytest.approx([1 / 3, 2 / 3, 2 / 3, 1.0, 1.0, 1.0])
-    assert c["fppi"] == pytest.approx([0.0, 0.0, 0.5, 0.5, 1.0, 1.5])
-    assert c["id_accuracy"] == pytest.approx([1.0, 1.0, 1.0, 2 / 3, 2 / 3, 2 / 3])
-    a01, a1 = r["at_fppi"]["0.1"], r["at_fppi"]["1"]
-    assert (a01["pd"], a01["threshold"], a01["confusers_called"]) == (pytest.approx(2 / 3), 8.5, 0.0)
-    assert (a1["pd"], a1["threshold"], a1["confusers_called"]) == (1.0, 7.0, 0.0)  # the highest threshold at Pd 1
-    assert r["pd_max"] == 1.0
+    assert (r.n_images, r.n_targets, r.n_confusers) == (2, 3, 1)
+    c = r.curve
+    assert c.threshold == [9.0, 8.5, 8.0, 7.0, 6.0, 5.0]
+    assert c.pd == pytest.approx([1 / 3, 2 / 3, 2 / 3, 1.0, 1.0, 1.0])
+    assert c.fppi == pytest.approx([0.0, 0.0, 0.5, 0.5, 1.0, 1.5])
+    assert c.id_accuracy == pytest.approx([1.0, 1.0, 1.0, 2 / 3, 2 / 3, 2 / 3])
+    a01, a1 = r.at_fppi["0.1"], r.at_fppi["1"]
+    assert (a01.pd, a01.threshold, a01.confusers_called) == (pytest.approx(2 / 3), 8.5, 0.0)
+    assert (a1.pd, a1.threshold, a1.confusers_called) == (1.0, 7.0, 0.0)  # the highest threshold at Pd 1
+    assert r.pd_max == 1.0
+    # the results file's document, and back
+    doc = json.loads(json.dumps(r.to_json()))
+    assert list(doc) == ["n_images", "n_targets", "n_confusers", "curve", "at_fppi", "pd_max"]
+    assert doc["at_fppi"]["0.1"] == {"pd": pytest.approx(2 / 3), "id_accuracy": 1.0, "threshold": 8.5,
+                                     "confusers_called": 0.0}
+    assert SceneScore.from_json(doc) == r
+    with pytest.raises(InputError, match="scores"):
+        SceneScore.from_json({"n_images": 1})
 
 
 def test_no_detections_and_equal_scores():
     truth = {"targets": [_t("tank", [0, 0, 10, 10]), _t("tank", [20, 20, 30, 30])]}
     r = score_scenes([({"detections": []}, truth)])
-    assert r["curve"]["pd"] == [] and r["at_fppi"]["0.1"]["pd"] == 0.0
+    assert r.curve.pd == [] and r.at_fppi["0.1"].pd == 0.0
     r = score_scenes([({"detections": [_d(5, 5, "tank", 1.0), _d(50, 50, "tank", 1.0)]}, truth)])
-    assert r["curve"]["threshold"] == [1.0]  # tied scores pass a threshold together
-    assert r["curve"]["pd"] == [0.5] and r["curve"]["fppi"] == [1.0]
-    assert math.isnan(r["at_fppi"]["0.1"]["id_accuracy"])
+    assert r.curve.threshold == [1.0]  # tied scores pass a threshold together
+    assert r.curve.pd == [0.5] and r.curve.fppi == [1.0]
+    assert math.isnan(r.at_fppi["0.1"].id_accuracy)
 
 
 @pytest.mark.parametrize("scenes, match", [
@@ -71,8 +81,8 @@ def test_bad_input_is_named(scenes, match):
 def test_confusers_called_at_an_operating_point():
     truth = {"targets": [_t("tank", [0, 0, 10, 10]), _t("bus", [20, 20, 30, 30], confuser=True)]}
     dets = {"detections": [_d(25, 25, "truck", 9.0), _d(5, 5, "tank", 8.0)]}
-    a = score_scenes([(dets, truth)])["at_fppi"]["1"]
-    assert (a["pd"], a["threshold"], a["confusers_called"], a["id_accuracy"]) == (1.0, 8.0, 1.0, 1.0)
+    a = score_scenes([(dets, truth)]).at_fppi["1"]
+    assert (a.pd, a.threshold, a.confusers_called, a.id_accuracy) == (1.0, 8.0, 1.0, 1.0)
 
 
 def test_difficult_targets_are_neither_found_nor_missed():
@@ -84,8 +94,8 @@ def test_difficult_targets_are_neither_found_nor_missed():
                            {"row": 26, "col": 26, "class": "tank", "score": 8.0},
                            {"row": 5, "col": 5, "class": "tank", "score": 1.0}]}
     r = score_scenes([(dets, truth)])
-    assert r["n_targets"] == 1
-    assert r["at_fppi"]["0.1"]["pd"] == 1.0  # the two detections on the hidden target cost nothing
+    assert r.n_targets == 1
+    assert r.at_fppi["0.1"].pd == 1.0  # the two detections on the hidden target cost nothing
 
 
 def test_map_detections_known_counts():

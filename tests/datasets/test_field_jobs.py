@@ -7,6 +7,7 @@ import json
 
 import pytest
 
+from prism3d.atr.scene_eval import SceneScore
 from prism3d.errors import InputError
 
 SMALL = dict(sensor_size=(720, 540), focal_px=600.0, clutter=4, supersample=1, targets=2, confusers=1)
@@ -76,13 +77,15 @@ def test_eval_scenes_scores_every_scene_and_plots(batch, tmp_path):
     bank.save(tmp_path / "b.npz")
     scenes = [str(out / "scene_0008"), str(out / "scene_0007")]
     res = eval_scene_folders(tmp_path / "b.npz", scenes, out_json=tmp_path / "r.json")
-    assert [s["scene"] for s in res["scenes"]] == scenes  # in the order given
-    assert res["n_images"] == 2
+    assert [s["scene"] for s in res.scenes] == scenes  # in the order given
+    assert res.score.n_images == 2
     saved = json.loads((tmp_path / "r.json").read_text())
-    assert saved["at_fppi"] == json.loads(json.dumps(res["at_fppi"]))
+    assert saved == json.loads(json.dumps(res.to_json()))
+    assert SceneScore.from_json(saved).at_fppi.keys() == res.score.at_fppi.keys()
     assert (tmp_path / "r_fppi.png").stat().st_size > 1000
     truths = [json.loads((out / s / "truth.json").read_text()) for s in ("scene_0008", "scene_0007")]
-    assert res["n_targets"] == sum(not t["confuser"] and not t["difficult"] for tr in truths for t in tr["targets"])
+    assert res.score.n_targets == sum(not t["confuser"] and not t["difficult"] for tr in truths
+                                      for t in tr["targets"])
 
 
 def test_cli_batch_and_eval_bad_inputs_exit_2(tmp_path):
