@@ -41,7 +41,7 @@ from prism3d.io.atomic import atomic_paths, atomic_write_text
 from prism3d.reconstruct.survey.model import METRIC_SCALES
 from prism3d.io.geo import read_geotiff
 
-__all__ = ["NadirTemplate", "SurveyScene", "check_survey_request", "detect_in_survey", "draw_survey_detections", "find_vehicles",
+__all__ = ["NadirTemplate", "SurveyScene", "TemplateCandidate", "check_survey_request", "detect_in_survey", "draw_survey_detections", "find_vehicles",
            "load_survey_scene", "nadir_templates", "write_geojson"]
 
 #: A class fits a candidate when the candidate's length, width and height are within
@@ -123,13 +123,37 @@ def _best_match(chip: NDArray, tpl: NDArray, play: int) -> float:
     return best
 
 
+@dataclass(frozen=True)
+class TemplateCandidate:
+    """An object standing out of an nDSM, as :func:`find_vehicles` measures it: map
+    position ``x``, ``y`` (m), heading of its long axis (deg clockwise from north, mod 180),
+    length, width, height (m) and area (m^2), the best-fitting class and template (None:
+    no class fits its size) and ``score``, their height-shape correlation (-1: none fits)."""
+
+    x: float
+    y: float
+    heading_deg: float
+    length_m: float
+    width_m: float
+    height_m: float
+    area_m2: float
+    class_name: str | None
+    template: str | None
+    score: float
+
+    def to_record(self) -> dict[str, Any]:
+        """The candidate as a :func:`write_geojson` record (``class`` for ``class_name``)."""
+        return {"x": self.x, "y": self.y, "heading_deg": self.heading_deg, "length_m": self.length_m,
+                "width_m": self.width_m, "height_m": self.height_m, "area_m2": self.area_m2,
+                "class": self.class_name, "template": self.template, "score": self.score}
+
+
 def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplate], *, west: float = 0.0,
-                  north: float = 0.0, min_height_m: float = 0.8, play_cells: int = 2) -> list[dict[str, Any]]:
-    """Candidates standing out of ``ndsm`` (H, W) m by ``min_height_m`` (NaN: no data; row 0 north, cell
-    (r, c) centred at ``west + (c + .5) cell``, ``north - (r + .5) cell``), each with its
-    map position, heading of its long axis (deg clockwise from north), length, width,
-    height, the best-fitting class and template and ``score`` (their height-shape
-    correlation; -1 when no class fits its size), best first."""
+                  north: float = 0.0, min_height_m: float = 0.8, play_cells: int = 2) -> list[TemplateCandidate]:
+    """Candidates standing out of ``ndsm`` (H, W) m by ``min_height_m`` (NaN: no data; row 0
+    north, cell (r, c) centred at ``west + (c + .5) cell``, ``north - (r + .5) cell``),
+    matched with the nadir height ``templates`` that fit their size, best first (the
+    detector survey-detect used before the aerial recogniser; kept as a benchmark's anchor)."""
     if not templates:
         raise InputError("detect: no class templates")
     z = np.asarray(ndsm, dtype=np.float32)
@@ -172,11 +196,10 @@ def find_vehicles(ndsm: NDArray, cell_m: float, templates: Sequence[NadirTemplat
         xm = west + (float(cx) + 0.5) * cell_m
         ym = north - (float(cy) + 0.5) * cell_m
         heading = (90.0 + theta) % 180.0  # image angle (x right, y down) -> compass, mod 180
-        out.append({"x": xm, "y": ym, "heading_deg": round(heading, 1), "length_m": round(L, 2),
-                    "width_m": round(Wd, 2), "height_m": round(hgt, 2), "area_m2": round(area, 2),
-                    "class": best.cls if best else None, "template": best.name if best else None,
-                    "score": round(score, 4)})
-    out.sort(key=lambda d: -d["score"])
+        out.append(TemplateCandidate(xm, ym, round(heading, 1), round(L, 2), round(Wd, 2), round(hgt, 2),
+                                     round(area, 2), best.cls if best else None, best.name if best else None,
+                                     round(score, 4)))
+    out.sort(key=lambda d: -d.score)
     return out
 
 

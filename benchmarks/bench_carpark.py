@@ -59,7 +59,8 @@ def _templates(sd: Path, out: Path) -> float:
     ground, _ = read_geotiff(sd / "ground.tif")
     cell = float(meta["gsd"])
     tpls = nadir_templates(resolve_targets(CLASSES, scale="full"), cell)
-    dets = find_vehicles(ndsm, cell, tpls, west=float(meta["west"]), north=float(meta["north"]))
+    dets = [d.to_record() for d in find_vehicles(ndsm, cell, tpls, west=float(meta["west"]),
+                                                 north=float(meta["north"]))]
     z = float(np.nanmedian(ground))
     doc = json.loads((sd / "poses.json").read_text())
     frame = MapFrame.from_record(doc)  # the map grid's points into the local frame write_geojson takes

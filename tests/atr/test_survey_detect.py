@@ -63,17 +63,18 @@ def test_vehicles_found_at_their_place_and_told_from_clutter(templates) -> None:
     for cy, cx in ((750, 900), (820, 1100)):  # trees: round crowns 7 m high
         nd = np.maximum(nd, np.clip(7.0 - ((yy - cy) ** 2 + (xx - cx) ** 2) / 250.0, 0, None).astype(np.float32))
     dets = find_vehicles(nd, CELL, templates)
-    top = [d for d in dets if d["score"] > -1][:3]
+    top = [d for d in dets if d.score > -1][:3]
     for tr in truth:
         # within 15 % of its length (the tank's thin gun is opened away with the noise)
-        near = [d for d in top if math.hypot(d["x"] - tr["x"], d["y"] - tr["y"]) < 0.15 * tr["length_m"]]
-        assert len(near) == 1 and near[0]["class"] == tr["cls"]
-        dh = abs(near[0]["heading_deg"] - tr["heading"]) % 180.0
+        near = [d for d in top if math.hypot(d.x - tr["x"], d.y - tr["y"]) < 0.15 * tr["length_m"]]
+        assert len(near) == 1 and near[0].class_name == tr["cls"]
+        dh = abs(near[0].heading_deg - tr["heading"]) % 180.0
         assert min(dh, 180.0 - dh) < 5.0
-    crate = [d for d in dets if abs(d["x"] - 74.0) < 3 and abs(d["y"] + 61.7) < 3]
-    assert crate and crate[0]["score"] < min(d["score"] for d in top)
-    assert not any(d["score"] > -1 and d["height_m"] > 5 for d in dets)  # building, trees: no class fits
-    s = score_detections([MapDetection(d["x"], d["y"], d["score"], d["class"]) for d in dets],
+    crate = [d for d in dets if abs(d.x - 74.0) < 3 and abs(d.y + 61.7) < 3]
+    assert crate and crate[0].score < min(d.score for d in top)
+    assert not any(d.score > -1 and d.height_m > 5 for d in dets)  # building, trees: no class fits
+    assert top[0].to_record()["class"] == top[0].class_name  # write_geojson's record
+    s = score_detections([MapDetection(d.x, d.y, d.score, d.class_name) for d in dets],
                          [MapTarget(t["x"], t["y"], t["length_m"]) for t in truth], n_frames=10)
     assert s["pd_at_0.1_fppf"] == 1.0
 
