@@ -10,6 +10,8 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from prism3d._grid_kernels import bounds, cell_keys, cell_means, sorted_cells
+from prism3d.checks import check_positive
+from prism3d.errors import InputError
 
 __all__ = ["cell_quantile", "nearest_valid", "voxel_mean"]
 
@@ -53,13 +55,16 @@ def voxel_mean(points: NDArray, voxel: float, *columns: NDArray | None,
     ``voxel_down_sample`` grid): the means ``(M, 3)`` in cell order, each of ``columns``
     (``(N, k)`` or None) averaged alike, and each point's cell index ``(N,)`` into the
     means. A sort and one pass of sums in place of Open3D's hash map: 3-5x faster on a
-    fused scan of 2 M points."""
+    fused scan of 2 M points. A given ``origin`` must lie at or below every point."""
+    check_positive(voxel, "voxel")
     p = np.ascontiguousarray(points, dtype=np.float64)
     if len(p) == 0:
         return np.zeros((0, 3)), [None if c is None else np.zeros((0, np.shape(c)[1])) for c in columns], \
             np.zeros(0, dtype=np.intp)
     lo, hi = bounds(p)
     o = lo - 0.5 * voxel if origin is None else np.asarray(origin, dtype=np.float64)
+    if not np.isfinite(p).all() or (lo < o).any():
+        raise InputError("voxel_mean: the points must be finite and at or above the origin")
     dims = np.floor((hi - o) / voxel).astype(np.int64) + 1  # floor is monotonic: the largest index
     if float(dims[0]) * float(dims[1]) * float(dims[2]) < 2.0**62:  # one int64 key a cell
         key = cell_keys(p, o, float(voxel), dims)

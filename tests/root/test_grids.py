@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from prism3d.errors import InputError
 from prism3d.grids import cell_quantile, nearest_valid, voxel_mean
 
 
@@ -87,3 +88,15 @@ def test_voxel_mean_with_more_cells_than_one_key_holds_and_empty_input() -> None
     np.testing.assert_allclose(m[inv], p)
     m, (c,), inv = voxel_mean(np.zeros((0, 3)), 1.0, np.zeros((0, 2)))
     assert m.shape == (0, 3) and c.shape == (0, 2) and inv.shape == (0,)
+
+
+def test_voxel_mean_refuses_what_it_cannot_index() -> None:
+    p = np.random.default_rng(6).random((10, 3))
+    with pytest.raises(InputError, match="voxel"):
+        voxel_mean(p, 0.0)
+    with pytest.raises(InputError, match="origin"):
+        voxel_mean(p, 0.1, origin=np.full(3, 0.5))  # points below the origin
+    q = p.copy()
+    q[3, 1] = np.nan
+    with pytest.raises(InputError, match="finite"):
+        voxel_mean(q, 0.1)
