@@ -116,8 +116,6 @@ def fuse_clouds(
         tau = _SUPPORT_VOXELS * voxel if support_distance is None else \
             float(check_positive(support_distance, "support_distance"))
         _keep_supported(all_p, all_v, all_c, tau, use_col)
-    if sum(len(q) for q in all_p) == 0:
-        raise ReconstructionError("fusion: fewer than 3 points remain after voxel averaging")
     out_p, (view, mean_c), _ = voxel_mean(np.concatenate(all_p), voxel, np.concatenate(all_v),
                                           np.concatenate(all_c) if use_col else None)
     if len(out_p) < 3:

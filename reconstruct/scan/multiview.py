@@ -38,7 +38,7 @@ _DAMPING = 1e-9
 #: Default stop: a Gauss-Newton step turning no view by more than this (degrees). The
 #: steps stop shrinking at 2-3e-4 deg (the correspondences' and weights' jitter), so a
 #: finer stop only repeats iterations; 1e-3 deg is 50x below the stitcher's 0.05-deg pose
-#: bound (docs/performance.md, "Stitching in 10 seconds").
+#: bound (docs/performance.md, "Stitching: voxel means, fewer repeated registrations").
 TOLERANCE_DEG = 1e-3
 # Step of the numerical Jacobian of the view twists in the turntable parameters (rad, units).
 _JACOBIAN_STEP = 1e-6
